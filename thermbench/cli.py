@@ -1,0 +1,79 @@
+"""``thermbench`` command line: a thin layer over importable functions.
+
+    thermbench simulate [hydra overrides...]   write a dataset (or suite=benchmark: all standard ones)
+    thermbench validate DATA_DIR               check a dataset against the contract and summarise it
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from . import __version__
+
+
+def _print_summary(title: str, path: Path, table) -> None:
+    print(f"\n{title}  ->  {path}")
+    show = table[["run_id", "duration_h", "stroke_mm", "start_mm", "end_mm", "feed_mm_min", "max_thermal_error_um"]]
+    print(show.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+
+
+def cmd_simulate(overrides: list[str]) -> int:
+    from . import datasets
+    from .config import load_config
+    from .data.io import load_dataset, save_dataset
+    from .data.reference import run_summary
+    from .sim.scenario import simulate_dataset
+
+    cfg = load_config("simulate", overrides)
+    if cfg.get("suite") == "benchmark":
+        root = Path(str(cfg.benchmark_root))
+        for name in datasets.names():
+            path, built = datasets.build(name, root)
+            ds = load_dataset(path)
+            state = "built" if built else "cached (config hash matches)"
+            _print_summary(f"[{name}] {state}", path.resolve(), run_summary(ds))
+        return 0
+    if cfg.get("suite") is not None:
+        raise ValueError(f"config key 'suite': expected null or 'benchmark', got {cfg.suite!r}")
+    ds, _ = simulate_dataset(cfg)
+    path = save_dataset(ds, Path(str(cfg.out_dir)), file_format=str(cfg.file_format))
+    _print_summary(f"[{cfg.machine.name} / {cfg.protocol.name}] simulated", path.resolve(), run_summary(load_dataset(path)))
+    return 0
+
+
+def cmd_validate(path: str) -> int:
+    from .data.io import load_dataset
+    from .data.reference import run_summary
+
+    ds = load_dataset(path)
+    print(f"{path}: valid {ds.metadata.format} dataset, machine {ds.metadata.machine.name} axis {ds.metadata.machine.axis}")
+    print(f"  {len(ds.process)} process rows, {len(ds.errors)} error readings, sensors: {', '.join(ds.sensor_columns)}")
+    _print_summary("runs", Path(path).resolve(), run_summary(ds))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .config import ConfigError
+    from .data.io import DatasetError
+
+    parser = argparse.ArgumentParser(prog="thermbench", description="Ball-screw thermal error modelling and compensation.")
+    parser.add_argument("--version", action="version", version=f"thermbench {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_sim = sub.add_parser("simulate", help="simulate a dataset (Hydra overrides, e.g. machine=seed002_vmc655h_x clean=true)")
+    p_sim.add_argument("overrides", nargs="*", help="Hydra overrides key=value")
+    p_val = sub.add_parser("validate", help="validate a dataset directory against the contract")
+    p_val.add_argument("data_dir")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "simulate":
+            return cmd_simulate(args.overrides)
+        return cmd_validate(args.data_dir)
+    except (DatasetError, ConfigError, ValueError, KeyError, FileNotFoundError) as exc:
+        print(f"thermbench: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

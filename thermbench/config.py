@@ -1,0 +1,39 @@
+"""Locate ``conf/`` and compose Hydra configs (no hand-rolled config parsing)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig
+
+
+class ConfigError(ValueError):
+    """A config or override is wrong; the message names the key."""
+
+
+def config_dir() -> Path:
+    """``$THERMBENCH_CONFIG_DIR``, else the ``conf/`` next to the package (a source checkout)."""
+    env = os.environ.get("THERMBENCH_CONFIG_DIR")
+    cand = Path(env) if env else Path(__file__).resolve().parent.parent / "conf"
+    if not (cand / "simulate.yaml").exists():
+        raise ConfigError(
+            f"config directory {cand} has no simulate.yaml; set THERMBENCH_CONFIG_DIR to the project's conf/"
+        )
+    return cand
+
+
+def load_config(name: str = "simulate", overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose ``conf/<name>.yaml`` with Hydra overrides (``key=value``, ``group=option``)."""
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(config_dir())):
+            return compose(config_name=name, overrides=list(overrides))
+    except ConfigError:
+        raise
+    except Exception as exc:  # hydra's override/composition errors are user mistakes
+        raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {exc}") from None

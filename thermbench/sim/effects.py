@@ -1,0 +1,242 @@
+"""Composable physical effects on top of the core seed 000 ball-screw model.
+
+Each effect is a small class with named, unit-carrying parameters and one job.
+They hook into the model at four points; every hook defaults to "no change",
+so an effect that is not in the model contributes exactly zero:
+
+* ``nut_heat_W(drive)``: extra nut friction power added to QN;
+* ``sources(geom, drive)``: extra heat sources, each (node weights, power per fine sample);
+* ``ambient_C(t_s, measured)``: lets the screw exchange heat with a varying ambient;
+* ``adjust_elongation_um(u, geom)`` and ``offset_um(history)``: change the
+  displacement read off the temperature field.
+
+The canonical ids (used by configs, the discrepancy workflow and export) are the
+keys of :data:`EFFECTS`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+from scipy.signal import lfilter
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .model import Drive, ThermalHistory
+    from .parts import Geometry
+
+
+def first_order_lag(u: np.ndarray, dt_s: float, tau_s: float, y0: float = 0.0) -> np.ndarray:
+    """Exact zero-order-hold response of tau dy/dt = u - y, sampled at the input samples.
+
+    ``y[k+1] = a y[k] + (1 - a) u[k]``, a = exp(-dt/tau); returns y at the same
+    instants as u (y[0] = y0).
+    """
+    u = np.asarray(u, dtype=float)
+    if tau_s <= 0:
+        return u.copy()
+    a = math.exp(-dt_s / tau_s)
+    y, _ = lfilter([0.0, 1.0 - a], [1.0, -a], u, zi=[y0])
+    return y
+
+
+@dataclass
+class Effect:
+    """Base class: an effect that changes nothing."""
+
+    id: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+
+    def nut_heat_W(self, drive: "Drive") -> np.ndarray | None:
+        return None
+
+    def sources(self, geom: "Geometry", drive: "Drive") -> list[tuple[np.ndarray, np.ndarray]]:
+        return []
+
+    def ambient_C(self, t_s: np.ndarray, measured_C: np.ndarray | None, ta0_C: float) -> np.ndarray | None:
+        return None
+
+    def adjust_elongation_um(self, u_um: np.ndarray, geom: "Geometry") -> np.ndarray:
+        return u_um
+
+    def offset_um(self, history: "ThermalHistory") -> np.ndarray | None:
+        return None
+
+    def params(self) -> dict[str, float]:
+        return asdict(self)
+
+    def with_params(self, **kw) -> "Effect":
+        p = self.params()
+        p.update(kw)
+        return type(self)(**p)
+
+
+@dataclass
+class AmbientDrift(Effect):
+    """Ambient temperature varies over the day (seed 000 §2.2, seed 001 eq. 2).
+
+    The screw convects to the current ambient Ta(t) and the axis grows by
+    TEa = alpha (Ta(t) - Ta(t0)) Px. With a measured ambient series the model
+    uses it; otherwise (in the simulator) Ta(t) = Ta0 + amplitude sin(2 pi (t +
+    phase)/period) - amplitude sin(2 pi phase/period) + rate t.
+    """
+
+    id: ClassVar[str] = "ambient_drift"
+    description: ClassVar[str] = "ambient temperature varies; screw follows it and the axis grows alpha*dTa*x"
+    amplitude_C: float = 1.5
+    period_s: float = 86400.0
+    phase_s: float = 0.0
+    rate_C_per_h: float = 0.0
+
+    def ambient_C(self, t_s, measured_C, ta0_C):
+        if measured_C is not None:
+            return np.asarray(measured_C, dtype=float)
+        w = 2.0 * math.pi / self.period_s
+        t = np.asarray(t_s, dtype=float) - float(np.asarray(t_s)[0])
+        return (
+            ta0_C
+            + self.amplitude_C * (np.sin(w * (t + self.phase_s)) - math.sin(w * self.phase_s))
+            + self.rate_C_per_h * t / 3600.0
+        )
+
+
+@dataclass
+class FreeEndBearingHeat(Effect):
+    """The support/free-end bearing adds friction heat QF = kF v over its length
+    at the far end of the screw (seed 000 §2.1 assumes it is zero)."""
+
+    id: ClassVar[str] = "free_end_bearing_heat"
+    description: ClassVar[str] = "free/support-end bearing friction heat kF*v at the far end"
+    kF_W_per_mm_min: float = 0.5e-3
+    length_m: float = 0.03
+
+    def sources(self, geom, drive):
+        n = geom.n_nodes
+        k = max(1, int(math.ceil(self.length_m / geom.numerics.dx_m - 1e-9)))
+        w = np.zeros(n)
+        w[n - k :] = 1.0 / k
+        return [(w, self.kF_W_per_mm_min * drive.v_mm_min)]
+
+    def heat_W(self, v_mm_min):
+        return self.kF_W_per_mm_min * np.asarray(v_mm_min)
+
+
+@dataclass
+class MotorHeat(Effect):
+    """Servo-motor heat enters the fixed end through the coupling (seed 000 §2.1
+    takes the coupling as adiabatic). Q_M = k_motor * lag_tau(v): the motor's
+    over-temperature follows the speed with a first-order lag of tens of minutes,
+    so heat keeps flowing after the axis stops."""
+
+    id: ClassVar[str] = "motor_heat"
+    description: ClassVar[str] = "motor heat through the coupling into the fixed end, lagging the speed"
+    k_motor_W_per_mm_min: float = 0.4e-3
+    tau_s: float = 1800.0
+
+    def sources(self, geom, drive):
+        w = np.zeros(geom.n_nodes)
+        w[0] = 1.0
+        lagged = first_order_lag(drive.v_mm_min, drive.dt_s, self.tau_s)
+        return [(w, self.k_motor_W_per_mm_min * lagged)]
+
+
+@dataclass
+class OriginDrift(Effect):
+    """The fixed-bearing housing grows and shifts the screw's fixed point: a
+    position-independent offset beta (T_fixed_bearing_housing(t) - T0)
+    (the intercept term of seed 002 eq. 6, 10)."""
+
+    id: ClassVar[str] = "origin_drift"
+    description: ClassVar[str] = "fixed-point shift beta*(T_fixed_bearing_housing - T0), position-independent"
+    beta_um_per_K: float = 2.0
+
+    def offset_um(self, history):
+        th = history.housing_C["fixed_bearing_housing"]
+        return self.beta_um_per_K * (th - th[0])
+
+
+@dataclass
+class FixedFixedConstraint(Effect):
+    """Both ends held (seed 004, fixed-fixed): a fraction kappa of the free
+    elongation is suppressed by a uniform compressive strain, so
+    u(x) = u_free(x) - kappa (x / L) u_free(L); with non-uniform heating the
+    error over the travel becomes the seed 004 parabola."""
+
+    id: ClassVar[str] = "fixed_fixed_constraint"
+    description: ClassVar[str] = "fixed-fixed mounting suppresses a fraction kappa of the free elongation"
+    kappa: float = 0.8
+
+    def adjust_elongation_um(self, u_um, geom):
+        n = u_um.shape[-1]
+        frac = np.linspace(0.0, 1.0, n)
+        return u_um - self.kappa * u_um[..., -1:] * frac
+
+
+@dataclass
+class QuadraticFrictionHeat(Effect):
+    """The nut's friction heat has a viscous part: QN = k4 v + k5 v^2."""
+
+    id: ClassVar[str] = "quadratic_friction_heat"
+    description: ClassVar[str] = "viscous nut friction: QN = k4*v + k5*v^2"
+    k5_W_per_mm_min2: float = 5e-8
+
+    def nut_heat_W(self, drive):
+        return self.k5_W_per_mm_min2 * drive.v_mm_min**2
+
+
+@dataclass
+class LoadDependentHeat(Effect):
+    """The nut's friction heat grows with axial load: QN = (k4 + k6 F) v, F from load_N."""
+
+    id: ClassVar[str] = "load_dependent_heat"
+    description: ClassVar[str] = "nut friction grows with axial load: QN = (k4 + k6*F)*v"
+    k6_W_per_N_mm_min: float = 2e-7
+
+    def nut_heat_W(self, drive):
+        if drive.load_N is None:
+            raise ValueError("effect 'load_dependent_heat' needs the axial load (column load_N)")
+        return self.k6_W_per_N_mm_min * drive.load_N * drive.v_mm_min
+
+
+EFFECTS: dict[str, type[Effect]] = {
+    cls.id: cls
+    for cls in (
+        AmbientDrift,
+        FreeEndBearingHeat,
+        MotorHeat,
+        OriginDrift,
+        FixedFixedConstraint,
+        QuadraticFrictionHeat,
+        LoadDependentHeat,
+    )
+}
+
+
+def make_effect(effect_id: str, **params) -> Effect:
+    """Build a canonical effect by id; unknown ids or parameters give a clear error."""
+    if effect_id not in EFFECTS:
+        raise ValueError(f"unknown effect {effect_id!r}; the canonical effects are {sorted(EFFECTS)}")
+    cls = EFFECTS[effect_id]
+    known = {f.name for f in fields(cls)}
+    bad = set(params) - known
+    if bad:
+        raise ValueError(f"effect {effect_id!r} has no parameter(s) {sorted(bad)}; it takes {sorted(known)}")
+    return cls(**params)
+
+
+def effects_from_config(cfg) -> list[Effect]:
+    """``{effect_id: {enabled: bool, param: value, ...}}`` -> list of enabled effects.
+
+    A bare ``effect_id: true/false`` also works.
+    """
+    out: list[Effect] = []
+    for effect_id, spec in dict(cfg or {}).items():
+        if isinstance(spec, bool):
+            spec = {"enabled": spec}
+        spec = dict(spec or {})
+        if not spec.pop("enabled", True):
+            continue
+        out.append(make_effect(str(effect_id), **spec))
+    return out

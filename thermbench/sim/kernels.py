@@ -1,0 +1,254 @@
+"""Numerical kernels of the seed 000 finite-difference ball-screw model (numba).
+
+Two integrators of the same semi-discrete model (seed 000 §3.1):
+
+* :func:`explicit_run` is the paper's iteration literally: forward Euler with the
+  fine step ``dt`` (0.1 s in seed 000 Table 1). It is the reference.
+* :func:`macro_run` integrates the same semi-discrete system with large steps
+  (e.g. 10 s): within each macro step the heat inputs and convective
+  conductances of every node are replaced by their exact average over the fine
+  samples of that step (so the energy entering the screw is the same as in the
+  explicit scheme), and the resulting linear system is advanced by the
+  L-stable, second-order SDIRK2 method (Alexander 1977), two tridiagonal solves
+  per step. Benchmarked against the explicit scheme in ``benchmarks/``.
+
+Node classification per fine sample follows the seed 000 §3.1 piecewise
+update: node n = 1 and 1 < n <= LB/dx are fixed-bearing nodes (bearing heat
+QB/LB per length, no convection); nodes under the nut get QN/LN per length
+and no convection (edge nodes in proportion to the covered fraction, see
+:func:`_nut_cover`); node N convects over its cylinder and its end face,
+factor (1 + D/(4 dx)); every other node convects over its cylinder. Nodes are
+0-based here (index i = n - 1).
+
+All temperatures are rises ``theta = T - Ta0`` above the initial ambient.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _nut_cover(x_nut_m, half_len_m, dx_m, n_bearing, n_nodes):
+    """Nodes under the nut and the covered fraction of the two edge nodes.
+
+    Node i (0-based) spans [i dx, (i + 1) dx]. The nut spans [XN - LN/2, XN + LN/2]
+    (seed 000 §3.1), after the fixed-bearing nodes, which come first in the
+    piecewise update. Returns (lo, hi, w_lo, w_hi): nodes lo..hi inclusive are
+    covered, fully except the edge nodes, covered by w_lo and w_hi; lo > hi when
+    the nut covers nothing. Seed 000 counts a node as covered when its right face
+    lies under the nut; the fractional edges are that rule's consistent form: the
+    nut's power stays exactly QN at every position and the heat input varies
+    continuously with XN, so the scheme converges in dx and dt even when the nut
+    travels more than dx per step (9000 mm/min at dt = 0.1 s is 15 mm).
+    """
+    a = x_nut_m - half_len_m
+    b = x_nut_m + half_len_m
+    a_min = n_bearing * dx_m
+    if a < a_min:
+        a = a_min
+    l_m = n_nodes * dx_m
+    if b > l_m:
+        b = l_m
+    if b <= a:
+        return 1, 0, 0.0, 0.0
+    lo = int(np.floor(a / dx_m))
+    hi = int(np.floor(b / dx_m))
+    if hi >= n_nodes:
+        hi = n_nodes - 1
+    if lo == hi:
+        w = (b - a) / dx_m
+        return lo, hi, w, w
+    return lo, hi, (lo + 1) - a / dx_m, b / dx_m - hi
+
+
+@njit(cache=True)
+def _add_cover(d, k, lo, hi, w_lo, w_hi, value):
+    """Add ``value`` x coverage to row k of the difference array d."""
+    d[k, lo] += value
+    d[k, hi + 1] -= value
+    d[k, lo] -= value * (1.0 - w_lo)
+    d[k, lo + 1] += value * (1.0 - w_lo)
+    if hi != lo:
+        d[k, hi] -= value * (1.0 - w_hi)
+        d[k, hi + 1] += value * (1.0 - w_hi)
+
+
+@njit(cache=True)
+def accumulate_step_averages(
+    x_nut_m, qn_W, h_W_m2K, n_per_step, n_steps, n_nodes, dx_m, half_nut_m, nut_len_m, n_bearing
+):
+    """Average over each macro step of the nut heat per node and the coverage.
+
+    Returns
+    -------
+    q_nut_W : (n_steps, n_nodes) mean nut power entering each node
+    h_cover : (n_steps, n_nodes) mean of h x covered fraction (so the mean
+        h of the exposed surface is mean(h) - h_cover)
+    cover : (n_steps, n_nodes) mean covered fraction of each node
+    """
+    dq = np.zeros((n_steps, n_nodes + 1))
+    dh = np.zeros((n_steps, n_nodes + 1))
+    dc = np.zeros((n_steps, n_nodes + 1))
+    per_node = dx_m / nut_len_m
+    for j in range(n_steps * n_per_step):
+        k = j // n_per_step
+        lo, hi, w_lo, w_hi = _nut_cover(x_nut_m[j], half_nut_m, dx_m, n_bearing, n_nodes)
+        if hi >= lo:
+            _add_cover(dq, k, lo, hi, w_lo, w_hi, qn_W[j] * per_node)
+            _add_cover(dh, k, lo, hi, w_lo, w_hi, h_W_m2K[j])
+            _add_cover(dc, k, lo, hi, w_lo, w_hi, 1.0)
+    q_nut = np.empty((n_steps, n_nodes))
+    h_cov = np.empty((n_steps, n_nodes))
+    cov = np.empty((n_steps, n_nodes))
+    inv = 1.0 / n_per_step
+    for k in range(n_steps):
+        a = 0.0
+        b = 0.0
+        c = 0.0
+        for i in range(n_nodes):
+            a += dq[k, i]
+            b += dh[k, i]
+            c += dc[k, i]
+            q_nut[k, i] = a * inv
+            h_cov[k, i] = b * inv
+            cov[k, i] = c * inv
+    return q_nut, h_cov, cov
+
+
+@njit(cache=True)
+def _solve_tridiag(diag, off, rhs, out, cprime):
+    """Thomas algorithm for a symmetric tridiagonal matrix with constant off-diagonal."""
+    n = diag.shape[0]
+    b0 = diag[0]
+    cprime[0] = off / b0
+    out[0] = rhs[0] / b0
+    for i in range(1, n):
+        m = diag[i] - off * cprime[i - 1]
+        cprime[i] = off / m
+        out[i] = (rhs[i] - off * out[i - 1]) / m
+    for i in range(n - 2, -1, -1):
+        out[i] -= cprime[i] * out[i + 1]
+
+
+@njit(cache=True)
+def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K):
+    """Advance the semi-discrete model over macro steps with SDIRK2.
+
+    Node equation: ``cap * dtheta_i/dt = cond*(theta_{i+1} - 2 theta_i + theta_{i-1})
+    + q_i - g_i * (theta_i - dTa)`` with adiabatic left end and no conduction
+    beyond the right end (seed 000 §3.1). ``q_W`` and ``g_W_K`` are (n_steps,
+    n_nodes) step averages, ``dta_C`` the mean ambient change per step.
+
+    Returns the states at the step boundaries, shape (n_steps + 1, n_nodes),
+    and the convected heat per step (J), consistent with the scheme.
+    """
+    n_steps, n = q_W.shape
+    gamma = 1.0 - np.sqrt(2.0) / 2.0
+    out = np.empty((n_steps + 1, n))
+    conv_J = np.empty(n_steps)
+    out[0, :] = theta0
+    y = theta0.copy()
+    diag = np.empty(n)
+    rhs = np.empty(n)
+    y1 = np.empty(n)
+    y2 = np.empty(n)
+    cp = np.empty(n)
+    gh = gamma * dt_s
+    off = -gh * cond_W_K
+    for k in range(n_steps):
+        ta = dta_C[k]
+        for i in range(n):
+            nb = 2.0
+            if i == 0 or i == n - 1:
+                nb = 1.0
+            diag[i] = cap_J_K + gh * (nb * cond_W_K + g_W_K[k, i])
+            rhs[i] = cap_J_K * y[i] + gh * (q_W[k, i] + g_W_K[k, i] * ta)
+        _solve_tridiag(diag, off, rhs, y1, cp)
+        # f1 = (Y1 - y)/(gamma h): second stage y + (1-gamma) h f1 + gamma h f(Y2)
+        c1 = (1.0 - gamma) / gamma
+        for i in range(n):
+            f1h = y1[i] - y[i]
+            rhs[i] = cap_J_K * (y[i] + c1 * f1h) + gh * (q_W[k, i] + g_W_K[k, i] * ta)
+        _solve_tridiag(diag, off, rhs, y2, cp)
+        e = 0.0
+        for i in range(n):
+            e += g_W_K[k, i] * ((1.0 - gamma) * (y1[i] - ta) + gamma * (y2[i] - ta))
+            y[i] = y2[i]
+            out[k + 1, i] = y2[i]
+        conv_J[k] = e * dt_s
+    return out, conv_J
+
+
+@njit(cache=True)
+def explicit_run(
+    theta0,
+    x_nut_m,
+    qn_W,
+    qb_W,
+    h_W_m2K,
+    dta_C,
+    src_weights,
+    src_power_W,
+    dt_s,
+    n_per_out,
+    dx_m,
+    half_nut_m,
+    nut_len_m,
+    n_bearing,
+    bearing_len_m,
+    cap_J_K,
+    cond_W_K,
+    side_area_m2,
+    end_area_m2,
+):
+    """The seed 000 §3.1 iteration, literally (forward Euler at the fine step).
+
+    Returns the states every ``n_per_out`` fine steps, shape (n_out + 1, n_nodes).
+    """
+    n = theta0.shape[0]
+    n_fine = x_nut_m.shape[0]
+    n_out = n_fine // n_per_out
+    out = np.empty((n_out + 1, n))
+    out[0, :] = theta0
+    y = theta0.copy()
+    new = np.empty(n)
+    n_src = src_weights.shape[0]
+    per_node_b = dx_m / bearing_len_m if bearing_len_m > 0 else 0.0
+    per_node_n = dx_m / nut_len_m
+    for j in range(n_out * n_per_out):
+        lo, hi, w_lo, w_hi = _nut_cover(x_nut_m[j], half_nut_m, dx_m, n_bearing, n)
+        h = h_W_m2K[j]
+        ta = dta_C[j]
+        for i in range(n):
+            if n == 1:
+                lap = 0.0
+            elif i == 0:
+                lap = y[1] - y[0]
+            elif i == n - 1:
+                lap = y[n - 2] - y[n - 1]
+            else:
+                lap = y[i + 1] + y[i - 1] - 2.0 * y[i]
+            p = cond_W_K * lap
+            if i < n_bearing:
+                p += qb_W[j] * per_node_b
+            else:
+                w = 0.0
+                if lo <= i <= hi:
+                    w = 1.0
+                    if i == lo:
+                        w = w_lo
+                    elif i == hi:
+                        w = w_hi
+                p += w * qn_W[j] * per_node_n
+                area = side_area_m2 + (end_area_m2 if i == n - 1 else 0.0)
+                p -= (1.0 - w) * h * area * (y[i] - ta)
+            for s in range(n_src):
+                p += src_weights[s, i] * src_power_W[s, j]
+            new[i] = y[i] + dt_s * p / cap_J_K
+        for i in range(n):
+            y[i] = new[i]
+        if (j + 1) % n_per_out == 0:
+            out[(j + 1) // n_per_out, :] = y
+    return out

@@ -1,0 +1,324 @@
+"""The ball-screw thermal model: core seed 000 physics composed with effects.
+
+``ScrewThermalModel(screw, material, core, effects, numerics).run(motion)``
+integrates the temperature field (seed 000 §3.1) and returns a
+:class:`ThermalHistory` that reads the positioning thermal error at any
+(time, axis position) (seed 000 §3.2 and §2.2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import kernels
+from .effects import AmbientDrift, Effect, FreeEndBearingHeat, first_order_lag
+from .parts import CoreParams, Geometry, Housing, Material, Numerics, Screw, default_housings
+
+
+@dataclass
+class Motion:
+    """What the axis did: samples of time, axis position, speed and axial load.
+
+    Any sampling works; the model resamples linearly to its fine step.
+    """
+
+    t_s: np.ndarray
+    axis_mm: np.ndarray
+    feed_mm_min: np.ndarray
+    load_N: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.t_s = np.asarray(self.t_s, dtype=float)
+        self.axis_mm = np.asarray(self.axis_mm, dtype=float)
+        self.feed_mm_min = np.asarray(self.feed_mm_min, dtype=float)
+        if self.load_N is not None:
+            self.load_N = np.asarray(self.load_N, dtype=float)
+        n = self.t_s.shape[0]
+        if n < 2 or self.axis_mm.shape[0] != n or self.feed_mm_min.shape[0] != n:
+            raise ValueError("Motion needs at least two samples and equal-length t_s, axis_mm, feed_mm_min")
+        if np.any(np.diff(self.t_s) <= 0):
+            raise ValueError("Motion.t_s must be strictly increasing")
+
+
+@dataclass
+class Drive:
+    """The motion resampled on the model's fine time grid (seed 000 dt)."""
+
+    t_s: np.ndarray
+    dt_s: float
+    axis_mm: np.ndarray
+    x_screw_m: np.ndarray
+    v_mm_min: np.ndarray
+    load_N: np.ndarray | None
+
+
+@dataclass
+class ThermalHistory:
+    """Temperature field and derived displacement at the macro-step boundaries."""
+
+    t_s: np.ndarray  # (n_t,)
+    theta_C: np.ndarray  # (n_t, n_nodes) screw temperature rise above Ta0
+    ambient_C: np.ndarray  # (n_t,) ambient the screw exchanges heat with
+    ta0_C: float
+    housing_C: dict[str, np.ndarray]
+    geom: Geometry
+    core: CoreParams
+    effects: list[Effect]
+    heat_in_J: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per step
+    convected_J: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per step (macro only)
+
+    # -- seed 000 §3.2 ------------------------------------------------------
+    def elongation_um(self) -> np.ndarray:
+        """TEm at the node faces x = 0, dx, ..., N dx, shape (n_t, N + 1) in um.
+
+        E_n = alpha (T_n - Ta) dx, TEm(n dx) = sum_{i<=n} E_i, TEm(0) = 0
+        (seed 000 §3.2), then the mounting/constraint effects.
+        """
+        g = self.geom
+        dta = (self.ambient_C - self.ta0_C)[:, None]
+        e = g.material.alpha_per_K * (self.theta_C - dta) * g.numerics.dx_m * 1e6
+        u = np.concatenate([np.zeros((e.shape[0], 1)), np.cumsum(e, axis=1)], axis=1)
+        for eff in self.effects:
+            u = eff.adjust_elongation_um(u, g)
+        return u
+
+    def offset_um(self) -> np.ndarray:
+        off = np.zeros_like(self.t_s)
+        for eff in self.effects:
+            o = eff.offset_um(self)
+            if o is not None:
+                off = off + o
+        return off
+
+    def error_um(self, t_s, axis_mm) -> np.ndarray:
+        """Thermal positioning error (measured - commanded, um) at pairs (t, Px).
+
+        Linear in time between steps; within an element TEm is interpolated
+        linearly (seed 000 §3.2). Pf < 0: TE = TEm(Px - Pf) + TEa; Pf > 0 the
+        axis runs towards the fixed end and TE = -(TEm(Pf - Px) + TEa) (the
+        signs are lost in the extracted text of seed 000 §3.2; these are the
+        physically consistent ones). TEa = alpha dTa Px (seed 000 §2.2).
+        """
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        px_mm = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
+        u = self.elongation_um()
+        return self._read(u, self.offset_um(), self.ambient_C, t, px_mm)
+
+    def _read(self, u, off, amb, t, px_mm):
+        g = self.geom
+        k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
+        w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
+        pf = self.core.pf_m
+        sign = 1.0 if pf <= 0 else -1.0
+        x = np.clip(sign * (px_mm / 1000.0 - pf), 0.0, g.screw.length_m)
+        nodes = x / g.numerics.dx_m
+        m = np.clip(np.floor(nodes).astype(int), 0, u.shape[1] - 2)
+        f = nodes - m
+        u_k = u[k, m] * (1 - f) + u[k, m + 1] * f
+        u_k1 = u[k + 1, m] * (1 - f) + u[k + 1, m + 1] * f
+        tem = u_k * (1 - w) + u_k1 * w
+        dta = (amb[k] * (1 - w) + amb[k + 1] * w) - self.ta0_C
+        tea = g.material.alpha_per_K * dta * px_mm * 1e-3 * 1e6
+        return sign * (tem + tea) + off[k] * (1 - w) + off[k + 1] * w
+
+    def error_field_um(self, axis_mm) -> np.ndarray:
+        """Error over an axis grid at every step, shape (n_t, n_x): the
+        compensation table of seed 000 §4.3 (compensation = -error)."""
+        axis_mm = np.asarray(axis_mm, dtype=float)
+        tt = np.repeat(self.t_s, axis_mm.size)
+        pp = np.tile(axis_mm, self.t_s.size)
+        u = self.elongation_um()
+        return self._read(u, self.offset_um(), self.ambient_C, tt, pp).reshape(self.t_s.size, axis_mm.size)
+
+
+class ScrewThermalModel:
+    """Seed 000 §3.1-3.2 finite-difference model composed with effects (pysindy-style).
+
+    Heat parameterisation (seed 000 §4.1): h = k1 v + k2, QB = k3 v, QN = k4 v
+    (+ the effects' nut heat). Mounting from seed 004: ``fixed_fixed`` screws need
+    the ``fixed_fixed_constraint`` effect (the simulator adds it from config).
+    """
+
+    def __init__(
+        self,
+        screw: Screw,
+        material: Material,
+        core: CoreParams | None = None,
+        effects: list[Effect] | tuple = (),
+        numerics: Numerics | None = None,
+        housings: dict[str, Housing] | None = None,
+    ) -> None:
+        self.screw = screw
+        self.material = material
+        self.core = core or CoreParams()
+        self.effects = list(effects)
+        self.numerics = numerics or Numerics()
+        self.housings = housings or default_housings()
+        ids = [e.id for e in self.effects]
+        dup = {i for i in ids if ids.count(i) > 1}
+        if dup:
+            raise ValueError(f"effect(s) listed twice: {sorted(dup)}")
+
+    @property
+    def geom(self) -> Geometry:
+        return Geometry(self.screw, self.material, self.numerics)
+
+    def effect(self, effect_id: str) -> Effect | None:
+        return next((e for e in self.effects if e.id == effect_id), None)
+
+    # -------------------------------------------------------------------
+    def drive(self, motion: Motion, duration_s: float | None = None) -> Drive:
+        num = self.numerics
+        t0 = float(motion.t_s[0])
+        span = float(duration_s if duration_s is not None else motion.t_s[-1] - t0)
+        n_steps = max(1, int(math.ceil(span / num.macro_dt_s - 1e-9)))
+        n_fine = n_steps * num.per_step
+        t = t0 + np.arange(n_fine) * num.dt_s
+        axis = np.interp(t, motion.t_s, motion.axis_mm)
+        v = np.abs(np.interp(t, motion.t_s, motion.feed_mm_min))
+        load = None if motion.load_N is None else np.interp(t, motion.t_s, motion.load_N)
+        pf = self.core.pf_m
+        sign = 1.0 if pf <= 0 else -1.0
+        x = np.clip(sign * (axis / 1000.0 - pf), 0.0, self.screw.length_m)
+        return Drive(t_s=t, dt_s=num.dt_s, axis_mm=axis, x_screw_m=x, v_mm_min=v, load_N=load)
+
+    def run(
+        self,
+        motion: Motion,
+        ambient_C: np.ndarray | float | None = None,
+        ambient_t_s: np.ndarray | None = None,
+        theta0_C: np.ndarray | None = None,
+        duration_s: float | None = None,
+        method: str | None = None,
+    ) -> ThermalHistory:
+        """Integrate the temperature field over the motion.
+
+        ``ambient_C``: a constant, or a measured series at ``ambient_t_s`` (default
+        the motion's times). Without the ``ambient_drift`` effect the screw sees a
+        constant ambient Ta0 = the first value (seed 000 §3.1, T_n(0) = Ta).
+        """
+        g = self.geom
+        num = self.numerics
+        method = method or num.method
+        d = self.drive(motion, duration_s)
+        n = g.n_nodes
+        m = num.per_step
+        n_steps = d.t_s.size // m
+        t_b = d.t_s[0] + np.arange(n_steps + 1) * num.macro_dt_s
+
+        # ambient -----------------------------------------------------------
+        if ambient_C is None:
+            ambient_C = 20.0
+        amb_in = np.asarray(ambient_C, dtype=float)
+        if amb_in.ndim == 0:
+            ta0 = float(amb_in)
+            measured_f = measured_b = None
+        else:
+            src_t = motion.t_s if ambient_t_s is None else np.asarray(ambient_t_s, dtype=float)
+            ta0 = float(amb_in[0])
+            measured_f = np.interp(d.t_s, src_t, amb_in)
+            measured_b = np.interp(t_b, src_t, amb_in)
+        drift = self.effect(AmbientDrift.id)
+        if drift is not None:
+            amb_f = drift.ambient_C(d.t_s, measured_f, ta0)
+            amb_b = drift.ambient_C(t_b, measured_b, ta0)
+        else:
+            amb_f = np.full(d.t_s.size, ta0)
+            amb_b = np.full(t_b.size, ta0)
+        dta_f = amb_f - ta0
+
+        # heat (seed 000 §4.1 + effects) -------------------------------------
+        c = self.core
+        v = d.v_mm_min
+        h = c.k1_W_m2K_per_mm_min * v + c.k2_W_m2K
+        qb = c.k3_W_per_mm_min * v
+        qn = c.k4_W_per_mm_min * v
+        for eff in self.effects:
+            extra = eff.nut_heat_W(d)
+            if extra is not None:
+                qn = qn + extra
+        srcs = [s for eff in self.effects for s in eff.sources(g, d)]
+        if srcs:
+            sw = np.stack([s[0] for s in srcs]).astype(float)
+            sp = np.stack([np.broadcast_to(s[1], d.t_s.shape) for s in srcs]).astype(float)
+        else:
+            sw = np.zeros((0, n))
+            sp = np.zeros((0, d.t_s.size))
+
+        cond = self.material_conductance(c.lambda_W_mK)
+        th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
+        half = self.screw.nut_length_m / 2.0
+        nb = g.n_bearing
+        q_nut, h_cov, cov = kernels.accumulate_step_averages(
+            d.x_screw_m, qn, h, m, n_steps, n, num.dx_m, half, self.screw.nut_length_m, nb
+        )
+        qb_mean = qb.reshape(n_steps, m).mean(axis=1)
+        q = q_nut
+        if nb > 0:
+            q = q.copy()
+            q[:, :nb] += (qb_mean * num.dx_m / self.screw.fixed_bearing_length_m)[:, None]
+        if srcs:
+            q = q + (sp.reshape(len(srcs), n_steps, m).mean(axis=2).T @ sw)
+        heat_in = q.sum(axis=1) * num.macro_dt_s
+        conv_J = np.zeros(n_steps)
+
+        if method == "explicit":
+            theta = kernels.explicit_run(
+                th0, d.x_screw_m, qn, qb, h, dta_f, sw, sp, num.dt_s, m, num.dx_m, half,
+                self.screw.nut_length_m, nb, self.screw.fixed_bearing_length_m,
+                g.cap_J_K, cond, g.side_area_m2, g.end_area_m2,
+            )  # fmt: skip
+        else:
+            area = np.full(n, g.side_area_m2)
+            area[-1] += g.end_area_m2
+            area[:nb] = 0.0
+            h_mean = h.reshape(n_steps, m).mean(axis=1)
+            gk = (h_mean[:, None] - h_cov) * area[None, :]
+            dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
+            theta, conv_J = kernels.macro_run(th0, q, gk, dta_step, num.macro_dt_s, g.cap_J_K, cond)
+
+        housing = self._housings(d, theta, cov, amb_b, ta0, n_steps, m, qn, qb)
+        return ThermalHistory(
+            t_s=t_b, theta_C=theta, ambient_C=amb_b, ta0_C=ta0, housing_C=housing, geom=g,
+            core=self.core, effects=self.effects, heat_in_J=heat_in, convected_J=conv_J,
+        )  # fmt: skip
+
+    def material_conductance(self, lambda_W_mK: float) -> float:
+        """lambda A_s / dx: the conductance between neighbouring nodes."""
+        return lambda_W_mK * self.screw.area_m2 / self.numerics.dx_m
+
+    def _housings(self, d, theta, cov, amb_b, ta0, n_steps, m, qn, qb) -> dict[str, np.ndarray]:
+        """Lumped housing temperatures at the step boundaries (see :class:`Housing`)."""
+        fb = self.effect(FreeEndBearingHeat.id)
+        mean = lambda a: np.asarray(a).reshape(n_steps, m).mean(axis=1)  # noqa: E731
+        q_src = {
+            "nut": mean(qn),
+            "fixed_bearing": mean(qb),
+            "free_bearing": mean(fb.heat_W(d.v_mm_min)) if fb is not None else np.zeros(n_steps),
+            "none": np.zeros(n_steps),
+        }
+        v_step = mean(d.v_mm_min)
+        th = theta[:-1]
+        covsum = cov.sum(axis=1)
+        nut_local = np.where(covsum > 0, (th * cov).sum(axis=1) / np.maximum(covsum, 1e-12), th.mean(axis=1))
+        local = {
+            "nut": nut_local,
+            "fixed_end": th[:, : max(1, self.geom.n_bearing)].mean(axis=1),
+            "free_end": th[:, -3:].mean(axis=1),
+            "none": np.zeros(n_steps),
+        }
+        out: dict[str, np.ndarray] = {}
+        for name, hs in self.housings.items():
+            if hs.source not in q_src or hs.screw_at not in local:
+                raise ValueError(
+                    f"housing {name!r}: source must be one of {sorted(q_src)} and screw_at one of {sorted(local)}"
+                )
+            u = hs.gain_K_per_W * q_src[hs.source] + hs.gain_K_per_mm_min * v_step
+            u = u + hs.screw_coupling * local[hs.screw_at] + (amb_b[:-1] - ta0)
+            y = first_order_lag(np.append(u, u[-1]), self.numerics.macro_dt_s, hs.tau_s)
+            out[name] = ta0 + y
+        out["ambient"] = amb_b.copy()
+        return out

@@ -1,0 +1,226 @@
+"""From a (Hydra) simulate config to a dataset in the contract format.
+
+``simulate_dataset(cfg)`` is the plain function behind ``thermbench simulate``:
+machine + protocol + instruments (+ effects, numerics, seed) -> :class:`Dataset`.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from ..data.io import Dataset
+from ..data.schema import FORMAT, Metadata
+from .duty import Measuring, Phase, Trajectory, build_run, random_phases
+from .effects import effects_from_config
+from .instruments import GeometricError, Interferometer, SensorSpec
+from .model import ScrewThermalModel, ThermalHistory
+from .parts import CoreParams, Material, Numerics, Screw, housings_from_config
+
+
+def _plain(cfg: Any) -> Any:
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_container(cfg, resolve=True)
+    return copy.deepcopy(cfg)
+
+
+def _targets(spec: Any) -> tuple[float, ...]:
+    if isinstance(spec, dict):
+        start, stop, step = float(spec["start"]), float(spec["stop"]), float(spec["step"])
+        return tuple(float(x) for x in np.arange(start, stop + step / 2, step))
+    return tuple(float(x) for x in spec)
+
+
+def _build(spec: Any, cls: type, key: str) -> Any:
+    """Instantiate from ``_target_`` when present, else from the fields; name the key on error."""
+    try:
+        if isinstance(spec, dict) and "_target_" in spec:
+            return instantiate(spec, _convert_="all")
+        return cls(**dict(spec or {}))
+    except Exception as exc:
+        raise ValueError(f"config key {key!r}: {exc}") from None
+
+
+def build_model(cfg: Any) -> ScrewThermalModel:
+    """The truth model of a simulate config: machine physics + enabled effects."""
+    c = _plain(cfg)
+    m = c["machine"]
+    clean = bool(c.get("clean", False))
+    effects_cfg: dict = {}
+    if not clean:
+        effects_cfg.update(m.get("effects") or {})
+        effects_cfg.update(c.get("effects") or {})
+    return ScrewThermalModel(
+        screw=_build(m["screw"], Screw, "machine.screw"),
+        material=_build(m["material"], Material, "machine.material"),
+        core=_build(m["core"], CoreParams, "machine.core"),
+        effects=effects_from_config(effects_cfg),
+        numerics=_build(c.get("numerics") or {}, Numerics, "numerics"),
+        housings=housings_from_config(m.get("housings")),
+    )
+
+
+def _run_phases(run_id: str, run: dict, rng: np.random.Generator, travel: tuple[float, float]) -> list[Phase]:
+    cond = run.get("condition") or {}
+    base = {k: cond[k] for k in ("start_mm", "end_mm", "feed_mm_min", "load_N") if k in cond}
+    phases = []
+    for i, ph in enumerate(run.get("phases") or []):
+        spec = {**base, **ph}
+        if spec.get("kind") == "stop":
+            spec = {"kind": "stop", "duration_s": spec["duration_s"]}
+        try:
+            phases.append(Phase(**spec))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"config key 'protocol.runs.{run_id}.phases[{i}]': {exc}") from None
+    return phases
+
+
+def _condition(phases: list[Phase], run: dict) -> dict:
+    cond = dict(run.get("condition") or {})
+    if not {"start_mm", "end_mm", "feed_mm_min"} <= set(cond):
+        moves = [p for p in phases if p.kind == "move"]
+        main = max(moves, key=lambda p: p.duration_s) if moves else None
+        cond = {
+            "start_mm": main.start_mm if main else 0.0,
+            "end_mm": main.end_mm if main else 0.0,
+            "feed_mm_min": main.feed_mm_min if main else 0.0,
+        }
+    cond.pop("load_N", None)
+    lo, hi = sorted((float(cond["start_mm"]), float(cond["end_mm"])))
+    return {"stroke_mm": hi - lo, "start_mm": lo, "end_mm": hi, "feed_mm_min": float(cond["feed_mm_min"])}
+
+
+def protocol_runs(cfg: Any, rng: np.random.Generator) -> dict[str, dict]:
+    """Expand the protocol into runs: id -> {phases, condition, notes}."""
+    c = _plain(cfg)
+    proto = c["protocol"]
+    travel = tuple(float(x) for x in c["machine"]["travel_mm"])
+    runs: dict[str, dict] = {}
+    for run_id, run in (proto.get("runs") or {}).items():
+        phases = _run_phases(str(run_id), run, rng, travel)
+        runs[str(run_id)] = {
+            "phases": phases,
+            "condition": _condition(phases, run),
+            "notes": run.get("notes"),
+            "measure_every_s": run.get("measure_every_s"),
+        }
+    rnd = proto.get("random_runs") or {}
+    for i in range(int(rnd.get("count", 0))):
+        phases = random_phases(
+            rng,
+            n_phases=int(rnd.get("n_phases", 10)),
+            travel_mm=travel,
+            feed_mm_min=tuple(rnd.get("feed_mm_min", (500, 6000))),
+            stroke_mm=tuple(rnd.get("stroke_mm", (20, travel[1] - travel[0]))),
+            move_s=tuple(rnd.get("move_s", (300, 1800))),
+            stop_s=tuple(rnd.get("stop_s", (300, 1200))),
+            p_stop=float(rnd.get("p_stop", 0.3)),
+        )
+        runs[f"random_{i + 1:02d}"] = {
+            "phases": phases,
+            "condition": _condition(phases, {}),
+            "notes": "random duty sequence (condition = its longest move phase)",
+        }
+    if not runs:
+        raise ValueError("config key 'protocol.runs': the protocol defines no runs")
+    return runs
+
+
+def simulate_run(
+    model: ScrewThermalModel, traj: Trajectory, ambient_C: float
+) -> tuple[ThermalHistory, Any]:
+    """Integrate the model over a run's trajectory at the model's fine step."""
+    t = np.arange(0.0, traj.now, model.numerics.dt_s)
+    motion = traj.sample(t)
+    return model.run(motion, ambient_C=ambient_C, duration_s=traj.now), motion
+
+
+def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
+    """Simulate every run of the protocol on the machine; return the dataset and a summary."""
+    c = _plain(cfg)
+    clean = bool(c.get("clean", False))
+    seed = int(c.get("seed", 0))
+    m = c["machine"]
+    model = build_model(c)
+    inst = c.get("instruments") or {}
+    sensor = SensorSpec(noise_C=0, quantum_C=0) if clean else _build(inst.get("sensor"), SensorSpec, "instruments.sensor")
+    geometric = GeometricError() if clean else _build(m.get("geometric"), GeometricError, "machine.geometric")
+    ifm_spec = dict(inst.get("interferometer") or {})
+    ifm_spec.pop("_target_", None)
+    ifm = Interferometer(noise_um=0.0 if clean else float(ifm_spec.get("noise_um", 0.2)), geometric=geometric)
+    rate_hz = float(inst.get("process_rate_hz", 1.0))
+    if rate_hz < 1.0:
+        raise ValueError(f"config key 'instruments.process_rate_hz': must be >= 1 (contract), got {rate_hz}")
+    meas_cfg = dict(c["protocol"]["measuring"])
+    meas_cfg["targets_mm"] = _targets(meas_cfg["targets_mm"])
+    meas = _build(meas_cfg, Measuring, "protocol.measuring")
+    sensors: dict[str, str] = dict(m.get("sensors") or {})
+    ambient0 = float(m.get("ambient_C", 20.0))
+
+    root_rng = np.random.default_rng(seed)
+    runs = protocol_runs(c, root_rng)
+    uses_load = any(p.load_N for r in runs.values() for p in r["phases"]) or model.effect("load_dependent_heat")
+    process_frames, error_frames, summary_runs = [], [], {}
+    for run_id, run in runs.items():
+        rng = np.random.default_rng([seed, len(summary_runs) + 1])
+        run_meas = replace(meas, every_s=float(run["measure_every_s"])) if run.get("measure_every_s") else meas
+        traj = build_run(run["phases"], run_meas, start_mm=meas.targets_mm[0])
+        hist, _ = simulate_run(model, traj, ambient0)
+        tp = np.arange(0.0, traj.now + 1e-9, 1.0 / rate_hz)
+        mot = traj.sample(tp)
+        pdf = {"run_id": run_id, "t_s": tp, "axis_mm": mot.axis_mm, "feed_mm_min": mot.feed_mm_min}
+        for name, loc in sensors.items():
+            if loc not in hist.housing_C:
+                raise ValueError(
+                    f"config key 'machine.sensors.{name}': unknown location {loc!r}; "
+                    f"known: {sorted(hist.housing_C)}"
+                )
+            true_C = np.interp(tp, hist.t_s, hist.housing_C[loc])
+            pdf[f"{name}_C"] = sensor.read(true_C, tp, rng)
+        if uses_load:
+            pdf["load_N"] = mot.load_N
+        process_frames.append(pd.DataFrame(pdf))
+        rt = np.array([r[0] for r in traj.readings])
+        rx = np.array([r[1] for r in traj.readings])
+        thermal = hist.error_um(rt, rx)
+        error_frames.append(
+            pd.DataFrame({"run_id": run_id, "t_s": rt, "target_mm": rx, "error_um": ifm.read(thermal, rx, rng)})
+        )
+        summary_runs[run_id] = {
+            "duration_h": traj.now / 3600.0,
+            "max_thermal_error_um": float(np.max(np.abs(hist.error_field_um(np.asarray(meas.targets_mm))))),
+            "condition": run["condition"],
+        }
+
+    screw = asdict(model.screw)
+    if m.get("declare_fixed_end", True):
+        screw["fixed_end_axis_mm"] = model.core.pf_m * 1000.0
+    meta = Metadata.model_validate(
+        {
+            "format": FORMAT,
+            "machine": {"name": m["name"], "axis": m.get("axis", "X")},
+            "screw": screw,
+            "material": asdict(model.material),
+            "sensors": sensors,
+            "runs": {
+                rid: {"condition": r["condition"], **({"notes": r["notes"]} if r["notes"] else {})}
+                for rid, r in runs.items()
+            },
+            "simulation": {
+                "seed": seed,
+                "clean": clean,
+                "effects": {e.id: e.params() for e in model.effects},
+                "core": model.core.as_dict(),
+                "numerics": asdict(model.numerics),
+                "protocol": c["protocol"].get("name"),
+            },
+        }
+    )
+    ds = Dataset(meta, pd.concat(process_frames, ignore_index=True), pd.concat(error_frames, ignore_index=True))
+    return ds, {"machine": m["name"], "runs": summary_runs}
