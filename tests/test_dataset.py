@@ -1,0 +1,126 @@
+"""Dataset contract: lossless round trip, and a clear error for each bad input."""
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench.cli import main
+from thermbench.data import DatasetError, load_dataset, save_dataset
+from thermbench.sim.scenario import simulate_dataset
+
+
+@pytest.fixture
+def written(short_cfg, tmp_path):
+    ds, _ = simulate_dataset(short_cfg)
+    path = save_dataset(ds, tmp_path / "ds", file_format="csv")
+    return ds, path
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_round_trip_is_lossless(short_cfg, tmp_path, fmt):
+    ds, _ = simulate_dataset(short_cfg)
+    ds.process["operator_note"] = "kept"  # unknown extra columns are kept
+    path = save_dataset(ds, tmp_path / fmt, file_format=fmt)
+    back = load_dataset(path)
+    pd.testing.assert_frame_equal(back.process, ds.process, check_exact=True)
+    pd.testing.assert_frame_equal(back.errors, ds.errors, check_exact=True)
+    assert back.metadata.model_dump() == ds.metadata.model_dump()
+    assert back.content_hash() == ds.content_hash()
+    assert "operator_note" in back.process.columns
+
+
+def _edit_csv(path, name, fn):
+    df = pd.read_csv(path / name, dtype={"run_id": str})
+    df = fn(df)
+    df.to_csv(path / name, index=False)
+
+
+def _set(col, row, value):
+    def f(df):
+        df[col] = df[col].astype(object) if isinstance(value, str) else df[col]
+        df.loc[row, col] = value
+        return df
+
+    return f
+
+
+CASES = {
+    "missing column": ("process.csv", lambda df: df.drop(columns=["axis_mm"]), ["process.csv", "axis_mm"]),
+    "NaN": ("process.csv", _set("T_nut_C", 40, np.nan), ["process.csv", "T_nut_C", "row 41", "line 42", "NaN"]),
+    "non-increasing time": ("process.csv", _set("t_s", 12, 5.0), ["process.csv", "t_s", "row 13", "increase"]),
+    "negative feed": ("process.csv", _set("feed_mm_min", 30, -5.0), ["process.csv", "feed_mm_min", "row 31", ">= 0"]),
+    "unknown run_id": ("errors.csv", _set("run_id", 3, "zz"), ["errors.csv", "run_id", "row 4", "'zz'"]),
+    "target outside travel": ("errors.csv", _set("target_mm", 2, 900.0), ["errors.csv", "target_mm", "row 3", "900"]),
+    "not a number": ("errors.csv", _set("error_um", 5, "abc"), ["errors.csv", "error_um", "row 6", "'abc'"]),
+    "sampling gap": ("process.csv", lambda df: df.drop(index=[100, 101, 102]), ["process.csv", "t_s", "gap"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_input_names_file_column_and_row(written, case):
+    _, path = written
+    name, fn, needles = CASES[case]
+    _edit_csv(path, name, fn)
+    with pytest.raises(DatasetError) as err:
+        load_dataset(path)
+    msg = str(err.value)
+    for n in needles:
+        assert n in msg, (n, msg)
+
+
+def test_wrong_format_version(written):
+    _, path = written
+    meta = yaml.safe_load((path / "metadata.yaml").read_text())
+    meta["format"] = "thermbench-dataset/9"
+    (path / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(DatasetError, match=r"metadata.yaml: key 'format': expected 'thermbench-dataset/1'"):
+        load_dataset(path)
+
+
+def test_bad_metadata_value_names_the_key(written):
+    _, path = written
+    meta = yaml.safe_load((path / "metadata.yaml").read_text())
+    meta["screw"]["mounting"] = "glued"
+    (path / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(DatasetError, match=r"key 'screw.mounting'"):
+        load_dataset(path)
+
+
+def test_unreadable_file(written):
+    _, path = written
+    (path / "errors.csv").write_bytes(b"\x00\x01\x02 not,a\ncsv\x00,,,\n\"unterminated")
+    with pytest.raises(DatasetError, match=r"errors.csv"):
+        load_dataset(path)
+    (path / "errors.csv").unlink()
+    with pytest.raises(DatasetError, match=r"missing errors.csv or errors.parquet"):
+        load_dataset(path)
+
+
+def test_cli_validate_reports_without_traceback(written, capsys):
+    _, path = written
+    assert main(["validate", str(path)]) == 0
+    assert "valid thermbench-dataset/1" in capsys.readouterr().out
+    _edit_csv(path, "process.csv", _set("feed_mm_min", 7, -1.0))
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "feed_mm_min" in err and "Traceback" not in err
+
+
+def test_failed_write_leaves_nothing_half_written(written, tmp_path, monkeypatch):
+    ds, path = written
+    before = sorted(p.name for p in path.iterdir())
+    content = (path / "process.csv").read_bytes()
+
+    def boom(self, *a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pd.DataFrame, "to_csv", boom)
+    with pytest.raises(OSError):
+        save_dataset(ds, path)
+    with pytest.raises(OSError):
+        save_dataset(ds, tmp_path / "fresh")
+    assert sorted(p.name for p in path.iterdir()) == before
+    assert (path / "process.csv").read_bytes() == content
+    assert not (tmp_path / "fresh").exists()
+    assert [p for p in path.parent.iterdir() if p.name.startswith(".")] == []
