@@ -20,6 +20,10 @@ and no convection (edge nodes in proportion to the covered fraction, see
 factor (1 + D/(4 dx)); every other node convects over its cylinder. Nodes are
 0-based here (index i = n - 1).
 
+Seed 001 §4 (eq. 3-9) is a second statement of the same physics: per segment
+c m dT = Q_friction - Q_conduction - Q_convection, T(t + dt) = T(t) + dT, and
+the elongation sum alpha (T_i - T_f) L_i (eq. 9) is seed 000 §3.2's integral.
+
 All temperatures are rises ``theta = T - Ta0`` above the initial ambient.
 """
 
