@@ -212,25 +212,22 @@ def load_dataset(path: str | Path) -> Dataset:
         er_mask = (errors["run_id"] == run_id).to_numpy()
         if not er_mask.any():
             raise DatasetError(f"{epath}: run {run_id!r} (declared in metadata.yaml) has no rows")
-        lo, hi = pr["axis_mm"].min() - TRAVEL_TOL_MM, pr["axis_mm"].max() + TRAVEL_TOL_MM
-        tgt = errors["target_mm"].to_numpy()
-        out = er_mask & ((tgt < lo) | (tgt > hi))
-        if out.any():
-            i = int(np.flatnonzero(out)[0])
-            raise DatasetError(
-                f"{epath}: column 'target_mm', {_where(epath, i)}: target {tgt[i]} mm is outside the travel "
-                f"measured in {ppath.name} for run {run_id!r} ({lo + TRAVEL_TOL_MM:g}..{hi - TRAVEL_TOL_MM:g} mm)"
-            )
-        te = errors["t_s"].to_numpy()
+        lo, hi = pr["axis_mm"].min(), pr["axis_mm"].max()
+        _check_within(errors, epath, er_mask, "target_mm", lo - TRAVEL_TOL_MM, hi + TRAVEL_TOL_MM,
+                      f"mm is outside the travel measured in {ppath.name} for run {run_id!r} ({lo:g}..{hi:g} mm)")
         tp0, tp1 = pr["t_s"].iloc[0], pr["t_s"].iloc[-1]
-        late = er_mask & ((te < tp0) | (te > tp1))
-        if late.any():
-            i = int(np.flatnonzero(late)[0])
-            raise DatasetError(
-                f"{epath}: column 't_s', {_where(epath, i)}: time {te[i]} s is outside the process log of run "
-                f"{run_id!r} ({tp0:g}..{tp1:g} s)"
-            )
+        _check_within(errors, epath, er_mask, "t_s", tp0, tp1,
+                      f"s is outside the process log of run {run_id!r} ({tp0:g}..{tp1:g} s)")  # fmt: skip
     return Dataset(meta, process.reset_index(drop=True), errors.reset_index(drop=True), root)
+
+
+def _check_within(df: pd.DataFrame, path: Path, rows: np.ndarray, col: str, lo: float, hi: float, why: str) -> None:
+    """Among ``rows``, every value of ``col`` must lie in [lo, hi]."""
+    v = df[col].to_numpy()
+    out = rows & ((v < lo) | (v > hi))
+    if out.any():
+        i = int(np.flatnonzero(out)[0])
+        raise DatasetError(f"{path}: column {col!r}, {_where(path, i)}: {v[i]:g} {why}")
 
 
 def _check_increasing_errors(df: pd.DataFrame, path: Path) -> None:
