@@ -71,6 +71,3 @@ class Metadata(_Model):
 
     def sensor_column(self, sensor: str) -> str:
         return f"{sensor}_C"
-
-    def sensors_at(self, location: str) -> list[str]:
-        return [s for s, loc in self.sensors.items() if loc == location]

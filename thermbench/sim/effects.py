@@ -67,11 +67,6 @@ class Effect:
     def params(self) -> dict[str, float]:
         return asdict(self)
 
-    def with_params(self, **kw) -> "Effect":
-        p = self.params()
-        p.update(kw)
-        return type(self)(**p)
-
 
 @dataclass
 class AmbientDrift(Effect):

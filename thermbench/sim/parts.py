@@ -162,8 +162,3 @@ class Geometry:
     @property
     def end_area_m2(self) -> float:
         return self.screw.area_m2
-
-    def node_centres_m(self):
-        import numpy as np
-
-        return (np.arange(self.n_nodes) + 0.5) * self.numerics.dx_m

@@ -66,7 +66,7 @@ def build_model(cfg: Any) -> ScrewThermalModel:
     )
 
 
-def _run_phases(run_id: str, run: dict, rng: np.random.Generator, travel: tuple[float, float]) -> list[Phase]:
+def _run_phases(run_id: str, run: dict) -> list[Phase]:
     cond = run.get("condition") or {}
     base = {k: cond[k] for k in ("start_mm", "end_mm", "feed_mm_min", "load_N") if k in cond}
     phases = []
@@ -103,7 +103,7 @@ def protocol_runs(cfg: Any, rng: np.random.Generator) -> dict[str, dict]:
     travel = tuple(float(x) for x in c["machine"]["travel_mm"])
     runs: dict[str, dict] = {}
     for run_id, run in (proto.get("runs") or {}).items():
-        phases = _run_phases(str(run_id), run, rng, travel)
+        phases = _run_phases(str(run_id), run)
         runs[str(run_id)] = {
             "phases": phases,
             "condition": _condition(phases, run),
@@ -132,13 +132,10 @@ def protocol_runs(cfg: Any, rng: np.random.Generator) -> dict[str, dict]:
     return runs
 
 
-def simulate_run(
-    model: ScrewThermalModel, traj: Trajectory, ambient_C: float
-) -> tuple[ThermalHistory, Any]:
+def simulate_run(model: ScrewThermalModel, traj: Trajectory, ambient_C: float) -> ThermalHistory:
     """Integrate the model over a run's trajectory at the model's fine step."""
     t = np.arange(0.0, traj.now, model.numerics.dt_s)
-    motion = traj.sample(t)
-    return model.run(motion, ambient_C=ambient_C, duration_s=traj.now), motion
+    return model.run(traj.sample(t), ambient_C=ambient_C, duration_s=traj.now)
 
 
 def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
@@ -171,7 +168,7 @@ def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
         rng = np.random.default_rng([seed, len(summary_runs) + 1])
         run_meas = replace(meas, every_s=float(run["measure_every_s"])) if run.get("measure_every_s") else meas
         traj = build_run(run["phases"], run_meas, start_mm=meas.targets_mm[0])
-        hist, _ = simulate_run(model, traj, ambient0)
+        hist = simulate_run(model, traj, ambient0)
         tp = np.arange(0.0, traj.now + 1e-9, 1.0 / rate_hz)
         mot = traj.sample(tp)
         pdf = {"run_id": run_id, "t_s": tp, "axis_mm": mot.axis_mm, "feed_mm_min": mot.feed_mm_min}
