@@ -48,6 +48,9 @@ class Effect:
 
     id: ClassVar[str] = ""
     description: ClassVar[str] = ""
+    # parameters that scale a heat input: the error is affine in them when every
+    # other parameter is fixed (the identified physics model solves them linearly)
+    heat_gains: ClassVar[tuple[str, ...]] = ()
 
     def nut_heat_W(self, drive: "Drive") -> np.ndarray | None:
         return None
@@ -104,6 +107,7 @@ class FreeEndBearingHeat(Effect):
 
     id: ClassVar[str] = "free_end_bearing_heat"
     description: ClassVar[str] = "free/support-end bearing friction heat kF*v at the far end"
+    heat_gains: ClassVar[tuple[str, ...]] = ("kF_W_per_mm_min",)
     kF_W_per_mm_min: float = 0.5e-3
     length_m: float = 0.03
 
@@ -127,6 +131,7 @@ class MotorHeat(Effect):
 
     id: ClassVar[str] = "motor_heat"
     description: ClassVar[str] = "motor heat through the coupling into the fixed end, lagging the speed"
+    heat_gains: ClassVar[tuple[str, ...]] = ("k_motor_W_per_mm_min",)
     k_motor_W_per_mm_min: float = 0.4e-3
     tau_s: float = 1800.0
 
@@ -175,6 +180,7 @@ class QuadraticFrictionHeat(Effect):
 
     id: ClassVar[str] = "quadratic_friction_heat"
     description: ClassVar[str] = "viscous nut friction: QN = k4*v + k5*v^2"
+    heat_gains: ClassVar[tuple[str, ...]] = ("k5_W_per_mm_min2",)
     k5_W_per_mm_min2: float = 5e-8
 
     def nut_heat_W(self, drive):
@@ -187,6 +193,7 @@ class LoadDependentHeat(Effect):
 
     id: ClassVar[str] = "load_dependent_heat"
     description: ClassVar[str] = "nut friction grows with axial load: QN = (k4 + k6*F)*v"
+    heat_gains: ClassVar[tuple[str, ...]] = ("k6_W_per_N_mm_min",)
     k6_W_per_N_mm_min: float = 2e-7
 
     def nut_heat_W(self, drive):

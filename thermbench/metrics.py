@@ -1,0 +1,58 @@
+"""Accuracy metrics, the one definition used everywhere (models, experiments, reports).
+
+The residual is measured minus predicted positioning error. The scale it is
+judged against is the measured *thermal* error (reading minus the cold
+reference), as seeds 000 and 002 report it:
+
+* ``rmse_um``, ``max_abs_residual_um``, ``pv_residual_um`` (peak-to-valley of the residual);
+* ``compensation_rate`` = 1 - max|residual| / max|thermal error| (seed 000 §5, seed 002 §3);
+* ``residual_fraction_of_pv`` = max|residual| / P-V of the thermal error, the
+  quantity behind seed 000's "residual within 15 % of the P-V" criterion.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+
+def residual_metrics(measured_um, predicted_um, thermal_um=None) -> dict[str, float]:
+    """Metrics of ``measured - predicted``; ``thermal_um`` is the measured thermal
+    error the rates refer to (default: ``measured_um`` itself)."""
+    m = np.asarray(measured_um, dtype=float).ravel()
+    p = np.asarray(predicted_um, dtype=float).ravel()
+    th = m if thermal_um is None else np.asarray(thermal_um, dtype=float).ravel()
+    if m.shape != p.shape or m.shape != th.shape:
+        raise ValueError(f"measured, predicted and thermal must have equal length, got {m.size}, {p.size}, {th.size}")
+    if m.size == 0:
+        raise ValueError("no samples to score")
+    if not (np.all(np.isfinite(p))):
+        raise ValueError(f"predictions contain {int(np.sum(~np.isfinite(p)))} non-finite value(s)")
+    r = m - p
+    max_err = float(np.max(np.abs(th)))
+    pv_err = float(np.ptp(th))
+    max_res = float(np.max(np.abs(r)))
+    return {
+        "rmse_um": float(np.sqrt(np.mean(r**2))),
+        "max_abs_residual_um": max_res,
+        "pv_residual_um": float(np.ptp(r)),
+        "max_abs_error_um": max_err,
+        "pv_error_um": pv_err,
+        "compensation_rate": 1.0 - max_res / max_err if max_err > 0 else float("nan"),
+        "residual_fraction_of_pv": max_res / pv_err if pv_err > 0 else float("nan"),
+    }
+
+
+def evaluate(model, dataset, runs: Sequence[str] | None = None) -> pd.DataFrame:
+    """One row of :func:`residual_metrics` per run for a fitted model."""
+    from .data.reference import thermal_errors
+
+    te = thermal_errors(dataset)
+    rows = []
+    for run in runs if runs is not None else dataset.run_ids:
+        tr = te[te["run_id"] == run]
+        pred = model.predict(dataset, run)
+        rows.append({"run_id": run, **residual_metrics(tr["error_um"], pred, tr["thermal_um"])})
+    return pd.DataFrame(rows)

@@ -1,0 +1,298 @@
+"""The one interface every thermal-error model family implements.
+
+A model is a scikit-learn style estimator: the constructor only stores
+hyper-parameters (so ``get_params``/``set_params``/``clone`` work), ``fit``
+learns from runs of a validated :class:`~thermbench.data.Dataset` and returns
+``self``. It then predicts the *positioning* error (geometric + thermal, µm,
+measured minus commanded) at any (t, axis position) of a run, and the
+compensation table over the travel at every time step (seed 000 §4.3).
+
+Subclasses implement ``_fit(ds, runs)``, ``_predict_thermal(ds, run, t_s,
+axis_mm)`` and ``required_inputs()``; the geometric part is a fitted
+:class:`numpy.polynomial.Polynomial` in the axis position held in
+``geometric_`` (each family separates it the way its seed does:
+:mod:`thermbench.models.separation`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+from numpy.polynomial import Polynomial
+from sklearn.base import BaseEstimator
+
+from ..data.io import Dataset
+from ..data.reference import thermal_errors
+
+
+class ModelError(ValueError):
+    """A model cannot do what was asked (bad input, unfitted model, ...); the message says why."""
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What a fitted model must be fed at run time (what a compensator wires up).
+
+    ``sensors``: sensor names of the dataset metadata (process columns ``<name>_C``);
+    ``motion``: the axis position and feed log; ``ambient``: the ambient temperature;
+    ``operating``: process columns used as operating parameters (seed 003).
+    """
+
+    sensors: tuple[str, ...] = ()
+    motion: bool = False
+    ambient: bool = False
+    operating: tuple[str, ...] = ()
+
+
+@dataclass
+class CompensationTable:
+    """Predicted error over an axis grid at each time step (seed 000 §4.3).
+
+    ``error_um[i, j]`` is the error at ``t_s[i]``, ``axis_mm[j]``; the CNC applies
+    ``compensation_um = -error_um``, interpolated in time and position (:meth:`at`).
+    """
+
+    t_s: np.ndarray
+    axis_mm: np.ndarray
+    error_um: np.ndarray
+
+    @property
+    def compensation_um(self) -> np.ndarray:
+        return -self.error_um
+
+    def at(self, t_s, axis_mm) -> np.ndarray:
+        """Bilinear interpolation of the table (what the compensator does in real time)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
+        i = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, max(len(self.t_s) - 2, 0))
+        j = np.clip(np.searchsorted(self.axis_mm, x, side="right") - 1, 0, max(len(self.axis_mm) - 2, 0))
+        i1 = np.minimum(i + 1, len(self.t_s) - 1)
+        j1 = np.minimum(j + 1, len(self.axis_mm) - 1)
+        wt = np.clip((t - self.t_s[i]) / np.where(i1 > i, self.t_s[i1] - self.t_s[i], 1.0), 0.0, 1.0)
+        wx = np.clip((x - self.axis_mm[j]) / np.where(j1 > j, self.axis_mm[j1] - self.axis_mm[j], 1.0), 0.0, 1.0)
+        e = self.error_um
+        top = e[i, j] * (1 - wx) + e[i, j1] * wx
+        bot = e[i1, j] * (1 - wx) + e[i1, j1] * wx
+        return top * (1 - wt) + bot * wt
+
+
+def check_runs(ds: Dataset, runs: Sequence[str] | str | None) -> list[str]:
+    """The run ids asked for (all when None), each checked to exist in ``ds``."""
+    if not isinstance(ds, Dataset):
+        raise ModelError(f"expected a thermbench Dataset, got {type(ds).__name__}")
+    if runs is None:
+        return ds.run_ids
+    runs = [runs] if isinstance(runs, str) else [str(r) for r in runs]
+    if not runs:
+        raise ModelError("no runs given to fit on")
+    unknown = [r for r in runs if r not in ds.metadata.runs]
+    if unknown:
+        raise ModelError(f"run(s) {unknown} not in dataset {_name(ds)}; runs: {ds.run_ids}")
+    return runs
+
+
+def check_sensors(ds: Dataset, sensors: Sequence[str], key: str = "sensors") -> list[str]:
+    """Sensor names that the dataset has; a missing one is an error naming it."""
+    have = list(ds.metadata.sensors)
+    missing = [s for s in sensors if s not in have]
+    if missing:
+        raise ModelError(
+            f"{key}: sensor(s) {missing} not in dataset {_name(ds)}; it has {have} (metadata 'sensors')"
+        )
+    return list(sensors)
+
+
+def sensors_at(ds: Dataset, sensor: str, locations: Sequence[str]) -> str:
+    """The dataset's sensor at the first of ``locations`` it has (e.g. 'nut_housing')."""
+    for loc in locations:
+        for name, where in ds.metadata.sensors.items():
+            if where == loc:
+                return name
+    raise ModelError(
+        f"{sensor}: the dataset {_name(ds)} has no sensor at {list(locations)}; "
+        f"sensors: {dict(ds.metadata.sensors)}; name one explicitly"
+    )
+
+
+def require(n: int, minimum: int, what: str) -> None:
+    if n < minimum:
+        raise ModelError(f"too few samples: {n} {what}, need at least {minimum}")
+
+
+def _name(ds: Dataset) -> str:
+    return str(ds.path) if ds.path is not None else ds.metadata.machine.name
+
+
+def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+    """Cycle index of each reading of one run: a new cycle starts when a target
+    repeats within the current cycle or after a pause longer than 2.5 times
+    the median gap between readings."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(target_mm, dtype=float)
+    out = np.zeros(len(t), dtype=int)
+    if len(t) < 2:
+        return out
+    typical = np.median(np.diff(t))
+    seen: set[float] = {float(x[0])}
+    c = 0
+    for k in range(1, len(t)):
+        if float(x[k]) in seen or t[k] - t[k - 1] > 2.5 * typical:
+            c += 1
+            seen = set()
+        seen.add(float(x[k]))
+        out[k] = c
+    return out
+
+
+def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
+    """The interferometer readings of ``runs`` with ``thermal_um`` (reading minus
+    the run's cold reference at the same target) and the measuring ``cycle``."""
+    te = thermal_errors(ds)
+    te = te[te["run_id"].isin(list(runs))].copy()
+    te["cycle"] = 0
+    for r in runs:
+        m = (te["run_id"] == r).to_numpy()
+        te.loc[m, "cycle"] = measuring_cycles(te.loc[m, "t_s"].to_numpy(), te.loc[m, "target_mm"].to_numpy())
+    return te.reset_index(drop=True)
+
+
+def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess: Sequence | None) -> pd.DataFrame:
+    """The run's process log (``t_s`` and ``<sensor>_C`` columns), filtered by ``preprocess``
+    (seed 002 §2.3.1), with a clear error for missing sensors or NaN left after filtering."""
+    from ..preprocess.filters import filter_process
+
+    cols = [ds.metadata.sensor_column(s) for s in check_sensors(ds, sensors)]
+    pr = ds.process_run(run)
+    out = filter_process(pr, cols, list(preprocess or []))
+    return out[["t_s", *cols]]
+
+
+def temperatures_at(
+    ds: Dataset, run: str, sensors: Sequence[str], t_s, preprocess: Sequence | None = None, delta: bool = True
+) -> np.ndarray:
+    """Sensor temperatures at times ``t_s`` of ``run``, shape (n, len(sensors)).
+
+    ``delta``: the rise above the run's first (filtered) sample, ΔT of seed 002
+    eq. 10 (seed 001 §3: T or ΔT give the same model up to the constant).
+    """
+    s = sensor_series(ds, run, sensors, preprocess)
+    t = np.asarray(t_s, dtype=float)
+    out = np.empty((t.size, len(sensors)))
+    for j, s_name in enumerate(sensors):
+        y = s[ds.metadata.sensor_column(s_name)].to_numpy()
+        out[:, j] = np.interp(t, s["t_s"].to_numpy(), y) - (y[0] if delta else 0.0)
+    return out
+
+
+class ThermalErrorModel(BaseEstimator):
+    """Base class of all model families (see module docstring)."""
+
+    def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
+        runs = check_runs(dataset, runs)
+        self._fit(dataset, runs)
+        self.train_runs_ = list(runs)
+        return self
+
+    # --- subclass hooks ---------------------------------------------------
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        raise NotImplementedError  # pragma: no cover - abstract
+
+    def required_inputs(self) -> Inputs:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # --- the interface ----------------------------------------------------
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "train_runs_"):
+            raise ModelError(f"{type(self).__name__} is not fitted: call fit(dataset, runs) before predicting")
+
+    def geometric_um(self, axis_mm) -> np.ndarray:
+        """The geometric (pitch) error separated at fit time, at ``axis_mm``."""
+        self._check_fitted()
+        return self.geometric_(np.asarray(axis_mm, dtype=float))
+
+    def predict_thermal_at(self, dataset: Dataset, run: str, t_s, axis_mm) -> np.ndarray:
+        """The thermal part of the error at (t, axis) pairs of ``run``."""
+        self._check_fitted()
+        run = check_runs(dataset, run)[0]
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape).astype(float)
+        return np.asarray(self._predict_thermal(dataset, run, t, x), dtype=float)
+
+    def predict_at(self, dataset: Dataset, run: str, t_s, axis_mm) -> np.ndarray:
+        """The positioning error (geometric + thermal, µm) at (t, axis) pairs of ``run``."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape).astype(float)
+        return self.predict_thermal_at(dataset, run, t, x) + self.geometric_um(x)
+
+    def predict(self, dataset: Dataset, run: str) -> np.ndarray:
+        """The error at the run's measured (t, target) readings, in the errors-table order."""
+        er = dataset.errors_run(check_runs(dataset, run)[0])
+        return self.predict_at(dataset, run, er["t_s"].to_numpy(), er["target_mm"].to_numpy())
+
+    def compensation_table(
+        self, dataset: Dataset, run: str, axis_mm=None, step_s: float = 60.0
+    ) -> CompensationTable:
+        """The error over ``axis_mm`` (default: the run's measured targets) every
+        ``step_s`` of the run (seed 000 §4.3: the table the CNC interpolates)."""
+        run = check_runs(dataset, run)[0]
+        if axis_mm is None:
+            axis_mm = np.unique(dataset.errors_run(run)["target_mm"].to_numpy())
+        x = np.asarray(axis_mm, dtype=float)
+        pr = dataset.process_run(run)
+        t0, t1 = float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])
+        if not step_s > 0:
+            raise ModelError(f"step_s must be > 0, got {step_s}")
+        t = np.append(np.arange(t0, t1, step_s), t1)
+        tt = np.repeat(t, x.size)
+        xx = np.tile(x, t.size)
+        return CompensationTable(t, x, self.predict_at(dataset, run, tt, xx).reshape(t.size, x.size))
+
+
+def polynomial_fit(x: np.ndarray, y: np.ndarray, degree: int, what: str) -> Polynomial:
+    """Least-squares polynomial (numpy's scaled domain), with a clear error when underdetermined."""
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    n_unique = np.unique(x).size
+    if n_unique <= degree:
+        raise ModelError(f"too few samples: {what} needs more than {degree} distinct positions, got {n_unique}")
+    return Polynomial.fit(x, y, degree)
+
+
+def choose_sensors(
+    ds: Dataset,
+    runs: Sequence[str],
+    sensors: Sequence[str] | None,
+    selection: dict | None,
+    preprocess: Sequence | None,
+    key: str = "sensors",
+) -> list[str]:
+    """The sensors a data-driven model uses: ``sensors`` when given (checked), else
+    the temperature-sensitive points of seed 002 §2.3.1 picked on the training runs:
+    clustering of the (filtered) non-ambient sensors, one per cluster by the score
+    of ``selection['method']`` against the slope of the measured thermal error."""
+    if sensors is not None:
+        if len(sensors) == 0:
+            raise ModelError(f"{key}: an empty list; name at least one sensor or pass None to select")
+        return check_sensors(ds, list(sensors), key)
+    from ..preprocess.selection import select_sensitive_points
+    from .separation import cycle_curves
+
+    cand = [s for s, loc in ds.metadata.sensors.items() if loc != "ambient"]
+    if not cand:
+        raise ModelError(f"{key}: the dataset {_name(ds)} has no temperature sensors besides the ambient")
+    opts = dict(selection or {})
+    n_clusters = opts.pop("n_clusters", 2)
+    rd = readings(ds, runs)
+    curves, _ = cycle_curves(rd, 1)
+    temps = np.vstack([temperatures_at(ds, r, cand, g["t_s"], preprocess) for r, g in curves.groupby("run_id", sort=False)])
+    require(len(curves), 3, "measuring cycles for sensor selection")
+    sel = select_sensitive_points(
+        pd.DataFrame(temps, columns=cand), curves["c1"].to_numpy(), n_clusters=min(n_clusters, len(cand)), **opts
+    )
+    return list(sel.selected)

@@ -1,0 +1,341 @@
+"""Identified physics: the simulator's seed 000 model with parameters fitted to measurements.
+
+The model is :class:`thermbench.sim.ScrewThermalModel` itself (the physics lives
+in one place), driven only by the process log (axis position and feed) and,
+when the dataset has one, the ambient temperature sensor: it needs no internal
+temperature sensors. Its parameters k1..k4, λ and Pf (seed 000 §4.1, Table 3)
+are identified from measured thermal errors by SQP (scipy SLSQP, bounds k > 0,
+λ > 0; seed 000 §4.2), optionally with canonical effects added on top of the
+core (``effects``), which is how the discrepancy workflow grows the model.
+
+Variable projection. For fixed h (k1, k2), λ, Pf and fixed non-gain effect
+parameters the field equations are linear, so the error is affine in every
+heat gain (k3, k4 and the effects' ``heat_gains``):
+E(g) = E0 + Σ g_i (E_i − E0), with E0 the response with all gains zero and E_i
+the response to gain i alone at 1. SLSQP searches only the nonlinear
+parameters; at each of its points the gains are the bounded linear
+least-squares solution (scipy ``lsq_linear``, g ≥ 0).
+
+Geometric/thermal separation as seed 001 eq. 11 and seed 000: the cold
+reference readings (cycle 0) fitted by a polynomial in position are the
+geometric error; the identification fits the measured thermal error
+(reading minus cold reference) with the model's error at the reading minus
+the model's error at that target's cold reference reading.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import lsq_linear, minimize
+
+from ..data.io import Dataset
+from ..sim.effects import AmbientDrift, make_effect
+from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
+from ..sim.parts import CoreParams, Material, Numerics, Screw
+from .base import Inputs, ModelError, ThermalErrorModel, readings, require, sensor_series
+from .separation import cold_reference_geometric
+
+CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
+CORE_NONLINEAR = ("k1_W_m2K_per_mm_min", "k2_W_m2K", "lambda_W_mK", "pf_m")
+# typical magnitudes (seed 000 Table 3) that scale the SQP variables to O(1)
+_SCALE = {"k1_W_m2K_per_mm_min": 1e-3, "k2_W_m2K": 20.0, "lambda_W_mK": 300.0, "pf_m": 0.1}
+
+
+def default_preprocess() -> list:
+    """Limit filter then Kalman filter (seed 002 §2.3.1): the ambient channel
+    carries spikes and 85 °C dropouts that would otherwise enter TEa directly."""
+    from ..preprocess.filters import KalmanFilter, LimitFilter
+
+    return [LimitFilter(), KalmanFilter()]
+
+
+@dataclass
+class _RunData:
+    """What identification needs from one run, prepared once."""
+
+    run: str
+    motion: Motion
+    duration_s: float
+    ambient_C: np.ndarray | float
+    ambient_t_s: np.ndarray | None
+    t_s: np.ndarray  # reading times
+    x_mm: np.ndarray  # reading targets
+    ref_idx: np.ndarray  # per reading, the index of its target's cold reference reading(s)
+    thermal_um: np.ndarray  # measured thermal error
+
+
+class PhysicsModel(ThermalErrorModel):
+    """Seed 000 finite-difference model with identified parameters (see module docstring).
+
+    Parameters
+    ----------
+    effects : {effect_id: {param: value}} added to the core (canonical ids of
+        :data:`thermbench.sim.EFFECTS`); their heat gains are identified, other
+        parameters stay at the given values unless named in ``identify``.
+    identify : nonlinear parameters searched by SLSQP: any of the core's
+        ``k1_W_m2K_per_mm_min, k2_W_m2K, lambda_W_mK, pf_m`` and
+        ``"<effect_id>.<param>"``; the rest stay at ``initial``.
+    initial : starting values of the core parameters (default seed 000 Table 3 X
+        axis; Pf from the dataset's ``screw.fixed_end_axis_mm`` when declared).
+    bounds : {param: (lo, hi)} overriding the default search bounds.
+    dx_m, dt_s, macro_dt_s : numerics of the identification model (seed 000 Table 1;
+        macro step of the fast integrator).
+    ambient_sensor : sensor name, ``"auto"`` (the dataset's sensor at location
+        ``ambient``, if any) or ``None`` (constant ambient).
+    preprocess : filters for the ambient channel; ``"default"`` = limit + Kalman.
+    geometric_degree : degree of the cold-reference polynomial (seed 001 eq. 11: 4).
+    max_iter, ftol : SLSQP options.
+    """
+
+    def __init__(
+        self,
+        effects: dict | None = None,
+        identify: Sequence[str] = CORE_NONLINEAR,
+        initial: dict | None = None,
+        bounds: dict | None = None,
+        dx_m: float = 0.01,
+        dt_s: float = 0.1,
+        macro_dt_s: float = 10.0,
+        ambient_sensor: str | None = "auto",
+        preprocess="default",
+        geometric_degree: int = 4,
+        max_iter: int = 100,
+        ftol: float = 1e-12,
+    ) -> None:
+        self.effects = effects
+        self.identify = identify
+        self.initial = initial
+        self.bounds = bounds
+        self.dx_m = dx_m
+        self.dt_s = dt_s
+        self.macro_dt_s = macro_dt_s
+        self.ambient_sensor = ambient_sensor
+        self.preprocess = preprocess
+        self.geometric_degree = geometric_degree
+        self.max_iter = max_iter
+        self.ftol = ftol
+
+    # ------------------------------------------------------------ set-up ---
+    def _preprocess_steps(self):
+        return default_preprocess() if self.preprocess == "default" else list(self.preprocess or [])
+
+    def _ambient_name(self, ds: Dataset) -> str | None:
+        if self.ambient_sensor is None:
+            return None
+        if self.ambient_sensor == "auto":
+            return next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
+        if self.ambient_sensor not in ds.metadata.sensors:
+            raise ModelError(
+                f"ambient_sensor: {self.ambient_sensor!r} is not a sensor of the dataset; "
+                f"sensors: {list(ds.metadata.sensors)}"
+            )
+        return self.ambient_sensor
+
+    def _drive(self, ds: Dataset, run: str):
+        """(motion, duration, ambient series, its times) of a run from its process log."""
+        pr = ds.process_run(run)
+        t = pr["t_s"].to_numpy()
+        load = pr["load_N"].to_numpy() if "load_N" in pr else None
+        mot = Motion(t, pr["axis_mm"].to_numpy(), pr["feed_mm_min"].to_numpy(), load)
+        name = self._ambient_name(ds)
+        if name is None:
+            return mot, float(t[-1] - t[0]), 20.0, None
+        s = sensor_series(ds, run, [name], self._preprocess_steps())
+        return mot, float(t[-1] - t[0]), s[ds.metadata.sensor_column(name)].to_numpy(), s["t_s"].to_numpy()
+
+    def _effect_specs(self) -> dict[str, dict]:
+        specs = {str(k): dict(v or {}) for k, v in dict(self.effects or {}).items()}
+        for eid, params in specs.items():
+            try:
+                make_effect(eid, **params)  # validates ids and parameter names
+            except ValueError as exc:
+                raise ModelError(f"effects: {exc}") from None
+        return specs
+
+    def _start(self, ds: Dataset) -> dict[str, float]:
+        start = CoreParams().as_dict()
+        if ds.metadata.screw.fixed_end_axis_mm is not None:
+            start["pf_m"] = ds.metadata.screw.fixed_end_axis_mm / 1000.0
+        for k, v in dict(self.initial or {}).items():
+            if k not in start:
+                raise ModelError(f"initial: unknown core parameter {k!r}; known: {sorted(start)}")
+            start[k] = float(v)
+        return start
+
+    def _build(self, ds: Dataset, core: dict, effect_specs: dict, ambient: bool) -> ScrewThermalModel:
+        sm = ds.metadata.screw
+        screw = Screw(sm.length_m, sm.diameter_m, sm.nut_length_m, sm.fixed_bearing_length_m, sm.mounting)
+        mm = ds.metadata.material
+        material = Material(mm.alpha_per_K, mm.density_kg_m3, mm.heat_capacity_J_kgK)
+        effects = [make_effect(eid, **p) for eid, p in effect_specs.items()]
+        if ambient and AmbientDrift.id not in effect_specs:
+            effects.append(AmbientDrift())  # measured series: the screw follows it (seed 000 §2.2)
+        numerics = Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
+        return ScrewThermalModel(screw, material, CoreParams(**core), effects, numerics)
+
+    # ------------------------------------------------------- parameters ---
+    def _gains(self, effect_specs: dict) -> dict[str, float]:
+        """Heat gains -> the unit each basis response is computed with (a typical
+        magnitude, so that the basis columns are of similar size)."""
+        units = {g: getattr(CoreParams(), g) for g in CORE_GAINS}
+        for eid in effect_specs:
+            eff = make_effect(eid)
+            units.update({f"{eid}.{g}": float(getattr(eff, g)) for g in eff.heat_gains})
+        return units
+
+    def _check_identify(self, effect_specs: dict) -> list[str]:
+        out = []
+        for name in self.identify:
+            if name in CORE_NONLINEAR:
+                out.append(name)
+                continue
+            eid, _, param = str(name).partition(".")
+            if eid not in effect_specs or param not in {f.name for f in fields(make_effect(eid))}:
+                raise ModelError(
+                    f"identify: {name!r} is neither a core parameter {list(CORE_NONLINEAR)} "
+                    f"nor '<effect>.<param>' of an effect in 'effects' ({sorted(effect_specs)})"
+                )
+            if param in make_effect(eid).heat_gains:
+                continue  # gains are always identified (linearly)
+            out.append(name)
+        return out
+
+    def _bounds(self, ds: Dataset, names: list[str], start: dict) -> list[tuple[float, float]]:
+        L = ds.metadata.screw.length_m
+        lo_mm = float(ds.errors["target_mm"].min())
+        hi_mm = float(ds.errors["target_mm"].max())
+        pf0 = start["pf_m"]
+        default = {
+            "k1_W_m2K_per_mm_min": (0.0, 0.02),
+            "k2_W_m2K": (1e-3, 200.0),
+            "lambda_W_mK": (1.0, 5000.0),
+            # the nut stays on the screw over the measured travel, on the side of the initial Pf
+            "pf_m": (hi_mm / 1000.0 - L, lo_mm / 1000.0) if pf0 <= 0 else (hi_mm / 1000.0, lo_mm / 1000.0 + L),
+        }
+        user = dict(self.bounds or {})
+        out = []
+        for n in names:
+            b = user.get(n, default.get(n, (0.0, np.inf) if n.split(".")[-1] != "tau_s" else (1.0, 1e5)))
+            lo, hi = float(b[0]), float(b[1])
+            if not lo < hi:
+                raise ModelError(f"bounds.{n}: expected lo < hi, got {b}")
+            out.append((lo, hi))
+        return out
+
+    @staticmethod
+    def _set(core: dict, specs: dict, name: str, value: float) -> None:
+        if "." in name:
+            eid, param = name.split(".", 1)
+            specs[eid][param] = value
+        else:
+            core[name] = value
+
+    # ----------------------------------------------------- identification ---
+    def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool):
+        """Per run, the affine basis: E0 at the readings (minus reference) and
+        E_i - E0 for gain i at its unit value (the others zero)."""
+        cols_per_run = []
+        for rd in rds:
+            resp = []
+            for active in [None, *gains]:
+                c = dict(core)
+                sp = {k: dict(v) for k, v in specs.items()}
+                for g, unit in gains.items():
+                    self._set(c, sp, g, unit if g == active else 0.0)
+                hist = self._build(ds, c, sp, ambient).run(
+                    rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s, duration_s=rd.duration_s
+                )
+                e = hist.error_um(rd.t_s, rd.x_mm)
+                resp.append(e - e[rd.ref_idx])
+            e0 = resp[0]
+            cols_per_run.append((e0, np.stack([r - e0 for r in resp[1:]], axis=1)))
+        e0 = np.concatenate([c[0] for c in cols_per_run])
+        a = np.concatenate([c[1] for c in cols_per_run])
+        return e0, a
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        specs = self._effect_specs()
+        nonlinear = self._check_identify(specs)
+        gains = self._gains(specs)
+        start = self._start(ds)
+        for n in nonlinear:
+            if "." in n:
+                start[n] = float(specs[n.split(".")[0]].get(n.split(".", 1)[1], getattr(make_effect(n.split(".")[0]), n.split(".", 1)[1])))
+        bounds = self._bounds(ds, nonlinear, start)
+        self.ambient_name_ = self._ambient_name(ds)
+        ambient = self.ambient_name_ is not None
+
+        rd_all = readings(ds, runs)
+        require(len(rd_all), len(gains) + len(nonlinear) + 1, "readings")
+        self.geometric_ = cold_reference_geometric(rd_all, self.geometric_degree)
+        rds = []
+        for run in runs:
+            g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
+            require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
+            ref = g[g["cycle"] == 0]
+            first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
+            ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
+            mot, dur, amb, amb_t = self._drive(ds, run)
+            rds.append(_RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx, g["thermal_um"].to_numpy()))
+        y = np.concatenate([r.thermal_um for r in rds])
+
+        scale = np.array([_SCALE.get(n, max(abs(start[n]), 1e-6)) for n in nonlinear])
+        lb = np.array([b[0] for b in bounds])
+        ub = np.array([b[1] for b in bounds])
+        gain_lb = np.zeros(len(gains))  # heat gains k > 0 (seed 000 §4.2)
+        n_eval = 0
+
+        def solve(z):
+            nonlocal n_eval
+            n_eval += 1
+            core = dict(start)
+            sp = {k: dict(v) for k, v in specs.items()}
+            for n, val in zip(nonlinear, z * scale):
+                self._set(core, sp, n, float(val))
+            e0, a = self._basis(ds, rds, core, sp, gains, ambient)
+            sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")
+            return sol.x, core, sp, float(np.sum((a @ sol.x + e0 - y) ** 2))
+
+        def objective(z):
+            return solve(z)[3] / y.size
+
+        t0 = time.perf_counter()
+        z0 = np.clip(np.array([start[n] for n in nonlinear]), lb, ub) / scale
+        if nonlinear:
+            res = minimize(
+                objective, z0, method="SLSQP", bounds=list(zip(lb / scale, ub / scale)),
+                options={"maxiter": int(self.max_iter), "ftol": float(self.ftol), "eps": 1e-7},
+            )  # fmt: skip
+            z, self.sqp_message_, self.sqp_iterations_ = res.x, str(res.message), int(res.nit)
+        else:
+            z, self.sqp_message_, self.sqp_iterations_ = z0, "no nonlinear parameters", 0
+        g, core, sp, sse = solve(z)
+        for (name, unit), val in zip(gains.items(), g):
+            self._set(core, sp, name, float(val) * unit)
+        self.identification_s_ = time.perf_counter() - t0
+        self.n_model_evaluations_ = n_eval
+        self.core_ = CoreParams(**core)
+        self.effects_ = sp
+        self.params_ = {**core, **{f"{e}.{k}": v for e, p in sp.items() for k, v in p.items()}}
+        self.train_rmse_um_ = float(np.sqrt(sse / y.size))
+        self.model_ = self._build(ds, core, sp, ambient)
+
+    # ---------------------------------------------------------- predict ---
+    def history(self, dataset: Dataset, run: str) -> ThermalHistory:
+        """The identified model's thermal history over ``run`` (driven by its process log)."""
+        self._check_fitted()
+        mot, dur, amb, amb_t = self._drive(dataset, run)
+        model = self._build(dataset, self.core_.as_dict(), self.effects_, self._ambient_name(dataset) is not None)
+        return model.run(mot, ambient_C=amb, ambient_t_s=amb_t, duration_s=dur)
+
+    def _predict_thermal(self, ds, run, t_s, axis_mm):
+        return self.history(ds, run).error_um(t_s, axis_mm)
+
+    def required_inputs(self) -> Inputs:
+        self._check_fitted()
+        name = self.ambient_name_
+        return Inputs(sensors=(name,) if name else (), motion=True, ambient=name is not None)

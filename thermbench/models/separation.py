@@ -1,0 +1,78 @@
+"""Separating the geometric (pitch) error from the thermal error, the ways the seeds do it.
+
+* Cold reference (seed 001 eq. 11; seed 000): the error measured at 0 min, fitted
+  by a polynomial in position, is the geometric error; the rest is thermal.
+* Curve-shape separation (seed 004; seed 002 eq. 6-7): every measuring cycle's
+  error curve is fitted by the shape the mounting implies (a straight line for
+  fixed-free and fixed-supported, a parabola for fixed-fixed; seed 002 uses a
+  line). The fit is the thermal part; the mean residual at each measuring point
+  over all cycles is the geometric error, itself fitted by a polynomial (seed 002
+  eq. 7: a cubic).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from numpy.polynomial import Polynomial
+
+from .base import ModelError, polynomial_fit
+
+SHAPE_DEGREE = {"fixed_free": 1, "fixed_supported": 1, "fixed_fixed": 2}
+
+
+def cold_reference_geometric(rd: pd.DataFrame, degree: int = 4) -> Polynomial:
+    """Polynomial in position through the cold reference readings (cycle 0 of
+    every run): seed 001 eq. 11, E_p = d4 Px^4 + ... + d0."""
+    ref = rd[rd["cycle"] == 0]
+    return polynomial_fit(ref["target_mm"].to_numpy(), ref["error_um"].to_numpy(), degree, "the cold reference")
+
+
+def shape_degree(mounting: str) -> int:
+    """Degree of the thermal error curve in position for a mounting (seed 004)."""
+    if mounting not in SHAPE_DEGREE:
+        raise ModelError(f"mounting must be one of {sorted(SHAPE_DEGREE)}, got {mounting!r}")
+    return SHAPE_DEGREE[mounting]
+
+
+def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple[pd.DataFrame, np.ndarray]:
+    """Fit every (run, cycle) error curve by a polynomial of ``degree`` in (P - origin).
+
+    Returns one row per cycle (``run_id``, ``cycle``, ``t_s`` = mean reading time,
+    ``c0`` .. ``c<degree>`` ascending coefficients) and the residual of every reading.
+    Cycles with fewer than degree + 2 distinct targets are dropped (residual NaN).
+    """
+    rows = []
+    resid = np.full(len(rd), np.nan)
+    for (run, cyc), g in rd.groupby(["run_id", "cycle"], sort=False):
+        p = g["target_mm"].to_numpy() - origin_mm
+        if np.unique(p).size < degree + 2:
+            continue
+        coef = np.polynomial.polynomial.polyfit(p, g["error_um"].to_numpy(), degree)
+        resid[g.index.to_numpy()] = g["error_um"].to_numpy() - np.polynomial.polynomial.polyval(p, coef)
+        rows.append({"run_id": run, "cycle": cyc, "t_s": float(g["t_s"].mean()), **{f"c{i}": c for i, c in enumerate(coef)}})
+    if not rows:
+        raise ModelError(f"too few samples: no measuring cycle has {degree + 2} or more distinct targets")
+    return pd.DataFrame(rows), resid
+
+
+class TargetTable:
+    """Geometric error as per-target values, linear in between (a pitch table)."""
+
+    def __init__(self, axis_mm: np.ndarray, error_um: np.ndarray) -> None:
+        self.axis_mm = np.asarray(axis_mm, dtype=float)
+        self.error_um = np.asarray(error_um, dtype=float)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return np.interp(x, self.axis_mm, self.error_um)
+
+
+def geometric_from_residuals(rd: pd.DataFrame, resid: np.ndarray, degree: int | None):
+    """The geometric error as the mean residual at each measuring point (seed 004),
+    fitted by a polynomial of ``degree`` (seed 002 eq. 7: 3); ``None`` keeps the
+    per-target means as a :class:`TargetTable` (piecewise linear)."""
+    ok = ~np.isnan(resid)
+    means = pd.Series(resid[ok]).groupby(rd["target_mm"].to_numpy()[ok]).mean()
+    if degree is None:
+        return TargetTable(means.index.to_numpy(), means.to_numpy())
+    return polynomial_fit(means.index.to_numpy(), means.to_numpy(), degree, "the geometric error")
