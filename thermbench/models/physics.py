@@ -33,7 +33,7 @@ import numpy as np
 from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
-from ..sim.effects import AmbientDrift, make_effect
+from ..sim.effects import AmbientDrift, FixedFixedConstraint, make_effect
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
 from ..sim.parts import CoreParams, Material, Numerics, Screw
 from .base import Inputs, ModelError, ThermalErrorModel, readings, require, sensor_series
@@ -215,6 +215,7 @@ class PhysicsModel(ThermalErrorModel):
             "lambda_W_mK": (1.0, 5000.0),
             # the nut stays on the screw over the measured travel, on the side of the initial Pf
             "pf_m": (hi_mm / 1000.0 - L, lo_mm / 1000.0) if pf0 <= 0 else (hi_mm / 1000.0, lo_mm / 1000.0 + L),
+            f"{FixedFixedConstraint.id}.kappa": (0.0, 1.0),
         }
         user = dict(self.bounds or {})
         out = []
@@ -260,11 +261,16 @@ class PhysicsModel(ThermalErrorModel):
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         specs = self._effect_specs()
         nonlinear = self._check_identify(specs)
+        if ds.metadata.screw.mounting == "fixed_fixed" and FixedFixedConstraint.id not in specs:
+            # seed 004: both ends held; the suppressed fraction kappa is identified
+            specs[FixedFixedConstraint.id] = {}
+            nonlinear.append(f"{FixedFixedConstraint.id}.kappa")
         gains = self._gains(specs)
         start = self._start(ds)
         for n in nonlinear:
             if "." in n:
-                start[n] = float(specs[n.split(".")[0]].get(n.split(".", 1)[1], getattr(make_effect(n.split(".")[0]), n.split(".", 1)[1])))
+                eid, param = n.split(".", 1)
+                start[n] = float(specs[eid].get(param, getattr(make_effect(eid), param)))
         bounds = self._bounds(ds, nonlinear, start)
         self.ambient_name_ = self._ambient_name(ds)
         ambient = self.ambient_name_ is not None
@@ -292,7 +298,7 @@ class PhysicsModel(ThermalErrorModel):
         def solve(z):
             nonlocal n_eval
             n_eval += 1
-            core = dict(start)
+            core = {k: v for k, v in start.items() if "." not in k}
             sp = {k: dict(v) for k, v in specs.items()}
             for n, val in zip(nonlinear, z * scale):
                 self._set(core, sp, n, float(val))
