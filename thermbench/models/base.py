@@ -159,19 +159,20 @@ def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
     return te.reset_index(drop=True)
 
 
-def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess: Sequence | None) -> pd.DataFrame:
+def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess) -> pd.DataFrame:
     """The run's process log (``t_s`` and ``<sensor>_C`` columns), filtered by ``preprocess``
-    (seed 002 §2.3.1), with a clear error for missing sensors or NaN left after filtering."""
-    from ..preprocess.filters import filter_process
+    (seed 002 §2.3.1: ``"default"``, ``None`` or a list of filters), with a clear error
+    for missing sensors or NaN left after filtering."""
+    from ..preprocess.filters import filter_process, resolve_steps
 
     cols = [ds.metadata.sensor_column(s) for s in check_sensors(ds, sensors)]
     pr = ds.process_run(run)
-    out = filter_process(pr, cols, list(preprocess or []))
+    out = filter_process(pr, cols, resolve_steps(preprocess))
     return out[["t_s", *cols]]
 
 
 def temperatures_at(
-    ds: Dataset, run: str, sensors: Sequence[str], t_s, preprocess: Sequence | None = None, delta: bool = True
+    ds: Dataset, run: str, sensors: Sequence[str], t_s, preprocess="default", delta: bool = True
 ) -> np.ndarray:
     """Sensor temperatures at times ``t_s`` of ``run``, shape (n, len(sensors)).
 
@@ -269,7 +270,7 @@ def choose_sensors(
     runs: Sequence[str],
     sensors: Sequence[str] | None,
     selection: dict | None,
-    preprocess: Sequence | None,
+    preprocess,
     key: str = "sensors",
 ) -> list[str]:
     """The sensors a data-driven model uses: ``sensors`` when given (checked), else

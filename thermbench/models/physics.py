@@ -45,14 +45,6 @@ CORE_NONLINEAR = ("k1_W_m2K_per_mm_min", "k2_W_m2K", "lambda_W_mK", "pf_m")
 _SCALE = {"k1_W_m2K_per_mm_min": 1e-3, "k2_W_m2K": 20.0, "lambda_W_mK": 300.0, "pf_m": 0.1}
 
 
-def default_preprocess() -> list:
-    """Limit filter then Kalman filter (seed 002 §2.3.1): the ambient channel
-    carries spikes and 85 °C dropouts that would otherwise enter TEa directly."""
-    from ..preprocess.filters import KalmanFilter, LimitFilter
-
-    return [LimitFilter(), KalmanFilter()]
-
-
 @dataclass
 class _RunData:
     """What identification needs from one run, prepared once."""
@@ -86,7 +78,9 @@ class PhysicsModel(ThermalErrorModel):
         macro step of the fast integrator).
     ambient_sensor : sensor name, ``"auto"`` (the dataset's sensor at location
         ``ambient``, if any) or ``None`` (constant ambient).
-    preprocess : filters for the ambient channel; ``"default"`` = limit + Kalman.
+    preprocess : filters for the ambient channel; ``"default"`` = limit + Kalman
+        (seed 002 §2.3.1): the ambient channel carries spikes and 85 °C dropouts
+        that would otherwise enter TEa directly.
     geometric_degree : degree of the cold-reference polynomial (seed 001 eq. 11: 4).
     max_iter, ftol : SLSQP options.
     """
@@ -120,9 +114,6 @@ class PhysicsModel(ThermalErrorModel):
         self.ftol = ftol
 
     # ------------------------------------------------------------ set-up ---
-    def _preprocess_steps(self):
-        return default_preprocess() if self.preprocess == "default" else list(self.preprocess or [])
-
     def _ambient_name(self, ds: Dataset) -> str | None:
         if self.ambient_sensor is None:
             return None
@@ -144,7 +135,7 @@ class PhysicsModel(ThermalErrorModel):
         name = self._ambient_name(ds)
         if name is None:
             return mot, float(t[-1] - t[0]), 20.0, None
-        s = sensor_series(ds, run, [name], self._preprocess_steps())
+        s = sensor_series(ds, run, [name], self.preprocess)
         return mot, float(t[-1] - t[0]), s[ds.metadata.sensor_column(name)].to_numpy(), s["t_s"].to_numpy()
 
     def _effect_specs(self) -> dict[str, dict]:

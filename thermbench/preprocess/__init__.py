@@ -1,7 +1,7 @@
 """Temperature preprocessing (seed 002 §2.3.1): limit + Kalman filtering of the temperature
 channels, and selection of temperature-sensitive points by clustering and grey relational analysis."""
 
-from .filters import KalmanFilter, LimitFilter, PreprocessError, filter_process
+from .filters import KalmanFilter, LimitFilter, PreprocessError, default_steps, filter_process, resolve_steps
 from .selection import (
     METHODS,
     Selection,
@@ -17,7 +17,9 @@ __all__ = [
     "PreprocessError",
     "Selection",
     "cluster_sensors",
+    "default_steps",
     "filter_process",
     "grey_relational_grade",
+    "resolve_steps",
     "select_sensitive_points",
 ]

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 from sklearn.base import BaseEstimator
 
-__all__ = ["KalmanFilter", "LimitFilter", "PreprocessError", "filter_process"]
+__all__ = ["KalmanFilter", "LimitFilter", "PreprocessError", "default_steps", "filter_process", "resolve_steps"]
 
 
 class PreprocessError(ValueError):
@@ -295,3 +295,20 @@ def filter_process(process: pd.DataFrame, columns: Sequence[str], steps: Sequenc
             result[a:b] = seg
         out[c] = result
     return out
+
+
+def default_steps() -> list:
+    """The seed 002 §2.3.1 chain: limit filter (2 °C) then Kalman (R = 8.8706, Q = 1e-3)."""
+    return [LimitFilter(), KalmanFilter()]
+
+
+def resolve_steps(spec) -> list:
+    """A model's ``preprocess`` parameter as a list of filters: ``"default"`` is
+    :func:`default_steps`, ``None`` or ``[]`` no filtering, a list is taken as is."""
+    if spec is None:
+        return []
+    if isinstance(spec, str):
+        if spec != "default":
+            raise PreprocessError(f"preprocess: expected 'default', None or a list of filters, got {spec!r}")
+        return default_steps()
+    return list(spec)
