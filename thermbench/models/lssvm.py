@@ -1,0 +1,467 @@
+"""PSO-tuned least-squares SVM regression of the thermal error (seed 002 §2.3.2 part 2, eq. 12-14).
+
+Three layers:
+
+* :class:`LSSVMRegressor`: a plain scikit-learn regressor on arrays. The LSSVM of
+  seed 002 eq. 12-13 (``y(x) = wᵀΦ(x) + b``; minimise ``½wᵀw + ½c Σ ξ_i²`` subject
+  to ``y_i = wᵀΦ(x_i) + b + ξ_i`` — the paper prints ``Σ ξ_i``, the LSSVM has the
+  squared slack) with the RBF kernel of eq. 14, ``K(x, x_i) = exp(-||x - x_i||² / (2σ²))``.
+  Its Lagrangian gives the KKT system ``[[0, 1ᵀ], [1, K + I/γ]] [b; α] = [0; y]``
+  (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` follow the paper's LS-SVMlab
+  names ``gam``/``sig2``), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
+* :func:`tune_lssvm`: particle-swarm search (``pyswarms.single.GlobalBestPSO``) of
+  (log10 γ, log10 σ²) minimising the RMSE on a hold-out set (seed 002 Fig. 14:
+  "iterative adaptive particles screen the parameters of the kernel function and
+  penalty coefficients").
+* :class:`PSOLSSVM`: the thermal-error model family. The geometric error is separated
+  as in seed 002 eq. 6-7 (a straight line fitted to every measuring cycle; the mean
+  residual per measuring point, fitted by a cubic, is the geometric error) and the
+  LSSVM learns ``error - geometric(P)`` from the ΔT of the chosen sensors and the
+  position P.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass, field
+from numbers import Integral, Real
+from typing import Sequence
+
+import numpy as np
+import scipy.linalg
+from scipy.spatial.distance import cdist
+from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.utils.validation import check_is_fitted
+from threadpoolctl import threadpool_limits
+
+from ..data.io import Dataset
+from .base import Inputs, ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .separation import cycle_curves, geometric_from_residuals
+
+#: Standard constriction coefficients of the PSO (Clerc & Kennedy 2002); seed 002 gives none.
+DEFAULT_PSO_OPTIONS = {"c1": 1.49445, "c2": 1.49445, "w": 0.729}
+
+
+# ---------------------------------------------------------------------------
+# the LSSVM itself (seed 002 eq. 12-14)
+# ---------------------------------------------------------------------------
+def rbf_kernel(A: np.ndarray, B: np.ndarray, sigma2: float) -> np.ndarray:
+    """RBF kernel matrix ``K[i, j] = exp(-||A_i - B_j||² / (2σ²))`` (seed 002 eq. 14)."""
+    return np.exp(-cdist(A, B, "sqeuclidean") / (2.0 * sigma2))
+
+
+def _solve_kkt(K: np.ndarray, y: np.ndarray, gamma: float) -> tuple[np.ndarray, float]:
+    """Solve ``[[0, 1ᵀ], [1, K + I/γ]] [b; α] = [0; y]`` (seed 002 eq. 13).
+
+    Cholesky route: ``A = K + I/γ`` is symmetric positive definite (K is PSD, γ > 0);
+    with ``A η = y`` and ``A ν = 1`` the second block row gives ``α = η - b ν`` and the
+    first (``1ᵀα = 0``) gives ``b = 1ᵀη / 1ᵀν``. Falls back to a symmetric solve of
+    the bordered system if the factorisation fails numerically.
+    """
+    n = y.size
+    A = K + np.eye(n) / gamma
+    try:
+        c = scipy.linalg.cho_factor(A, lower=True, check_finite=False)
+        sol = scipy.linalg.cho_solve(c, np.column_stack([y, np.ones(n)]), check_finite=False)
+        eta, nu = sol[:, 0], sol[:, 1]
+        b = float(eta.sum() / nu.sum())
+        return eta - b * nu, b
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        M = np.zeros((n + 1, n + 1))
+        M[0, 1:] = 1.0
+        M[1:, 0] = 1.0
+        M[1:, 1:] = A
+        s = scipy.linalg.solve(M, np.concatenate([[0.0], y]), assume_a="sym")
+        return s[1:], float(s[0])
+
+
+def _positive(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(float(value)) or value <= 0:
+        raise ModelError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(value)
+
+
+class LSSVMRegressor(RegressorMixin, BaseEstimator):
+    """Least-squares SVM regression with the RBF kernel (seed 002 eq. 12-14).
+
+    Parameters
+    ----------
+    gamma : penalty factor γ (the paper's ``c`` / ``gam``), > 0.
+    sigma2 : RBF kernel width σ² (the paper's ``sig2``), > 0, in the units of the
+        (standardised, when ``standardize``) inputs squared.
+    standardize : scale each input to zero mean and unit standard deviation before
+        the kernel (the mean/scale are stored and applied at prediction).
+
+    Fitted attributes: ``X_fit_`` (the standardised training inputs = the support
+    vectors), ``gamma_``, ``sigma2_`` (the values fitted with), ``alpha_`` (n,),
+    ``b_``, ``mean_``, ``scale_``, ``n_support_`` (the
+    LSSVM is not sparse: every training sample is a support vector, so this is n),
+    ``memory_bytes_``: what a deployed model must store as float64 — the support
+    vectors (n·d), α (n), b, σ² and the input mean and scale (2d):
+    ``8·(n·d + n + 2 + 2d)``.
+    """
+
+    def __init__(self, gamma: float = 10.0, sigma2: float = 1.0, standardize: bool = True):
+        self.gamma = gamma
+        self.sigma2 = sigma2
+        self.standardize = standardize
+
+    @staticmethod
+    def _check_X(X, what: str) -> np.ndarray:
+        X = np.asarray(X, dtype=float)
+        if X.ndim != 2:
+            raise ModelError(f"{what}: expected a 2-D array (n_samples, n_features), got shape {X.shape}")
+        if not np.all(np.isfinite(X)):
+            raise ModelError(f"{what}: {int(np.sum(~np.isfinite(X)))} non-finite value(s)")
+        return X
+
+    def fit(self, X, y) -> "LSSVMRegressor":
+        gamma = _positive(self.gamma, "gamma")
+        sigma2 = _positive(self.sigma2, "sigma2")
+        X = self._check_X(X, "X")
+        y = np.asarray(y, dtype=float)
+        if y.ndim != 1 or y.size != X.shape[0]:
+            raise ModelError(f"y: expected shape ({X.shape[0]},) to match X, got {y.shape}")
+        if not np.all(np.isfinite(y)):
+            raise ModelError(f"y: {int(np.sum(~np.isfinite(y)))} non-finite value(s)")
+        require(X.shape[0], 2, "training samples for the LSSVM")
+        n, d = X.shape
+        if self.standardize:
+            self.mean_ = X.mean(axis=0)
+            sd = X.std(axis=0)
+            self.scale_ = np.where(sd > 0, sd, 1.0)
+        else:
+            self.mean_ = np.zeros(d)
+            self.scale_ = np.ones(d)
+        self.X_fit_ = (X - self.mean_) / self.scale_
+        self.gamma_, self.sigma2_ = gamma, sigma2
+        self.alpha_, self.b_ = _solve_kkt(rbf_kernel(self.X_fit_, self.X_fit_, sigma2), y, gamma)
+        self.n_features_in_ = d
+        self.n_support_ = n
+        self.memory_bytes_ = 8 * (n * d + n + 2 + 2 * d)
+        return self
+
+    def predict(self, X) -> np.ndarray:
+        """``f(x) = Σ α_i K(x_i, x) + b`` (seed 002 eq. 14)."""
+        check_is_fitted(self, "alpha_")
+        X = self._check_X(X, "X")
+        if X.shape[1] != self.n_features_in_:
+            raise ModelError(f"X has {X.shape[1]} features, the LSSVM was fitted with {self.n_features_in_}")
+        Z = (X - self.mean_) / self.scale_
+        return rbf_kernel(Z, self.X_fit_, self.sigma2_) @ self.alpha_ + self.b_
+
+
+# ---------------------------------------------------------------------------
+# PSO tuning
+# ---------------------------------------------------------------------------
+@dataclass
+class TuneResult:
+    """Outcome of :func:`tune_lssvm`: the best ``gamma``/``sigma2``, their validation
+    RMSE, the best cost after every PSO iteration and the validation mask used."""
+
+    gamma: float
+    sigma2: float
+    val_rmse: float
+    cost_history: np.ndarray
+    val_mask: np.ndarray = field(repr=False)
+
+
+def _bounds(value, name: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ModelError(f"{name} must be a pair (low, high) of numbers > 0, got {value!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise ModelError(f"{name} must be a pair (low, high) with 0 < low <= high, got {value!r}")
+    return lo, hi
+
+
+@contextlib.contextmanager
+def _pyswarms_quiet_and_seeded(seed: int):
+    """Yield ``pyswarms.single.GlobalBestPSO`` with numpy's global RNG (which pyswarms
+    draws from) seeded with ``seed``; the RNG state is restored afterwards.
+
+    pyswarms builds a ``Reporter`` at import and in every optimiser/handler/topology
+    constructor, and each one calls ``logging.config.dictConfig`` on the ROOT logger
+    (a stream handler plus a ``report.log`` file created in the working directory).
+    That call is disabled while pyswarms is imported and the optimiser is built and
+    run, so using this module leaves the application's logging and the working
+    directory untouched.
+    """
+    import logging.config
+
+    saved_dict_config = logging.config.dictConfig
+    saved_rng = np.random.get_state()
+    logging.config.dictConfig = lambda config: None
+    try:
+        import pyswarms.single.global_best as gb
+
+        np.random.seed(seed)
+        yield gb.GlobalBestPSO
+    finally:
+        logging.config.dictConfig = saved_dict_config
+        np.random.set_state(saved_rng)
+
+
+def tune_lssvm(
+    X,
+    y,
+    gamma_bounds=(1e-1, 1e4),
+    sigma2_bounds=(1e-2, 1e3),
+    n_particles: int = 20,
+    iters: int = 30,
+    val_fraction: float = 0.25,
+    seed: int = 0,
+    options: dict | None = None,
+    val_mask=None,
+    standardize: bool = True,
+) -> TuneResult:
+    """PSO search of (log10 γ, log10 σ²) minimising the hold-out RMSE of an LSSVM.
+
+    Hold-out: ``val_mask`` (boolean, True = validation row) when given; otherwise
+    the LAST ``val_fraction`` of the rows in the given order (a contiguous block: for
+    time-ordered thermal data the honest split — the model is judged on later,
+    warmer/cooler states it has not seen, not on interleaved neighbours).
+    The inputs are standardised with the training rows' statistics, as the final
+    LSSVM would be.
+
+    Swarm: ``pyswarms.single.GlobalBestPSO`` with ``options`` (default
+    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds ("nearest"). The
+    first particles start at the four corners and the centre of the (log) box, the
+    rest uniformly at random, so the result is never worse than those five points.
+    A pair of equal bounds fixes that parameter (only the other is searched).
+    Deterministic: numpy's global RNG (used by pyswarms) is seeded with ``seed`` and
+    restored afterwards.
+    """
+    glo, ghi = _bounds(gamma_bounds, "gamma_bounds")
+    slo, shi = _bounds(sigma2_bounds, "sigma2_bounds")
+    if isinstance(n_particles, bool) or not isinstance(n_particles, Integral) or n_particles < 1:
+        raise ModelError(f"n_particles must be an integer >= 1, got {n_particles!r}")
+    if isinstance(iters, bool) or not isinstance(iters, Integral) or iters < 1:
+        raise ModelError(f"iters must be an integer >= 1, got {iters!r}")
+    X = LSSVMRegressor._check_X(X, "X")
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 1 or y.size != X.shape[0] or not np.all(np.isfinite(y)):
+        raise ModelError(f"y: expected {X.shape[0]} finite values matching X, got shape {y.shape}")
+    n = y.size
+    if val_mask is None:
+        if isinstance(val_fraction, bool) or not isinstance(val_fraction, Real) or not 0 < val_fraction < 1:
+            raise ModelError(f"val_fraction must be a number in (0, 1), got {val_fraction!r}")
+        n_val = int(round(val_fraction * n))
+        val = np.zeros(n, dtype=bool)
+        val[n - n_val :] = True
+    else:
+        val = np.asarray(val_mask, dtype=bool)
+        if val.shape != (n,):
+            raise ModelError(f"val_mask: expected a boolean array of shape ({n},), got {val.shape}")
+    require(int((~val).sum()), 2, "training samples for PSO tuning")
+    require(int(val.sum()), 1, "validation samples for PSO tuning")
+    opts = dict(DEFAULT_PSO_OPTIONS if options is None else options)
+    missing = {"c1", "c2", "w"} - set(opts)
+    if missing:
+        raise ModelError(f"options: pyswarms needs keys c1, c2, w; missing {sorted(missing)}")
+
+    Xt, Xv, yt, yv = X[~val], X[val], y[~val], y[val]
+    if standardize:
+        mu, sd = Xt.mean(axis=0), Xt.std(axis=0)
+        sd = np.where(sd > 0, sd, 1.0)
+        Xt, Xv = (Xt - mu) / sd, (Xv - mu) / sd
+    D_tt = cdist(Xt, Xt, "sqeuclidean")  # computed once; each particle only exponentiates
+    D_vt = cdist(Xv, Xt, "sqeuclidean")
+
+    lo = np.log10([glo, slo])
+    hi = np.log10([ghi, shi])
+    free = np.flatnonzero(hi > lo)
+
+    def params(pos: np.ndarray) -> tuple[float, float]:
+        p = np.array([glo, slo])  # a fixed parameter keeps its exact value
+        p[free] = 10.0 ** np.asarray(pos)
+        return float(p[0]), float(p[1])
+
+    def rmse(gamma: float, sigma2: float) -> float:
+        try:
+            alpha, b = _solve_kkt(np.exp(-D_tt / (2 * sigma2)), yt, gamma)
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, ValueError):
+            return np.inf
+        pred = np.exp(-D_vt / (2 * sigma2)) @ alpha + b
+        r = float(np.sqrt(np.mean((yv - pred) ** 2)))
+        return r if math.isfinite(r) else np.inf
+
+    if free.size == 0:  # both fixed
+        r = rmse(glo, slo)
+        return TuneResult(glo, slo, r, np.array([r]), val)
+
+    flo, fhi = lo[free], hi[free]
+    # hundreds of small factorisations: BLAS threads cost more than they gain there
+    blas = threadpool_limits(limits=1, user_api="blas") if yt.size < 1000 else contextlib.nullcontext()
+    with blas, _pyswarms_quiet_and_seeded(int(seed)) as GlobalBestPSO:
+        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
+        starts = np.vstack([corners, (flo + fhi) / 2])[:n_particles]
+        rand = flo + (fhi - flo) * np.random.random_sample((n_particles - len(starts), free.size))
+        init = np.clip(np.vstack([starts, rand]), flo, fhi)
+        opt = GlobalBestPSO(
+            n_particles=int(n_particles),
+            dimensions=int(free.size),
+            options=opts,
+            bounds=(flo, fhi),
+            bh_strategy="nearest",
+            init_pos=init,
+        )
+        best_cost, best_pos = opt.optimize(
+            lambda P: np.array([rmse(*params(p)) for p in P]), iters=int(iters), verbose=False
+        )
+    g, s = params(np.asarray(best_pos, dtype=float))
+    return TuneResult(float(g), float(s), float(best_cost), np.asarray(opt.cost_history, dtype=float), val)
+
+
+# ---------------------------------------------------------------------------
+# the thermal-error model family
+# ---------------------------------------------------------------------------
+class PSOLSSVM(ThermalErrorModel):
+    """PSO-tuned LSSVM thermal-error model (seed 002 §2.3.2 part 2, eq. 12-14).
+
+    Geometric/thermal separation as seed 002 eq. 6-7: every measuring cycle's error
+    curve is fitted by a straight line, the mean residual at each measuring point is
+    the geometric error, fitted by a polynomial of ``geometric_degree`` (eq. 7: 3).
+    The LSSVM (:class:`LSSVMRegressor`, inputs standardised) then learns the rest,
+    ``error_um - geometric(P)``, from the features ``[ΔT of the sensors..., P]``
+    (ΔT: rise above the run's first filtered sample, seed 002 eq. 10). Prediction
+    returns that LSSVM output as the thermal part; the base class adds the geometric.
+
+    Parameters
+    ----------
+    sensors : sensor names to use; None selects seed 002's temperature-sensitive
+        points on the training runs (``selection`` is passed on, see
+        :func:`~thermbench.models.base.choose_sensors`).
+    preprocess : temperature filters (seed 002 §2.3.1): "default" (limit + Kalman), None, or a list.
+    gamma, sigma2 : the LSSVM's penalty factor and kernel width; None (default) =
+        tuned by PSO (:func:`tune_lssvm`) within ``gamma_bounds`` / ``sigma2_bounds``
+        with ``n_particles``, ``iters`` and ``seed``. Giving one tunes only the other.
+    val_fraction : PSO hold-out: in every training run, the last ``val_fraction`` of
+        its measuring cycles (at least one, when the run has two or more) — a time
+        block, so the tuning rewards extrapolating to later thermal states rather
+        than interpolating between neighbouring readings. After tuning, the LSSVM
+        is refitted on all training readings.
+    max_samples : the LSSVM costs O(n³) time and O(n²) memory; with more readings
+        than this a seeded (``seed``) random subset of ``max_samples`` readings is
+        used for tuning and fitting (``subsampled_`` records it).
+
+    Fitted attributes: ``sensors_``, ``gamma_``, ``sigma2_``, ``regressor_``,
+    ``n_support_``, ``memory_bytes_``, ``pso_cost_history_`` (best validation RMSE
+    after each PSO iteration; empty when nothing was tuned), ``val_rmse_um_``,
+    ``n_train_samples_``, ``subsampled_``, ``geometric_``.
+    """
+
+    def __init__(
+        self,
+        sensors: Sequence[str] | None = None,
+        selection: dict | None = None,
+        preprocess="default",
+        gamma: float | None = None,
+        sigma2: float | None = None,
+        gamma_bounds=(1e-1, 1e4),
+        sigma2_bounds=(1e-2, 1e3),
+        n_particles: int = 20,
+        iters: int = 30,
+        val_fraction: float = 0.25,
+        seed: int = 0,
+        geometric_degree: int = 3,
+        max_samples: int = 2000,
+    ):
+        self.sensors = sensors
+        self.selection = selection
+        self.preprocess = preprocess
+        self.gamma = gamma
+        self.sigma2 = sigma2
+        self.gamma_bounds = gamma_bounds
+        self.sigma2_bounds = sigma2_bounds
+        self.n_particles = n_particles
+        self.iters = iters
+        self.val_fraction = val_fraction
+        self.seed = seed
+        self.geometric_degree = geometric_degree
+        self.max_samples = max_samples
+
+    def _check_params(self) -> None:
+        for name in ("gamma_bounds", "sigma2_bounds"):
+            lo, hi = _bounds(getattr(self, name), name)
+            if not lo < hi:
+                raise ModelError(f"{name} must be a pair (low, high) with low < high, got {getattr(self, name)!r}")
+        if self.gamma is not None:
+            _positive(self.gamma, "gamma")
+        if self.sigma2 is not None:
+            _positive(self.sigma2, "sigma2")
+        for name, minimum in (("n_particles", 1), ("iters", 1), ("geometric_degree", 0), ("max_samples", 10)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, Integral) or v < minimum:
+                raise ModelError(f"{name} must be an integer >= {minimum}, got {v!r}")
+        v = self.val_fraction
+        if isinstance(v, bool) or not isinstance(v, Real) or not 0 < v < 1:
+            raise ModelError(f"val_fraction must be a number in (0, 1), got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, Integral):
+            raise ModelError(f"seed must be an integer, got {self.seed!r}")
+
+    def _features(self, ds: Dataset, run: str, t_s, axis_mm) -> np.ndarray:
+        T = temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)
+        return np.column_stack([T, np.asarray(axis_mm, dtype=float)])
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        self._check_params()
+        rd = readings(ds, runs)
+        require(len(rd), 10, "interferometer readings in the training runs")
+        _, resid = cycle_curves(rd, 1)  # seed 002 eq. 6: a line per measuring cycle
+        self.geometric_ = geometric_from_residuals(rd, resid, int(self.geometric_degree))  # eq. 7
+        self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
+
+        X = np.empty((len(rd), len(self.sensors_) + 1))
+        val = np.zeros(len(rd), dtype=bool)
+        for r in runs:
+            m = (rd["run_id"] == r).to_numpy()
+            g = rd[m]
+            X[m] = self._features(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
+            cycles = np.unique(g["cycle"].to_numpy())
+            if cycles.size >= 2:
+                n_val = min(max(1, int(round(self.val_fraction * cycles.size))), cycles.size - 1)
+                val[m] = np.isin(g["cycle"].to_numpy(), cycles[-n_val:])
+        y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
+        ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        require(int(ok.sum()), 10, "finite (temperature, error) readings in the training runs")
+
+        idx = np.flatnonzero(ok)
+        self.subsampled_ = idx.size > self.max_samples
+        if self.subsampled_:
+            idx = np.sort(np.random.RandomState(self.seed).choice(idx, int(self.max_samples), replace=False))
+        X, y, val = X[idx], y[idx], val[idx]
+        self.n_train_samples_ = int(idx.size)
+
+        if self.gamma is None or self.sigma2 is None:
+            if not val.any() or val.all():
+                raise ModelError(
+                    "too few samples: PSO tuning needs a training run with at least 2 measuring cycles "
+                    "(the last val_fraction of them is the hold-out); or give both gamma and sigma2"
+                )
+            gb = self.gamma_bounds if self.gamma is None else (self.gamma, self.gamma)
+            sb = self.sigma2_bounds if self.sigma2 is None else (self.sigma2, self.sigma2)
+            res = tune_lssvm(X, y, gb, sb, int(self.n_particles), int(self.iters), seed=int(self.seed), val_mask=val)
+            self.gamma_, self.sigma2_ = res.gamma, res.sigma2
+            self.val_rmse_um_ = res.val_rmse
+            self.pso_cost_history_ = res.cost_history
+        else:
+            self.gamma_, self.sigma2_ = float(self.gamma), float(self.sigma2)
+            self.val_rmse_um_ = float("nan")
+            self.pso_cost_history_ = np.array([])
+        self.regressor_ = LSSVMRegressor(gamma=self.gamma_, sigma2=self.sigma2_).fit(X, y)
+        self.n_support_ = self.regressor_.n_support_
+        self.memory_bytes_ = self.regressor_.memory_bytes_
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        return self.regressor_.predict(self._features(ds, run, t_s, axis_mm))
+
+    def required_inputs(self) -> Inputs:
+        """The sensors the LSSVM reads (its position input is the compensation point itself)."""
+        if hasattr(self, "sensors_"):
+            return Inputs(sensors=tuple(self.sensors_))
+        if self.sensors is not None:
+            return Inputs(sensors=tuple(self.sensors))
+        raise ModelError("PSOLSSVM: sensors are selected at fit time; call fit(dataset, runs) first or give sensors")
