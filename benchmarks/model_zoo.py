@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from thermbench.datasets import load_benchmark  # noqa: E402
 from thermbench.experiment import cross_condition, model_from_config  # noqa: E402
+from thermbench.models.base import ModelError  # noqa: E402
 
 FAMILIES = ["mlr_seed001", "mlr_seed002", "mlr_seed004", "lssvm", "mlp", "gru", "ar_seed003", "physics"]
 TRAIN = {
@@ -41,7 +42,11 @@ def main() -> None:
         ds = load_benchmark(name)
         for fam in args.models:
             for train in TRAIN[name]:
-                res = cross_condition(model_from_config(fam), ds, [train])
+                try:
+                    res = cross_condition(model_from_config(fam), ds, [train])
+                except ModelError as exc:
+                    print(f"{name:18s} {fam:12s} train={train:12s} cannot fit: {exc}", flush=True)
+                    continue
                 res.insert(0, "family", fam)
                 res.insert(0, "dataset", name)
                 rows.append(res)

@@ -166,7 +166,7 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
       cannot represent the elongation of the screw between the two.
 
     Parameters: ``degree`` (m), ``nut_sensor`` / ``bed_sensor`` (None: the
-    dataset's sensor at location ``nut_housing`` / ``bed``), ``origin_mm``,
+    dataset's sensor at location ``nut_housing`` / ``bed``, else ``ambient``), ``origin_mm``,
     ``preprocess`` (temperature filters, seed 002 §2.3.1: "default" = limit +
     Kalman, None = none, or a list of filters).
 
@@ -197,7 +197,9 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
             origin = ds.metadata.screw.fixed_end_axis_mm or 0.0
         origin = check_real("origin_mm", origin)
         nut = str(self.nut_sensor) if self.nut_sensor is not None else sensors_at(ds, "nut_sensor", ["nut_housing"])
-        bed = str(self.bed_sensor) if self.bed_sensor is not None else sensors_at(ds, "bed_sensor", ["bed"])
+        bed = self.bed_sensor
+        if bed is None:  # seed 001 sensor 2 is a reference temperature (eq. 2); the ambient will do
+            bed = sensors_at(ds, "bed_sensor", ["bed", "ambient"])
         check_sensors(ds, [nut], "nut_sensor")
         check_sensors(ds, [bed], "bed_sensor")
         if nut == bed:
