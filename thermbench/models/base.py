@@ -188,6 +188,12 @@ def temperatures_at(
     return out
 
 
+def _pairs(t_s, axis_mm) -> tuple[np.ndarray, np.ndarray]:
+    """(t, x) broadcast against each other, as flat float arrays."""
+    t, x = np.broadcast_arrays(np.atleast_1d(np.asarray(t_s, dtype=float)), np.asarray(axis_mm, dtype=float))
+    return t.ravel().astype(float), x.ravel().astype(float)
+
+
 class ThermalErrorModel(BaseEstimator):
     """Base class of all model families (see module docstring)."""
 
@@ -221,14 +227,12 @@ class ThermalErrorModel(BaseEstimator):
         """The thermal part of the error at (t, axis) pairs of ``run``."""
         self._check_fitted()
         run = check_runs(dataset, run)[0]
-        t = np.atleast_1d(np.asarray(t_s, dtype=float))
-        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape).astype(float)
+        t, x = _pairs(t_s, axis_mm)
         return np.asarray(self._predict_thermal(dataset, run, t, x), dtype=float)
 
     def predict_at(self, dataset: Dataset, run: str, t_s, axis_mm) -> np.ndarray:
         """The positioning error (geometric + thermal, µm) at (t, axis) pairs of ``run``."""
-        t = np.atleast_1d(np.asarray(t_s, dtype=float))
-        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape).astype(float)
+        t, x = _pairs(t_s, axis_mm)
         return self.predict_thermal_at(dataset, run, t, x) + self.geometric_um(x)
 
     def predict(self, dataset: Dataset, run: str) -> np.ndarray:

@@ -1,0 +1,502 @@
+"""Neural thermal-error models: an MLP on the current temperatures and a GRU on their history.
+
+Seed 002 §1 lists artificial neural networks among the data-driven thermal-error
+models but gives no architecture; these two are the benchmark's neural family.
+Both follow the seed 002 separation of geometric and thermal error (seed 002
+eq. 6-7): every measuring cycle's error curve is fitted by a straight line in
+position (:func:`~thermbench.models.separation.cycle_curves`), the mean residual
+at each target over all cycles, fitted by a cubic in position (seed 002 eq. 7,
+``geometric_degree=3``), is the geometric error ``geometric_``; the nets learn the
+rest, ``error_um - geometric_(P)``, from the temperature rises ΔT of the chosen
+sensors (seed 002 eq. 10: rise above the run's first filtered sample) and the
+position P.
+
+* :class:`MLPModel`: a multilayer perceptron on ``[ΔT(t), P]`` (memoryless).
+* :class:`GRUModel`: a gated recurrent unit over the ΔT history sampled every
+  ``step_s`` over the last ``window_s`` before the reading; its last hidden state
+  ``h`` sets the coefficients of a polynomial in P (see :class:`GRUModel`).
+
+Training discipline (both, choices of thermbench — the papers are silent):
+
+* inputs and target are standardised with the mean and standard deviation of the
+  training split (stored as ``input_mean_``/``input_scale_`` and
+  ``y_mean_um_``/``y_scale_um_``); a constant input gets scale 1;
+* weights are initialised from a :class:`torch.Generator` seeded with ``seed``
+  (Glorot-uniform for the dense layers, zero biases; PyTorch's default
+  U(-1/√H, 1/√H) for the GRU), mini-batches are shuffled with the same generator,
+  so the global torch RNG is neither used nor changed; same parameters → the same
+  bits (float64 throughout; one torch thread during fit and predict, see below);
+* Adam on the mean squared standardised error, ``weight_decay`` as Adam's L2 term;
+* early stopping: the last ``val_fraction`` of the measuring cycles *of every
+  training run* (a contiguous block at the end, at least one cycle when
+  ``val_fraction > 0``) is held out; training stops once the validation RMSE has
+  not improved for ``patience`` epochs and the weights of the best validation
+  epoch are kept. Holding out the end of each run (rather than random readings)
+  makes the validation an honest extrapolation in time; those cycles are then
+  not used for gradient steps. ``val_fraction=0`` trains ``max_epochs`` epochs
+  and keeps the last weights. The first ``min_epochs`` epochs are a warm-up
+  (Keras' ``start_from_epoch``): their validation scores are not candidates,
+  because early in training the output sweeps through the target range and the
+  validation RMSE of a small held-out block can dip by chance while the net is
+  still far from fitting the training cycles (seen on the analytic test data:
+  stopping at such a dip left a 1.5 µm RMS where training on reaches 0.3 µm);
+  ``min_epochs`` is capped at ``max_epochs``.
+* torch runs on one thread inside fit and predict (the previous thread count is
+  restored afterwards): for these tiny nets a second thread only adds
+  synchronisation (measured on the shared 2-core machine, 264 readings, full
+  batch: MLP 32x32 0.8-1.4 ms/epoch with one thread vs 8-36 ms with two; GRU 16
+  over 31 steps 12-14 ms vs 270-310 ms), and it makes the numbers independent of
+  the machine's core count. float64 throughout (float32 saves ~25 % on the GRU,
+  nothing on the MLP).
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import contextmanager
+from numbers import Integral, Real
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+
+from ..data.io import Dataset
+from .base import Inputs, ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .separation import cycle_curves, geometric_from_residuals, shape_degree
+
+__all__ = ["GRUModel", "MLPModel"]
+
+DTYPE = torch.float64
+TORCH_THREADS = 1
+MIN_TRAIN_READINGS = 10
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU, "sigmoid": nn.Sigmoid}
+
+
+# --- parameter checks (all raise ModelError naming the parameter) ---------------------------
+def _int(owner: str, name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
+        raise ModelError(f"{owner}: {name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _real(owner: str, name: str, value, minimum: float, strict: bool) -> float:
+    ok = not isinstance(value, bool) and isinstance(value, Real) and math.isfinite(value)
+    ok = ok and (value > minimum if strict else value >= minimum)
+    if not ok:
+        raise ModelError(f"{owner}: {name} must be a finite number {'>' if strict else '>='} {minimum}, got {value!r}")
+    return float(value)
+
+
+def _common(m) -> dict:
+    """Checks of the parameters both nets share; returns them cleaned."""
+    owner = type(m).__name__
+    if isinstance(m.sensors, str):
+        raise ModelError(f"{owner}: sensors must be a list of sensor names or None, got the string {m.sensors!r}")
+    vf = m.val_fraction
+    if isinstance(vf, bool) or not isinstance(vf, Real) or not (0.0 <= vf < 1.0):
+        raise ModelError(f"{owner}: val_fraction must be in [0, 1), got {vf!r}")
+    if m.geometric_degree is not None:
+        _int(owner, "geometric_degree", m.geometric_degree, 0)
+    opts = {
+        "lr": _real(owner, "lr", m.lr, 0.0, True),
+        "weight_decay": _real(owner, "weight_decay", m.weight_decay, 0.0, False),
+        "max_epochs": _int(owner, "max_epochs", m.max_epochs, 1),
+        "patience": _int(owner, "patience", m.patience, 1),
+        "min_epochs": _int(owner, "min_epochs", m.min_epochs, 0),
+        "val_fraction": float(vf),
+        "batch_size": None if m.batch_size is None else _int(owner, "batch_size", m.batch_size, 1),
+        "seed": _int(owner, "seed", m.seed, 0),
+    }
+    opts["min_epochs"] = min(opts["min_epochs"], opts["max_epochs"])  # the last epoch is always a candidate
+    return opts
+
+
+@contextmanager
+def _torch_threads(n: int):
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _validation_mask(rd: pd.DataFrame, val_fraction: float) -> np.ndarray:
+    """True for the readings of the last ``val_fraction`` of the measuring cycles of each run
+    (at least one cycle when ``val_fraction > 0``; at least one cycle stays for training)."""
+    val = np.zeros(len(rd), dtype=bool)
+    if val_fraction == 0.0:
+        return val
+    for run, g in rd.groupby("run_id", sort=False):
+        cycles = np.unique(g["cycle"].to_numpy())
+        if cycles.size < 2:
+            raise ModelError(
+                f"too few samples: run {run!r} has {cycles.size} measuring cycle(s); val_fraction="
+                f"{val_fraction} holds out whole cycles at the end of each run, so each run needs >= 2 "
+                "(or pass val_fraction=0)"
+            )
+        n_val = min(max(1, int(round(val_fraction * cycles.size))), cycles.size - 1)
+        held = cycles[-n_val:]
+        val[g.index.to_numpy()[np.isin(g["cycle"].to_numpy(), held)]] = True
+    return val
+
+
+def _scaler(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation over every axis but the last (features); constant → scale 1."""
+    flat = a.reshape(-1, a.shape[-1])
+    mean = flat.mean(axis=0)
+    sd = flat.std(axis=0)
+    return mean, np.where(sd > 1e-12 * np.maximum(1.0, np.abs(mean)), sd, 1.0)
+
+
+def _init_dense(layer: nn.Linear, gain: float, gen: torch.Generator) -> None:
+    nn.init.xavier_uniform_(layer.weight, gain=gain, generator=gen)
+    nn.init.zeros_(layer.bias)
+
+
+class _MLPNet(nn.Module):
+    def __init__(self, n_in: int, hidden: Sequence[int], activation: str, gen: torch.Generator):
+        super().__init__()
+        layers: list[nn.Module] = []
+        gain = nn.init.calculate_gain({"gelu": "relu", "silu": "relu"}.get(activation, activation))
+        width = n_in
+        for h in hidden:
+            lin = nn.Linear(width, h, dtype=DTYPE)
+            _init_dense(lin, gain, gen)
+            layers += [lin, ACTIVATIONS[activation]()]
+            width = h
+        out = nn.Linear(width, 1, dtype=DTYPE)
+        _init_dense(out, 1.0, gen)
+        self.body = nn.Sequential(*layers, out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.body(x).squeeze(-1)
+
+
+class _GRUNet(nn.Module):
+    """GRU over the ΔT sequence; the last hidden state h gives the coefficients
+    a_k(h) = w_k·h + b_k of the thermal error Σ_k a_k(h) P^k (P standardised)."""
+
+    def __init__(self, n_in: int, hidden_size: int, degree: int, gen: torch.Generator):
+        super().__init__()
+        self.gru = nn.GRU(n_in, hidden_size, batch_first=True, dtype=DTYPE)
+        bound = 1.0 / math.sqrt(hidden_size)
+        for p in self.gru.parameters():
+            nn.init.uniform_(p, -bound, bound, generator=gen)
+        self.head = nn.Linear(hidden_size, degree + 1, dtype=DTYPE)
+        _init_dense(self.head, 1.0, gen)
+        self.degree = degree
+
+    def forward(self, seq: torch.Tensor, p: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        _, h = self.gru(seq)
+        h = h[-1]
+        if index is not None:
+            h = h[index]
+        coef = self.head(h)  # (n, degree + 1)
+        powers = p[:, :1] ** torch.arange(self.degree + 1, dtype=DTYPE)
+        return (coef * powers).sum(dim=-1)
+
+
+class _NeuralModel(ThermalErrorModel):
+    """Shared fit/predict of the neural family (see the module docstring)."""
+
+    # --- hooks of the concrete nets ------------------------------------------------------
+    def _check_net_params(self, ds: Dataset) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
+        raise NotImplementedError  # pragma: no cover - abstract
+
+    def _build(self, n_features: int, gen: torch.Generator) -> nn.Module:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # --- interface -----------------------------------------------------------------------
+    def required_inputs(self) -> Inputs:
+        if hasattr(self, "sensors_"):
+            return Inputs(sensors=tuple(self.sensors_))
+        if self.sensors is not None and not isinstance(self.sensors, str):
+            return Inputs(sensors=tuple(self.sensors))
+        raise ModelError(
+            f"{type(self).__name__}: sensors=None are selected at fit time; call fit(dataset, runs) first"
+        )
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        opts = _common(self)
+        self._net_opts_ = self._check_net_params(ds)
+        self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
+        rd = readings(ds, runs)
+        require(len(rd), MIN_TRAIN_READINGS, f"readings in run(s) {runs}")
+        # seed 002 eq. 6-7: line per measuring cycle, geometric = cubic through the mean residuals
+        _, resid = cycle_curves(rd, 1)
+        self.geometric_ = geometric_from_residuals(rd, resid, self.geometric_degree)
+        y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
+        inputs = self._stack_inputs(ds, rd)
+        val = _validation_mask(rd, opts["val_fraction"])
+        tr = ~val
+        require(int(tr.sum()), MIN_TRAIN_READINGS, "readings in the training split (after holding out val_fraction)")
+        scalers = [_scaler(a[tr]) for a in inputs]
+        self.input_mean_ = tuple(m for m, _ in scalers)
+        self.input_scale_ = tuple(s for _, s in scalers)
+        self.y_mean_um_ = float(y[tr].mean())
+        sd = float(y[tr].std())
+        self.y_scale_um_ = sd if sd > 1e-12 else 1.0
+        xs = [self._tensor(a, i) for i, a in enumerate(inputs)]
+        ys = torch.as_tensor((y - self.y_mean_um_) / self.y_scale_um_, dtype=DTYPE)
+        tr_t = torch.as_tensor(tr)
+        gen = torch.Generator().manual_seed(opts["seed"])
+        with _torch_threads(TORCH_THREADS):
+            with torch.random.fork_rng(devices=[]):  # module constructors draw a default init we overwrite
+                net = self._build(inputs[0].shape[-1], gen)
+            self._train(net, [x[tr_t] for x in xs], ys[tr_t], [x[~tr_t] for x in xs], ys[~tr_t], opts, gen)
+        net.eval()
+        self.net_ = net
+        self.n_parameters_ = int(sum(p.numel() for p in net.parameters()))
+        self.n_train_readings_ = int(tr.sum())
+        self.n_val_readings_ = int(val.sum())
+
+    def _stack_inputs(self, ds: Dataset, rd: pd.DataFrame) -> list[np.ndarray]:
+        parts: list[list[np.ndarray]] | None = None
+        order = []
+        for run, g in rd.groupby("run_id", sort=False):
+            arrs = self._inputs(ds, run, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
+            parts = [[a] for a in arrs] if parts is None else [p + [a] for p, a in zip(parts, arrs)]
+            order.append(g.index.to_numpy())
+        idx = np.concatenate(order)
+        out = []
+        for p in parts:
+            a = np.concatenate(p)
+            full = np.empty_like(a)
+            full[idx] = a
+            out.append(full)
+        return out
+
+    def _tensor(self, a: np.ndarray, i: int) -> torch.Tensor:
+        return torch.as_tensor((a - self.input_mean_[i]) / self.input_scale_[i], dtype=DTYPE)
+
+    def _train(self, net, x_tr, y_tr, x_val, y_val, opts, gen) -> None:
+        optim = torch.optim.Adam(net.parameters(), lr=opts["lr"], weight_decay=opts["weight_decay"])
+        n = y_tr.shape[0]
+        bs = opts["batch_size"]
+        has_val = y_val.shape[0] > 0
+        best, best_epoch, best_state = math.inf, 0, None
+        epoch = 0
+        for epoch in range(1, opts["max_epochs"] + 1):
+            net.train()
+            batches = [None] if bs is None or bs >= n else torch.randperm(n, generator=gen).split(bs)
+            for b in batches:
+                xb = x_tr if b is None else [x[b] for x in x_tr]
+                yb = y_tr if b is None else y_tr[b]
+                optim.zero_grad(set_to_none=True)
+                loss = torch.mean((net(*xb) - yb) ** 2)
+                loss.backward()
+                optim.step()
+            if not has_val or epoch < opts["min_epochs"]:
+                continue
+            net.eval()
+            with torch.no_grad():
+                v = float(torch.sqrt(torch.mean((net(*x_val) - y_val) ** 2))) * self.y_scale_um_
+            if v < best:
+                best, best_epoch = v, epoch
+                best_state = {k: t.detach().clone() for k, t in net.state_dict().items()}
+            elif epoch - best_epoch >= opts["patience"]:
+                break
+        if best_state is not None:
+            net.load_state_dict(best_state)
+        self.n_epochs_ = epoch
+        self.best_epoch_ = best_epoch if has_val else epoch
+        self.best_val_rmse_um_ = best if has_val else float("nan")
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        if t_s.size == 0:
+            return np.zeros(0)
+        inputs = self._inputs(ds, run, t_s, axis_mm)
+        with _torch_threads(TORCH_THREADS), torch.no_grad():
+            out = self._forward(inputs)
+        return out.numpy() * self.y_scale_um_ + self.y_mean_um_
+
+    def _forward(self, inputs: list[np.ndarray]) -> torch.Tensor:
+        return self.net_(*[self._tensor(a, i) for i, a in enumerate(inputs)])
+
+
+class MLPModel(_NeuralModel):
+    """Multilayer perceptron on ``[ΔT of the chosen sensors at t, position P]`` → thermal error.
+
+    The thermal error is ``error_um - geometric_(P)`` with the geometric error of
+    seed 002 eq. 6-7 (module docstring). Memoryless: the prediction depends only on
+    the temperatures at the reading time.
+
+    Parameters
+    ----------
+    sensors : sensor names (metadata ``sensors``); None selects the temperature-sensitive
+        points of seed 002 §2.3.1 on the training runs (``selection`` options).
+    preprocess : temperature filters (seed 002 §2.3.1) applied before anything else:
+        "default" (limit + Kalman), None, or a list of filters.
+    hidden : widths of the hidden layers.
+    activation : one of tanh, relu, gelu, silu, sigmoid.
+    lr, weight_decay : Adam learning rate and L2 term.
+    max_epochs, patience, min_epochs, val_fraction : early stopping (module docstring).
+    batch_size : None = full batch, else shuffled mini-batches of that size.
+    seed : seeds the weight initialisation and the shuffling.
+    geometric_degree : degree of the geometric-error polynomial (seed 002 eq. 7: 3;
+        None = per-target table).
+
+    Fitted: ``sensors_``, ``geometric_``, ``net_``, ``n_epochs_``, ``best_epoch_``,
+    ``best_val_rmse_um_``, ``n_parameters_``, the scalers ``input_mean_``/``input_scale_``
+    (over ``[ΔT..., P]``) and ``y_mean_um_``/``y_scale_um_``.
+    """
+
+    def __init__(
+        self,
+        sensors: Sequence[str] | None = None,
+        selection: dict | None = None,
+        preprocess="default",
+        hidden: Sequence[int] = (32, 32),
+        activation: str = "tanh",
+        lr: float = 1e-2,
+        weight_decay: float = 0.0,
+        max_epochs: int = 2000,
+        patience: int = 100,
+        min_epochs: int = 100,
+        val_fraction: float = 0.2,
+        batch_size: int | None = None,
+        seed: int = 0,
+        geometric_degree: int | None = 3,
+    ):
+        self.sensors = sensors
+        self.selection = selection
+        self.preprocess = preprocess
+        self.hidden = hidden
+        self.activation = activation
+        self.lr = lr
+        self.weight_decay = weight_decay
+        self.max_epochs = max_epochs
+        self.patience = patience
+        self.min_epochs = min_epochs
+        self.val_fraction = val_fraction
+        self.batch_size = batch_size
+        self.seed = seed
+        self.geometric_degree = geometric_degree
+
+    def _check_net_params(self, ds: Dataset) -> dict:
+        owner = type(self).__name__
+        if isinstance(self.hidden, (str, bytes)) or not hasattr(self.hidden, "__iter__"):
+            raise ModelError(f"{owner}: hidden must be a list of layer widths, got {self.hidden!r}")
+        hidden = list(self.hidden)
+        if not hidden:
+            raise ModelError(f"{owner}: hidden must list at least one layer width, got {self.hidden!r}")
+        for h in hidden:
+            _int(owner, "hidden (each width)", h, 1)
+        if self.activation not in ACTIVATIONS:
+            raise ModelError(f"{owner}: activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
+        return {"hidden": [int(h) for h in hidden]}
+
+    def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
+        dT = temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)
+        return [np.column_stack([dT, np.asarray(axis_mm, dtype=float)])]
+
+    def _build(self, n_features: int, gen: torch.Generator) -> nn.Module:
+        return _MLPNet(n_features, self._net_opts_["hidden"], self.activation, gen)
+
+
+class GRUModel(_NeuralModel):
+    """Gated recurrent unit over the temperature history → thermal error.
+
+    For a reading at time t the input sequence is ΔT of the chosen sensors at
+    ``t - k·step_s`` for ``k = K, ..., 1, 0`` with ``K = floor(window_s / step_s)``
+    (oldest first, the reading time last: K + 1 samples), interpolated linearly in
+    the (filtered) 1 Hz process log. Before the run start the series is clamped to
+    its first sample, which is ΔT = 0 by definition of ΔT (rise above the run's
+    first sample), so clamping and zero padding are the same thing here.
+
+    The GRU's last hidden state h sets the coefficients of a polynomial in the
+    (standardised) position: thermal error = Σ_{k=0..d} (w_k·h + b_k) P^k, i.e. a
+    linear head on ``[h, P, h·P, ...]``. A linear head on the plain concatenation
+    ``[h, P]`` would give every temperature state the same slope in P, while the
+    thermal error of a screw is mainly a temperature-dependent slope (seed 002
+    eq. 6: slope and intercept both regressed on ΔT; seed 004: the curve is a line
+    for fixed-free and fixed-supported screws, a parabola for fixed-fixed).
+    ``position_degree=None`` takes d from the dataset's mounting (seed 004), else d
+    as given.
+
+    Parameters: ``sensors``, ``selection``, ``preprocess``, ``lr``, ``weight_decay``,
+    ``max_epochs``, ``patience``, ``min_epochs``, ``val_fraction``, ``batch_size``,
+    ``seed``, ``geometric_degree`` as in :class:`MLPModel`, plus ``hidden_size`` (GRU
+    state size), ``window_s`` and ``step_s`` (the history) and ``position_degree``.
+
+    Fitted: as :class:`MLPModel`, scalers over (ΔT sequence, P), plus ``n_lags_`` (K)
+    and ``position_degree_``.
+    """
+
+    def __init__(
+        self,
+        sensors: Sequence[str] | None = None,
+        selection: dict | None = None,
+        preprocess="default",
+        hidden_size: int = 16,
+        window_s: float = 1800.0,
+        step_s: float = 60.0,
+        position_degree: int | None = None,
+        lr: float = 1e-2,
+        weight_decay: float = 0.0,
+        max_epochs: int = 2000,
+        patience: int = 100,
+        min_epochs: int = 100,
+        val_fraction: float = 0.2,
+        batch_size: int | None = None,
+        seed: int = 0,
+        geometric_degree: int | None = 3,
+    ):
+        self.sensors = sensors
+        self.selection = selection
+        self.preprocess = preprocess
+        self.hidden_size = hidden_size
+        self.window_s = window_s
+        self.step_s = step_s
+        self.position_degree = position_degree
+        self.lr = lr
+        self.weight_decay = weight_decay
+        self.max_epochs = max_epochs
+        self.patience = patience
+        self.min_epochs = min_epochs
+        self.val_fraction = val_fraction
+        self.batch_size = batch_size
+        self.seed = seed
+        self.geometric_degree = geometric_degree
+
+    def _check_net_params(self, ds: Dataset) -> dict:
+        owner = type(self).__name__
+        _int(owner, "hidden_size", self.hidden_size, 1)
+        step = _real(owner, "step_s", self.step_s, 0.0, True)
+        window = _real(owner, "window_s", self.window_s, 0.0, False)
+        self.n_lags_ = int(math.floor(window / step + 1e-9))
+        if self.position_degree is None:
+            self.position_degree_ = shape_degree(ds.metadata.screw.mounting)
+        else:
+            self.position_degree_ = _int(owner, "position_degree", self.position_degree, 0)
+        return {}
+
+    def _sequences(self, ds: Dataset, run: str, t_s: np.ndarray) -> np.ndarray:
+        """(n, K + 1, n_sensors) ΔT history, oldest first, built with one np.interp per sensor."""
+        lags = float(self.step_s) * np.arange(self.n_lags_, -1, -1, dtype=float)
+        grid = np.asarray(t_s, dtype=float)[:, None] - lags[None, :]
+        dT = temperatures_at(ds, run, self.sensors_, grid.ravel(), self.preprocess)
+        return dT.reshape(grid.shape[0], grid.shape[1], len(self.sensors_))
+
+    def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
+        return [self._sequences(ds, run, t_s), np.asarray(axis_mm, dtype=float).reshape(-1, 1)]
+
+    def _build(self, n_features: int, gen: torch.Generator) -> nn.Module:
+        return _GRUNet(n_features, int(self.hidden_size), self.position_degree_, gen)
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        # the GRU runs once per distinct time (a compensation table repeats each time per position)
+        if t_s.size == 0:
+            return np.zeros(0)
+        t_u, inverse = np.unique(t_s, return_inverse=True)
+        seq = self._tensor(self._sequences(ds, run, t_u), 0)
+        p = self._tensor(np.asarray(axis_mm, dtype=float).reshape(-1, 1), 1)
+        with _torch_threads(TORCH_THREADS), torch.no_grad():
+            out = self.net_(seq, p, torch.as_tensor(inverse.ravel()))
+        return out.numpy() * self.y_scale_um_ + self.y_mean_um_
