@@ -315,4 +315,4 @@ def test_hydra_config_with_list_sensors_fits(ds004):
     cfg.sensors = list(SENS4)
     m = instantiate(cfg).fit(ds004)
     assert m.sensors_ == list(SENS4)
-    assert m.required_inputs().sensors == SENS4 and m.required_inputs().motion
+    assert m.required_inputs().sensors == SENS4 and not m.required_inputs().motion

@@ -36,9 +36,12 @@ class ModelError(ValueError):
 class Inputs:
     """What a fitted model must be fed at run time (what a compensator wires up).
 
-    ``sensors``: sensor names of the dataset metadata (process columns ``<name>_C``);
-    ``motion``: the axis position and feed log; ``ambient``: the ambient temperature;
-    ``operating``: process columns used as operating parameters (seed 003).
+    Every model takes the time and the axis position of the point to compensate.
+    Beyond that: ``sensors``: sensor names of the dataset metadata (process columns
+    ``<name>_C``); ``motion``: the history of axis position and feed since the run
+    (machine) started cold, which drives heat-source models; ``ambient``: one of
+    ``sensors`` is the ambient temperature; ``operating``: process columns used as
+    operating parameters (seed 003).
     """
 
     sensors: tuple[str, ...] = ()

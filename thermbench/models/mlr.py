@@ -183,7 +183,7 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
 
     def required_inputs(self) -> Inputs:
         """The two sensors and the axis position (before fit: only the explicitly named sensors)."""
-        return Inputs(sensors=self._known_sensors("sensors_", (self.nut_sensor, self.bed_sensor)), motion=True)
+        return Inputs(sensors=self._known_sensors("sensors_", (self.nut_sensor, self.bed_sensor)))
 
     def _design(self, dT: np.ndarray, p: np.ndarray) -> np.ndarray:
         m = self.degree_
@@ -264,7 +264,7 @@ class MLRSeed002(_FittedSensorsMixin, ThermalErrorModel):
 
     def required_inputs(self) -> Inputs:
         """The selected sensors and the axis position (before fit: the explicit ``sensors``)."""
-        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()), motion=True)
+        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         origin = check_real("origin_mm", self.origin_mm)
@@ -326,7 +326,7 @@ class MLRSeed004(_FittedSensorsMixin, ThermalErrorModel):
 
     def required_inputs(self) -> Inputs:
         """The sensors and the axis position (before fit: the explicit ``sensors``)."""
-        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()), motion=True)
+        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         origin = check_real("origin_mm", self.origin_mm)
