@@ -224,8 +224,51 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
         return self._design(dT, axis_mm) @ self._coef_vector_
 
 
+# ------------------------------------------------- seeds 002 and 004 ---
+class _CurveRegression(_FittedSensorsMixin, ThermalErrorModel):
+    """Shared by seeds 002 and 004: every measuring cycle's error curve is a
+    polynomial in (P - origin) (degree from :meth:`_curve_degree`), each curve
+    coefficient is linear in the ΔT of the sensors (:meth:`_pick_sensors`) at the
+    cycle's mean time, and the geometric error is the mean residual per measuring
+    point (optionally a polynomial of ``geometric_degree``)."""
+
+    def _curve_degree(self, ds: Dataset) -> int:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def required_inputs(self) -> Inputs:
+        """The sensors (before fit: the explicit ``sensors``)."""
+        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        origin = check_real("origin_mm", self.origin_mm)
+        gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
+        degree = self._curve_degree(ds)
+        sensors = self._pick_sensors(ds, runs)
+        rd = readings(ds, runs)
+        curves, resid = cycle_curves(rd, degree, origin)
+        require(len(curves), len(sensors) + 2, f"measuring cycles for the curve-coefficient regression on {sensors}")
+        geometric = geometric_from_residuals(rd, resid, gdeg)
+        X = np.column_stack([np.ones(len(curves)), _rise_at(ds, curves, sensors, self.preprocess)])
+        Y = curves[[f"c{i}" for i in range(degree + 1)]].to_numpy()
+        what = f"{type(self).__name__} curve-coefficient regression"
+        self.curve_coef_ = lstsq_fit(X, Y, ["const", *sensors], what).T  # row i: [k_i0, k_i1, ...] for c_i
+        self.shape_degree_ = degree
+        self.sensors_ = list(sensors)
+        self.origin_ = origin
+        self.geometric_ = geometric
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        X = np.column_stack([np.ones(t_s.size), temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)])
+        c = X @ self.curve_coef_.T  # (n, degree+1)
+        powers = (axis_mm - self.origin_)[:, None] ** np.arange(self.shape_degree_ + 1)[None, :]
+        return np.sum(c * powers, axis=1)
+
+
 # -------------------------------------------------------------- seed 002 ---
-class MLRSeed002(_FittedSensorsMixin, ThermalErrorModel):
+class MLRSeed002(_CurveRegression):
     """Seed 002 multiple linear regression with geometric/thermal separation, eq. 6-11.
 
     ``e(P, ΔT) = RegressX(ΔT)·(P - P0) + RegressJ(ΔT) + Fitting(P - P0)`` (eq. 6, 11)
@@ -262,35 +305,26 @@ class MLRSeed002(_FittedSensorsMixin, ThermalErrorModel):
         self.origin_mm = origin_mm
         self.geometric_degree = geometric_degree
 
-    def required_inputs(self) -> Inputs:
-        """The selected sensors and the axis position (before fit: the explicit ``sensors``)."""
-        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
+    def _curve_degree(self, ds: Dataset) -> int:
+        return 1  # eq. 6: one line per measuring cycle
 
-    def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        origin = check_real("origin_mm", self.origin_mm)
-        gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
+    def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
         sel = dict(self.selection) if self.selection is not None else None
-        sensors = choose_sensors(ds, runs, sensor_list("sensors", self.sensors), sel, self.preprocess)
-        rd = readings(ds, runs)
-        curves, resid = cycle_curves(rd, 1, origin)  # eq. 6: one line per measuring cycle
-        require(len(curves), len(sensors) + 2, f"measuring cycles for the slope/intercept regression on {sensors}")
-        geometric = geometric_from_residuals(rd, resid, gdeg)  # eq. 7
-        X = np.column_stack([np.ones(len(curves)), _rise_at(ds, curves, sensors, self.preprocess)])
-        names = ["const", *sensors]
-        coef = lstsq_fit(X, curves[["c1", "c0"]].to_numpy(), names, "seed 002 slope/intercept regression")
-        self.slope_coef_ = coef[:, 0]  # eq. 8, RegressX
-        self.intercept_coef_ = coef[:, 1]  # eq. 9, RegressJ
-        self.sensors_ = list(sensors)
-        self.origin_ = origin
-        self.geometric_ = geometric
+        return choose_sensors(ds, runs, sensor_list("sensors", self.sensors), sel, self.preprocess)
 
-    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
-        X = np.column_stack([np.ones(t_s.size), temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)])
-        return (X @ self.slope_coef_) * (axis_mm - self.origin_) + X @ self.intercept_coef_
+    @property
+    def slope_coef_(self) -> np.ndarray:
+        """eq. 8, RegressX: ``[const, one per sensor]`` (µm/mm, per °C)."""
+        return self.curve_coef_[1]
+
+    @property
+    def intercept_coef_(self) -> np.ndarray:
+        """eq. 9, RegressJ: ``[const, one per sensor]`` (µm, per °C)."""
+        return self.curve_coef_[0]
 
 
 # -------------------------------------------------------------- seed 004 ---
-class MLRSeed004(_FittedSensorsMixin, ThermalErrorModel):
+class MLRSeed004(_CurveRegression):
     """Seed 004 mounting-aware positioning error model.
 
     ``E(t, P) = Σ_i c_i(T(t)) · (P - origin)^i + G(P)``, with
@@ -324,14 +358,10 @@ class MLRSeed004(_FittedSensorsMixin, ThermalErrorModel):
         self.preprocess = preprocess
         self.origin_mm = origin_mm
 
-    def required_inputs(self) -> Inputs:
-        """The sensors and the axis position (before fit: the explicit ``sensors``)."""
-        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
+    def _curve_degree(self, ds: Dataset) -> int:
+        return shape_degree(self.mounting if self.mounting is not None else ds.metadata.screw.mounting)
 
-    def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        origin = check_real("origin_mm", self.origin_mm)
-        gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
-        degree = shape_degree(self.mounting if self.mounting is not None else ds.metadata.screw.mounting)
+    def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
         sensors = sensor_list("sensors", self.sensors)
         if sensors is None:
             sensors = _locations_sensors(ds, SEED004_LOCATIONS)
@@ -342,21 +372,4 @@ class MLRSeed004(_FittedSensorsMixin, ThermalErrorModel):
                 )
         elif not sensors:
             raise ModelError("sensors: an empty list; name at least one sensor or pass None")
-        check_sensors(ds, sensors, "sensors")
-        rd = readings(ds, runs)
-        curves, resid = cycle_curves(rd, degree, origin)
-        require(len(curves), len(sensors) + 2, f"measuring cycles for the curve-coefficient regression on {sensors}")
-        geometric = geometric_from_residuals(rd, resid, gdeg)
-        X = np.column_stack([np.ones(len(curves)), _rise_at(ds, curves, sensors, self.preprocess)])
-        Y = curves[[f"c{i}" for i in range(degree + 1)]].to_numpy()
-        self.curve_coef_ = lstsq_fit(X, Y, ["const", *sensors], "seed 004 curve-coefficient regression").T
-        self.shape_degree_ = degree
-        self.sensors_ = list(sensors)
-        self.origin_ = origin
-        self.geometric_ = geometric
-
-    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
-        X = np.column_stack([np.ones(t_s.size), temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)])
-        c = X @ self.curve_coef_.T  # (n, degree+1)
-        powers = (axis_mm - self.origin_)[:, None] ** np.arange(self.shape_degree_ + 1)[None, :]
-        return np.sum(c * powers, axis=1)
+        return check_sensors(ds, sensors, "sensors")
