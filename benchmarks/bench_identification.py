@@ -1,0 +1,56 @@
+"""Identification time of the physics model (target: <= 30 s on one core for the
+three seed 000 loading conditions, issue "Model zoo") and the PSO-LSSVM's size.
+
+    .venv/bin/python benchmarks/bench_identification.py [--repeats 3]
+
+Pins the process to one core, fits once to warm up (numba compilation, caches),
+then reports the median of ``--repeats`` fits of PhysicsModel on the benchmark
+dataset seed000_x runs cond1_3000, cond2_6000, cond3_9000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from thermbench.datasets import load_benchmark  # noqa: E402
+from thermbench.experiment import model_from_config  # noqa: E402
+from thermbench.metrics import evaluate  # noqa: E402
+
+RUNS = ["cond1_3000", "cond2_6000", "cond3_9000"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    ds = load_benchmark("seed000_x")
+    model_from_config("physics").set_params(max_iter=2).fit(ds, RUNS[:1])  # warm-up
+    times, model = [], None
+    for _ in range(args.repeats):
+        model = model_from_config("physics")
+        t0 = time.perf_counter()
+        model.fit(ds, RUNS)
+        times.append(time.perf_counter() - t0)
+    print(f"physics identification, seed000_x {'+'.join(RUNS)}, one core: median {statistics.median(times):.1f} s "
+          f"over {args.repeats} fits (min {min(times):.1f}, max {max(times):.1f}); "
+          f"{model.n_model_evaluations_} objective evaluations, {model.sqp_iterations_} SQP iterations")  # fmt: skip
+    print("identified:", {k: float(f"{v:.4g}") for k, v in model.params_.items()})
+    res = evaluate(model, ds)
+    print(res[["run_id", "rmse_um", "max_abs_residual_um", "compensation_rate"]].to_string(index=False))
+
+    lssvm = model_from_config("lssvm").fit(ds, ["cond2_6000"])
+    print(f"PSO-LSSVM on cond2_6000: {lssvm.n_support_} support vectors, {lssvm.memory_bytes_} bytes, "
+          f"gamma {lssvm.gamma_:.4g}, sigma2 {lssvm.sigma2_:.4g}")
+
+
+if __name__ == "__main__":
+    main()
