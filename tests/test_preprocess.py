@@ -546,3 +546,12 @@ def test_cluster_sensors_mirrored_trend_joins_its_group():
     temps["mirror_C"] = 40.0 - 2.0 * temps["exp0_C"]
     clusters = cluster_sensors(temps, n_clusters=3)
     assert ["exp0_C", "exp1_C", "exp2_C", "mirror_C"] in clusters
+
+
+def test_limit_filter_does_not_freeze_on_a_glitch_at_the_first_sample():
+    """A DS18B20 reads 85.0 °C at power-on: a run whose first reading is that value
+    must not hold 85 °C for the whole run (the paper's rule alone would)."""
+    x = np.r_[85.0, 20.0 + 0.001 * np.arange(50)]
+    y = LimitFilter().transform(x)
+    np.testing.assert_array_equal(y[1:], x[1:])
+    assert y[0] == pytest.approx(np.median(x[1:6]))

@@ -11,24 +11,32 @@ import pandas as pd
 from .io import Dataset
 
 
-def cold_reference(errors_run: pd.DataFrame) -> pd.Series:
-    """Per target, the mean reading of the cold reference cycles (before any
-    target is read for the second time after the first cycle of other targets).
-
-    The reference cycles are those whose readings come before the run's first
-    feed motion that is not a measuring move; without the process log we take
-    the readings up to the first time gap larger than twice the median gap
-    between consecutive readings of one cycle.
-    """
-    t = errors_run["t_s"].to_numpy()
+def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+    """Cycle index of each reading of one run: a new cycle starts when a target
+    repeats within the current cycle or after a pause longer than 2.5 times
+    the median gap between readings."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(target_mm, dtype=float)
+    out = np.zeros(len(t), dtype=int)
     if len(t) < 2:
-        return errors_run.groupby("target_mm")["error_um"].mean()
-    gaps = np.diff(t)
-    typical = np.median(gaps)
-    big = np.flatnonzero(gaps > 2.5 * typical)
-    end = big[0] + 1 if big.size else len(t)
-    ref = errors_run.iloc[:end]
-    return ref.groupby("target_mm")["error_um"].mean()
+        return out
+    typical = np.median(np.diff(t))
+    seen: set[float] = {float(x[0])}
+    c = 0
+    for k in range(1, len(t)):
+        if float(x[k]) in seen or t[k] - t[k - 1] > 2.5 * typical:
+            c += 1
+            seen = set()
+        seen.add(float(x[k]))
+        out[k] = c
+    return out
+
+
+def cold_reference(errors_run: pd.DataFrame) -> pd.Series:
+    """Per target, the mean reading of the run's first measuring cycle (the cold
+    reference, :func:`measuring_cycles` cycle 0)."""
+    cyc = measuring_cycles(errors_run["t_s"].to_numpy(), errors_run["target_mm"].to_numpy())
+    return errors_run[cyc == 0].groupby("target_mm")["error_um"].mean()
 
 
 def thermal_errors(ds: Dataset) -> pd.DataFrame:

@@ -127,7 +127,7 @@ class AutoRegressiveSeed003(ThermalErrorModel):
         self.geometric_degree = geometric_degree
         self.origin_mm = origin_mm
 
-    def required_inputs(self) -> Inputs:
+    def _model_inputs(self) -> Inputs:
         """The operating columns and the motion log; no temperature sensors (seed 003)."""
         cols = tuple(dict.fromkeys(c for c, _ in parse_operating(self.operating)))
         return Inputs(operating=cols, motion=True)

@@ -25,11 +25,17 @@ from numpy.polynomial import Polynomial
 from sklearn.base import BaseEstimator
 
 from ..data.io import Dataset
-from ..data.reference import thermal_errors
+from ..data.reference import measuring_cycles, thermal_errors
 
 
 class ModelError(ValueError):
     """A model cannot do what was asked (bad input, unfitted model, ...); the message says why."""
+
+
+def _pairs(t_s, axis_mm) -> tuple[np.ndarray, np.ndarray]:
+    """(t, x) broadcast against each other, as flat float arrays."""
+    t, x = np.broadcast_arrays(np.atleast_1d(np.asarray(t_s, dtype=float)), np.asarray(axis_mm, dtype=float))
+    return t.ravel().astype(float), x.ravel().astype(float)
 
 
 @dataclass(frozen=True)
@@ -68,8 +74,7 @@ class CompensationTable:
 
     def at(self, t_s, axis_mm) -> np.ndarray:
         """Bilinear interpolation of the table (what the compensator does in real time)."""
-        t = np.atleast_1d(np.asarray(t_s, dtype=float))
-        x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
+        t, x = _pairs(t_s, axis_mm)
         i = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, max(len(self.t_s) - 2, 0))
         j = np.clip(np.searchsorted(self.axis_mm, x, side="right") - 1, 0, max(len(self.axis_mm) - 2, 0))
         i1 = np.minimum(i + 1, len(self.t_s) - 1)
@@ -108,12 +113,21 @@ def check_sensors(ds: Dataset, sensors: Sequence[str], key: str = "sensors") -> 
     return list(sensors)
 
 
+def sensors_by_location(ds: Dataset, locations: Sequence[str]) -> list[str]:
+    """The dataset's first sensor at each of ``locations`` (locations it lacks are skipped)."""
+    out = []
+    for loc in locations:
+        name = next((n for n, where in ds.metadata.sensors.items() if where == loc), None)
+        if name is not None:
+            out.append(name)
+    return out
+
+
 def sensors_at(ds: Dataset, sensor: str, locations: Sequence[str]) -> str:
     """The dataset's sensor at the first of ``locations`` it has (e.g. 'nut_housing')."""
-    for loc in locations:
-        for name, where in ds.metadata.sensors.items():
-            if where == loc:
-                return name
+    found = sensors_by_location(ds, locations)
+    if found:
+        return found[0]
     raise ModelError(
         f"{sensor}: the dataset {_name(ds)} has no sensor at {list(locations)}; "
         f"sensors: {dict(ds.metadata.sensors)}; name one explicitly"
@@ -127,27 +141,6 @@ def require(n: int, minimum: int, what: str) -> None:
 
 def _name(ds: Dataset) -> str:
     return str(ds.path) if ds.path is not None else ds.metadata.machine.name
-
-
-def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
-    """Cycle index of each reading of one run: a new cycle starts when a target
-    repeats within the current cycle or after a pause longer than 2.5 times
-    the median gap between readings."""
-    t = np.asarray(t_s, dtype=float)
-    x = np.asarray(target_mm, dtype=float)
-    out = np.zeros(len(t), dtype=int)
-    if len(t) < 2:
-        return out
-    typical = np.median(np.diff(t))
-    seen: set[float] = {float(x[0])}
-    c = 0
-    for k in range(1, len(t)):
-        if float(x[k]) in seen or t[k] - t[k - 1] > 2.5 * typical:
-            c += 1
-            seen = set()
-        seen.add(float(x[k]))
-        out[k] = c
-    return out
 
 
 def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
@@ -191,17 +184,14 @@ def temperatures_at(
     return out
 
 
-def _pairs(t_s, axis_mm) -> tuple[np.ndarray, np.ndarray]:
-    """(t, x) broadcast against each other, as flat float arrays."""
-    t, x = np.broadcast_arrays(np.atleast_1d(np.asarray(t_s, dtype=float)), np.asarray(axis_mm, dtype=float))
-    return t.ravel().astype(float), x.ravel().astype(float)
-
-
 class ThermalErrorModel(BaseEstimator):
     """Base class of all model families (see module docstring)."""
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
         runs = check_runs(dataset, runs)
+        # a refit starts from nothing: a fit that fails half-way leaves an unfitted model
+        for attr in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:
+            delattr(self, attr)
         self._fit(dataset, runs)
         self.train_runs_ = list(runs)
         return self
@@ -213,13 +203,19 @@ class ThermalErrorModel(BaseEstimator):
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         raise NotImplementedError  # pragma: no cover - abstract
 
-    def required_inputs(self) -> Inputs:  # pragma: no cover - abstract
-        raise NotImplementedError
+    def _model_inputs(self) -> Inputs:
+        """What the fitted model reads; default: the sensors it fitted on (``sensors_``)."""
+        return Inputs(sensors=tuple(getattr(self, "sensors_", ())))
 
     # --- the interface ----------------------------------------------------
     def _check_fitted(self) -> None:
         if not hasattr(self, "train_runs_"):
             raise ModelError(f"{type(self).__name__} is not fitted: call fit(dataset, runs) before predicting")
+
+    def required_inputs(self) -> Inputs:
+        """What the fitted model must be fed at run time (:class:`Inputs`)."""
+        self._check_fitted()
+        return self._model_inputs()
 
     def geometric_um(self, axis_mm) -> np.ndarray:
         """The geometric (pitch) error separated at fit time, at ``axis_mm``."""
@@ -250,8 +246,8 @@ class ThermalErrorModel(BaseEstimator):
         ``step_s`` of the run (seed 000 §4.3: the table the CNC interpolates)."""
         run = check_runs(dataset, run)[0]
         if axis_mm is None:
-            axis_mm = np.unique(dataset.errors_run(run)["target_mm"].to_numpy())
-        x = np.asarray(axis_mm, dtype=float)
+            axis_mm = dataset.errors_run(run)["target_mm"].to_numpy()
+        x = np.unique(np.asarray(axis_mm, dtype=float))  # sorted: the table is interpolated
         pr = dataset.process_run(run)
         t0, t1 = float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])
         if not step_s > 0:
@@ -284,6 +280,8 @@ def choose_sensors(
     the temperature-sensitive points of seed 002 §2.3.1 picked on the training runs:
     clustering of the (filtered) non-ambient sensors, one per cluster by the score
     of ``selection['method']`` against the slope of the measured thermal error."""
+    if isinstance(sensors, str):
+        sensors = [sensors]
     if sensors is not None:
         if len(sensors) == 0:
             raise ModelError(f"{key}: an empty list; name at least one sensor or pass None to select")
@@ -300,7 +298,12 @@ def choose_sensors(
     curves, _ = cycle_curves(rd, 1)
     temps = np.vstack([temperatures_at(ds, r, cand, g["t_s"], preprocess) for r, g in curves.groupby("run_id", sort=False)])
     require(len(curves), 3, "measuring cycles for sensor selection")
+    slope = curves["c1"].to_numpy()
+    # the slope falls as the screw heats when the fixed end is on the positive side (Pf > 0):
+    # orient it to rise with temperature, since grey relational grades compare shapes, not |r|
+    if np.corrcoef(slope, temps.mean(axis=1))[0, 1] < 0:
+        slope = -slope
     sel = select_sensitive_points(
-        pd.DataFrame(temps, columns=cand), curves["c1"].to_numpy(), n_clusters=min(n_clusters, len(cand)), **opts
+        pd.DataFrame(temps, columns=cand), slope, n_clusters=min(n_clusters, len(cand)), **opts
     )
     return list(sel.selected)

@@ -7,8 +7,9 @@ Three layers:
   to ``y_i = wᵀΦ(x_i) + b + ξ_i`` — the paper prints ``Σ ξ_i``, the LSSVM has the
   squared slack) with the RBF kernel of eq. 14, ``K(x, x_i) = exp(-||x - x_i||² / (2σ²))``.
   Its Lagrangian gives the KKT system ``[[0, 1ᵀ], [1, K + I/γ]] [b; α] = [0; y]``
-  (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` follow the paper's LS-SVMlab
-  names ``gam``/``sig2``), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
+  (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` after the paper's ``gam``/``sig2``;
+  the kernel is eq. 14's exp(-d²/(2σ²)), whereas LS-SVMlab's RBF is exp(-d²/sig2): the
+  paper's sig2 = 0.01 is σ² = 0.005 here), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
 * :func:`tune_lssvm`: particle-swarm search (``pyswarms.single.GlobalBestPSO``) of
   (log10 γ, log10 σ²) minimising the RMSE on a hold-out set (seed 002 Fig. 14:
   "iterative adaptive particles screen the parameters of the kernel function and
@@ -36,8 +37,8 @@ from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
 from ..data.io import Dataset
-from .base import Inputs, ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
-from .separation import cycle_curves, geometric_from_residuals
+from .base import ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .separation import line_separated_geometric
 
 #: Standard constriction coefficients of the PSO (Clerc & Kennedy 2002); seed 002 gives none.
 DEFAULT_PSO_OPTIONS = {"c1": 1.49445, "c2": 1.49445, "w": 0.729}
@@ -410,8 +411,7 @@ class PSOLSSVM(ThermalErrorModel):
         self._check_params()
         rd = readings(ds, runs)
         require(len(rd), 10, "interferometer readings in the training runs")
-        _, resid = cycle_curves(rd, 1)  # seed 002 eq. 6: a line per measuring cycle
-        self.geometric_ = geometric_from_residuals(rd, resid, int(self.geometric_degree))  # eq. 7
+        self.geometric_ = line_separated_geometric(rd, int(self.geometric_degree))  # seed 002 eq. 6-7
         self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
 
         X = np.empty((len(rd), len(self.sensors_) + 1))
@@ -457,11 +457,3 @@ class PSOLSSVM(ThermalErrorModel):
 
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         return self.regressor_.predict(self._features(ds, run, t_s, axis_mm))
-
-    def required_inputs(self) -> Inputs:
-        """The sensors the LSSVM reads (its position input is the compensation point itself)."""
-        if hasattr(self, "sensors_"):
-            return Inputs(sensors=tuple(self.sensors_))
-        if self.sensors is not None:
-            return Inputs(sensors=tuple(self.sensors))
-        raise ModelError("PSOLSSVM: sensors are selected at fit time; call fit(dataset, runs) first or give sensors")

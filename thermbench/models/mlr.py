@@ -32,7 +32,6 @@ import pandas as pd
 
 from ..data.io import Dataset
 from .base import (
-    Inputs,
     ModelError,
     ThermalErrorModel,
     check_sensors,
@@ -40,6 +39,7 @@ from .base import (
     readings,
     require,
     sensors_at,
+    sensors_by_location,
     temperatures_at,
 )
 from .separation import cold_reference_geometric, cycle_curves, geometric_from_residuals, shape_degree
@@ -118,26 +118,8 @@ def _rise_at(ds: Dataset, frame: pd.DataFrame, sensors: list[str], preprocess) -
     return out
 
 
-def _locations_sensors(ds: Dataset, locations: Sequence[str]) -> list[str]:
-    """The first sensor the dataset has at each of ``locations`` (locations it lacks are skipped)."""
-    out = []
-    for loc in locations:
-        for name, where in ds.metadata.sensors.items():
-            if where == loc:
-                out.append(name)
-                break
-    return out
-
-
-class _FittedSensorsMixin:
-    def _known_sensors(self, fitted_attr: str, explicit: Sequence[str | None]) -> tuple[str, ...]:
-        if hasattr(self, fitted_attr):
-            return tuple(getattr(self, fitted_attr))
-        return tuple(s for s in explicit if s is not None)
-
-
 # -------------------------------------------------------------- seed 001 ---
-class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
+class MLRSeed001(ThermalErrorModel):
     """Seed 001 multiple regression, eq. 1 and eq. 12.
 
     ``E(t, Px) = E_p(Px) + (a_m ΔTn^m + ... + a_1 ΔTn + b_1 ΔTb + c) · (Px - origin_mm)``
@@ -181,10 +163,6 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
         self.origin_mm = origin_mm
         self.preprocess = preprocess
 
-    def required_inputs(self) -> Inputs:
-        """The two sensors and the axis position (before fit: only the explicitly named sensors)."""
-        return Inputs(sensors=self._known_sensors("sensors_", (self.nut_sensor, self.bed_sensor)))
-
     def _design(self, dT: np.ndarray, p: np.ndarray) -> np.ndarray:
         m = self.degree_
         cols = [dT[:, 0] ** i for i in range(1, m + 1)] + [dT[:, 1], np.ones(len(p))]
@@ -225,7 +203,7 @@ class MLRSeed001(_FittedSensorsMixin, ThermalErrorModel):
 
 
 # ------------------------------------------------- seeds 002 and 004 ---
-class _CurveRegression(_FittedSensorsMixin, ThermalErrorModel):
+class _CurveRegression(ThermalErrorModel):
     """Shared by seeds 002 and 004: every measuring cycle's error curve is a
     polynomial in (P - origin) (degree from :meth:`_curve_degree`), each curve
     coefficient is linear in the ΔT of the sensors (:meth:`_pick_sensors`) at the
@@ -237,10 +215,6 @@ class _CurveRegression(_FittedSensorsMixin, ThermalErrorModel):
 
     def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:  # pragma: no cover - abstract
         raise NotImplementedError
-
-    def required_inputs(self) -> Inputs:
-        """The sensors (before fit: the explicit ``sensors``)."""
-        return Inputs(sensors=self._known_sensors("sensors_", sensor_list("sensors", self.sensors) or ()))
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         origin = check_real("origin_mm", self.origin_mm)
@@ -364,7 +338,7 @@ class MLRSeed004(_CurveRegression):
     def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
         sensors = sensor_list("sensors", self.sensors)
         if sensors is None:
-            sensors = _locations_sensors(ds, SEED004_LOCATIONS)
+            sensors = sensors_by_location(ds, SEED004_LOCATIONS)
             if not sensors:
                 raise ModelError(
                     f"sensors: the dataset has no sensor at {list(SEED004_LOCATIONS)} "

@@ -63,8 +63,8 @@ import torch
 from torch import nn
 
 from ..data.io import Dataset
-from .base import Inputs, ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
-from .separation import cycle_curves, geometric_from_residuals, shape_degree
+from .base import ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .separation import line_separated_geometric, shape_degree
 
 __all__ = ["GRUModel", "MLPModel"]
 
@@ -213,15 +213,6 @@ class _NeuralModel(ThermalErrorModel):
         raise NotImplementedError
 
     # --- interface -----------------------------------------------------------------------
-    def required_inputs(self) -> Inputs:
-        if hasattr(self, "sensors_"):
-            return Inputs(sensors=tuple(self.sensors_))
-        if self.sensors is not None and not isinstance(self.sensors, str):
-            return Inputs(sensors=tuple(self.sensors))
-        raise ModelError(
-            f"{type(self).__name__}: sensors=None are selected at fit time; call fit(dataset, runs) first"
-        )
-
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         opts = _common(self)
         self._net_opts_ = self._check_net_params(ds)
@@ -229,8 +220,7 @@ class _NeuralModel(ThermalErrorModel):
         rd = readings(ds, runs)
         require(len(rd), MIN_TRAIN_READINGS, f"readings in run(s) {runs}")
         # seed 002 eq. 6-7: line per measuring cycle, geometric = cubic through the mean residuals
-        _, resid = cycle_curves(rd, 1)
-        self.geometric_ = geometric_from_residuals(rd, resid, self.geometric_degree)
+        self.geometric_ = line_separated_geometric(rd, self.geometric_degree)  # seed 002 eq. 6-7
         y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
         inputs = self._stack_inputs(ds, rd)
         val = _validation_mask(rd, opts["val_fraction"])

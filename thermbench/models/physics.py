@@ -126,13 +126,13 @@ class PhysicsModel(ThermalErrorModel):
             )
         return self.ambient_sensor
 
-    def _drive(self, ds: Dataset, run: str):
-        """(motion, duration, ambient series, its times) of a run from its process log."""
+    def _drive(self, ds: Dataset, run: str, name: str | None):
+        """(motion, duration, ambient series, its times) of a run from its process log,
+        with the ambient of sensor ``name`` (None: constant)."""
         pr = ds.process_run(run)
         t = pr["t_s"].to_numpy()
         load = pr["load_N"].to_numpy() if "load_N" in pr else None
         mot = Motion(t, pr["axis_mm"].to_numpy(), pr["feed_mm_min"].to_numpy(), load)
-        name = self._ambient_name(ds)
         if name is None:
             return mot, float(t[-1] - t[0]), 20.0, None
         s = sensor_series(ds, run, [name], self.preprocess)
@@ -180,7 +180,7 @@ class PhysicsModel(ThermalErrorModel):
 
     def _check_identify(self, effect_specs: dict) -> list[str]:
         out = []
-        for name in self.identify:
+        for name in [self.identify] if isinstance(self.identify, str) else list(self.identify):
             if name in CORE_NONLINEAR:
                 out.append(name)
                 continue
@@ -276,7 +276,7 @@ class PhysicsModel(ThermalErrorModel):
             ref = g[g["cycle"] == 0]
             first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
             ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
-            mot, dur, amb, amb_t = self._drive(ds, run)
+            mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
             rds.append(_RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx, g["thermal_um"].to_numpy()))
         y = np.concatenate([r.thermal_um for r in rds])
 
@@ -325,14 +325,19 @@ class PhysicsModel(ThermalErrorModel):
     def history(self, dataset: Dataset, run: str) -> ThermalHistory:
         """The identified model's thermal history over ``run`` (driven by its process log)."""
         self._check_fitted()
-        mot, dur, amb, amb_t = self._drive(dataset, run)
-        model = self._build(dataset, self.core_.as_dict(), self.effects_, self._ambient_name(dataset) is not None)
+        name = self.ambient_name_  # the ambient it was identified with; the dataset must have it
+        if name is not None and name not in dataset.metadata.sensors:
+            raise ModelError(
+                f"the model was identified with ambient sensor {name!r}, which this dataset lacks; "
+                f"sensors: {list(dataset.metadata.sensors)}"
+            )
+        mot, dur, amb, amb_t = self._drive(dataset, run, name)
+        model = self._build(dataset, self.core_.as_dict(), self.effects_, name is not None)
         return model.run(mot, ambient_C=amb, ambient_t_s=amb_t, duration_s=dur)
 
     def _predict_thermal(self, ds, run, t_s, axis_mm):
         return self.history(ds, run).error_um(t_s, axis_mm)
 
-    def required_inputs(self) -> Inputs:
-        self._check_fitted()
+    def _model_inputs(self) -> Inputs:
         name = self.ambient_name_
         return Inputs(sensors=(name,) if name else (), motion=True, ambient=name is not None)

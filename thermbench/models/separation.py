@@ -56,6 +56,13 @@ def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple
     return pd.DataFrame(rows), resid
 
 
+def line_separated_geometric(rd: pd.DataFrame, degree: int | None = 3, origin_mm: float = 0.0):
+    """Seed 002 eq. 6-7 in one call: a line per measuring cycle, then the mean
+    residual per measuring point fitted by a polynomial of ``degree``."""
+    _, resid = cycle_curves(rd, 1, origin_mm)
+    return geometric_from_residuals(rd, resid, degree)
+
+
 class TargetTable:
     """Geometric error as per-target values, linear in between (a pitch table)."""
 

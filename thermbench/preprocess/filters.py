@@ -24,6 +24,9 @@ from sklearn.base import BaseEstimator
 __all__ = ["KalmanFilter", "LimitFilter", "PreprocessError", "default_steps", "filter_process", "resolve_steps"]
 
 
+START_SAMPLES = 5  # the limit filter checks the first reading against the median of the next 5
+
+
 class PreprocessError(ValueError):
     """Bad input to preprocessing; the message names the column/parameter and what was expected."""
 
@@ -59,7 +62,10 @@ def _as_series(x, column: str) -> np.ndarray:
 class LimitFilter(BaseEstimator):
     """Limit (spike) filter, seed 002 §2.3.1 eq. 1.
 
-    ``y[0] = x[0]``; then ``y[k] = y[k-1]`` if ``|x[k] - y[k-1]| > limit_C`` (hold the
+    ``y[0] = x[0]`` unless the first reading is itself a glitch (e.g. the 85 °C power-on
+    value of a DS18B20): when it lies more than ``limit_C`` from the median of the next
+    ``START_SAMPLES`` readings and those agree within ``limit_C``, the filter starts
+    from that median. Then ``y[k] = y[k-1]`` if ``|x[k] - y[k-1]| > limit_C`` (hold the
     previous *accepted* value) else ``y[k] = x[k]``. The paper writes the comparison
     against ``Temp(t-1)``; comparing with the last accepted value is what makes a
     multi-sample dropout (e.g. 85.0 °C for 5 s) disappear completely rather than only
@@ -102,6 +108,10 @@ class LimitFilter(BaseEstimator):
         y = z.copy()
         data = z.tolist()  # python floats: a scalar loop is ~10x faster on these than on numpy scalars
         prev = data[0]  # last accepted value
+        nxt = z[1 : 1 + START_SAMPLES]
+        if abs(prev - float(np.median(nxt))) > limit and np.ptp(nxt) <= limit:
+            prev = y[0] = float(np.median(nxt))  # the first reading is a glitch the next ones agree on
+
         run = 0  # consecutive rejected readings forming one level
         last_rejected = 0.0
         for k in range(1, len(data)):
@@ -140,6 +150,10 @@ class KalmanFilter(BaseEstimator):
     update above yields from an uninformative prior (P⁻ → ∞ gives K → 1, x = z[0],
     P = R). The gain therefore starts near 1/2 and decays to the steady state
     ``K∞ = P∞⁻ / (P∞⁻ + R)`` with ``P∞⁻ = (Q + sqrt(Q² + 4QR)) / 2``.
+
+    Q and R are per *sample*: with the defaults K∞ ≈ 0.0105, a smoothing time
+    constant of about 95 samples, i.e. about 95 s on the contract's 1 Hz log but
+    shorter on a faster log; scale Q with the sample period to keep it in seconds.
 
     Parameters
     ----------
