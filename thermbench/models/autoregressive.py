@@ -42,7 +42,7 @@ import pandas as pd
 from ..data.io import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, readings, require
 from .mlr import check_degree_or_none, check_int, check_real, lstsq_fit
-from .separation import cycle_curves, geometric_from_residuals, shape_degree
+from .separation import curve_at, cycle_curves, geometric_from_residuals, shape_degree
 
 __all__ = ["AutoRegressiveSeed003", "parse_operating"]
 
@@ -279,5 +279,4 @@ class AutoRegressiveSeed003(ThermalErrorModel):
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         grid, C = self.simulate(ds, run)
         c = np.column_stack([np.interp(t_s, grid, C[:, i]) for i in range(C.shape[1])])
-        powers = (axis_mm - self.origin_)[:, None] ** np.arange(C.shape[1])[None, :]
-        return np.sum(c * powers, axis=1)
+        return curve_at(c, axis_mm - self.origin_)

@@ -16,6 +16,7 @@ axis_mm)`` and ``required_inputs()``; the geometric part is a fitted
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -184,7 +185,7 @@ def temperatures_at(
     return out
 
 
-class ThermalErrorModel(BaseEstimator):
+class ThermalErrorModel(BaseEstimator, ABC):
     """Base class of all model families (see module docstring)."""
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
@@ -197,11 +198,13 @@ class ThermalErrorModel(BaseEstimator):
         return self
 
     # --- subclass hooks ---------------------------------------------------
-    def _fit(self, ds: Dataset, runs: list[str]) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        """Learn from ``runs``; must set ``geometric_``."""
 
+    @abstractmethod
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
-        raise NotImplementedError  # pragma: no cover - abstract
+        """The thermal part of the error at (t, axis) pairs."""
 
     def _model_inputs(self) -> Inputs:
         """What the fitted model reads; default: the sensors it fitted on (``sensors_``)."""
@@ -266,6 +269,22 @@ def polynomial_fit(x: np.ndarray, y: np.ndarray, degree: int, what: str) -> Poly
     if n_unique <= degree:
         raise ModelError(f"too few samples: {what} needs more than {degree} distinct positions, got {n_unique}")
     return Polynomial.fit(x, y, degree)
+
+
+def last_cycles_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
+    """True for the readings of the last ``fraction`` of the measuring cycles of each
+    run (at least one cycle, and at least one stays out); runs with a single cycle
+    hold nothing out. A hold-out at the end of each run is an honest extrapolation in time."""
+    held = np.zeros(len(rd), dtype=bool)
+    if fraction == 0.0:
+        return held
+    for _, g in rd.groupby("run_id", sort=False):
+        cycles = np.unique(g["cycle"].to_numpy())
+        if cycles.size < 2:
+            continue
+        n_val = min(max(1, int(round(fraction * cycles.size))), cycles.size - 1)
+        held[g.index.to_numpy()[np.isin(g["cycle"].to_numpy(), cycles[-n_val:])]] = True
+    return held
 
 
 def choose_sensors(

@@ -37,7 +37,7 @@ from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
 from ..data.io import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .separation import line_separated_geometric
 
 #: Standard constriction coefficients of the PSO (Clerc & Kennedy 2002); seed 002 gives none.
@@ -415,15 +415,11 @@ class PSOLSSVM(ThermalErrorModel):
         self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
 
         X = np.empty((len(rd), len(self.sensors_) + 1))
-        val = np.zeros(len(rd), dtype=bool)
         for r in runs:
             m = (rd["run_id"] == r).to_numpy()
             g = rd[m]
             X[m] = self._features(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
-            cycles = np.unique(g["cycle"].to_numpy())
-            if cycles.size >= 2:
-                n_val = min(max(1, int(round(self.val_fraction * cycles.size))), cycles.size - 1)
-                val[m] = np.isin(g["cycle"].to_numpy(), cycles[-n_val:])
+        val = last_cycles_mask(rd, float(self.val_fraction))
         y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         require(int(ok.sum()), 10, "finite (temperature, error) readings in the training runs")

@@ -23,6 +23,7 @@ regression on T is the same linear model up to the constant.
 from __future__ import annotations
 
 import math
+from abc import abstractmethod
 import warnings
 from numbers import Integral, Real
 from typing import Sequence
@@ -42,7 +43,7 @@ from .base import (
     sensors_by_location,
     temperatures_at,
 )
-from .separation import cold_reference_geometric, cycle_curves, geometric_from_residuals, shape_degree
+from .separation import cold_reference_geometric, curve_at, cycle_curves, geometric_from_residuals, shape_degree
 
 __all__ = ["MLRSeed001", "MLRSeed002", "MLRSeed004", "lstsq_fit"]
 
@@ -210,11 +211,13 @@ class _CurveRegression(ThermalErrorModel):
     cycle's mean time, and the geometric error is the mean residual per measuring
     point (optionally a polynomial of ``geometric_degree``)."""
 
-    def _curve_degree(self, ds: Dataset) -> int:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _curve_degree(self, ds: Dataset) -> int:
+        """Degree of each cycle's curve in position."""
 
-    def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
+        """The sensors the coefficients are regressed on."""
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         origin = check_real("origin_mm", self.origin_mm)
@@ -236,9 +239,7 @@ class _CurveRegression(ThermalErrorModel):
 
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         X = np.column_stack([np.ones(t_s.size), temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)])
-        c = X @ self.curve_coef_.T  # (n, degree+1)
-        powers = (axis_mm - self.origin_)[:, None] ** np.arange(self.shape_degree_ + 1)[None, :]
-        return np.sum(c * powers, axis=1)
+        return curve_at(X @ self.curve_coef_.T, axis_mm - self.origin_)
 
 
 # -------------------------------------------------------------- seed 002 ---

@@ -53,6 +53,7 @@ Training discipline (both, choices of thermbench — the papers are silent):
 from __future__ import annotations
 
 import math
+from abc import abstractmethod
 from contextlib import contextmanager
 from numbers import Integral, Real
 from typing import Sequence
@@ -63,7 +64,7 @@ import torch
 from torch import nn
 
 from ..data.io import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, readings, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .separation import line_separated_geometric, shape_degree
 
 __all__ = ["GRUModel", "MLPModel"]
@@ -126,21 +127,16 @@ def _torch_threads(n: int):
 def _validation_mask(rd: pd.DataFrame, val_fraction: float) -> np.ndarray:
     """True for the readings of the last ``val_fraction`` of the measuring cycles of each run
     (at least one cycle when ``val_fraction > 0``; at least one cycle stays for training)."""
-    val = np.zeros(len(rd), dtype=bool)
-    if val_fraction == 0.0:
-        return val
-    for run, g in rd.groupby("run_id", sort=False):
-        cycles = np.unique(g["cycle"].to_numpy())
-        if cycles.size < 2:
-            raise ModelError(
-                f"too few samples: run {run!r} has {cycles.size} measuring cycle(s); val_fraction="
-                f"{val_fraction} holds out whole cycles at the end of each run, so each run needs >= 2 "
-                "(or pass val_fraction=0)"
-            )
-        n_val = min(max(1, int(round(val_fraction * cycles.size))), cycles.size - 1)
-        held = cycles[-n_val:]
-        val[g.index.to_numpy()[np.isin(g["cycle"].to_numpy(), held)]] = True
-    return val
+    if val_fraction > 0.0:
+        for run, g in rd.groupby("run_id", sort=False):
+            n_cycles = g["cycle"].nunique()
+            if n_cycles < 2:
+                raise ModelError(
+                    f"too few samples: run {run!r} has {n_cycles} measuring cycle(s); val_fraction="
+                    f"{val_fraction} holds out whole cycles at the end of each run, so each run needs >= 2 "
+                    "(or pass val_fraction=0)"
+                )
+    return last_cycles_mask(rd, val_fraction)
 
 
 def _scaler(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,14 +199,17 @@ class _NeuralModel(ThermalErrorModel):
     """Shared fit/predict of the neural family (see the module docstring)."""
 
     # --- hooks of the concrete nets ------------------------------------------------------
-    def _check_net_params(self, ds: Dataset) -> dict:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _check_net_params(self, ds: Dataset) -> dict:
+        """The validated architecture parameters."""
 
+    @abstractmethod
     def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
-        raise NotImplementedError  # pragma: no cover - abstract
+        """The net's input arrays for (t, axis) pairs of a run."""
 
-    def _build(self, n_features: int, gen: torch.Generator) -> nn.Module:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _build(self, n_features: int, gen: torch.Generator) -> nn.Module:
+        """A freshly initialised net."""
 
     # --- interface -----------------------------------------------------------------------
     def _fit(self, ds: Dataset, runs: list[str]) -> None:

@@ -21,6 +21,12 @@ from .base import ModelError, polynomial_fit
 SHAPE_DEGREE = {"fixed_free": 1, "fixed_supported": 1, "fixed_fixed": 2}
 
 
+def curve_at(coef: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Per row, the polynomial with ascending coefficients ``coef[i]`` evaluated at ``p[i]``."""
+    coef = np.asarray(coef, dtype=float)
+    return np.sum(coef * np.asarray(p, dtype=float)[:, None] ** np.arange(coef.shape[1])[None, :], axis=1)
+
+
 def cold_reference_geometric(rd: pd.DataFrame, degree: int = 4) -> Polynomial:
     """Polynomial in position through the cold reference readings (cycle 0 of
     every run): seed 001 eq. 11, E_p = d4 Px^4 + ... + d0."""
