@@ -29,6 +29,7 @@ install-dev: $(VENV)/.installed-dev
 
 demo: $(VENV)/.installed
 	$(BIN)/thermbench simulate suite=benchmark
+	$(BIN)/thermbench benchmark
 
 test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q

@@ -40,3 +40,15 @@ def short_cfg():
     }
     cfg.protocol.random_runs = {"count": 0}
     return cfg
+
+
+@pytest.fixture(scope="session")
+def seed001_data_root(tmp_path_factory):
+    """A benchmark root holding ``seed001_vmc_x`` only, built once per test session (per
+    xdist worker; a few seconds), so tests that load it through ``THERMBENCH_DATA`` never
+    depend on a prebuilt ``data/benchmark`` nor write into the repository."""
+    from thermbench import datasets
+
+    root = tmp_path_factory.mktemp("benchmark")
+    datasets.build("seed001_vmc_x", root)
+    return root

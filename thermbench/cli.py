@@ -2,6 +2,10 @@
 
     thermbench simulate [hydra overrides...]   write a dataset (or suite=benchmark: all standard ones)
     thermbench validate DATA_DIR               check a dataset against the contract and summarise it
+    thermbench classify --stroke S --start A --end B --feed F
+                                               seed 002 §2.4 condition classifier: the chosen condition
+    thermbench train|evaluate|benchmark|export [hydra overrides...] [-m]
+                                               Hydra jobs (thermbench.app): conf/<job>.yaml
 """
 
 from __future__ import annotations
@@ -54,23 +58,56 @@ def cmd_validate(path: str) -> int:
     return 0
 
 
+def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: float, classifier: str) -> int:
+    from .classify import classify_motion, format_classification
+    from .experiment import group_option
+
+    from hydra.utils import instantiate
+
+    clf = instantiate(group_option("classifier", classifier), _convert_="all")
+    label, table = classify_motion(stroke_mm, start_mm, end_mm, feed_mm_min, classifier=clf)
+    print(format_classification(label, table))
+    return 0
+
+
+HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
+
+
 def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
     from .data.io import DatasetError
 
-    parser = argparse.ArgumentParser(prog="thermbench", description="Ball-screw thermal error modelling and compensation.")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in HYDRA_JOBS:
+        from .app import run
+
+        return run(argv[0], argv[1:])
+
+    parser = argparse.ArgumentParser(
+        prog="thermbench",
+        description="Ball-screw thermal error modelling and compensation.",
+        epilog="Hydra jobs: thermbench {train,evaluate,benchmark,export} [overrides] [-m] [--help]",
+    )
     parser.add_argument("--version", action="version", version=f"thermbench {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     p_sim = sub.add_parser("simulate", help="simulate a dataset (Hydra overrides, e.g. machine=seed002_vmc655h_x clean=true)")
     p_sim.add_argument("overrides", nargs="*", help="Hydra overrides key=value")
     p_val = sub.add_parser("validate", help="validate a dataset directory against the contract")
     p_val.add_argument("data_dir")
+    p_cls = sub.add_parser("classify", help="seed 002 naive-Bayes motion-condition classifier (eq. 15-19)")
+    p_cls.add_argument("--stroke", type=float, required=True, help="working stroke A, mm")
+    p_cls.add_argument("--start", type=float, required=True, help="stroke start P_start, mm")
+    p_cls.add_argument("--end", type=float, required=True, help="stroke end P_end, mm")
+    p_cls.add_argument("--feed", type=float, required=True, help="feed C, mm/min")
+    p_cls.add_argument("--classifier", default="seed002", help="conf/classifier option (default: seed002, Table 5)")
     args = parser.parse_args(argv)
     try:
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
+        if args.command == "classify":
+            return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
-    except (DatasetError, ConfigError, ValueError, KeyError, FileNotFoundError) as exc:
+    except (DatasetError, ConfigError, ValueError, KeyError, FileNotFoundError) as exc:  # user mistakes
         print(f"thermbench: error: {exc}", file=sys.stderr)
         return 2
 

@@ -26,13 +26,16 @@ def config_dir() -> Path:
     return cand
 
 
-def load_config(name: str = "simulate", overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose ``conf/<name>.yaml`` with Hydra overrides (``key=value``, ``group=option``)."""
+def load_config(name: str = "simulate", overrides: Sequence[str] = (), return_hydra_config: bool = False) -> DictConfig:
+    """Compose ``conf/<name>.yaml`` with Hydra overrides (``key=value``, ``group=option``).
+
+    ``return_hydra_config=True`` keeps the ``hydra`` node (its ``runtime.choices`` name
+    the options picked for each group), as a ``hydra.main`` job sees it."""
     if GlobalHydra.instance().is_initialized():
         GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(version_base="1.3", config_dir=str(config_dir())):
-            return compose(config_name=name, overrides=list(overrides))
+            return compose(config_name=name, overrides=list(overrides), return_hydra_config=return_hydra_config)
     except ConfigError:
         raise
     except Exception as exc:  # hydra's override/composition errors are user mistakes

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import Sequence
 
 import yaml
 from omegaconf import OmegaConf
@@ -63,26 +64,59 @@ def _cached_hash(path: Path) -> str | None:
         return None
 
 
-def build(name: str, root: str | Path | None = None, force: bool = False) -> tuple[Path, dict | None]:
-    """Build benchmark dataset ``name`` under ``root`` unless a matching cache exists.
-
-    Returns the path and the simulation summary (None when taken from the cache).
-    """
-    cfg = benchmark_config(name)
+def _build_cached(cfg, path: Path, force: bool, **tags) -> tuple[Path, dict | None]:
+    """Simulate ``cfg`` into ``path`` unless the dataset there has the same config hash."""
     h = config_hash(cfg)
-    path = Path(root or default_root()) / name
     if not force and _cached_hash(path) == h:
         return path, None
     ds, summary = simulate_dataset(cfg)
     sim = dict(ds.metadata.model_extra.get("simulation", {}))
     sim["config_hash"] = h
-    sim["benchmark"] = name
+    sim.update(tags)
     ds.metadata.simulation = sim
     save_dataset(ds, path, file_format=str(cfg.file_format))
     return path, summary
 
 
+def build(name: str, root: str | Path | None = None, force: bool = False) -> tuple[Path, dict | None]:
+    """Build benchmark dataset ``name`` under ``root`` unless a matching cache exists.
+
+    Returns the path and the simulation summary (None when taken from the cache).
+    """
+    return _build_cached(benchmark_config(name), Path(root or default_root()) / name, force, benchmark=name)
+
+
 def load_benchmark(name: str, root: str | Path | None = None) -> Dataset:
     """The validated benchmark dataset ``name`` (built on first use)."""
     path, _ = build(name, root)
+    return load_dataset(path)
+
+
+def simulated(
+    machine: str = "seed001_vmc_x",
+    protocol: str = "seed001_states",
+    seed: int = 0,
+    truth: str = "benchmark",
+    sensor_noise_C: float | None = None,
+    interferometer_noise_um: float | None = None,
+    overrides: Sequence[str] = (),
+    root: str | Path | None = None,
+) -> Dataset:
+    """A dataset simulated from ``conf/`` (machine x protocol x truth, ``seed``), cached by its
+    config hash, so a sweep can vary machine, protocol, seed or instrument noise.
+
+    ``sensor_noise_C`` / ``interferometer_noise_um`` set the instrument noise (standard
+    deviations); None keeps ``conf/instruments``. ``overrides`` are further ``thermbench
+    simulate`` overrides. The dataset lives in ``root/<machine>__<protocol>__<hash>``
+    (root default: ``data/simulated`` beside the benchmark root).
+    """
+    ov = [f"machine={machine}", f"protocol={protocol}", f"truth={truth}", f"seed={int(seed)}", "file_format=parquet"]
+    if sensor_noise_C is not None:
+        ov.append(f"instruments.sensor.noise_C={float(sensor_noise_C)}")
+    if interferometer_noise_um is not None:
+        ov.append(f"instruments.interferometer.noise_um={float(interferometer_noise_um)}")
+    cfg = load_config("simulate", [*ov, *[str(o) for o in overrides]])
+    h = config_hash(cfg)
+    base = Path(root) if root is not None else default_root().parent / "simulated"
+    path, _ = _build_cached(cfg, base / f"{cfg.machine.name}__{cfg.protocol.name}__{h}", False)
     return load_dataset(path)

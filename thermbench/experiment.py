@@ -1,44 +1,346 @@
-"""Plain experiment functions (the CLI and Hydra jobs are thin layers over these).
+"""Plain experiment functions; the CLI and the Hydra jobs (:mod:`thermbench.app`) are thin layers over these.
 
-:func:`cross_condition` fits a fresh clone of a model on some runs of a dataset and
-scores it on every run: how well the model holds up in loading states it was not
-trained on (seed 001 §5, seed 002 §3).
+* :func:`train` — fit one model (``conf/model``) on some loading states of a dataset
+  (``conf/dataset``), score it on every run, track everything in MLflow, register the model.
+* :func:`evaluate` — score a registered/logged model on a dataset.
+* :func:`benchmark` — the robustness comparison: every family trained on each loading state
+  and tested on every other (train-state x test-state matrices), one global model per family
+  trained on all states, and a per-condition bank + classifier (seed 002 §2.4), all scored on
+  the random validation duty cycles (seed 001 Table 2, seed 002 Table 6); writes ``report.md``.
+* :func:`export` — a registered model (``models:/<name>@<alias>``) to a model file.
+
+Each takes the composed config (a ``DictConfig``) and returns a :class:`JobResult`.
+:func:`cross_condition` and :func:`fit_evaluate` are the building blocks tests call directly.
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import tempfile
 import time
-from typing import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
 
+import joblib
 import pandas as pd
+import yaml
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
+from . import tracking
+from ._atomic import atomic_path, write_text_atomic
 from .config import config_dir
-from .metrics import evaluate
+from .metrics import evaluate as evaluate_runs
+
+LOG = logging.getLogger(__name__)
 
 
+class ExperimentError(ValueError):
+    """A user mistake in an experiment config; the message names the key."""
+
+
+@dataclass
+class JobResult:
+    """What a job hands back: the terminal table, headline metrics, where things went."""
+
+    job: str
+    table: pd.DataFrame
+    metrics: dict[str, float] = field(default_factory=dict)
+    skipped: bool = False
+    mlflow_run_id: str | None = None
+    outputs: dict[str, str] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "job": self.job,
+                "skipped": self.skipped,
+                "mlflow_run_id": self.mlflow_run_id,
+                "metrics": self.metrics,
+                "outputs": self.outputs,
+                "table": json.loads(self.table.to_json(orient="records")),
+            },
+            indent=1,
+        )
+
+
+# ----------------------------------------------------------------- config ---
 def model_from_config(name_or_cfg) -> object:
     """A model from ``conf/model/<name>.yaml`` (or a config mapping with ``_target_``)."""
     if isinstance(name_or_cfg, str):
         path = config_dir() / "model" / f"{name_or_cfg}.yaml"
         if not path.exists():
             known = sorted(p.stem for p in (config_dir() / "model").glob("*.yaml"))
-            raise ValueError(f"model {name_or_cfg!r}: no {path}; known models: {known}")
+            raise ExperimentError(f"model {name_or_cfg!r}: no {path}; known models: {known}")
         name_or_cfg = OmegaConf.load(path)
     return instantiate(name_or_cfg, _convert_="all")
+
+
+def group_option(group: str, name: str) -> dict:
+    """The plain config of option ``name`` of group ``group`` (``conf/<group>/<name>.yaml``)."""
+    path = config_dir() / group / f"{name}.yaml"
+    if not path.exists():
+        known = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+        raise ExperimentError(f"config key '{group}': no option {name!r}; known: {known}")
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+
+
+def choice(cfg: DictConfig, group: str, default: str = "custom") -> str:
+    """The option picked for ``group`` (``hydra.runtime.choices``), as ``model=lssvm`` names it."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().runtime.choices[group])
+    except Exception:
+        pass
+    node = OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=None)
+    return str(node) if node is not None else default
+
+
+def plain(cfg: DictConfig | Mapping) -> dict:
+    """The resolved config as plain data, without the ``hydra`` node."""
+    if isinstance(cfg, DictConfig):
+        return {
+            str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+            for k in cfg
+            if k != "hydra"
+        }
+    return {k: v for k, v in dict(cfg).items() if k != "hydra"}
+
+
+def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = None):
+    """Instantiate a model config; ``preprocess_steps`` (a list of filter configs) replaces
+    the model's own preprocessing when not None; ``seed`` goes to models that take one."""
+    model = instantiate(dict(model_cfg), _convert_="all")
+    params = model.get_params(deep=False)
+    if preprocess_steps is not None and "preprocess" in params:
+        model.set_params(preprocess=[instantiate(s) for s in preprocess_steps])
+    if seed is not None and "seed" in params:
+        model.set_params(seed=int(seed))
+    return model
+
+
+@dataclass
+class Split:
+    """A loaded dataset with its loading states (trainable) and validation runs (never trained on)."""
+
+    name: str
+    dataset: Any
+    states: list[str]
+    validation: list[str]
+
+    def kind(self, run: str) -> str:
+        return "validation" if run in self.validation else "state"
+
+
+def load_split(dcfg: Mapping) -> Split:
+    """Load ``dataset.source`` (instantiate) and check ``dataset.states`` / ``dataset.validation``."""
+    dcfg = dict(dcfg)
+    if "source" not in dcfg:
+        raise ExperimentError("config key 'dataset.source': expected a loader with _target_")
+    ds = instantiate(dcfg["source"], _convert_="all")
+    runs = list(ds.run_ids)
+    validation = list(dcfg.get("validation") or [])
+    states = list(dcfg.get("states") or [r for r in runs if r not in validation])
+    for key, lst in (("states", states), ("validation", validation)):
+        unknown = [r for r in lst if r not in runs]
+        if unknown:
+            raise ExperimentError(f"config key 'dataset.{key}': runs {unknown} are not in the dataset; its runs: {runs}")
+    both = sorted(set(states) & set(validation))
+    if both:
+        raise ExperimentError(f"config keys 'dataset.states' and 'dataset.validation' share runs {both}")
+    return Split(str(dcfg.get("name") or "dataset"), ds, states, validation)
+
+
+def resolve_runs(spec, split: Split, key: str) -> list[str]:
+    """``all`` = every loading state; ``a+b`` or a list = those runs; null = every run."""
+    if spec is None:
+        return list(split.dataset.run_ids)
+    if isinstance(spec, str):
+        spec = split.states if spec == "all" else [s for s in spec.split("+") if s]
+    runs = [str(r) for r in spec]
+    unknown = [r for r in runs if r not in split.dataset.run_ids]
+    if unknown or not runs:
+        raise ExperimentError(
+            f"config key '{key}': runs {unknown or runs} not in dataset {split.name!r}; "
+            f"its loading states: {split.states}, validation runs: {split.validation}, or 'all'"
+        )
+    return runs
+
+
+# ------------------------------------------------------- fit and evaluate ---
+def fit_evaluate(model, dataset, train_runs: Sequence[str], eval_runs: Sequence[str] | None = None, curves: bool = False):
+    """Fit ``clone(model)`` on ``train_runs``; return the fitted model, one metrics row per
+    evaluated run (``own`` marks training runs, ``fit_s`` the fitting time) and, with
+    ``curves=True``, the per-cycle before/after table."""
+    m = clone(model)
+    t0 = time.perf_counter()
+    m.fit(dataset, list(train_runs))
+    fit_s = time.perf_counter() - t0
+    out = evaluate_runs(m, dataset, eval_runs, curves=curves)
+    res, cur = out if curves else (out, None)
+    res.insert(1, "own", res["run_id"].isin(list(train_runs)))
+    res["train"] = "+".join(train_runs)
+    res["fit_s"] = fit_s
+    return m, res, cur
 
 
 def cross_condition(model, dataset, train_runs: Sequence[str], eval_runs: Sequence[str] | None = None) -> pd.DataFrame:
     """Fit ``clone(model)`` on ``train_runs``; one metrics row per evaluated run,
     with ``own`` marking the training runs and ``fit_s`` the fitting time."""
-    m = clone(model)
-    t0 = time.perf_counter()
-    m.fit(dataset, list(train_runs))
-    fit_s = time.perf_counter() - t0
-    res = evaluate(m, dataset, eval_runs)
-    res.insert(1, "own", res["run_id"].isin(list(train_runs)))
-    res["train"] = "+".join(train_runs)
-    res["fit_s"] = fit_s
-    return res
+    return fit_evaluate(model, dataset, train_runs, eval_runs)[1]
+
+
+def headline_metrics(rows: pd.DataFrame, validation: Sequence[str] = ()) -> dict[str, float]:
+    """Own-run, unseen-run and validation-run aggregates of one fitted model's rows."""
+    out: dict[str, float] = {}
+    groups = {"own": rows[rows["own"]], "unseen": rows[~rows["own"]], "validation": rows[rows["run_id"].isin(list(validation))]}
+    for name, g in groups.items():
+        if g.empty:
+            continue
+        out[f"{name}_mean_rmse_um"] = float(g["rmse_um"].mean())
+        out[f"{name}_max_abs_residual_um"] = float(g["max_abs_residual_um"].max())
+        out[f"{name}_worst_compensation_rate"] = float(g["compensation_rate"].min())
+        out[f"{name}_mean_compensation_rate"] = float(g["compensation_rate"].mean())
+    if "fit_s" in rows:
+        out["fit_s"] = float(rows["fit_s"].iloc[0])
+    return out
+
+
+def _per_run_metrics(rows: pd.DataFrame) -> dict[str, float]:
+    keys = ("rmse_um", "max_abs_residual_um", "compensation_rate", "residual_fraction_of_pv")
+    return {f"runs/{r['run_id']}/{k}": float(r[k]) for _, r in rows.iterrows() for k in keys if pd.notna(r[k])}
+
+
+def _output_dir() -> Path | None:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir)
+    except Exception:
+        return None
+
+
+def _finish(result: JobResult) -> JobResult:
+    out = _output_dir()
+    if out is not None:
+        write_text_atomic(out / "result.json", result.to_json())
+    return result
+
+
+def _skip(job: str, run) -> JobResult:
+    """The result of a job already finished with the same config hash (from its MLflow run)."""
+    from .app import HEADLINE
+
+    table = pd.DataFrame([{k: v for k, v in run.data.metrics.items() if k in HEADLINE}])
+    print(f"[{job}] skipped: MLflow run {run.info.run_id} already finished with the same config hash "
+          f"(tracking.skip_finished=false reruns it)")
+    return _finish(JobResult(job, table, dict(run.data.metrics), skipped=True, mlflow_run_id=run.info.run_id))
+
+
+def _table(rows: pd.DataFrame, split: Split) -> pd.DataFrame:
+    t = rows[["run_id", "own", "rmse_um", "max_abs_residual_um", "max_abs_error_um", "compensation_rate"]].copy()
+    t.insert(1, "kind", [split.kind(r) for r in t["run_id"]])
+    return t
+
+
+# -------------------------------------------------------------------- jobs ---
+def train(cfg: DictConfig) -> JobResult:
+    """Fit ``cfg.model`` on ``cfg.train`` of ``cfg.dataset``, score every run, track and register it."""
+    import mlflow
+
+    from .report import curves_figure
+
+    exp_id = tracking.connect(cfg.tracking)  # fails fast on an unreachable server
+    conf = plain(cfg)
+    split = load_split(cfg.dataset)
+    data_hash = split.dataset.content_hash()
+    h = tracking.config_hash(conf | {"dataset_content": data_hash})  # re-measured files are a new job
+    if cfg.tracking.get("skip_finished", True) and (done := tracking.finished_run(exp_id, h)) is not None:
+        return _skip("train", done)
+    model_name = choice(cfg, "model")
+    train_runs = resolve_runs(cfg.train, split, "train")
+    eval_runs = resolve_runs(cfg.get("eval"), split, "eval")
+    steps = OmegaConf.to_container(cfg.preprocess.steps, resolve=True) if cfg.get("preprocess") and cfg.preprocess.get("steps") is not None else None
+    model = build_model(conf["model"], steps, cfg.get("seed"))
+    run_name = f"{model_name} | {split.name} | {'+'.join(train_runs)}"
+    with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as run:
+        mlflow.set_tags(tracking.standard_tags(data_hash, h, "train") | {"model": model_name, "dataset": split.name})
+        tracking.log_config(conf)
+        fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
+        metrics = headline_metrics(rows, split.validation)
+        mlflow.log_metrics(metrics | _per_run_metrics(rows))
+        mlflow.log_text(rows.to_csv(index=False), "results.csv")
+        with tempfile.TemporaryDirectory() as tmp:
+            cur = curves.assign(family=model_name, approach="+".join(train_runs))
+            png = curves_figure(cur, list(dict.fromkeys(cur["run_id"])), run_name, Path(tmp) / "before_after.png")
+            mlflow.log_artifact(str(png))
+        reg = f"thermbench-{split.name}-{model_name}" if cfg.tracking.get("register", True) else None
+        info = tracking.log_model(fitted, split.dataset, registered_name=reg)
+        outputs = {"model_uri": info.model_uri}
+        if reg:
+            outputs["registered"] = f"models:/{reg}/{info.registered_model_version}"
+    return _finish(JobResult("train", _table(rows, split), metrics, mlflow_run_id=run.info.run_id, outputs=outputs))
+
+
+def evaluate(cfg: DictConfig) -> JobResult:
+    """Score the model ``cfg.model_uri`` (or ``cfg.name``/``cfg.alias``) on ``cfg.dataset``."""
+    import mlflow
+
+    exp_id = tracking.connect(cfg.tracking)
+    conf = plain(cfg)
+    uri = tracking.model_uri(cfg.get("name"), cfg.get("alias"), cfg.get("model_uri"))
+    model = tracking.load_model(uri)
+    split = load_split(cfg.dataset)
+    runs = resolve_runs(cfg.get("runs"), split, "runs")
+    h = tracking.config_hash(conf)
+    with mlflow.start_run(experiment_id=exp_id, run_name=f"evaluate {uri} | {split.name}") as run:
+        mlflow.set_tags(tracking.standard_tags(split.dataset.content_hash(), h, "evaluate") | {"model_uri": uri})
+        tracking.log_config(conf)
+        rows = evaluate_runs(model, split.dataset, runs)
+        rows.insert(1, "own", rows["run_id"].isin(getattr(model, "train_runs_", [])))
+        metrics = headline_metrics(rows, split.validation)
+        mlflow.log_metrics(metrics | _per_run_metrics(rows))
+        mlflow.log_text(rows.to_csv(index=False), "results.csv")
+    return _finish(JobResult("evaluate", _table(rows, split), metrics, mlflow_run_id=run.info.run_id))
+
+
+def export(cfg: DictConfig) -> JobResult:
+    """Write the model ``export.model_uri`` (or ``models:/<export.name>@<export.alias>``) to
+    ``export.out_dir``: the fitted model (joblib) and a manifest. (The compact model file and
+    the C runtime replace the joblib file when the export issue lands.)"""
+    tracking.connect(cfg.tracking)
+    e = cfg.export
+    uri = tracking.model_uri(e.get("name"), e.get("alias"), e.get("model_uri"))
+    model = tracking.load_model(uri)
+    stem = (e.get("name") or uri.replace("models:/", "").replace("runs:/", "")).replace("/", "_").replace("@", "_")
+    out = Path(str(e.out_dir)) / stem
+    paths = save_models({stem: model}, out, chosen=[stem], source={stem: uri})
+    table = pd.DataFrame([{"model": stem, "source": uri, "file": str(paths[stem])}])
+    return _finish(JobResult("export", table, outputs={"dir": str(out)}))
+
+
+def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] = (), source: Mapping[str, str] | None = None) -> dict[str, Path]:
+    """Save fitted models as ``<key>.joblib`` (atomically) plus ``manifest.yaml`` marking the chosen ones."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths, manifest = {}, {}
+    for key, m in models.items():
+        p = out_dir / f"{key}.joblib"
+        with atomic_path(p) as tmp:
+            joblib.dump(m, tmp)
+        paths[key] = p
+        inp = m.required_inputs()
+        manifest[key] = {
+            "file": p.name,
+            "chosen": key in chosen,
+            "class": f"{type(m).__module__}.{type(m).__name__}",
+            "train_runs": list(getattr(m, "train_runs_", [])),
+            "sensors": list(inp.sensors),
+            "source": (source or {}).get(key, "benchmark"),
+        }
+    write_text_atomic(out_dir / "manifest.yaml", yaml.safe_dump(manifest, sort_keys=False))
+    return paths

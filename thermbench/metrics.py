@@ -45,14 +45,36 @@ def residual_metrics(measured_um, predicted_um, thermal_um=None) -> dict[str, fl
     }
 
 
-def evaluate(model, dataset, runs: Sequence[str] | None = None) -> pd.DataFrame:
-    """One row of :func:`residual_metrics` per run for a fitted model."""
+def cycle_curves(readings: pd.DataFrame, predicted_um) -> pd.DataFrame:
+    """Per measuring cycle of one run: ``before_um`` = max |thermal error| (uncompensated)
+    and ``after_um`` = max |measured - predicted| (compensated), at the cycle's mean time."""
+    from .data.reference import measuring_cycles
+
+    cyc = measuring_cycles(readings["t_s"].to_numpy(), readings["target_mm"].to_numpy())
+    df = pd.DataFrame(
+        {
+            "cycle": cyc,
+            "t_s": readings["t_s"].to_numpy(),
+            "before_um": np.abs(readings["thermal_um"].to_numpy()),
+            "after_um": np.abs(readings["error_um"].to_numpy() - np.asarray(predicted_um, dtype=float)),
+        }
+    )
+    return df.groupby("cycle").agg(t_s=("t_s", "mean"), before_um=("before_um", "max"), after_um=("after_um", "max")).reset_index()
+
+
+def evaluate(model, dataset, runs: Sequence[str] | None = None, curves: bool = False):
+    """One row of :func:`residual_metrics` per run for a fitted model; with ``curves=True``
+    also the per-cycle before/after table of :func:`cycle_curves` (``run_id`` column)."""
     from .data.reference import thermal_errors
 
     te = thermal_errors(dataset)
-    rows = []
+    rows, parts = [], []
     for run in runs if runs is not None else dataset.run_ids:
         tr = te[te["run_id"] == run]
         pred = model.predict(dataset, run)
         rows.append({"run_id": run, **residual_metrics(tr["error_um"], pred, tr["thermal_um"])})
-    return pd.DataFrame(rows)
+        if curves:
+            parts.append(cycle_curves(tr, pred).assign(run_id=run))
+    if not curves:
+        return pd.DataFrame(rows)
+    return pd.DataFrame(rows), pd.concat(parts, ignore_index=True)

@@ -1,0 +1,132 @@
+"""The robustness benchmark (thermbench.benchmark): train-state x test-state matrices,
+global and bank models, the chosen model, report/MLflow/export outputs, resume from cache."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench import benchmark as bm
+from thermbench.config import load_config
+from thermbench.experiment import fit_evaluate, group_option, load_split, model_from_config
+
+STATES = ["state1", "state2", "state3", "state4", "state5"]
+VALID = ["valid1", "valid2", "valid3", "valid4"]
+
+
+@pytest.fixture()
+def data_env(seed001_data_root, monkeypatch):
+    monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))
+    return seed001_data_root
+
+
+@pytest.fixture()
+def task_out(data_env):
+    return bm.run_task(
+        dataset_cfg=group_option("dataset", "seed001_vmc_x"),
+        family="mlr_seed002",
+        model_cfg=group_option("model", "mlr_seed002"),
+        approaches=["single", "global", "bank"],
+        classifier_cfg=group_option("classifier", "proximity"),
+        seed=0,
+    )
+
+
+def test_task_builds_the_train_test_matrix_global_and_bank(task_out, data_env):
+    res = task_out["results"]
+    single = res[res["approach"] == "single"]
+    # one model per loading state, each scored on all 9 runs
+    assert sorted(single["train"].unique()) == STATES
+    assert single.groupby("train")["run_id"].nunique().eq(9).all()
+    # exactly the training state is "own"; validation runs are never own
+    own = single[single["own"]]
+    assert (own["train"] == own["run_id"]).all() and len(own) == 5
+    assert set(res.loc[res["run_id"].isin(VALID), "kind"]) == {"validation"}
+    assert not res.loc[res["run_id"].isin(VALID), "own"].any()
+    # the single-state cell equals an independent fit on that state scored on that run
+    ds = load_split(group_option("dataset", "seed001_vmc_x")).dataset
+    _, ref, _ = fit_evaluate(model_from_config("mlr_seed002"), ds, ["state3"], ["valid2"])
+    cell = single[(single["train"] == "state3") & (single["run_id"] == "valid2")].iloc[0]
+    assert cell["max_abs_residual_um"] == pytest.approx(ref["max_abs_residual_um"].iloc[0], rel=1e-9)
+    # global: one model on all states; bank: the single models + classifier
+    for approach in ("global", "bank"):
+        g = res[res["approach"] == approach]
+        assert len(g) == 9 and set(g.loc[g["own"], "run_id"]) == set(STATES)
+    assert set(task_out["models"]) == {"global", "bank"}
+    assert sorted(task_out["models"]["bank"].labels_) == STATES
+    # curves only for validation runs of global and bank
+    cur = task_out["curves"]
+    assert set(cur["run_id"]) == set(VALID) and set(cur["approach"]) == {"global", "bank"}
+    assert (cur["before_um"] >= 0).all() and (cur["after_um"] >= 0).all()
+
+
+def test_choose_takes_best_worst_case_validation_rate():
+    rows = []
+    for fam, app, rates in [("a", "global", [0.9, 0.5]), ("b", "bank", [0.8, 0.7]), ("c", "single", [0.99, 0.99])]:
+        for run, r in zip(["v1", "v2"], rates):
+            rows.append(dict(dataset="d", family=fam, approach=app, run_id=run, kind="validation",
+                             compensation_rate=r, max_abs_residual_um=10 * (1 - r)))
+    chosen = bm.choose(pd.DataFrame(rows))
+    # b's worst (0.7) beats a's worst (0.5); single models are never candidates
+    assert chosen[["family", "approach"]].values.tolist() == [["b", "bank"]]
+
+
+def _cfg(tmp_path, *extra):
+    return load_config(
+        "benchmark",
+        [
+            "datasets=[seed001_vmc_x]",
+            "families=[mlr_seed001,mlr_seed002]",
+            "bank_families=[mlr_seed002]",
+            "n_jobs=1",
+            "progress=false",
+            f"cache_dir={tmp_path}/cache",
+            f"report_dir={tmp_path}/reports",
+            f"export_dir={tmp_path}/models",
+            f"tracking.uri=sqlite:///{tmp_path}/mlflow.db",
+            f"tracking.artifact_root={tmp_path}/art",
+            *extra,
+        ],
+        return_hydra_config=True,
+    )
+
+
+def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env, monkeypatch, capsys):
+    import mlflow
+    from mlflow import MlflowClient
+
+    from thermbench import tracking
+
+    res = bm.benchmark(_cfg(tmp_path))
+    out = capsys.readouterr().out
+    assert "mlr_seed001" in out and "report:" in out
+    report = (tmp_path / "reports" / "report.md").read_text()
+    assert "seed001_vmc_x" in report and "figures/" in report
+    # the seed 001 finding: MLR of seed 001 fails across moving states; its matrix has a negative cell
+    results = pd.read_csv(MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db").download_artifacts(
+        res.mlflow_run_id, "results.csv", str(tmp_path)))
+    m1 = results[(results["family"] == "mlr_seed001") & (results["approach"] == "single") & ~results["own"]]
+    assert m1["compensation_rate"].min() < 0
+    # models saved, the chosen one marked, registered with alias champion, loadable, same predictions
+    manifest = yaml.safe_load((tmp_path / "models" / "manifest.yaml").read_text())
+    chosen = [k for k, v in manifest.items() if v["chosen"]]
+    assert len(chosen) == 1 and chosen[0].startswith("seed001_vmc_x__")
+    tracking.connect({"uri": f"sqlite:///{tmp_path}/mlflow.db", "experiment": "thermbench"})
+    champion = tracking.load_model("models:/thermbench-seed001_vmc_x@champion")
+    saved = __import__("joblib").load(tmp_path / "models" / manifest[chosen[0]]["file"])
+    ds = load_split(group_option("dataset", "seed001_vmc_x")).dataset
+    np.testing.assert_allclose(champion.predict(ds, "valid1"), saved.predict(ds, "valid1"))
+    # the MLflow run carries the report and the headline metrics
+    run = mlflow.get_run(res.mlflow_run_id)
+    assert any(k.endswith("validation_worst_compensation_rate") for k in run.data.metrics)
+    arts = [a.path for a in MlflowClient().list_artifacts(res.mlflow_run_id, "report")]
+    assert "report/report.md" in arts
+    # same config again: skipped from the tracking store
+    again = bm.benchmark(_cfg(tmp_path))
+    assert again.skipped and again.mlflow_run_id == res.mlflow_run_id
+    # rerun forced: every (dataset, family) task comes from the cache, nothing is refitted
+    monkeypatch.setattr(bm, "fit_evaluate", lambda *a, **k: (_ for _ in ()).throw(AssertionError("refitted")))
+    forced = bm.benchmark(_cfg(tmp_path, "tracking.skip_finished=false"))
+    assert not forced.skipped and forced.mlflow_run_id != res.mlflow_run_id

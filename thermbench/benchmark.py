@@ -1,0 +1,253 @@
+"""The robustness comparison (the user's main question): how well does each model family
+hold up in a loading state it was not trained on?
+
+For each dataset (``conf/dataset``: its loading ``states`` and its ``validation`` runs) and
+each family (``conf/model``), one task (:func:`run_task`) fits
+
+* ``single``: one model per loading state, scored on every run — the train-state x
+  test-state matrix (seed 001 §5: regression fails across moving states);
+* ``global``: one model on all loading states;
+* ``bank``: the single-state models behind a condition classifier (seed 002 §2.4,
+  :class:`thermbench.models.bank.ConditionBank`), reusing the single fits;
+
+and scores them on the validation duty cycles (seed 001 Table 2, seed 002 Table 6,
+seed 000's random cycle), the seeds' headline: compensation rate and max residual on
+unseen cycles. Tasks run in parallel (joblib), each cached on disk by its arguments
+(joblib.Memory), so an interrupted benchmark resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import joblib
+import pandas as pd
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from sklearn.base import clone
+from tqdm.auto import tqdm
+
+from . import __version__, tracking
+from .experiment import (
+    ExperimentError,
+    JobResult,
+    _finish,
+    _skip,
+    build_model,
+    fit_evaluate,
+    group_option,
+    headline_metrics,
+    load_split,
+    plain,
+    save_models,
+)
+from .metrics import evaluate as evaluate_runs
+from .models.base import ModelError
+
+
+def run_task(
+    dataset_cfg: Mapping,
+    family: str,
+    model_cfg: Mapping,
+    approaches: Sequence[str],
+    classifier_cfg: Mapping | None,
+    seed: int,
+    version: str = __version__,
+) -> dict[str, Any]:
+    """Fit and score one family on one dataset (see module docstring).
+
+    Returns ``results`` (one row per fitted model x test run, the columns of
+    :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
+    for global and bank), ``models`` (fitted global/bank models), ``seconds`` and ``errors``.
+    """
+    t0 = time.perf_counter()
+    split = load_split(dataset_cfg)
+    ds = split.dataset
+    model = build_model(model_cfg, seed=seed)
+    rows, curves, models, errors = [], [], {}, []
+
+    def tag(df: pd.DataFrame, approach: str, train: str) -> pd.DataFrame:
+        df = df.copy()
+        df.insert(0, "approach", approach)
+        df.insert(0, "family", family)
+        df.insert(0, "dataset", split.name)
+        df["train"] = train
+        df["kind"] = [split.kind(r) for r in df["run_id"]]
+        return df
+
+    singles, single_fit_s = {}, {}
+    if "single" in approaches or "bank" in approaches:
+        for state in split.states:
+            try:
+                fitted, res, _ = fit_evaluate(model, ds, [state])
+            except ModelError as exc:
+                errors.append(f"{split.name}/{family}/single {state}: {exc}")
+                continue
+            singles[state] = fitted
+            single_fit_s[state] = float(res["fit_s"].iloc[0])
+            if "single" in approaches:
+                rows.append(tag(res, "single", state))
+    if "global" in approaches and len(split.states) > 1:
+        try:
+            fitted, res, cur = fit_evaluate(model, ds, split.states, curves=True)
+            rows.append(tag(res, "global", "all"))
+            curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
+            models["global"] = fitted
+        except ModelError as exc:
+            errors.append(f"{split.name}/{family}/global: {exc}")
+    if "bank" in approaches and len(singles) > 1 and classifier_cfg is not None:
+        from .models.bank import ConditionBank
+
+        bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"))
+        t1 = time.perf_counter()
+        bank.fit_from_fitted(ds, singles)
+        fit_s = time.perf_counter() - t1 + sum(single_fit_s.values())
+        res, cur = evaluate_runs(bank, ds, None, curves=True)
+        res.insert(1, "own", res["run_id"].isin(list(singles)))
+        res["fit_s"] = fit_s
+        rows.append(tag(res, "bank", "all"))
+        curves.append(tag(cur[cur["run_id"].isin(split.validation)], "bank", "all"))
+        models["bank"] = bank
+    return {
+        "dataset": split.name,
+        "family": family,
+        "results": pd.concat(rows, ignore_index=True) if rows else pd.DataFrame(),
+        "curves": pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(),
+        "models": models,
+        "dataset_hash": ds.content_hash(),
+        "seconds": time.perf_counter() - t0,
+        "errors": errors,
+    }
+
+
+def tasks(cfg: DictConfig) -> list[dict]:
+    """One task per (dataset, family) of ``cfg.datasets`` x ``cfg.families``."""
+    out = []
+    bank_families = set(cfg.get("bank_families") or [])
+    classifier = OmegaConf.to_container(cfg.classifier, resolve=True) if cfg.get("classifier") else None
+    for dname in cfg.datasets:
+        dcfg = group_option("dataset", str(dname))
+        for fam in cfg.families:
+            approaches = [a for a in cfg.approaches if a != "bank" or fam in bank_families]
+            out.append(
+                dict(
+                    dataset_cfg=dcfg,
+                    family=str(fam),
+                    model_cfg=group_option("model", str(fam)),
+                    approaches=approaches,
+                    classifier_cfg=classifier,
+                    seed=int(cfg.seed),
+                )
+            )
+    return out
+
+
+def choose(results: pd.DataFrame) -> pd.DataFrame:
+    """Per dataset, the (family, approach) to deploy: the best worst-case compensation rate on
+    the validation runs (ties: the smaller max residual). Single-state models are not
+    candidates: which state would you train on?"""
+    v = results[(results["kind"] == "validation") & (results["approach"] != "single")]
+    if v.empty:
+        return pd.DataFrame(columns=["dataset", "family", "approach"])
+    agg = v.groupby(["dataset", "family", "approach"]).agg(
+        worst_rate=("compensation_rate", "min"), max_residual_um=("max_abs_residual_um", "max")
+    )
+    agg = agg.reset_index().sort_values(["dataset", "worst_rate", "max_residual_um"], ascending=[True, False, True])
+    return agg.groupby("dataset").head(1).reset_index(drop=True)
+
+
+def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
+    cache = cfg.get("cache_dir")
+    fn = joblib.Memory(str(cache), verbose=0).cache(run_task) if cache else run_task
+    n_jobs = int(cfg.get("n_jobs", 1))
+    if n_jobs == 1:
+        return (fn(**t) for t in todo)
+    return joblib.Parallel(n_jobs=n_jobs, return_as="generator_unordered")(joblib.delayed(fn)(**t) for t in todo)
+
+
+def _overrides() -> list[str]:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return list(HydraConfig.get().overrides.task)
+    except Exception:
+        return []
+
+
+def benchmark(cfg: DictConfig) -> JobResult:
+    """Run every task, write ``report.md``, log it all to MLflow, save/register the chosen models."""
+    import mlflow
+
+    from .report import terminal_summary, write_report
+
+    exp_id = tracking.connect(cfg.tracking)
+    conf = plain(cfg)
+    h = tracking.config_hash(conf)
+    if cfg.tracking.get("skip_finished", True) and (done := tracking.finished_run(exp_id, h)) is not None:
+        return _skip("benchmark", done)
+    todo = tasks(cfg)
+    if not todo:
+        raise ExperimentError("config keys 'datasets' and 'families': nothing to run")
+    t0 = time.perf_counter()
+    done_tasks = []
+    bar = tqdm(total=len(todo), desc="benchmark", unit="task", disable=None if cfg.get("progress", True) else True)
+    for k, out in enumerate(_iterate(cfg, todo), 1):
+        done_tasks.append(out)
+        n_models = out["results"][["approach", "train"]].drop_duplicates().shape[0] if not out["results"].empty else 0
+        bar.write(f"[{k}/{len(todo)}] {out['dataset']} x {out['family']}: {n_models} models in {out['seconds']:.1f} s"
+                  + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
+        bar.update(1)
+    bar.close()
+    results = pd.concat([o["results"] for o in done_tasks if not o["results"].empty], ignore_index=True)
+    parts = [o["curves"] for o in done_tasks if not o["curves"].empty]
+    curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+    errors = [e for o in done_tasks for e in o["errors"]]
+    wall_s = time.perf_counter() - t0
+    chosen = choose(results)
+    meta = {
+        "command": "thermbench benchmark " + " ".join(_overrides()),
+        "datasets": ", ".join(map(str, cfg.datasets)),
+        "families": ", ".join(map(str, cfg.families)),
+        "approaches": ", ".join(map(str, cfg.approaches)),
+        "thermbench version": __version__,
+        "git commit": tracking.git_commit(),
+        "dataset hashes": ", ".join(sorted({f"{o['dataset']}={o['dataset_hash']}" for o in done_tasks})),
+        "wall time": f"{wall_s:.0f} s",
+        "chosen models": "; ".join(f"{r.dataset}: {r.family} ({r.approach})" for r in chosen.itertuples()),
+    }
+    if errors:
+        meta["could not fit"] = "; ".join(errors)
+    report_dir = Path(str(cfg.report_dir))
+    report = write_report(results, curves, report_dir, meta=meta)
+    models = {f"{o['dataset']}__{o['family']}__{a}": m for o in done_tasks for a, m in o["models"].items()}
+    chosen_keys = [f"{r.dataset}__{r.family}__{r.approach}" for r in chosen.itertuples()]
+    model_dir = Path(str(cfg.export_dir))
+    save_models(models, model_dir, chosen=chosen_keys)
+    with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
+        mlflow.set_tags(tracking.standard_tags(";".join(sorted({o["dataset_hash"] for o in done_tasks})), h, "benchmark"))
+        tracking.log_config(conf)
+        metrics = {}
+        for (d, f, a), g in results[results["kind"] == "validation"].groupby(["dataset", "family", "approach"]):
+            metrics[f"{d}/{f}/{a}/validation_worst_compensation_rate"] = float(g["compensation_rate"].min())
+            metrics[f"{d}/{f}/{a}/validation_max_abs_residual_um"] = float(g["max_abs_residual_um"].max())
+        mlflow.log_metrics(metrics | {"wall_s": wall_s})
+        mlflow.log_artifacts(str(report_dir), "report")
+        mlflow.log_text(results.to_csv(index=False), "results.csv")
+        registered = {}
+        for r in chosen.itertuples():
+            key = f"{r.dataset}__{r.family}__{r.approach}"
+            ds = load_split(group_option("dataset", r.dataset)).dataset
+            name = f"thermbench-{r.dataset}" if cfg.tracking.get("register", True) else None
+            info = tracking.log_model(models[key], ds, name=key.replace("__", "-"), registered_name=name)
+            if name:
+                tracking.set_alias(name, "champion", info.registered_model_version)
+                registered[r.dataset] = f"models:/{name}@champion"
+    print(terminal_summary(results))
+    print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")
+    for d, uri in registered.items():
+        print(f"registered: {uri}")
+    table = chosen.rename(columns={"worst_rate": "validation_worst_compensation_rate"})
+    return _finish(JobResult("benchmark", table, metrics, mlflow_run_id=run.info.run_id,
+                             outputs={"report": str(report), "models": str(model_dir), **registered}))

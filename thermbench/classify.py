@@ -1,0 +1,572 @@
+"""Classifying the motion condition of a feed axis (seed 002 §2.4, eq. 15-19, Tables 5-6).
+
+Seed 002 models the thermal error separately under each of a few known motion
+conditions and, at run time, picks the model whose condition is closest to the
+current motion (working stroke A, machining position B = P_start + P_end, feed C).
+This module holds
+
+* :class:`ProximityNaiveBayes` - the paper's proximity naive-Bayes classifier
+  (eq. 15-19), usable from a config alone (Table 5: ``conf/classifier/seed002.yaml``)
+  or fitted on motion features of labelled runs of any grid;
+* :func:`window_features` - the motion features of the last ``window_s`` of a
+  run's motion log at given times, as a live compensator computes them from its own
+  log (measuring cycles excluded, stops flagged), and :func:`measuring_intervals`,
+  the time intervals of a run's measuring cycles to exclude;
+* :func:`classify_motion` / :func:`format_classification` - one motion classified
+  against a configured condition set, as a small text table (``thermbench classify``).
+
+Reading of the (garbled) equations of seed 002 §2.4:
+
+* eq. 15: the proximity of a motion parameter to each known level is the inverse
+  distance, ``P_A(x) = 1/|A - x|`` for x in {50, 100, 300} mm,
+  ``P_B(y) = 1/|P_start + P_end - y|`` for y in {0, 650, 1300} mm (left end, middle,
+  right end of the 0-650 mm travel, doubled because B is a sum of two positions),
+  ``P_C(z) = 1/|C - z|`` for z in {800, 2000, 4000} mm/min. The paper prints 40000
+  as the last feed level; Table 5 says 4000 mm/min and with 40000 Table 6 row 7
+  (310 mm, 330-640 mm, 3400 mm/min -> #9) would be classified #6, so 4000 is used.
+* eq. 16: each factor's proximities are normalised over its levels,
+  ``P(level n | φ) = P_n / Σ_m P_m``; an exact match (distance 0) gives that level
+  probability 1 and the others 0 (the paper: "if A is 50, 100, and 300 ... the
+  current stroke probability is 1").
+* eq. 17-18: priors ``P(#K) = 1/K``; the conditional probability of a level given
+  condition #K is 1 when #K has that level (Table 5), else 0.
+* eq. 19: the paper sums ("converts the series into a matrix summation"):
+  ``score_K = Σ_φ P(level_φ(#K) | φ) + P(#K)``, and the class is ``argmax_K score_K``.
+
+With this reading, Table 6 rows 1, 3, 4, 6, 7 come out as printed; rows 2 and 5
+come out #7 where the paper prints #2 and #3 (see ``tests/test_classify.py``: in both
+rows the printed class shares its position and feed levels with #1 but has a
+stroke level farther from the given stroke, so no monotone proximity can rank it
+above #1).
+"""
+
+from __future__ import annotations
+
+from numbers import Real
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+from sklearn.base import BaseEstimator, ClassifierMixin
+
+__all__ = [
+    "FEATURES",
+    "ProximityNaiveBayes",
+    "classify_motion",
+    "format_classification",
+    "learned_features",
+    "measuring_intervals",
+    "window_features",
+]
+
+FEATURES = ("stroke_mm", "start_mm", "end_mm", "feed_mm_min")
+FACTORS = ("stroke", "position", "feed")  # A, B = P_start + P_end, C of seed 002 eq. 15
+_FACTOR_KEYS = {"stroke": "stroke_mm", "position": "position_mm", "feed": "feed_mm_min"}
+_PARAM = {"stroke": "stroke_levels_mm", "position": "position_levels_mm", "feed": "feed_levels_mm_min"}
+
+
+# ---------------------------------------------------------------- features ---
+def motion_factors(X) -> np.ndarray:
+    """The three factors of seed 002 eq. 15 per row of ``X``, shape (n, 3):
+    stroke A (``stroke_mm``), position B = P_start + P_end (``start_mm + end_mm``,
+    or ``2 * centre_mm``) and feed C (``feed_mm_min``).
+
+    ``X`` is a DataFrame (or a mapping of columns); a missing column, NaN or a
+    negative stroke/feed is a ValueError naming the column and row.
+    """
+    if isinstance(X, Mapping) and not isinstance(X, pd.DataFrame):
+        X = pd.DataFrame({k: np.atleast_1d(v) for k, v in X.items()})
+    if not isinstance(X, pd.DataFrame):
+        raise ValueError(
+            f"motion features must be a DataFrame with columns stroke_mm, feed_mm_min and start_mm + end_mm "
+            f"(or centre_mm), got {type(X).__name__}"
+        )
+    missing = [c for c in ("stroke_mm", "feed_mm_min") if c not in X.columns]
+    if {"start_mm", "end_mm"} <= set(X.columns):
+        pos_cols = ["start_mm", "end_mm"]
+    elif "centre_mm" in X.columns:
+        pos_cols = ["centre_mm"]
+    else:
+        pos_cols = []
+        missing.append("start_mm + end_mm (or centre_mm)")
+    if missing:
+        raise ValueError(f"motion features: missing column(s) {missing}; got columns {list(X.columns)}")
+    cols = {
+        c: pd.to_numeric(X[c], errors="coerce").to_numpy(dtype=float) for c in ["stroke_mm", "feed_mm_min", *pos_cols]
+    }
+    for c, v in cols.items():
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise ValueError(f"motion features: column {c!r} has a missing/non-numeric value at row {bad[0]}")
+    for c in ("stroke_mm", "feed_mm_min"):
+        bad = np.flatnonzero(cols[c] < 0)
+        if bad.size:
+            raise ValueError(f"motion features: {c} must be >= 0, got {cols[c][bad[0]]} at row {bad[0]}")
+    pos = cols["start_mm"] + cols["end_mm"] if pos_cols == ["start_mm", "end_mm"] else 2.0 * cols["centre_mm"]
+    return np.column_stack([cols["stroke_mm"], pos, cols["feed_mm_min"]])
+
+
+def learned_features(windows: pd.DataFrame) -> pd.DataFrame:
+    """The features a learned classifier is trained on: ``stroke_mm``, ``centre_mm``
+    = (start + end) / 2 and ``feed_mm_min`` (what the bank feeds any classifier;
+    :class:`ProximityNaiveBayes` reads ``centre_mm`` as B = 2 * centre)."""
+    f = motion_factors(windows)
+    return pd.DataFrame({"stroke_mm": f[:, 0], "centre_mm": f[:, 1] / 2.0, "feed_mm_min": f[:, 2]})
+
+
+# ----------------------------------------------------------- the classifier ---
+def _check_levels(name: str, value) -> np.ndarray | None:
+    if value is None:
+        return None
+    try:
+        arr = np.asarray(list(value), dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a list of numbers or None, got {value!r}") from None
+    if arr.size == 0 or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a non-empty list of finite numbers or None, got {value!r}")
+    if np.unique(arr).size != arr.size:
+        raise ValueError(f"{name} has repeated levels: {arr.tolist()}")
+    return np.sort(arr)
+
+
+def _merge_levels(values: np.ndarray, tolerance: float) -> np.ndarray:
+    """Distinct values of a factor; values within ``tolerance`` * max|value| of the
+    previous one (sorted) are one level (their mean)."""
+    v = np.sort(np.asarray(values, dtype=float))
+    tol = tolerance * max(float(np.max(np.abs(v))), 1e-12)
+    groups = np.split(v, np.flatnonzero(np.diff(v) > tol) + 1)
+    return np.array([g.mean() for g in groups])
+
+
+def proximity(values: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """seed 002 eq. 15-16: the normalised inverse-distance proximity of each value to
+    each level, shape (n, n_levels), rows summing to 1; a value equal to a level
+    (within 1e-9 of the level scale) gives that level 1 and the others 0."""
+    v = np.asarray(values, dtype=float)[:, None]
+    lv = np.asarray(levels, dtype=float)[None, :]
+    d = np.abs(v - lv)
+    exact = d <= 1e-9 * max(1.0, float(np.max(np.abs(lv))))
+    inv = np.where(exact, 0.0, 1.0 / np.where(exact, 1.0, d))
+    hit = exact.any(axis=1)
+    total = inv.sum(axis=1, keepdims=True)
+    p = np.where(hit[:, None], exact.astype(float), inv / np.where(total > 0, total, 1.0))
+    return p
+
+
+class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
+    """The proximity naive-Bayes condition classifier of seed 002 §2.4 (eq. 15-19).
+
+    Parameters
+    ----------
+    stroke_levels_mm, position_levels_mm, feed_levels_mm_min : list of float or None
+        The known levels of the three factors (seed 002 eq. 15: stroke A, position
+        B = P_start + P_end, feed C). None: the distinct values of that factor among
+        the conditions (values closer than ``level_tolerance`` times the largest
+        value of the factor are one level).
+    conditions : mapping label -> {stroke_mm, position_mm, feed_mm_min} or None
+        The known conditions (seed 002 Table 5); ``position_mm`` is the P_start +
+        P_end reference (``start_mm`` and ``end_mm`` may be given instead). When
+        given, ``fit`` needs no data (and ignores any). When None, ``fit(X, y)``
+        takes each label's condition as the median of its rows of ``X``.
+    level_tolerance : float
+        Relative tolerance merging close condition values into one level (only for
+        factors whose levels are None).
+
+    Each condition is mapped to its nearest level of each factor (eq. 17-18: the
+    conditional probability of that level given the condition is 1, of the others
+    0); two conditions on the same three levels cannot be told apart and are an
+    error naming them. Fitted attributes: ``classes_`` (the labels, in the order of
+    ``conditions``, or sorted when fitted on data), ``conditions_`` (DataFrame per
+    label: stroke_mm, position_mm, feed_mm_min), ``levels_`` (dict factor -> levels),
+    ``condition_levels_`` ((K, 3) level index of each condition per factor).
+    """
+
+    def __init__(
+        self,
+        stroke_levels_mm=None,
+        position_levels_mm=None,
+        feed_levels_mm_min=None,
+        conditions=None,
+        level_tolerance=0.05,
+    ):
+        self.stroke_levels_mm = stroke_levels_mm
+        self.position_levels_mm = position_levels_mm
+        self.feed_levels_mm_min = feed_levels_mm_min
+        self.conditions = conditions
+        self.level_tolerance = level_tolerance
+
+    # --- fitting ------------------------------------------------------------
+    def _given_conditions(self) -> pd.DataFrame:
+        if not isinstance(self.conditions, Mapping) or not self.conditions:
+            raise ValueError(
+                f"conditions must be a non-empty mapping label -> {{stroke_mm, position_mm, feed_mm_min}}, "
+                f"got {self.conditions!r}"
+            )
+        rows = {}
+        for label, c in self.conditions.items():
+            if not isinstance(c, Mapping):
+                raise ValueError(f"conditions[{label!r}] must be a mapping with stroke_mm, position_mm, feed_mm_min")
+            if "position_mm" in c:
+                pos = c["position_mm"]
+            elif "start_mm" in c and "end_mm" in c:
+                pos = float(c["start_mm"]) + float(c["end_mm"])
+            else:
+                raise ValueError(f"conditions[{label!r}]: missing position_mm (P_start + P_end) or start_mm + end_mm")
+            missing = [k for k in ("stroke_mm", "feed_mm_min") if k not in c]
+            if missing:
+                raise ValueError(f"conditions[{label!r}]: missing {missing}; got keys {sorted(c)}")
+            try:
+                rows[str(label)] = [float(c["stroke_mm"]), float(pos), float(c["feed_mm_min"])]
+            except (TypeError, ValueError):
+                raise ValueError(f"conditions[{label!r}]: values must be numbers, got {dict(c)}") from None
+            if not np.all(np.isfinite(rows[str(label)])):
+                raise ValueError(f"conditions[{label!r}]: values must be finite, got {dict(c)}")
+            if rows[str(label)][0] < 0 or rows[str(label)][2] < 0:
+                raise ValueError(f"conditions[{label!r}]: stroke_mm and feed_mm_min must be >= 0, got {dict(c)}")
+        return pd.DataFrame.from_dict(rows, orient="index", columns=list(_FACTOR_KEYS.values()))
+
+    def fit(self, X=None, y=None):
+        """Set up the condition set: from ``conditions`` (no data needed), or from
+        motion features ``X`` (DataFrame: stroke_mm, start_mm + end_mm or centre_mm,
+        feed_mm_min) with condition labels ``y`` (each label's condition is the
+        median of its rows)."""
+        for a in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:
+            delattr(self, a)
+        if not isinstance(self.level_tolerance, Real) or not 0 <= self.level_tolerance < 1:
+            raise ValueError(f"level_tolerance must be a number in [0, 1), got {self.level_tolerance!r}")
+        given = {f: _check_levels(_PARAM[f], getattr(self, _PARAM[f])) for f in FACTORS}
+        if self.conditions is not None:
+            cond = self._given_conditions()
+        else:
+            if X is None or y is None:
+                raise ValueError(
+                    "ProximityNaiveBayes has no conditions: set `conditions` (e.g. conf/classifier/seed002.yaml) "
+                    "or fit(X, y) on motion features with condition labels"
+                )
+            F = motion_factors(X)
+            y = np.asarray(y).astype(str).ravel()
+            if y.size != F.shape[0]:
+                raise ValueError(f"fit: X has {F.shape[0]} rows but y has {y.size} labels")
+            if y.size == 0:
+                raise ValueError("fit: no rows to fit on")
+            labels = np.unique(y)
+            cond = pd.DataFrame(
+                [np.median(F[y == lab], axis=0) for lab in labels],
+                index=labels,
+                columns=list(_FACTOR_KEYS.values()),
+            )
+        levels, idx = {}, np.empty((len(cond), 3), dtype=int)
+        for j, f in enumerate(FACTORS):
+            vals = cond[_FACTOR_KEYS[f]].to_numpy()
+            lv = given[f] if given[f] is not None else _merge_levels(vals, float(self.level_tolerance))
+            levels[f] = lv
+            idx[:, j] = np.argmin(np.abs(vals[:, None] - lv[None, :]), axis=1)
+        keys = [tuple(r) for r in idx]
+        for k in range(len(keys)):
+            same = [cond.index[m] for m in range(len(keys)) if keys[m] == keys[k]]
+            if len(same) > 1:
+                desc = ", ".join(f"{f} {levels[f][i]:g}" for f, i in zip(FACTORS, keys[k]))
+                raise ValueError(
+                    f"conditions {same} map to the same levels ({desc}): the classifier cannot tell them apart; "
+                    f"levels: " + "; ".join(f"{_PARAM[f]}={levels[f].tolist()}" for f in FACTORS)
+                )
+        self.classes_ = np.asarray(cond.index.to_numpy(), dtype=object)
+        self.conditions_ = cond
+        self.levels_ = levels
+        self.condition_levels_ = idx
+        return self
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "classes_"):
+            from sklearn.exceptions import NotFittedError
+
+            raise NotFittedError("ProximityNaiveBayes is not fitted: call fit() (or fit(X, y)) first")
+
+    # --- eq. 15-19 ----------------------------------------------------------
+    def level_probabilities(self, X) -> dict[str, np.ndarray]:
+        """Per factor, eq. 15-16: the normalised proximity of each row to each level, (n, n_levels)."""
+        self._check_fitted()
+        F = motion_factors(X)
+        return {f: proximity(F[:, j], self.levels_[f]) for j, f in enumerate(FACTORS)}
+
+    def factor_probabilities(self, X) -> np.ndarray:
+        """(n, K, 3): for each row and condition, P(level of the condition | factor) per factor."""
+        P = self.level_probabilities(X)
+        return np.stack([P[f][:, self.condition_levels_[:, j]] for j, f in enumerate(FACTORS)], axis=2)
+
+    def condition_scores(self, X) -> np.ndarray:
+        """The raw eq. 19 scores, (n, K): Σ_φ P(level_φ(#K) | φ) + P(#K), P(#K) = 1/K."""
+        return self.factor_probabilities(X).sum(axis=2) + 1.0 / len(self.classes_)
+
+    def predict_proba(self, X) -> np.ndarray:
+        """The eq. 19 scores normalised to sum 1 per row (for display and for
+        scikit-learn; the paper only takes the argmax of the score)."""
+        s = self.condition_scores(X)
+        return s / s.sum(axis=1, keepdims=True)
+
+    def predict(self, X) -> np.ndarray:
+        """The condition label of each row, ``argmax_K`` of eq. 19."""
+        return self.classes_[np.argmax(self.condition_scores(X), axis=1)]
+
+
+# ------------------------------------------------------- one motion (CLI) ---
+def _seed002_classifier() -> ProximityNaiveBayes:
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from .config import config_dir
+
+    path = config_dir() / "classifier" / "seed002.yaml"
+    return instantiate(OmegaConf.load(path), _convert_="all")
+
+
+def classify_motion(stroke_mm, start_mm, end_mm, feed_mm_min, classifier=None) -> tuple[str, pd.DataFrame]:
+    """Classify one motion (seed 002 Table 6 style) against the conditions of
+    ``classifier`` (default: seed 002 Table 5, ``conf/classifier/seed002.yaml``).
+
+    Returns the label and a DataFrame indexed by condition with the eq. 16
+    probabilities of the condition's stroke, position and feed levels, the eq. 19
+    ``score`` and ``probability`` (the score normalised to sum 1). The stroke must
+    equal |end - start| within 1 mm; the feed must be >= 0.
+    """
+    vals = {"stroke_mm": stroke_mm, "start_mm": start_mm, "end_mm": end_mm, "feed_mm_min": feed_mm_min}
+    for k, v in vals.items():
+        if isinstance(v, bool) or not isinstance(v, Real) or not np.isfinite(v):
+            raise ValueError(f"{k} must be a finite number, got {v!r}")
+    if feed_mm_min < 0:
+        raise ValueError(f"feed_mm_min must be >= 0, got {feed_mm_min}")
+    if stroke_mm < 0:
+        raise ValueError(f"stroke_mm must be >= 0, got {stroke_mm}")
+    if abs(stroke_mm - abs(end_mm - start_mm)) > 1.0:
+        raise ValueError(
+            f"stroke_mm {stroke_mm:g} must equal |end_mm - start_mm| = {abs(end_mm - start_mm):g} within 1 mm"
+        )
+    clf = classifier if classifier is not None else _seed002_classifier()
+    if not hasattr(clf, "classes_"):
+        clf.fit()
+    X = pd.DataFrame({k: [float(v)] for k, v in vals.items()})
+    fp = clf.factor_probabilities(X)[0]
+    scores = clf.condition_scores(X)[0]
+    table = pd.DataFrame(
+        {
+            "stroke_p": fp[:, 0],
+            "position_p": fp[:, 1],
+            "feed_p": fp[:, 2],
+            "score": scores,
+            "probability": scores / scores.sum(),
+        },
+        index=pd.Index(clf.classes_, name="condition"),
+    )
+    table.attrs["motion"] = {k: float(v) for k, v in vals.items()}
+    return str(clf.classes_[int(np.argmax(scores))]), table
+
+
+def format_classification(label: str, table: pd.DataFrame) -> str:
+    """A small text table of :func:`classify_motion`'s result."""
+    lines = []
+    m = table.attrs.get("motion")
+    if m:
+        lines.append(
+            f"motion: stroke {m['stroke_mm']:g} mm, {m['start_mm']:g}-{m['end_mm']:g} mm "
+            f"(P_start + P_end = {m['start_mm'] + m['end_mm']:g} mm), feed {m['feed_mm_min']:g} mm/min"
+        )
+    lines.append(f"{'condition':<10} {'P(stroke)':>9} {'P(pos)':>7} {'P(feed)':>7} {'score':>6} {'prob':>6}")
+    for lab, r in table.iterrows():
+        mark = "  <-" if str(lab) == str(label) else ""
+        lines.append(
+            f"{str(lab):<10} {r['stroke_p']:>9.3f} {r['position_p']:>7.3f} {r['feed_p']:>7.3f} "
+            f"{r['score']:>6.3f} {r['probability']:>6.3f}{mark}"
+        )
+    lines.append(f"class: {label}  (seed 002 eq. 19: argmax of the summed level probabilities + prior)")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------ online motion log ---
+def measuring_intervals(process_run: pd.DataFrame, errors_run: pd.DataFrame, margin_s: float = 2.0) -> np.ndarray:
+    """(n, 2) time intervals of the run's measuring cycles, to leave out of the motion
+    features: from the start of the approach to the cycle's first target to the end
+    of the return from its last target, plus ``margin_s`` each side.
+
+    The cycles are those of :func:`thermbench.data.reference.measuring_cycles` on the
+    reading times (not their values: a compensator knows when it measured). The
+    approach is the monotone move that ends at the first target's dwell, the return
+    the monotone move that starts after the last target's dwell (both can be at the
+    work feed, e.g. seed 002 #1 works at the 800 mm/min measuring feed).
+    """
+    from .data.reference import measuring_cycles
+
+    er_t = errors_run["t_s"].to_numpy(dtype=float)
+    if er_t.size == 0:
+        return np.empty((0, 2))
+    cyc = measuring_cycles(er_t, errors_run["target_mm"].to_numpy(dtype=float))
+    t = process_run["t_s"].to_numpy(dtype=float)
+    x = process_run["axis_mm"].to_numpy(dtype=float)
+    n = t.size
+    if n < 2:
+        return np.empty((0, 2))
+    tol = 1e-6 * max(1.0, float(np.max(np.abs(x))))
+    d = np.diff(x)
+    s = np.where(d > tol, 1, np.where(d < -tol, -1, 0))  # s[i]: move from sample i to i+1
+    # runs of equal s: starts[r] / ends[r] are the first / last diff index of run r; run_of[i] the run of i
+    change = np.flatnonzero(np.diff(s) != 0) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change - 1, [s.size - 1]])
+    run_of = np.repeat(np.arange(starts.size), ends - starts + 1)
+    out = []
+    for c in np.unique(cyc):
+        ta, tb = er_t[cyc == c].min(), er_t[cyc == c].max()
+        # back from the first reading: over the dwell (no move), then over the approach
+        k = int(np.clip(np.searchsorted(t, ta, side="right") - 1, 0, n - 1)) - 1  # move into that sample
+        for want_dwell in (True, False):
+            if k >= 0 and (s[k] == 0) == want_dwell:
+                k = starts[run_of[k]] - 1
+        t0 = t[k + 1]
+        # forward from the last reading: over the dwell, then over the return move
+        k = int(np.clip(np.searchsorted(t, tb, side="left"), 0, n - 1))  # move out of that sample
+        for want_dwell in (True, False):
+            if k <= s.size - 1 and (s[k] == 0) == want_dwell:
+                k = ends[run_of[k]] + 1
+        t1 = t[min(k, n - 1)]
+        out.append((t0 - margin_s, t1 + margin_s))
+    return np.asarray(out, dtype=float)
+
+
+def _cluster_feeds(feed: np.ndarray, moving: np.ndarray, rel_tol: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Integer code per sample of its feed level (-1 when not moving) and the
+    levels; feeds within ``rel_tol`` of the previous distinct value are one level."""
+    code = np.full(feed.size, -1, dtype=int)
+    if not moving.any():
+        return code, np.empty(0)
+    u = np.unique(feed[moving])
+    brk = np.flatnonzero(np.diff(u) > rel_tol * u[1:]) + 1
+    group = np.zeros(u.size, dtype=int)
+    group[brk] = 1
+    group = np.cumsum(group)
+    code[moving] = group[np.searchsorted(u, feed[moving])]
+    return code, np.array([u[group == g].mean() for g in range(group[-1] + 1)])
+
+
+def _range_reduce(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, ufunc) -> np.ndarray:
+    """ufunc-reduce of values[lo[k]:hi[k]] for each k (lo < hi required where used)."""
+    if values.size == 0:
+        return np.full(lo.size, np.nan)
+    ext = np.append(values, values[-1])
+    idx = np.empty(2 * lo.size, dtype=int)
+    idx[0::2] = np.clip(lo, 0, values.size - 1)
+    idx[1::2] = np.clip(hi, 0, values.size)
+    return ufunc.reduceat(ext, idx)[0::2]
+
+
+def window_features(
+    process_run: pd.DataFrame,
+    t_s,
+    window_s: float = 600.0,
+    exclude=None,
+    min_moving_s: float = 60.0,
+) -> pd.DataFrame:
+    """Motion features of the log in (t - window_s, t] for each t (seed 002 §2.4's A,
+    B, C as a live compensator computes them from its own motion log).
+
+    Samples that are not moving (feed 0) or fall in an ``exclude`` interval
+    [t0, t1] (e.g. :func:`measuring_intervals`) are left out; each sample counts for
+    the time to the next one. ``feed_mm_min`` is the dominant feed (the feed level,
+    within 1 %, with the most moving time; its time-weighted mean), and ``start_mm``
+    / ``end_mm`` the range of the positions sampled at that feed, ``stroke_mm`` their
+    difference. ``moving`` is False (and the features NaN) when less than
+    ``min_moving_s`` of motion is left in the window.
+
+    At 1 Hz a fast stroke aliases: seed 002 #8 (100 mm at 4000 mm/min, a 3 s period)
+    is sampled at 566.7, 633.3 and 600 mm only. Two consecutive samples at feed v
+    closer than the path L = v dt have a reversal in between, at (a + b + L)/2 (top)
+    or (a + b - L)/2 (bottom); when one of the two lies strictly inside the sampled
+    range it is impossible and the other is the turning point, which extends the
+    range (#8: 550-650 mm). With two or more reversals between samples (L > stroke,
+    e.g. #7: 50 mm at 4000 mm/min) both readings lie outside and are ignored, so #7
+    keeps its apparent 600-633 mm (the classifiers see the same in training and use).
+    """
+    if not window_s > 0:
+        raise ValueError(f"window_s must be > 0, got {window_s}")
+    for c in ("t_s", "axis_mm", "feed_mm_min"):
+        if c not in process_run.columns:
+            raise ValueError(
+                f"window_features: the process log has no column {c!r}; columns: {list(process_run.columns)}"
+            )
+    tq = np.atleast_1d(np.asarray(t_s, dtype=float))
+    t = process_run["t_s"].to_numpy(dtype=float)
+    x = process_run["axis_mm"].to_numpy(dtype=float)
+    f = process_run["feed_mm_min"].to_numpy(dtype=float)
+    n = t.size
+    out = pd.DataFrame(
+        {c: np.full(tq.size, np.nan) for c in FEATURES} | {"moving": np.zeros(tq.size, dtype=bool)}
+    )
+    if n == 0 or tq.size == 0:
+        return out
+    w = np.diff(t, append=t[-1] + (np.median(np.diff(t)) if n > 1 else 1.0))
+    moving = np.isfinite(f) & (f > 0) & np.isfinite(x)
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=float).reshape(-1, 2)
+        for a, b in ex:
+            moving &= ~((t >= a) & (t <= b))
+    code, levels = _cluster_feeds(f, moving)
+    lo = np.searchsorted(t, tq - window_s, side="right")
+    hi = np.searchsorted(t, tq, side="right")
+    if levels.size == 0:
+        return out
+    # per feed level: moving time in each window, via cumulative sums
+    onehot = code[:, None] == np.arange(levels.size)[None, :]
+    cw = np.vstack([np.zeros((1, levels.size)), np.cumsum(onehot * w[:, None], axis=0)])
+    cwf = np.vstack([np.zeros((1, levels.size)), np.cumsum(onehot * (w * np.where(moving, f, 0.0))[:, None], axis=0)])
+    time_in = cw[hi] - cw[lo]  # (nq, levels)
+    dom = np.argmax(time_in, axis=1)
+    rows = np.arange(tq.size)
+    tdom = time_in[rows, dom]
+    ok = time_in.sum(axis=1) >= min_moving_s
+    ok &= tdom > 0
+    feed = np.where(ok, (cwf[hi] - cwf[lo])[rows, dom] / np.where(tdom > 0, tdom, 1.0), np.nan)
+    start = np.full(tq.size, np.nan)
+    end = np.full(tq.size, np.nan)
+    # turning points between samples (1 Hz aliasing): a pair of consecutive samples at
+    # the same feed that lies closer than the path length L = v dt has a reversal in
+    # between, at (a + b + L) / 2 (top) or (a + b - L) / 2 (bottom)
+    dt = np.diff(t)
+    step = float(np.median(dt)) if n > 1 else 1.0
+    L = f[:-1] / 60.0 * dt
+    gap = L - np.abs(np.diff(x))
+    # the pair and its neighbours moving at one feed (no start or stop next to it)
+    same = np.r_[False, code[1:] == code[:-1]]  # same[i]: sample i at the feed of i - 1
+    steady = (code[:-1] >= 0) & same[:-1] & same[1:] & np.r_[same[2:], False]
+    pair = steady & (dt <= 1.5 * step) & (gap > 0.02 * L + 0.1)
+    top = (x[:-1] + x[1:] + L) / 2.0
+    bot = (x[:-1] + x[1:] - L) / 2.0
+    for g in np.unique(dom[ok]):
+        sel = np.flatnonzero(code == g)
+        q = np.flatnonzero(ok & (dom == g))
+        a = np.searchsorted(sel, lo[q], side="left")
+        b = np.searchsorted(sel, hi[q], side="left")
+        start[q] = _range_reduce(x[sel], a, b, np.minimum)
+        end[q] = _range_reduce(x[sel], a, b, np.maximum)
+        pg = np.flatnonzero(pair & (code[:-1] == g))
+        if pg.size == 0:
+            continue
+        pa = np.searchsorted(pg, lo[q], side="left")
+        pb = np.searchsorted(pg, hi[q] - 1, side="left")  # pairs (i, i+1) with i + 1 < hi
+        for k, qi in enumerate(q):
+            idx = pg[pa[k] : pb[k]]
+            if idx.size == 0:
+                continue
+            x0, x1 = start[qi], end[qi]
+            tol = 1e-6 * max(1.0, abs(x0), abs(x1))
+            # a turning point cannot lie strictly inside the sampled range: when one of the
+            # two readings does, the other is the true one (2+ reversals leave both outside)
+            t_in, b_in = top[idx] < x1 - tol, bot[idx] > x0 + tol
+            up, down = top[idx][b_in & ~t_in], bot[idx][t_in & ~b_in]
+            if up.size:
+                end[qi] = max(x1, float(up.max()))
+            if down.size:
+                start[qi] = min(x0, float(down.min()))
+    out["stroke_mm"] = end - start
+    out["start_mm"] = start + 0.0  # no -0.0
+    out["end_mm"] = end + 0.0
+    out["feed_mm_min"] = feed
+    out["moving"] = ok
+    return out

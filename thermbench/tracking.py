@@ -1,0 +1,245 @@
+"""MLflow tracking: where runs go, what each run records, and how a sweep resumes.
+
+* ``conf/tracking/embedded.yaml`` (default): a sqlite store in the project
+  directory (``mlflow.db``, files in ``mlartifacts/``), no server needed.
+* ``tracking=server tracking.uri=http://host:port``: a tracking server, checked
+  with ``GET /health`` before any work starts (:func:`connect`), so an
+  unreachable server fails in seconds, not after an hour of training.
+
+Every run records the flattened resolved config as params, metrics, artifacts,
+and the tags of :func:`standard_tags` (git commit, dataset hash, thermbench
+version, config hash). :func:`config_hash` is what lets an interrupted sweep
+resume: a job whose hash already has a FINISHED run is skipped
+(:func:`finished_run`).
+
+Models are logged as MLflow pyfunc models (:mod:`thermbench.mlflow_pyfunc`)
+and registered; :func:`load_model` takes ``models:/<name>@<alias>`` (or any
+model URI) back to the fitted thermbench model.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import subprocess
+import tempfile
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any, Mapping
+
+import joblib
+import yaml
+
+from . import __version__
+
+LOG = logging.getLogger(__name__)
+PYFUNC_CODE = Path(__file__).with_name("mlflow_pyfunc.py")
+#: config keys that do not change a job's result (left out of the resume hash)
+NON_RESULT_KEYS = ("tracking", "hydra", "report_dir", "export_dir", "n_jobs", "progress")
+
+
+class TrackingError(RuntimeError):
+    """Tracking cannot work as configured; the message names the config key."""
+
+
+def _quiet_mlflow() -> None:
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "1")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    for name in ("mlflow", "alembic", "mlflow.store.db.utils", "matplotlib"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    # thermbench models take a process log, not a fixed-schema frame: no signature to infer
+    logging.getLogger("mlflow.pyfunc").setLevel(logging.ERROR)
+
+
+def resolve_uri(uri: str, base_dir: str | Path | None = None) -> str:
+    """``sqlite:///relative.db`` and plain paths are taken relative to ``base_dir`` (cwd)."""
+    base = Path(base_dir or os.getcwd())
+    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
+        return f"sqlite:///{(base / uri[len('sqlite:///'):]).resolve()}"
+    if "://" not in uri:
+        return (base / uri).resolve().as_uri()
+    return uri
+
+
+def check_server(uri: str, timeout_s: float = 5.0) -> None:
+    """Raise :class:`TrackingError` unless the MLflow server at ``uri`` answers ``/health``."""
+    url = uri.rstrip("/") + "/health"
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as resp:
+            if resp.status != 200:
+                raise TrackingError(f"tracking.uri={uri}: {url} answered HTTP {resp.status}, not an MLflow server?")
+    except (urllib.error.URLError, OSError, TimeoutError) as exc:
+        reason = getattr(exc, "reason", exc)
+        raise TrackingError(
+            f"tracking.uri={uri}: MLflow server unreachable ({reason}). Start it "
+            f"(mlflow server --host 127.0.0.1 --port 5000) or drop tracking.uri to use the embedded store "
+            f"(tracking=embedded). Nothing was trained."
+        ) from None
+
+
+def connect(tcfg: Mapping[str, Any], base_dir: str | Path | None = None) -> str:
+    """Point MLflow at ``tcfg.uri`` (checking a server first); return the experiment id."""
+    _quiet_mlflow()
+    import mlflow
+    from mlflow import MlflowClient
+
+    uri = str(tcfg.get("uri") or "")
+    if not uri:
+        raise TrackingError("config key 'tracking.uri': expected a URI (sqlite:///mlflow.db or http://host:port)")
+    uri = resolve_uri(uri, base_dir)
+    if uri.startswith(("http://", "https://")):
+        check_server(uri, float(tcfg.get("timeout_s", 5.0)))
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_registry_uri(uri)
+    name = str(tcfg.get("experiment") or "thermbench")
+    client = MlflowClient()
+    try:
+        exp = client.get_experiment_by_name(name)
+        if exp is not None:
+            return exp.experiment_id
+        root = tcfg.get("artifact_root")
+        loc = resolve_uri(str(root), base_dir) if root else None
+        try:
+            return client.create_experiment(name, artifact_location=loc)
+        except Exception:  # created meanwhile by a parallel job of the same sweep
+            exp = client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return exp.experiment_id
+    except TrackingError:
+        raise
+    except Exception as exc:
+        raise TrackingError(f"tracking.uri={uri}: cannot open the tracking store: {exc}") from None
+
+
+def flatten(cfg: Mapping[str, Any]) -> dict[str, str]:
+    """The nested config as ``{"model.gamma": "10.0", ...}`` (MLflow params are strings).
+
+    Lists and empty mappings are kept as JSON (``"[]"``, ``"{}"``), so every leaf of the
+    config is a param."""
+    out: dict[str, str] = {}
+
+    def walk(node: Any, key: str) -> None:
+        if isinstance(node, Mapping) and (node or not key):
+            for k, v in node.items():
+                walk(v, f"{key}.{k}" if key else str(k))
+            return
+        s = json.dumps(node, default=str) if isinstance(node, (list, tuple, Mapping)) else str(node)
+        out[key[:250]] = s[:6000]
+
+    walk(dict(cfg), "")
+    return out
+
+
+def config_hash(cfg: Mapping[str, Any]) -> str:
+    """SHA-256 (16 hex) of the resolved config without the keys that cannot change the result."""
+    plain = {k: v for k, v in dict(cfg).items() if k not in NON_RESULT_KEYS}
+    blob = json.dumps({"cfg": plain, "version": __version__}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def git_commit(path: str | Path | None = None) -> str:
+    """The project's git commit (with ``+dirty`` for uncommitted changes), or ``unknown``."""
+    where = Path(path or Path(__file__).resolve().parent.parent)
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        # --no-optional-locks: never write .git/index, so a sweep cannot collide with the user's git commands
+        dirty = subprocess.run(
+            ["git", "--no-optional-locks", "status", "--porcelain", "--untracked-files=no"],
+            cwd=where, capture_output=True, text=True, timeout=10,
+        ).stdout.strip()
+        return sha + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def standard_tags(dataset_hash: str | None, cfg_hash: str, job: str) -> dict[str, str]:
+    tags = {
+        "thermbench.version": __version__,
+        "git_commit": git_commit(),
+        "thermbench.config_hash": cfg_hash,
+        "thermbench.job": job,
+    }
+    if dataset_hash:
+        tags["dataset_hash"] = dataset_hash
+    return tags
+
+
+def finished_run(experiment_id: str, cfg_hash: str):
+    """The newest FINISHED run with this config hash, or None."""
+    from mlflow import MlflowClient
+
+    runs = MlflowClient().search_runs(
+        [experiment_id],
+        filter_string=f"tags.`thermbench.config_hash` = '{cfg_hash}' and attributes.status = 'FINISHED'",
+        max_results=1,
+        order_by=["attributes.start_time DESC"],
+    )
+    return runs[0] if runs else None
+
+
+def log_config(cfg: Mapping[str, Any]) -> None:
+    """The flattened config as params and the resolved config as ``config.yaml``."""
+    import mlflow
+
+    items = list(flatten(cfg).items())
+    for i in range(0, len(items), 100):
+        mlflow.log_params(dict(items[i : i + 100]))
+    mlflow.log_text(yaml.safe_dump(dict(cfg), sort_keys=False), "config.yaml")
+
+
+def log_model(model, dataset, name: str = "model", registered_name: str | None = None):
+    """Log a fitted thermbench model as an MLflow pyfunc model (and register it).
+
+    The pyfunc takes a process-log DataFrame (the dataset contract's process
+    columns) and returns the predicted error at each row's (t_s, axis_mm).
+    """
+    import mlflow
+
+    with tempfile.TemporaryDirectory() as tmp:
+        mpath = Path(tmp) / "model.joblib"
+        joblib.dump(model, mpath)
+        meta = Path(tmp) / "dataset_metadata.yaml"
+        meta.write_text(yaml.safe_dump(dataset.metadata.model_dump(mode="json"), sort_keys=False), encoding="utf-8")
+        return mlflow.pyfunc.log_model(
+            name=name,
+            python_model=str(PYFUNC_CODE),
+            artifacts={"model": str(mpath), "metadata": str(meta)},
+            pip_requirements=[f"thermbench=={__version__}"],
+            registered_model_name=registered_name,
+        )
+
+
+def set_alias(registered_name: str, alias: str, version: str | int) -> None:
+    from mlflow import MlflowClient
+
+    MlflowClient().set_registered_model_alias(registered_name, alias, str(version))
+
+
+def model_uri(name: str | None = None, alias: str | None = None, uri: str | None = None) -> str:
+    """``uri`` as given, else ``models:/<name>@<alias>``."""
+    if uri:
+        return str(uri)
+    if not name:  # thermbench evaluate has these keys at the top, thermbench export under export.
+        raise TrackingError(
+            "no model to load: set config key 'model_uri' (any MLflow model URI) or 'name' (a registered model, "
+            "with 'alias'); for thermbench export they are 'export.model_uri' / 'export.name'"
+        )
+    return f"models:/{name}@{alias}" if alias else f"models:/{name}/latest"
+
+
+def load_model(uri: str):
+    """The fitted thermbench model behind an MLflow model URI."""
+    _quiet_mlflow()
+    import mlflow
+
+    try:
+        return mlflow.pyfunc.load_model(uri).unwrap_python_model().model
+    except Exception as exc:
+        raise TrackingError(f"model {uri}: cannot load it from {mlflow.get_tracking_uri()}: {exc}") from None
