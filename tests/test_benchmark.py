@@ -130,3 +130,18 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     monkeypatch.setattr(bm, "fit_evaluate", lambda *a, **k: (_ for _ in ()).throw(AssertionError("refitted")))
     forced = bm.benchmark(_cfg(tmp_path, "tracking.skip_finished=false"))
     assert not forced.skipped and forced.mlflow_run_id != res.mlflow_run_id
+
+
+def test_save_models_replaces_the_directory(tmp_path, data_env):
+    """A second save leaves no model of the first behind, and the manifest marks the chosen one."""
+    from thermbench.experiment import save_models
+
+    ds = load_split(group_option("dataset", "seed001_vmc_x")).dataset
+    a = model_from_config("mlr_seed002").fit(ds, ["state1"])
+    b = model_from_config("mlr_seed001").fit(ds, ["state2"])
+    save_models({"old": a}, tmp_path / "m")
+    save_models({"new": b, "other": a}, tmp_path / "m", chosen=["new"])
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == ["manifest.yaml", "new.joblib", "other.joblib"]
+    manifest = yaml.safe_load((tmp_path / "m" / "manifest.yaml").read_text())
+    assert manifest["new"]["chosen"] and not manifest["other"]["chosen"]
+    assert manifest["new"]["train_runs"] == ["state2"]

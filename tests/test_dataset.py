@@ -124,3 +124,20 @@ def test_failed_write_leaves_nothing_half_written(written, tmp_path, monkeypatch
     assert (path / "process.csv").read_bytes() == content
     assert not (tmp_path / "fresh").exists()
     assert [p for p in path.parent.iterdir() if p.name.startswith(".")] == []
+
+
+def test_atomic_writes_get_the_usual_file_mode(tmp_path):
+    """mkstemp/mkdtemp create private files (0600/0700); written files must not stay private."""
+    import os
+
+    from thermbench._atomic import atomic_dir, write_text_atomic
+
+    mask = os.umask(0o022)
+    try:
+        write_text_atomic(tmp_path / "a.txt", "x")
+        with atomic_dir(tmp_path / "d") as d:
+            (d / "f").write_text("y")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "d").stat().st_mode & 0o777 == 0o755

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -73,19 +74,36 @@ def run(job: str, argv: list[str]) -> int:
         return res.metrics
 
     main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=job)(task)
-    saved = sys.argv
+    interrupted = []
+
+    def on_sigint(signum, frame):  # remember it: Hydra may wrap the KeyboardInterrupt in its own error
+        interrupted.append(signum)
+        signal.default_int_handler(signum, frame)
+
+    saved, saved_handler = sys.argv, signal.getsignal(signal.SIGINT)
     sys.argv = [f"thermbench-{job}", *argv]
+    try:
+        signal.signal(signal.SIGINT, on_sigint)
+    except ValueError:  # not the main thread: leave signals alone
+        pass
+    code = 0
     try:
         main()
     except SystemExit as exc:
-        return int(exc.code or 0) if isinstance(exc.code, int) else 1
-    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback; the interrupted MLflow run is marked FAILED
+        code = int(exc.code or 0) if isinstance(exc.code, int) else 1
+    except KeyboardInterrupt:
+        interrupted.append(signal.SIGINT)
+    finally:
+        sys.argv = saved
+        try:
+            signal.signal(signal.SIGINT, saved_handler)
+        except ValueError:
+            pass
+    if interrupted:  # Ctrl-C: one line, no traceback; the interrupted MLflow run is marked FAILED
         resume = " (run the same command again to resume: finished runs are skipped)" if job in ("train", "benchmark") else ""
         print(f"thermbench {job}: interrupted{resume}", file=sys.stderr, flush=True)
         return 130
-    finally:
-        sys.argv = saved
-    return 0
+    return code
 
 
 # -------------------------------------------------------------- callbacks ---

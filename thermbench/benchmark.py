@@ -234,6 +234,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
             metrics[f"{d}/{f}/{a}/validation_max_abs_residual_um"] = float(g["max_abs_residual_um"].max())
         mlflow.log_metrics(metrics | {"wall_s": wall_s})
         mlflow.log_artifacts(str(report_dir), "report")
+        mlflow.log_artifacts(str(model_dir), "models")  # every fitted global/bank model + manifest.yaml
         mlflow.log_text(results.to_csv(index=False), "results.csv")
         registered = {}
         for r in chosen.itertuples():

@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
-from ._atomic import atomic_path, write_text_atomic
+from ._atomic import atomic_dir, write_text_atomic
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
 
@@ -324,23 +324,21 @@ def export(cfg: DictConfig) -> JobResult:
 
 
 def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] = (), source: Mapping[str, str] | None = None) -> dict[str, Path]:
-    """Save fitted models as ``<key>.joblib`` (atomically) plus ``manifest.yaml`` marking the chosen ones."""
+    """Write ``out_dir`` anew: each fitted model as ``<key>.joblib`` plus ``manifest.yaml``
+    marking the chosen ones. The directory is replaced as a whole (no stale or half-written files)."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths, manifest = {}, {}
-    for key, m in models.items():
-        p = out_dir / f"{key}.joblib"
-        with atomic_path(p) as tmp:
-            joblib.dump(m, tmp)
-        paths[key] = p
-        inp = m.required_inputs()
-        manifest[key] = {
-            "file": p.name,
-            "chosen": key in chosen,
-            "class": f"{type(m).__module__}.{type(m).__name__}",
-            "train_runs": list(getattr(m, "train_runs_", [])),
-            "sensors": list(inp.sensors),
-            "source": (source or {}).get(key, "benchmark"),
-        }
-    write_text_atomic(out_dir / "manifest.yaml", yaml.safe_dump(manifest, sort_keys=False))
-    return paths
+    manifest = {}
+    with atomic_dir(out_dir) as tmp:
+        for key, m in models.items():
+            joblib.dump(m, tmp / f"{key}.joblib")
+            inp = m.required_inputs()
+            manifest[key] = {
+                "file": f"{key}.joblib",
+                "chosen": key in chosen,
+                "class": f"{type(m).__module__}.{type(m).__name__}",
+                "train_runs": list(getattr(m, "train_runs_", [])),
+                "sensors": list(inp.sensors),
+                "source": (source or {}).get(key, "benchmark"),
+            }
+        (tmp / "manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False), encoding="utf-8")
+    return {key: out_dir / f"{key}.joblib" for key in models}
