@@ -1,5 +1,5 @@
 # Two commands do all set-up on a fresh machine:
-#   make demo   create .venv, install thermbench, run the main job
+#   make demo   create .venv, install thermbench, run the main job (the robustness benchmark)
 #   make test   create/update .venv with dev extras, run the whole test suite
 # torch is pinned to the CPU build 2.13.0 through constraints.txt, so pip never
 # resolves a multi-GB CUDA build.
@@ -28,7 +28,6 @@ install: $(VENV)/.installed
 install-dev: $(VENV)/.installed-dev
 
 demo: $(VENV)/.installed
-	$(BIN)/thermbench simulate suite=benchmark
 	$(BIN)/thermbench benchmark
 
 test: $(VENV)/.installed-dev

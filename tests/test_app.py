@@ -256,3 +256,27 @@ def test_unknown_training_run(tmp_path, env):
     assert len(errors) == 1, proc.stderr
     assert errors[0].startswith("thermbench train: error:") and "'train'" in errors[0] and "bogus" in errors[0]
     assert not finished_runs(tmp_path) and not list(tmp_path.rglob("result.json"))
+
+
+def test_a_failing_job_does_not_stop_the_sweep(tmp_path, env):
+    """A user mistake in one job of a sweep: the other jobs still run, the summary marks the
+    failed one with its one-line error, and the command ends with exit code 2."""
+    proc = cli(["train", "-m", "model=mlr_seed002", "train=bogus,state1", *store_overrides(tmp_path)],
+               tmp_path, env)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    res = job_results(tmp_path / "sweep")
+    assert "error" in res["model=mlr_seed002 train=bogus"] and "'train'" in res["model=mlr_seed002 train=bogus"]["error"]
+    assert "error" not in res["model=mlr_seed002 train=state1"]
+    assert len(finished_runs(tmp_path)) == 1  # the good job ran after the bad one
+    assert "1 job(s) failed" in proc.stdout
+
+
+def test_missing_dataset_path_is_one_line_naming_the_key(tmp_path, env):
+    proc = cli(["train", "dataset=path", f"dataset.source.path={tmp_path}/nope", *store_overrides(tmp_path)],
+               tmp_path, env, timeout=120)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("thermbench train: error: config key 'dataset.source'"), proc.stderr
+    assert "nope" in lines[0]

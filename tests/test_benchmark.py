@@ -123,13 +123,20 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert any(k.endswith("validation_worst_compensation_rate") for k in run.data.metrics)
     arts = [a.path for a in MlflowClient().list_artifacts(res.mlflow_run_id, "report")]
     assert "report/report.md" in arts
-    # same config again: skipped from the tracking store
-    again = bm.benchmark(_cfg(tmp_path))
-    assert again.skipped and again.mlflow_run_id == res.mlflow_run_id
-    # rerun forced: every (dataset, family) task comes from the cache, nothing is refitted
+    # one nested run per (dataset, family, approach) under the benchmark run
+    children = MlflowClient().search_runs(
+        [run.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{res.mlflow_run_id}'")
+    assert {(c.data.tags["model"], c.data.tags["approach"]) for c in children} == {
+        ("mlr_seed001", "single"), ("mlr_seed001", "global"),
+        ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "bank")}
+    # run again (e.g. after an interruption): every (dataset, family) task comes from the
+    # cache, nothing is refitted, and the report and the MLflow run are made again
+    (tmp_path / "reports" / "report.md").unlink()
     monkeypatch.setattr(bm, "fit_evaluate", lambda *a, **k: (_ for _ in ()).throw(AssertionError("refitted")))
-    forced = bm.benchmark(_cfg(tmp_path, "tracking.skip_finished=false"))
-    assert not forced.skipped and forced.mlflow_run_id != res.mlflow_run_id
+    again = bm.benchmark(_cfg(tmp_path))
+    assert again.mlflow_run_id != res.mlflow_run_id
+    assert (tmp_path / "reports" / "report.md").exists()
+    assert again.metrics == pytest.approx(res.metrics)
 
 
 def test_save_models_replaces_the_directory(tmp_path, data_env):
@@ -145,3 +152,27 @@ def test_save_models_replaces_the_directory(tmp_path, data_env):
     manifest = yaml.safe_load((tmp_path / "m" / "manifest.yaml").read_text())
     assert manifest["new"]["chosen"] and not manifest["other"]["chosen"]
     assert manifest["new"]["train_runs"] == ["state2"]
+
+
+def test_top_level_seed_and_preprocess_reach_models_inside_a_bank():
+    """`seed=` and `preprocess=` are given to every model that takes them, also the one a
+    bank clones per condition (otherwise a seed sweep over a bank would fit the same thing)."""
+    from thermbench.experiment import build_model
+    from thermbench.preprocess.filters import LimitFilter
+
+    bank_cfg = {"_target_": "thermbench.models.bank.ConditionBank", "model": group_option("model", "lssvm")}
+    m = build_model(bank_cfg, preprocess_steps=[{"_target_": "thermbench.preprocess.filters.LimitFilter", "limit_C": 3.0}], seed=7)
+    assert m.model.seed == 7
+    assert len(m.model.preprocess) == 1 and isinstance(m.model.preprocess[0], LimitFilter)
+    assert m.model.preprocess[0].limit_C == 3.0
+    plain_model = build_model(group_option("model", "gru"), seed=11)
+    assert plain_model.seed == 11
+
+
+def test_benchmark_rejects_unknown_approach_and_stray_bank_family(tmp_path):
+    from thermbench.experiment import ExperimentError
+
+    with pytest.raises(ExperimentError, match="'approaches'"):
+        bm.tasks(_cfg(tmp_path, "approaches=[single,globl]"))
+    with pytest.raises(ExperimentError, match="'bank_families'"):
+        bm.tasks(_cfg(tmp_path, "bank_families=[lssvm]"))

@@ -380,3 +380,28 @@ def test_learned_classifier_on_the_benchmark(seed002_windows):
     gnb.fit(learned_features(train), train["y"])
     acc = float(np.mean(gnb.predict(learned_features(test)) == test["y"].to_numpy()))
     assert acc >= 0.97
+
+
+def test_cli_classify_prints_the_class_and_the_probabilities(capsys):
+    """`thermbench classify` on Table 6 row 1: class #2; the printed scores are eq. 19's
+    (stroke 100 matches #2/#5/#8 exactly; position 220 and feed 1250 from the hand
+    computation in test_table6_rows: P_B(left) = 0.583, P_C(800) = 0.567) plus the prior 1/9."""
+    from thermbench.cli import main
+
+    assert main(["classify", "--stroke", "100", "--start", "60", "--end", "160", "--feed", "1250"]) == 0
+    out = capsys.readouterr().out
+    assert "class: #2" in out
+    row2 = next(ln for ln in out.splitlines() if ln.startswith("#2"))
+    score = float(row2.split()[4])
+    assert score == pytest.approx(1.0 + (1 / 220) / (1 / 220 + 1 / 430 + 1 / 1080)
+                                  + (1 / 450) / (1 / 450 + 1 / 750 + 1 / 2750) + 1 / 9, abs=2e-3)
+
+
+def test_cli_classify_rejects_inconsistent_stroke_and_learned_classifier(capsys):
+    from thermbench.cli import main
+
+    assert main(["classify", "--stroke", "100", "--start", "60", "--end", "100", "--feed", "1250"]) == 2
+    assert "stroke" in capsys.readouterr().err
+    assert main(["classify", "--stroke", "40", "--start", "60", "--end", "100", "--feed", "1250",
+                 "--classifier", "learned"]) == 2
+    assert "--classifier learned" in capsys.readouterr().err

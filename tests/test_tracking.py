@@ -339,7 +339,8 @@ def mlflow_server(tmp_path_factory):
 
 
 def test_train_against_a_real_tracking_server(mlflow_server, workdir):
-    cfg = compose("train", workdir, "tracking=server", f"tracking.uri={mlflow_server.uri}", f"model={MODEL}",
+    # the wording: only tracking.uri=http://... on top of the default (embedded) tracking group
+    cfg = compose("train", workdir, f"tracking.uri={mlflow_server.uri}", f"model={MODEL}",
                   "train=state1", FEW, artifacts=False)
     res = experiment.train(cfg)
 
@@ -358,6 +359,7 @@ def test_train_against_a_real_tracking_server(mlflow_server, workdir):
     # the files went through the server to its artifact store, not to the client's directory
     assert list((mlflow_server.dir / "artifacts").rglob("model.joblib"))
     assert not (workdir / "mlflow.db").exists() and not (workdir / "art").exists()
+    assert not (workdir / "mlartifacts").exists()  # the embedded group's artifact_root is not used for a server
 
     loaded = tracking.load_model(f"models:/{REGISTERED}/1")
     ds = load_benchmark(DATASET)

@@ -59,7 +59,11 @@ def atomic_dir(target: str | os.PathLike) -> Iterator[Path]:
             if old.exists():
                 shutil.rmtree(old)
             os.replace(target, old)
-            os.replace(tmp, target)
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                os.replace(old, target)  # put the previous one back
+                raise
             shutil.rmtree(old)
         else:
             os.replace(tmp, target)

@@ -22,10 +22,12 @@ import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from ._atomic import write_text_atomic
 from .config import ConfigError, config_dir
+from .experiment import HEADLINE, hydra_runtime
 
-HEADLINE = ("validation_worst_compensation_rate", "validation_max_abs_residual_um", "unseen_worst_compensation_rate",
-            "unseen_max_abs_residual_um", "own_mean_rmse_um", "fit_s")
+#: set when a multirun ended with failed jobs (the command then exits with 2)
+_FAILED_JOBS: list[str] = []
 
 
 def _jobs() -> dict[str, Callable]:
@@ -69,7 +71,13 @@ def run(job: str, argv: list[str]) -> int:
             res = fn(cfg)
         except errors as exc:
             print(f"thermbench {job}: error: {exc}", file=sys.stderr, flush=True)
-            sys.exit(2)
+            hc = hydra_runtime()
+            if hc is None or str(hc.mode) != "RunMode.MULTIRUN":
+                sys.exit(2)
+            # in a sweep the other jobs go on; the summary lists this one as failed
+            failed = {"job": job, "error": str(exc), "skipped": False, "metrics": {}}
+            write_text_atomic(Path(hc.runtime.output_dir) / "result.json", json.dumps(failed))
+            return None
         print_result(res)
         return res.metrics
 
@@ -80,6 +88,7 @@ def run(job: str, argv: list[str]) -> int:
         interrupted.append(signum)
         signal.default_int_handler(signum, frame)
 
+    _FAILED_JOBS.clear()
     saved, saved_handler = sys.argv, signal.getsignal(signal.SIGINT)
     sys.argv = [f"thermbench-{job}", *argv]
     try:
@@ -103,6 +112,8 @@ def run(job: str, argv: list[str]) -> int:
         resume = " (run the same command again to resume: finished runs are skipped)" if job in ("train", "benchmark") else ""
         print(f"thermbench {job}: interrupted{resume}", file=sys.stderr, flush=True)
         return 130
+    if code == 0 and _FAILED_JOBS:
+        return 2
     return code
 
 
@@ -141,7 +152,7 @@ class SweepProgress(Callback):
         n = _sweep_size(config)
         sweep_dir = Path(str(config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
-        (sweep_dir / "sweep_size.txt").write_text(str(n if n is not None else "?"), encoding="utf-8")
+        write_text_atomic(sweep_dir / "sweep_size.txt", str(n if n is not None else "?"))
         print(f"[sweep] {n if n is not None else '?'} jobs -> {sweep_dir}", flush=True)
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
@@ -153,7 +164,9 @@ class SweepProgress(Callback):
         size = sweep_dir / "sweep_size.txt"
         n = size.read_text(encoding="utf-8").strip() if size.exists() else None
         status = getattr(job_return, "status", None)
-        state = "failed" if status is not None and status.name == "FAILED" else "done"
+        mine = Path(str(hc.runtime.output_dir)) / "result.json"
+        user_error = mine.exists() and "error" in json.loads(mine.read_text(encoding="utf-8"))
+        state = "failed" if user_error or (status is not None and status.name == "FAILED") else "done"
         overrides = " ".join(hc.overrides.task)
         print(f"[sweep] job #{hc.job.num} {state} ({overrides}); {done}/{n if n is not None else '?'} finished", flush=True)
 
@@ -163,6 +176,11 @@ class SweepProgress(Callback):
             return
         with pd.option_context("display.width", 160, "display.max_columns", 30, "display.float_format", "{:.3f}".format):
             print("\n[sweep] summary\n" + table.to_string(index=False), flush=True)
+        if "error" in table:
+            failed = table.loc[table["error"].notna(), "job"].tolist()
+            _FAILED_JOBS.extend(failed)
+            if failed:
+                print(f"[sweep] {len(failed)} job(s) failed: {', '.join(failed)} (see the error column)", flush=True)
 
 
 def _results(sweep_dir: Path) -> list[Path]:
@@ -185,5 +203,7 @@ def sweep_table(sweep_dir: Path) -> pd.DataFrame:
         row.update(dict(o.split("=", 1) for o in ov if "=" in o))
         row["skipped"] = res.get("skipped", False)
         row.update({k: res["metrics"][k] for k in HEADLINE if k in res.get("metrics", {})})
+        if res.get("error"):
+            row["error"] = res["error"]
         rows.append(row)
     return pd.DataFrame(rows)

@@ -34,11 +34,11 @@ from .experiment import (
     ExperimentError,
     JobResult,
     _finish,
-    _skip,
     build_model,
     fit_evaluate,
     group_option,
     headline_metrics,
+    hydra_runtime,
     load_split,
     plain,
     save_models,
@@ -54,9 +54,15 @@ def run_task(
     approaches: Sequence[str],
     classifier_cfg: Mapping | None,
     seed: int,
-    version: str = __version__,
+    dataset_hash: str = "",
+    code_version: str = __version__,
+    verbose: bool = False,
 ) -> dict[str, Any]:
     """Fit and score one family on one dataset (see module docstring).
+
+    ``dataset_hash`` (the data's content) and ``code_version`` (a hash of thermbench's
+    source) are not used here: with the configs they are the key of the on-disk cache,
+    so changed data or code is never served from it. ``verbose`` prints a line per fit.
 
     Returns ``results`` (one row per fitted model x test run, the columns of
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
@@ -77,6 +83,10 @@ def run_task(
         df["kind"] = [split.kind(r) for r in df["run_id"]]
         return df
 
+    def say(what: str, fit_s: float) -> None:
+        if verbose:
+            print(f"    {split.name} x {family}: {what} fitted in {fit_s:.1f} s", flush=True)
+
     singles, single_fit_s = {}, {}
     if "single" in approaches or "bank" in approaches:
         for state in split.states:
@@ -87,6 +97,7 @@ def run_task(
                 continue
             singles[state] = fitted
             single_fit_s[state] = float(res["fit_s"].iloc[0])
+            say(f"single {state}", single_fit_s[state])
             if "single" in approaches:
                 rows.append(tag(res, "single", state))
     if "global" in approaches and len(split.states) > 1:
@@ -95,21 +106,26 @@ def run_task(
             rows.append(tag(res, "global", "all"))
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
             models["global"] = fitted
+            say("global", float(res["fit_s"].iloc[0]))
         except ModelError as exc:
             errors.append(f"{split.name}/{family}/global: {exc}")
     if "bank" in approaches and len(singles) > 1 and classifier_cfg is not None:
         from .models.bank import ConditionBank
 
         bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"))
-        t1 = time.perf_counter()
-        bank.fit_from_fitted(ds, singles)
-        fit_s = time.perf_counter() - t1 + sum(single_fit_s.values())
-        res, cur = evaluate_runs(bank, ds, None, curves=True)
-        res.insert(1, "own", res["run_id"].isin(list(singles)))
-        res["fit_s"] = fit_s
-        rows.append(tag(res, "bank", "all"))
-        curves.append(tag(cur[cur["run_id"].isin(split.validation)], "bank", "all"))
-        models["bank"] = bank
+        try:
+            t1 = time.perf_counter()
+            bank.fit_from_fitted(ds, singles)
+            fit_s = time.perf_counter() - t1 + sum(single_fit_s.values())
+            res, cur = evaluate_runs(bank, ds, None, curves=True)
+            res.insert(1, "own", res["run_id"].isin(list(singles)))
+            res["fit_s"] = fit_s
+            rows.append(tag(res, "bank", "all"))
+            curves.append(tag(cur[cur["run_id"].isin(split.validation)], "bank", "all"))
+            models["bank"] = bank
+            say("bank classifier", time.perf_counter() - t1)
+        except ModelError as exc:
+            errors.append(f"{split.name}/{family}/bank: {exc}")
     return {
         "dataset": split.name,
         "family": family,
@@ -123,22 +139,38 @@ def run_task(
 
 
 def tasks(cfg: DictConfig) -> list[dict]:
-    """One task per (dataset, family) of ``cfg.datasets`` x ``cfg.families``."""
-    out = []
-    bank_families = set(cfg.get("bank_families") or [])
+    """One task per (dataset, family) of ``cfg.datasets`` x ``cfg.families``.
+
+    Each dataset is loaded (built on first use) here, once, before any task runs, so
+    parallel workers never build the same dataset at the same time; its content hash
+    and the code version join the task's cache key."""
+    approaches = [str(a) for a in cfg.approaches]
+    bad = sorted(set(approaches) - {"single", "global", "bank"})
+    if bad or not approaches:
+        raise ExperimentError(f"config key 'approaches': {bad or approaches} not among single, global, bank")
+    families = [str(f) for f in cfg.families]
+    bank_families = [str(f) for f in (cfg.get("bank_families") or [])]
+    stray = sorted(set(bank_families) - set(families))
+    if stray:
+        raise ExperimentError(f"config key 'bank_families': {stray} are not in 'families' {families}")
     classifier = OmegaConf.to_container(cfg.classifier, resolve=True) if cfg.get("classifier") else None
+    version = tracking.code_version()
+    out = []
     for dname in cfg.datasets:
         dcfg = group_option("dataset", str(dname))
-        for fam in cfg.families:
-            approaches = [a for a in cfg.approaches if a != "bank" or fam in bank_families]
+        data_hash = load_split(dcfg).dataset.content_hash()
+        for fam in families:
             out.append(
                 dict(
                     dataset_cfg=dcfg,
-                    family=str(fam),
-                    model_cfg=group_option("model", str(fam)),
-                    approaches=approaches,
+                    family=fam,
+                    model_cfg=group_option("model", fam),
+                    approaches=[a for a in approaches if a != "bank" or fam in bank_families],
                     classifier_cfg=classifier,
                     seed=int(cfg.seed),
+                    dataset_hash=data_hash,
+                    code_version=version,
+                    verbose=bool(cfg.get("progress", True)),
                 )
             )
     return out
@@ -147,7 +179,9 @@ def tasks(cfg: DictConfig) -> list[dict]:
 def choose(results: pd.DataFrame) -> pd.DataFrame:
     """Per dataset, the (family, approach) to deploy: the best worst-case compensation rate on
     the validation runs (ties: the smaller max residual). Single-state models are not
-    candidates: which state would you train on?"""
+    candidates: which state would you train on? Note that the choice is made on the same
+    validation runs the headline reports, so the chosen model's figures are not an
+    independent estimate (the report says so)."""
     v = results[(results["kind"] == "validation") & (results["approach"] != "single")]
     if v.empty:
         return pd.DataFrame(columns=["dataset", "family", "approach"])
@@ -160,7 +194,7 @@ def choose(results: pd.DataFrame) -> pd.DataFrame:
 
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
     cache = cfg.get("cache_dir")
-    fn = joblib.Memory(str(cache), verbose=0).cache(run_task) if cache else run_task
+    fn = joblib.Memory(str(cache), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
     n_jobs = int(cfg.get("n_jobs", 1))
     if n_jobs == 1:
         return (fn(**t) for t in todo)
@@ -168,28 +202,26 @@ def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
 
 
 def _overrides() -> list[str]:
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return list(HydraConfig.get().overrides.task)
-    except Exception:
-        return []
+    hc = hydra_runtime()
+    return list(hc.overrides.task) if hc is not None else []
 
 
 def benchmark(cfg: DictConfig) -> JobResult:
-    """Run every task, write ``report.md``, log it all to MLflow, save/register the chosen models."""
+    """Run every task, write ``report.md``, log it all to MLflow, save/register the chosen models.
+
+    Not skipped by config hash like ``train``: a rerun takes every finished task from the
+    on-disk cache (``cache_dir``), so it costs seconds and still rewrites the report."""
     import mlflow
 
     from .report import terminal_summary, write_report
 
     exp_id = tracking.connect(cfg.tracking)
     conf = plain(cfg)
-    h = tracking.config_hash(conf)
-    if cfg.tracking.get("skip_finished", True) and (done := tracking.finished_run(exp_id, h)) is not None:
-        return _skip("benchmark", done)
     todo = tasks(cfg)
     if not todo:
         raise ExperimentError("config keys 'datasets' and 'families': nothing to run")
+    data_hashes = sorted({f"{t['dataset_cfg'].get('name')}={t['dataset_hash']}" for t in todo})
+    h = tracking.config_hash(conf | {"dataset_content": data_hashes})
     t0 = time.perf_counter()
     done_tasks = []
     bar = tqdm(total=len(todo), desc="benchmark", unit="task", disable=None if cfg.get("progress", True) else True)
@@ -200,10 +232,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
                   + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
         bar.update(1)
     bar.close()
-    results = pd.concat([o["results"] for o in done_tasks if not o["results"].empty], ignore_index=True)
+    errors = [e for o in done_tasks for e in o["errors"]]
+    parts = [o["results"] for o in done_tasks if not o["results"].empty]
+    if not parts:
+        raise ExperimentError("benchmark: no model could be fitted: " + "; ".join(errors))
+    results = pd.concat(parts, ignore_index=True)
     parts = [o["curves"] for o in done_tasks if not o["curves"].empty]
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
-    errors = [e for o in done_tasks for e in o["errors"]]
     wall_s = time.perf_counter() - t0
     chosen = choose(results)
     meta = {
@@ -213,9 +248,10 @@ def benchmark(cfg: DictConfig) -> JobResult:
         "approaches": ", ".join(map(str, cfg.approaches)),
         "thermbench version": __version__,
         "git commit": tracking.git_commit(),
-        "dataset hashes": ", ".join(sorted({f"{o['dataset']}={o['dataset_hash']}" for o in done_tasks})),
+        "dataset hashes": ", ".join(data_hashes),
         "wall time": f"{wall_s:.0f} s",
-        "chosen models": "; ".join(f"{r.dataset}: {r.family} ({r.approach})" for r in chosen.itertuples()),
+        "chosen models": "; ".join(f"{r.dataset}: {r.family} ({r.approach})" for r in chosen.itertuples())
+        + " (best worst-case rate on the validation runs; chosen on the runs reported, so not an independent estimate)",
     }
     if errors:
         meta["could not fit"] = "; ".join(errors)
@@ -225,26 +261,37 @@ def benchmark(cfg: DictConfig) -> JobResult:
     chosen_keys = [f"{r.dataset}__{r.family}__{r.approach}" for r in chosen.itertuples()]
     model_dir = Path(str(cfg.export_dir))
     save_models(models, model_dir, chosen=chosen_keys)
+    logged = {}
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
-        mlflow.set_tags(tracking.standard_tags(";".join(sorted({o["dataset_hash"] for o in done_tasks})), h, "benchmark"))
+        mlflow.set_tags(tracking.standard_tags(";".join(data_hashes), h, "benchmark"))
         tracking.log_config(conf)
         metrics = {}
-        for (d, f, a), g in results[results["kind"] == "validation"].groupby(["dataset", "family", "approach"]):
-            metrics[f"{d}/{f}/{a}/validation_worst_compensation_rate"] = float(g["compensation_rate"].min())
-            metrics[f"{d}/{f}/{a}/validation_max_abs_residual_um"] = float(g["max_abs_residual_um"].max())
+        for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
+            val = g[g["kind"] == "validation"]
+            if not val.empty:
+                metrics[f"{d}/{f}/{a}/validation_worst_compensation_rate"] = float(val["compensation_rate"].min())
+                metrics[f"{d}/{f}/{a}/validation_max_abs_residual_um"] = float(val["max_abs_residual_um"].max())
+            # one nested run per (dataset, family, approach): the MLflow UI lists and compares them
+            with mlflow.start_run(experiment_id=exp_id, run_name=f"{f} | {a} | {d}", nested=True):
+                mlflow.set_tags({"dataset": d, "model": f, "approach": a, "thermbench.job": "benchmark-cell"})
+                mlflow.log_params({"dataset": d, "family": f, "approach": a, "n_models": int(g["train"].nunique())})
+                mlflow.log_metrics(headline_metrics(g, list(val["run_id"].unique())))
+                mlflow.log_text(g.to_csv(index=False), "results.csv")
         mlflow.log_metrics(metrics | {"wall_s": wall_s})
         mlflow.log_artifacts(str(report_dir), "report")
         mlflow.log_artifacts(str(model_dir), "models")  # every fitted global/bank model + manifest.yaml
         mlflow.log_text(results.to_csv(index=False), "results.csv")
-        registered = {}
         for r in chosen.itertuples():
             key = f"{r.dataset}__{r.family}__{r.approach}"
             ds = load_split(group_option("dataset", r.dataset)).dataset
-            name = f"thermbench-{r.dataset}" if cfg.tracking.get("register", True) else None
-            info = tracking.log_model(models[key], ds, name=key.replace("__", "-"), registered_name=name)
-            if name:
-                tracking.set_alias(name, "champion", info.registered_model_version)
-                registered[r.dataset] = f"models:/{name}@champion"
+            logged[r.dataset] = tracking.log_model(models[key], ds, name=key.replace("__", "-"))
+    registered = {}
+    if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
+        for d, info in logged.items():
+            name = f"thermbench-{d}"
+            version = tracking.register(info.model_uri, name)
+            tracking.set_alias(name, "champion", version)
+            registered[d] = f"models:/{name}@champion"
     print(terminal_summary(results))
     print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")
     for d, uri in registered.items():

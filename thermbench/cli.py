@@ -64,7 +64,14 @@ def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: 
 
     from hydra.utils import instantiate
 
+    from .classify import ProximityNaiveBayes
+
     clf = instantiate(group_option("classifier", classifier), _convert_="all")
+    if not (isinstance(clf, ProximityNaiveBayes) and clf.conditions):
+        raise ValueError(
+            f"--classifier {classifier}: needs a proximity classifier with preset conditions "
+            "(conf/classifier/seed002.yaml); the others learn their conditions from training runs"
+        )
     label, table = classify_motion(stroke_mm, start_mm, end_mm, feed_mm_min, classifier=clf)
     print(format_classification(label, table))
     return 0

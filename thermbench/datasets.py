@@ -9,9 +9,11 @@ differs from the one recorded in its ``metadata.yaml``.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Sequence
 
@@ -64,11 +66,31 @@ def _cached_hash(path: Path) -> str | None:
         return None
 
 
+@contextmanager
+def _locked(path: Path):
+    """An exclusive lock on ``path`` (a sibling lock file), so parallel jobs of a sweep
+    never build the same dataset at the same time."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.parent / f".{path.name}.lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def _build_cached(cfg, path: Path, force: bool, **tags) -> tuple[Path, dict | None]:
     """Simulate ``cfg`` into ``path`` unless the dataset there has the same config hash."""
     h = config_hash(cfg)
     if not force and _cached_hash(path) == h:
         return path, None
+    with _locked(path):
+        if not force and _cached_hash(path) == h:  # built by another job while we waited
+            return path, None
+        return _build(cfg, path, h, tags)
+
+
+def _build(cfg, path: Path, h: str, tags: dict) -> tuple[Path, dict]:
     ds, summary = simulate_dataset(cfg)
     sim = dict(ds.metadata.model_extra.get("simulation", {}))
     sim["config_hash"] = h

@@ -3,10 +3,7 @@
 * :func:`train` — fit one model (``conf/model``) on some loading states of a dataset
   (``conf/dataset``), score it on every run, track everything in MLflow, register the model.
 * :func:`evaluate` — score a registered/logged model on a dataset.
-* :func:`benchmark` — the robustness comparison: every family trained on each loading state
-  and tested on every other (train-state x test-state matrices), one global model per family
-  trained on all states, and a per-condition bank + classifier (seed 002 §2.4), all scored on
-  the random validation duty cycles (seed 001 Table 2, seed 002 Table 6); writes ``report.md``.
+* the robustness comparison is :func:`thermbench.benchmark.benchmark`.
 * :func:`export` — a registered model (``models:/<name>@<alias>``) to a model file.
 
 Each takes the composed config (a ``DictConfig``) and returns a :class:`JobResult`.
@@ -26,6 +23,7 @@ from typing import Any, Mapping, Sequence
 import joblib
 import pandas as pd
 import yaml
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
@@ -36,6 +34,21 @@ from .config import config_dir
 from .metrics import evaluate as evaluate_runs
 
 LOG = logging.getLogger(__name__)
+
+
+#: the metrics a job's terminal summary and a sweep's summary table show
+HEADLINE = ("validation_worst_compensation_rate", "validation_max_abs_residual_um", "unseen_worst_compensation_rate",
+            "unseen_max_abs_residual_um", "own_mean_rmse_um", "fit_s")
+
+
+def hydra_runtime():
+    """The running Hydra job's config (``HydraConfig``), or None outside ``hydra.main``."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return HydraConfig.get()
+    except Exception:
+        return None
 
 
 class ExperimentError(ValueError):
@@ -90,12 +103,9 @@ def group_option(group: str, name: str) -> dict:
 
 def choice(cfg: DictConfig, group: str, default: str = "custom") -> str:
     """The option picked for ``group`` (``hydra.runtime.choices``), as ``model=lssvm`` names it."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return str(HydraConfig.get().runtime.choices[group])
-    except Exception:
-        pass
+    hc = hydra_runtime()
+    if hc is not None and group in hc.runtime.choices:
+        return str(hc.runtime.choices[group])
     node = OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=None)
     return str(node) if node is not None else default
 
@@ -115,11 +125,16 @@ def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = No
     """Instantiate a model config; ``preprocess_steps`` (a list of filter configs) replaces
     the model's own preprocessing when not None; ``seed`` goes to models that take one."""
     model = instantiate(dict(model_cfg), _convert_="all")
-    params = model.get_params(deep=False)
-    if preprocess_steps is not None and "preprocess" in params:
-        model.set_params(preprocess=[instantiate(s) for s in preprocess_steps])
-    if seed is not None and "seed" in params:
-        model.set_params(seed=int(seed))
+    params = model.get_params(deep=True)  # deep: the models inside a bank get them too
+
+    def keys(name: str) -> list[str]:
+        return [k for k in params if k == name or k.endswith(f"__{name}")]
+
+    if preprocess_steps is not None:
+        for k in keys("preprocess"):
+            model.set_params(**{k: [instantiate(s) for s in preprocess_steps]})
+    if seed is not None:
+        model.set_params(**{k: int(seed) for k in keys("seed")})
     return model
 
 
@@ -141,7 +156,13 @@ def load_split(dcfg: Mapping) -> Split:
     dcfg = dict(dcfg)
     if "source" not in dcfg:
         raise ExperimentError("config key 'dataset.source': expected a loader with _target_")
-    ds = instantiate(dcfg["source"], _convert_="all")
+    try:
+        ds = instantiate(dcfg["source"], _convert_="all")
+    except InstantiationException as exc:  # hydra wraps the loader's own (clear) error
+        cause = exc.__cause__
+        if isinstance(cause, (ValueError, FileNotFoundError)):
+            raise ExperimentError(f"config key 'dataset.source': {cause}") from None
+        raise ExperimentError(f"config key 'dataset.source': {exc}") from None
     runs = list(ds.run_ids)
     validation = list(dcfg.get("validation") or [])
     states = list(dcfg.get("states") or [r for r in runs if r not in validation])
@@ -216,12 +237,8 @@ def _per_run_metrics(rows: pd.DataFrame) -> dict[str, float]:
 
 
 def _output_dir() -> Path | None:
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return Path(HydraConfig.get().runtime.output_dir)
-    except Exception:
-        return None
+    hc = hydra_runtime()
+    return Path(hc.runtime.output_dir) if hc is not None else None
 
 
 def _finish(result: JobResult) -> JobResult:
@@ -233,8 +250,6 @@ def _finish(result: JobResult) -> JobResult:
 
 def _skip(job: str, run) -> JobResult:
     """The result of a job already finished with the same config hash (from its MLflow run)."""
-    from .app import HEADLINE
-
     table = pd.DataFrame([{k: v for k, v in run.data.metrics.items() if k in HEADLINE}])
     print(f"[{job}] skipped: MLflow run {run.info.run_id} already finished with the same config hash "
           f"(tracking.skip_finished=false reruns it)")
@@ -278,11 +293,11 @@ def train(cfg: DictConfig) -> JobResult:
             cur = curves.assign(family=model_name, approach="+".join(train_runs))
             png = curves_figure(cur, list(dict.fromkeys(cur["run_id"])), run_name, Path(tmp) / "before_after.png")
             mlflow.log_artifact(str(png))
-        reg = f"thermbench-{split.name}-{model_name}" if cfg.tracking.get("register", True) else None
-        info = tracking.log_model(fitted, split.dataset, registered_name=reg)
-        outputs = {"model_uri": info.model_uri}
-        if reg:
-            outputs["registered"] = f"models:/{reg}/{info.registered_model_version}"
+        info = tracking.log_model(fitted, split.dataset)
+    outputs = {"model_uri": info.model_uri}
+    if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
+        reg = f"thermbench-{split.name}-{model_name}"
+        outputs["registered"] = f"models:/{reg}/{tracking.register(info.model_uri, reg)}"
     return _finish(JobResult("train", _table(rows, split), metrics, mlflow_run_id=run.info.run_id, outputs=outputs))
 
 

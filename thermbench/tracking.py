@@ -38,7 +38,7 @@ from . import __version__
 LOG = logging.getLogger(__name__)
 PYFUNC_CODE = Path(__file__).with_name("mlflow_pyfunc.py")
 #: config keys that do not change a job's result (left out of the resume hash)
-NON_RESULT_KEYS = ("tracking", "hydra", "report_dir", "export_dir", "n_jobs", "progress")
+NON_RESULT_KEYS = ("tracking", "hydra", "report_dir", "export_dir", "n_jobs", "progress", "cache_dir")
 
 
 class TrackingError(RuntimeError):
@@ -102,7 +102,9 @@ def connect(tcfg: Mapping[str, Any], base_dir: str | Path | None = None) -> str:
         if exp is not None:
             return exp.experiment_id
         root = tcfg.get("artifact_root")
-        loc = resolve_uri(str(root), base_dir) if root else None
+        # a server keeps the files of its experiments itself: a local root would put them on this machine
+        remote = uri.startswith(("http://", "https://"))
+        loc = resolve_uri(str(root), base_dir) if root and not remote else None
         try:
             return client.create_experiment(name, artifact_location=loc)
         except Exception:  # created meanwhile by a parallel job of the same sweep
@@ -214,6 +216,23 @@ def log_model(model, dataset, name: str = "model", registered_name: str | None =
             pip_requirements=[f"thermbench=={__version__}"],
             registered_model_name=registered_name,
         )
+
+
+def register(model_uri: str, registered_name: str) -> str:
+    """Register a logged model under ``registered_name``; return the new version."""
+    import mlflow
+
+    return str(mlflow.register_model(model_uri, registered_name).version)
+
+
+def code_version() -> str:
+    """SHA-256 (16 hex) of thermbench's Python sources: what the benchmark cache is keyed on."""
+    h = hashlib.sha256(__version__.encode())
+    root = Path(__file__).resolve().parent
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def set_alias(registered_name: str, alias: str, version: str | int) -> None:

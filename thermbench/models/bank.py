@@ -15,7 +15,9 @@ thermbench model family and any scikit-learn classifier:
   models already fitted and fits only the classifier.
 * At (t, x) of a run the condition at t is the class of the motion window ending at
   the last ``step_s`` grid point <= t (held through stops and before the first
-  motion: the first class seen), and the prediction is that condition's model's.
+  motion: no condition, since a compensator cannot know the class of motion still to
+  come; the axis is then taken as cold, thermal error 0, and only the geometric part
+  is predicted), and the prediction is that condition's model's.
 """
 
 from __future__ import annotations
@@ -198,8 +200,8 @@ class ConditionBank(ThermalErrorModel):
     def condition_track(self, dataset: Dataset, run: str) -> pd.DataFrame:
         """The classification grid of ``run``: ``t_s``, the window features, ``moving``,
         ``raw_label`` (the classifier's label of moving windows, else None) and ``label``
-        (the condition used from that time on: held through stops, the first class
-        seen before the first motion)."""
+        (the condition used from that time on: held through stops; None before the
+        first classified window — no look-ahead)."""
         self._check_fitted()
         run = check_runs(dataset, run)[0]
         w = self._windows(dataset, run)
@@ -211,24 +213,24 @@ class ConditionBank(ThermalErrorModel):
                 f"{self.window_s} s window): the bank cannot classify its condition"
             )
         raw[mv] = np.asarray(self.classifier_.predict(learned_features(w[mv])), dtype=object).astype(str)
-        held = pd.Series(raw, dtype=object).ffill().bfill().to_numpy()
+        held = pd.Series(raw, dtype=object).ffill()  # missing (None) until the first classified window
         w["raw_label"] = raw
-        w["label"] = held
+        w["label"] = held.to_numpy()
         return w
 
     def conditions_at(self, dataset: Dataset, run: str, t_s) -> np.ndarray:
         """The condition label used at each time ``t_s`` of ``run`` (the label of the
-        last grid point <= t; the first one before the grid)."""
+        last grid point <= t; None before the first classified window)."""
         tr = self.condition_track(dataset, run)
         t = np.atleast_1d(np.asarray(t_s, dtype=float)).ravel()
         i = np.clip(np.searchsorted(tr["t_s"].to_numpy(), t, side="right") - 1, 0, len(tr) - 1)
-        return tr["label"].to_numpy()[i]
+        return np.array([v if isinstance(v, str) else None for v in tr["label"].to_numpy()[i]], dtype=object)
 
     # --- prediction ---------------------------------------------------------
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         labels = self.conditions_at(ds, run, t_s)
-        out = np.empty(t_s.size)
-        for lab in np.unique(labels):
+        out = np.zeros(t_s.size)  # no condition yet: a cold axis, no thermal error
+        for lab in {lab for lab in labels if lab is not None}:
             m = labels == lab
             full = self.models_[lab].predict_at(ds, run, t_s[m], axis_mm[m])
             out[m] = full - self.geometric_(axis_mm[m])
