@@ -283,6 +283,9 @@ def test_alias_resolves_for_export_and_evaluate(workdir):
     trained_v1 = store_client(workdir).get_run(v1.mlflow_run_id).data.metrics
     for run in ("valid1", "valid2"):
         assert scored[f"runs/{run}/rmse_um"] == pytest.approx(trained_v1[f"runs/{run}/rmse_um"], rel=1e-12)
+    # and records what it scored: the table and the before/after figure
+    arts = {f.path for f in store_client(workdir).list_artifacts(ev.mlflow_run_id)}
+    assert {"results.csv", "before_after.png", "config.yaml"} <= arts
 
 
 def test_model_uri_from_config_keys():

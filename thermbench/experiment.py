@@ -263,11 +263,26 @@ def _table(rows: pd.DataFrame, split: Split) -> pd.DataFrame:
 
 
 # -------------------------------------------------------------------- jobs ---
-def train(cfg: DictConfig) -> JobResult:
-    """Fit ``cfg.model`` on ``cfg.train`` of ``cfg.dataset``, score every run, track and register it."""
+def _log_scores(rows: pd.DataFrame, curves: pd.DataFrame, split: Split, family: str, approach: str, title: str) -> dict:
+    """Log a scored model to the active MLflow run: headline and per-run metrics,
+    ``results.csv`` and the before/after figure; return the headline metrics."""
     import mlflow
 
     from .report import curves_figure
+
+    metrics = headline_metrics(rows, split.validation)
+    mlflow.log_metrics(metrics | _per_run_metrics(rows))
+    mlflow.log_text(rows.to_csv(index=False), "results.csv")
+    with tempfile.TemporaryDirectory() as tmp:
+        cur = curves.assign(family=family, approach=approach)
+        png = curves_figure(cur, list(dict.fromkeys(cur["run_id"])), title, Path(tmp) / "before_after.png")
+        mlflow.log_artifact(str(png))
+    return metrics
+
+
+def train(cfg: DictConfig) -> JobResult:
+    """Fit ``cfg.model`` on ``cfg.train`` of ``cfg.dataset``, score every run, track and register it."""
+    import mlflow
 
     exp_id = tracking.connect(cfg.tracking)  # fails fast on an unreachable server
     conf = plain(cfg)
@@ -286,13 +301,7 @@ def train(cfg: DictConfig) -> JobResult:
         mlflow.set_tags(tracking.standard_tags(data_hash, h, "train") | {"model": model_name, "dataset": split.name})
         tracking.log_config(conf)
         fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
-        metrics = headline_metrics(rows, split.validation)
-        mlflow.log_metrics(metrics | _per_run_metrics(rows))
-        mlflow.log_text(rows.to_csv(index=False), "results.csv")
-        with tempfile.TemporaryDirectory() as tmp:
-            cur = curves.assign(family=model_name, approach="+".join(train_runs))
-            png = curves_figure(cur, list(dict.fromkeys(cur["run_id"])), run_name, Path(tmp) / "before_after.png")
-            mlflow.log_artifact(str(png))
+        metrics = _log_scores(rows, curves, split, model_name, "+".join(train_runs), run_name)
         info = tracking.log_model(fitted, split.dataset)
     outputs = {"model_uri": info.model_uri}
     if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
@@ -315,11 +324,9 @@ def evaluate(cfg: DictConfig) -> JobResult:
     with mlflow.start_run(experiment_id=exp_id, run_name=f"evaluate {uri} | {split.name}") as run:
         mlflow.set_tags(tracking.standard_tags(split.dataset.content_hash(), h, "evaluate") | {"model_uri": uri})
         tracking.log_config(conf)
-        rows = evaluate_runs(model, split.dataset, runs)
+        rows, curves = evaluate_runs(model, split.dataset, runs, curves=True)
         rows.insert(1, "own", rows["run_id"].isin(getattr(model, "train_runs_", [])))
-        metrics = headline_metrics(rows, split.validation)
-        mlflow.log_metrics(metrics | _per_run_metrics(rows))
-        mlflow.log_text(rows.to_csv(index=False), "results.csv")
+        metrics = _log_scores(rows, curves, split, type(model).__name__, "evaluated", f"{uri} on {split.name}")
     return _finish(JobResult("evaluate", _table(rows, split), metrics, mlflow_run_id=run.info.run_id))
 
 
