@@ -4,6 +4,8 @@
     thermbench validate DATA_DIR               check a dataset against the contract and summarise it
     thermbench classify --stroke S --start A --end B --feed F
                                                seed 002 §2.4 condition classifier: the chosen condition
+    thermbench diagnose DATA_DIR --out OUT_DIR [--base EFFECT,...] [--max-effects K] [overrides...]
+                                               discrepancy workflow: name the effect the physics model misses
     thermbench train|evaluate|benchmark|export [hydra overrides...] [-m]
                                                Hydra jobs (thermbench.app): conf/<job>.yaml
 """
@@ -77,12 +79,32 @@ def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: 
     return 0
 
 
+def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int | None, overrides: list[str]) -> int:
+    from omegaconf import OmegaConf
+
+    from .config import load_config
+    from .discrepancy import diagnose
+
+    cfg = load_config("diagnose", overrides)
+    # paths and lists go in after composition: no Hydra quoting of arbitrary paths
+    OmegaConf.update(cfg, "data_dir", data_dir)
+    OmegaConf.update(cfg, "out_dir", out_dir)
+    if base is not None:
+        OmegaConf.update(cfg, "base", [b.strip() for b in base.split(",") if b.strip()])
+    if max_effects is not None:
+        OmegaConf.update(cfg, "max_effects", max_effects)
+    diagnose(cfg)
+    return 0
+
+
 HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 
 
 def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
     from .data.io import DatasetError
+    from .models.base import ModelError
+    from .tracking import TrackingError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in HYDRA_JOBS:
@@ -107,16 +129,31 @@ def main(argv: list[str] | None = None) -> int:
     p_cls.add_argument("--end", type=float, required=True, help="stroke end P_end, mm")
     p_cls.add_argument("--feed", type=float, required=True, help="feed C, mm/min")
     p_cls.add_argument("--classifier", default="seed002", help="conf/classifier option (default: seed002, Table 5)")
-    args = parser.parse_args(argv)
+    p_dia = sub.add_parser("diagnose", help="discrepancy workflow: where the physics model and the data disagree, "
+                           "which canonical effect is missing (conf/diagnose.yaml)")  # fmt: skip
+    p_dia.add_argument("data_dir", help="dataset directory in the contract format")
+    p_dia.add_argument("--out", required=True, help="output directory (diagnosis.json, report.md, figures)")
+    p_dia.add_argument("--base", default=None, help="canonical effects already in the model, comma-separated")
+    p_dia.add_argument("--max-effects", type=int, default=None, help="add at most K effects (default 3)")
+    p_dia.add_argument("overrides", nargs="*", help="Hydra overrides of conf/diagnose.yaml, e.g. track=false")
+    # overrides may follow the options (argparse matches positionals in one chunk)
+    args, extra = parser.parse_known_args(argv)
+    if extra and (args.command != "diagnose" or any(e.startswith("-") for e in extra)):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
+        if args.command == "diagnose":
+            return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra])
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "classify":
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
-    except (DatasetError, ConfigError, ValueError, KeyError, FileNotFoundError) as exc:  # user mistakes
+    except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError) as exc:  # user mistakes
         print(f"thermbench: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"thermbench {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

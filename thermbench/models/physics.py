@@ -30,6 +30,7 @@ from dataclasses import dataclass, fields
 from typing import Sequence
 
 import numpy as np
+import pandas as pd
 from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
@@ -228,9 +229,10 @@ class PhysicsModel(ThermalErrorModel):
 
     # ----------------------------------------------------- identification ---
     def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool):
-        """Per run, the affine basis: E0 at the readings (minus reference) and
-        E_i - E0 for gain i at its unit value (the others zero)."""
-        cols_per_run = []
+        """Per run, the affine basis (E0, A): E0 the error at the readings (minus
+        reference) with every gain zero, column i of A = E_i - E0 for gain i at its
+        unit value (the others zero)."""
+        out = []
         for rd in rds:
             resp = []
             for active in [None, *gains]:
@@ -244,10 +246,49 @@ class PhysicsModel(ThermalErrorModel):
                 e = hist.error_um(rd.t_s, rd.x_mm)
                 resp.append(e - e[rd.ref_idx])
             e0 = resp[0]
-            cols_per_run.append((e0, np.stack([r - e0 for r in resp[1:]], axis=1)))
-        e0 = np.concatenate([c[0] for c in cols_per_run])
-        a = np.concatenate([c[1] for c in cols_per_run])
-        return e0, a
+            out.append((e0, np.stack([r - e0 for r in resp[1:]], axis=1)))
+        return out
+
+    def _run_data(self, ds: Dataset, runs: list[str], rd_all) -> list[_RunData]:
+        """Per run: its drive and readings, each reading with the index of its target's
+        cold reference reading."""
+        rds = []
+        for run in runs:
+            g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
+            require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
+            ref = g[g["cycle"] == 0]
+            first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
+            ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
+            mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
+            rds.append(_RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx, g["thermal_um"].to_numpy()))
+        return rds
+
+    def gain_basis(self, dataset: Dataset, runs: Sequence[str]) -> tuple[dict[str, float], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+        """At the identified nonlinear parameters, the affine basis of the heat gains
+        on ``runs`` (variable projection, see the module docstring).
+
+        Returns ``(units, per_run)``: ``units`` maps each gain to the value its
+        column was computed with; ``per_run`` holds (E0, A, y) per run, y the
+        measured thermal error at the run's readings, so that gains g (in units)
+        predict ``E0 + A @ g``. The discrepancy workflow re-solves the gains on
+        subsets of runs with it (fast held-out scores).
+        """
+        self._check_fitted()
+        runs = list(runs)
+        gains = self._gains(self.effects_)
+        rds = self._run_data(dataset, runs, readings(dataset, runs))
+        parts = self._basis(dataset, rds, self.core_.as_dict(), self.effects_, gains, self.ambient_name_ is not None)
+        return gains, [(e0, a, rd.thermal_um) for (e0, a), rd in zip(parts, rds)]
+
+    def referenced_thermal_um(self, dataset: Dataset, run: str) -> tuple[pd.DataFrame, np.ndarray]:
+        """The run's readings (with ``thermal_um`` measured, ``cycle``) and the model's
+        thermal error at each reading minus its error at that target's cold reference
+        reading: what identification fits and what held-out scores compare."""
+        self._check_fitted()
+        rd_all = readings(dataset, [run]).reset_index(drop=True)
+        rd = self._run_data(dataset, [run], rd_all)[0]
+        e = self.history(dataset, run).error_um(rd.t_s, rd.x_mm)
+        return rd_all, e - e[rd.ref_idx]
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         specs = self._effect_specs()
@@ -269,15 +310,7 @@ class PhysicsModel(ThermalErrorModel):
         rd_all = readings(ds, runs)
         require(len(rd_all), len(gains) + len(nonlinear) + 1, "readings")
         self.geometric_ = cold_reference_geometric(rd_all, self.geometric_degree)
-        rds = []
-        for run in runs:
-            g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
-            require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
-            ref = g[g["cycle"] == 0]
-            first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
-            ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
-            mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
-            rds.append(_RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx, g["thermal_um"].to_numpy()))
+        rds = self._run_data(ds, runs, rd_all)
         y = np.concatenate([r.thermal_um for r in rds])
 
         scale = np.array([_SCALE.get(n, max(abs(start[n]), 1e-6)) for n in nonlinear])
@@ -293,7 +326,9 @@ class PhysicsModel(ThermalErrorModel):
             sp = {k: dict(v) for k, v in specs.items()}
             for n, val in zip(nonlinear, z * scale):
                 self._set(core, sp, n, float(val))
-            e0, a = self._basis(ds, rds, core, sp, gains, ambient)
+            parts = self._basis(ds, rds, core, sp, gains, ambient)
+            e0 = np.concatenate([p[0] for p in parts])
+            a = np.concatenate([p[1] for p in parts])
             sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")
             return sol.x, core, sp, float(np.sum((a @ sol.x + e0 - y) ** 2))
 

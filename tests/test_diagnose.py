@@ -1,0 +1,184 @@
+"""The discrepancy workflow (issue "Discrepancy workflow") on data where an effect is hidden.
+
+Datasets come from :mod:`thermbench.discrepancy.hidden`: a world with a finer
+discretisation, its own sensor model and random duty cycles; each effect's strength is
+calibrated so that the core model, re-identified without it, leaves a residual >= 3x the
+noise floor. ``thermbench diagnose`` then runs on the written files alone.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from thermbench.cli import main
+from thermbench.config import load_config
+from thermbench.data.io import load_dataset
+from thermbench.discrepancy import hidden
+from thermbench.discrepancy.localise import annotate, localise
+from thermbench.discrepancy.noise import estimate_noise_floor
+from thermbench.discrepancy.search import CANDIDATES, SignificanceTest, decide, folds_for
+from thermbench.discrepancy.workflow import settings_from_config
+
+WORLD = hidden.World(n_runs=3, run_h=2.0)
+PHYSICS = settings_from_config(load_config("diagnose", ["data_dir=x", "out_dir=x"])).physics
+FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png", "candidates_step1.png")
+
+
+def run_cli(data, out, *args) -> dict:
+    assert main(["diagnose", str(data), "--out", str(out), *args, "track=false"]) == 0
+    return json.loads((out / "diagnosis.json").read_text())
+
+
+def calibrated(effect: str, seed: int, world=WORLD) -> dict:
+    params, resid = hidden.calibrate(effect, world, seed, ratio=3.5, physics=PHYSICS)
+    # the generator's guarantee: the core, re-identified without the effect, leaves >= 3x the floor
+    assert resid >= 3.0 * world.noise_floor_um
+    return params
+
+
+@pytest.mark.parametrize("effect", CANDIDATES)
+def test_names_the_hidden_effect(effect, tmp_path, capsys):
+    params = calibrated(effect, seed=11)
+    data = hidden.make(tmp_path / "data", {effect: params}, seed=11, world=WORLD)
+    d = run_cli(data, tmp_path / "out", "--max-effects", "2")
+    assert d["missing_effects"] == [effect], d["scans"]
+    assert d["ambiguous"] == []
+    step = d["steps"][0]
+    assert step["effect"] == effect and step["ambiguous_with"] == []
+    assert step["heldout_rmse_after_um"] <= 0.5 * step["heldout_rmse_before_um"]
+    assert set(step) >= {"heldout_rmse_before_um", "heldout_rmse_after_um", "bic_gain", "identified"}
+    assert step["bic_gain"] > 10
+    # the base model misses the effect by more than the noise it can see
+    assert d["localisation"]["before"]["where"] != "nowhere"
+    for f in FIGURES:
+        assert (tmp_path / "out" / f).stat().st_size > 0
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert effect in report and "noise floor" in report
+    assert "== diagnosis:" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def clean_data(tmp_path_factory):
+    """No effect hidden and no load column."""
+    world = hidden.World(n_runs=3, run_h=2.0, with_load=False)
+    return hidden.make(tmp_path_factory.mktemp("clean") / "data", {}, seed=5, world=world)
+
+
+def test_negative_control_names_nothing_and_logs_to_mlflow(clean_data, tmp_path):
+    db = tmp_path / "mlflow.db"
+    out = tmp_path / "out"
+    rc = main(["diagnose", str(clean_data), "--out", str(out), f"tracking.uri=sqlite:///{db}",
+               f"tracking.artifact_root={tmp_path / 'art'}"])  # fmt: skip
+    assert rc == 0
+    d = json.loads((out / "diagnosis.json").read_text())
+    assert d["missing_effects"] == [] and d["ambiguous"] == [] and d["steps"] == []
+    assert d["verdict"] == "none"
+    # an effect whose column is absent is skipped, and the diagnosis says so
+    assert "load_N" in d["skipped"]["load_dependent_heat"]
+    tried = {c["effect"] for c in d["scans"][0]["candidates"] if not c["skipped"]}
+    assert tried == set(CANDIDATES) - {"load_dependent_heat"}
+    # the noise floor estimated from the data is near the interferometer's (0.25 um x sqrt 2)
+    assert d["noise_floor_um"] == pytest.approx(hidden.IFM_NOISE_UM * np.sqrt(2), rel=0.25)
+
+    import mlflow
+
+    mlflow.set_tracking_uri(f"sqlite:///{db}")
+    runs = mlflow.search_runs(search_all_experiments=True)
+    assert len(runs) == 1 and runs["tags.missing_effects"].iloc[0] == "none"
+    files = {a.path for a in mlflow.MlflowClient().list_artifacts(runs["run_id"].iloc[0], "diagnosis")}
+    assert "diagnosis/diagnosis.json" in files and "diagnosis/report.md" in files
+
+
+def test_two_hidden_effects_are_both_named(tmp_path):
+    effects = {e: calibrated(e, seed=3) for e in ("ambient_drift", "quadratic_friction_heat")}
+    data = hidden.make(tmp_path / "data", effects, seed=3, world=WORLD)
+    d = run_cli(data, tmp_path / "out")
+    assert sorted(d["missing_effects"]) == sorted(effects)
+    assert d["final"]["heldout_rmse_um"] <= 0.5 * d["final"]["heldout_rmse_base_um"]
+    assert len(d["steps"]) == 2
+
+
+def test_indistinguishable_candidates_are_reported_as_a_tie(tmp_path):
+    # load proportional to feed: k6 F v = (k6 c) v^2, the quadratic friction heat again
+    world = hidden.World(n_runs=3, run_h=2.0, load_per_feed_N_min_per_mm=0.5)
+    params = calibrated("quadratic_friction_heat", seed=2, world=world)
+    data = hidden.make(tmp_path / "data", {"quadratic_friction_heat": params}, seed=2, world=world)
+    d = run_cli(data, tmp_path / "out", "--max-effects", "1")
+    assert d["missing_effects"] == []
+    assert d["verdict"] == "ambiguous"
+    assert sorted(d["ambiguous"][0]) == ["load_dependent_heat", "quadratic_friction_heat"]
+
+
+# ----------------------------------------------------------- user mistakes ---
+def test_bad_input_is_one_line_exit_2(clean_data, tmp_path, capsys):
+    assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "--base", "nut_magic", "track=false"]) == 2
+    err = capsys.readouterr().err
+    assert "'base'" in err and "nut_magic" in err and "Traceback" not in err
+    assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "--base", "load_dependent_heat", "track=false"]) == 2
+    assert "load_N" in capsys.readouterr().err
+    assert main(["diagnose", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"), "track=false"]) == 2
+    assert "nowhere" in capsys.readouterr().err
+    assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "cv={train: [run1], test: [run9]}", "track=false"]) == 2
+    assert "'cv'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing half-written
+
+
+# ------------------------------------------------------------------- parts ---
+def _grid(sigma, trend, rng, repeats=1):
+    rows = []
+    for run in ("a", "b"):
+        for k in range(40):
+            for x in np.arange(0.0, 501.0, 50.0):
+                for j in range(repeats):
+                    t = 600.0 * k + x / 10 + 2.0 * j
+                    r = trend(t, x) + rng.normal(0, sigma)
+                    rows.append({"run_id": run, "t_s": t, "target_mm": x, "cycle": k, "error_um": r,
+                                 "thermal_um": trend(t, x), "residual_um": r})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def test_noise_floor_from_high_frequency_residual_and_from_repeats():
+    rng = np.random.default_rng(0)
+    smooth = lambda t, x: 3.0 * np.sin(t / 7000.0) * x / 500  # noqa: E731  a model error much larger than the noise
+    nf = estimate_noise_floor(_grid(0.2, smooth, rng))
+    assert nf.method == "high_frequency"
+    assert nf.reading_sigma_um == pytest.approx(0.2, rel=0.15)
+    assert nf.noise_floor_um == pytest.approx(0.2 * np.sqrt(2), rel=0.15)
+    nf = estimate_noise_floor(_grid(0.3, smooth, rng, repeats=2))
+    assert nf.method == "repeat" and nf.reading_sigma_um == pytest.approx(0.3, rel=0.15)
+
+
+def test_localise_finds_a_far_end_discrepancy_and_none_in_noise(clean_data):
+    ds = load_dataset(clean_data)
+    rng = np.random.default_rng(1)
+    base = _grid(0.3, lambda t, x: 0.0, rng).replace({"run_id": {"a": "run1", "b": "run2"}})
+    floor = 0.3
+    quiet = localise(annotate(base, ds, pf_mm=-141.0, floor_um=floor), floor)
+    assert quiet["where"] == "nowhere"
+    far = base.assign(residual_um=base["residual_um"] + np.where(base["target_mm"] > 340, 1.5, 0.0))
+    loud = localise(annotate(far, ds, pf_mm=-141.0, floor_um=floor), floor)
+    assert loud["where"] == "far_end"
+    assert loud["by_position"]["far_end"]["significant"] and not loud["by_position"]["fixed_end"]["significant"]
+
+
+def test_decide_names_the_best_and_reports_ties():
+    t = SignificanceTest(explained_x_floor=2.0, bic_min=10.0, tie_x_floor=1.0)
+    rec = lambda e, ho, sig: {"effect": e, "heldout_rmse_um": ho, "significant": sig}  # noqa: E731
+    best, ties = decide([rec("a", 0.5, True), rec("b", 2.0, True), rec("c", 0.4, False)], 0.3, t)
+    assert best["effect"] == "a" and ties == []
+    best, ties = decide([rec("a", 0.50, True), rec("b", 0.55, True)], 0.3, t)  # sqrt(.55^2-.5^2)=0.23 < 0.3
+    assert best["effect"] == "a" and ties == ["b"]
+    assert decide([rec("a", 0.5, False)], 0.3, t) == (None, [])
+
+
+def test_folds():
+    assert folds_for(["a", "b", "c"], "loro") == [(["b", "c"], ["a"]), (["a", "c"], ["b"]), (["a", "b"], ["c"])]
+    assert folds_for(["a", "b", "c"], {"train": ["a", "b"], "test": ["c"]}) == [(["a", "b"], ["c"])]
+    with pytest.raises(ValueError, match="'cv'"):
+        folds_for(["a", "b"], {"train": ["a"], "test": ["a"]})
+    with pytest.raises(ValueError, match="at least 2 runs"):
+        folds_for(["a"], "loro")

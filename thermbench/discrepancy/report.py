@@ -1,0 +1,173 @@
+"""The diagnosis report: ``report.md``, residual maps, candidate scores, held-out error
+per step, and the one-screen verdict printed at the end of ``thermbench diagnose``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..report import _new_figure, _save, markdown_table
+from .localise import POSITION_WORDS
+
+FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png")
+
+
+def _maps(fig, table: pd.DataFrame, title: str, vmax: float) -> None:
+    runs = list(dict.fromkeys(table["run_id"]))
+    axes = fig.subplots(1, len(runs), sharey=True, squeeze=False)[0]
+    sc = None
+    for ax, run in zip(axes, runs):
+        g = table[(table["run_id"] == run) & (table["cycle"] > 0)]
+        sc = ax.scatter(g["t_s"] / 3600.0, g["target_mm"], c=g["residual_um"], cmap="RdBu_r", vmin=-vmax, vmax=vmax,
+                        marker="s", s=14)  # fmt: skip
+        ax.set_title(str(run), fontsize=9)
+        ax.set_xlabel("time (h)")
+    axes[0].set_ylabel("target (mm)")
+    fig.suptitle(title, fontsize=10)
+    if sc is not None:
+        fig.colorbar(sc, ax=list(axes), label="held-out residual (um)")
+
+
+def residual_maps(table: pd.DataFrame, title: str, path: Path, vmax: float) -> Path:
+    n = table["run_id"].nunique()
+    fig = _new_figure(min(2.6 * n + 1.5, 16), 3.4)
+    _maps(fig, table, title, vmax)
+    return _save(fig, path)
+
+
+def candidates_figure(scan: dict, floor_um: float, threshold_x: float, path: Path) -> Path:
+    c = [x for x in scan["candidates"] if not x.get("skipped")]
+    fig = _new_figure(6.5, 0.45 * max(len(c), 2) + 1.4)
+    ax = fig.subplots()
+    names = [x["effect"] for x in c]
+    vals = [x["explained_um"] for x in c]
+    colours = ["tab:green" if x["significant"] else "tab:grey" for x in c]
+    ax.barh(names, vals, color=colours)
+    ax.axvline(threshold_x * floor_um, color="k", ls="--", lw=1, label=f"{threshold_x:g} x noise floor")
+    ax.set_xlabel("held-out error explained (um)")
+    ax.invert_yaxis()
+    ax.legend(fontsize=8)
+    ax.set_title(f"candidates on core{''.join(' + ' + e for e in scan['effects'])}", fontsize=10)
+    return _save(fig, path)
+
+
+def heldout_figure(d: dict, path: Path) -> Path:
+    labels = ["core" + "".join(" + " + e for e in d["base_effects"])]
+    vals = [d["final"]["heldout_rmse_base_um"]]
+    for s in d["steps"]:
+        if s["ambiguous_with"] or not s["confirmed"]:
+            continue
+        labels.append("+ " + s["effect"])
+        vals.append(s["heldout_rmse_after_um"])
+    fig = _new_figure(6.5, 3.4)
+    ax = fig.subplots()
+    ax.plot(range(len(vals)), vals, "o-")
+    ax.axhline(d["noise_floor_um"], color="k", ls="--", lw=1, label="noise floor")
+    ax.set_xticks(range(len(vals)), labels, rotation=15, fontsize=8)
+    ax.set_ylabel("held-out RMSE (um)")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[str]:
+    before = tables["before"]
+    after = tables[list(tables)[-1]]
+    vmax = float(np.quantile(np.abs(before.loc[before["cycle"] > 0, "residual_um"]), 0.98)) or 1.0
+    names = [
+        residual_maps(before, "held-out residual of the base model", out / FIGURES[0], vmax).name,
+        residual_maps(after, "held-out residual of the final model (same colour scale)", out / FIGURES[1], vmax).name,
+        heldout_figure(d, out / FIGURES[2]).name,
+    ]
+    for k, scan in enumerate(d["scans"], 1):
+        names.append(candidates_figure(scan, d["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
+    return names
+
+
+def _um(x) -> str:
+    return "" if x is None or (isinstance(x, float) and np.isnan(x)) else f"{x:.3f}"
+
+
+def _loc_md(loc: dict) -> str:
+    lines = [loc["summary"] + ".", ""]
+    pos = pd.DataFrame(loc["by_position"]).T
+    if len(pos):
+        pos.index = [POSITION_WORDS.get(i, i) for i in pos.index]
+        lines.append(markdown_table(pos.reset_index(names="position")[["position", "n", "mean_um", "rms_um", "rms_x_floor", "significant"]], index=False))
+        lines.append("")
+    run = pd.DataFrame(loc["by_run"]).T
+    if len(run):
+        cols = ["run_id", "feed_mm_min", *(["load_N"] if "load_N" in run else []), "n", "rms_um", "rms_x_floor", "significant"]
+        lines.append(markdown_table(run.reset_index(names="run_id")[cols], index=False))
+    return "\n".join(lines)
+
+
+def write_markdown(d: dict, figures: list[str], out: Path) -> Path:
+    md = [f"# Diagnosis of `{d['dataset']}`", "", f"**{verdict_line(d)}**", ""]
+    md += [f"- base model: seed 000 core (fixed-bearing heat, nut heat, convection, constant ambient)"
+           f"{''.join(' + ' + e for e in d['base_effects'])}",  # fmt: skip
+           f"- noise floor: {d['noise_floor_um']:.3f} um ({d['noise']['method']}; per-reading scatter "
+           f"{d['noise']['reading_sigma_um']:.3f} um; estimates {d['noise']['estimates']})",
+           f"- cross-validation: {d['cv']['kind']} ({len(d['cv']['folds'])} fold(s))",
+           f"- test: {d['test']['description']}", f"- runtime: {d['runtime_s']:.0f} s"]
+    for note in d["notes"]:
+        md.append(f"- note: {note}")
+    for e, why in d["skipped"].items():
+        md.append(f"- skipped `{e}`: {why}")
+    md += ["", "## Where the base model disagrees (held-out)", "", _loc_md(d["localisation"]["before"]), "",
+           "![](residual_maps_before.png)", ""]  # fmt: skip
+    md += ["## Steps", ""]
+    if d["steps"]:
+        rows = pd.DataFrame([{**{k: s[k] for k in ("effect", "heldout_rmse_before_um", "heldout_rmse_after_um", "bic_gain")},
+                              "ambiguous_with": ", ".join(s["ambiguous_with"]), "confirmed": s["confirmed"]}
+                             for s in d["steps"]])  # fmt: skip
+        md += [markdown_table(rows, index=False), "", "![](heldout_by_step.png)", ""]
+    else:
+        md += ["No candidate passed the test.", ""]
+    for k, scan in enumerate(d["scans"], 1):
+        md += [f"### Candidates, scan {k}: core{''.join(' + ' + e for e in scan['effects'])}", ""]
+        rows = pd.DataFrame([{"effect": c["effect"], "heldout_rmse_um": c.get("heldout_rmse_um"),
+                              "explained_um": c.get("explained_um"), "bic_gain": c.get("bic_gain"),
+                              "significant": c.get("significant"), "skipped": c.get("skipped") or ""}
+                             for c in scan["candidates"]])  # fmt: skip
+        md += [markdown_table(rows, index=False), "", f"![](candidates_step{k}.png)", ""]
+    md += ["## Final model", "", f"effects: core{''.join(' + ' + e for e in d['final']['effects'])}; "
+           f"held-out RMSE {d['final']['heldout_rmse_um']:.3f} um", ""]  # fmt: skip
+    md += [markdown_table(pd.DataFrame({"parameter": list(d["final"]["identified"]),
+                                        "value": [f"{v:.6g}" for v in d["final"]["identified"].values()]})), ""]  # fmt: skip
+    md += ["## Where the final model disagrees (held-out)", "", _loc_md(d["localisation"]["after"]), "",
+           "![](residual_maps_after.png)", ""]  # fmt: skip
+    path = out / "report.md"
+    path.write_text("\n".join(md), encoding="utf-8")
+    return path
+
+
+def verdict_line(d: dict) -> str:
+    if d["verdict"] == "ambiguous":
+        amb = "; ".join(" or ".join(a) for a in d["ambiguous"])
+        found = f"missing: {', '.join(d['missing_effects'])}; then " if d["missing_effects"] else ""
+        return f"{found}ambiguous: {amb} (the data cannot tell them apart)"
+    if d["missing_effects"]:
+        return f"missing effect(s), in the order found: {', '.join(d['missing_effects'])}"
+    return "no missing effect: none of the candidates explains the residual beyond the noise floor"
+
+
+def terminal_verdict(d: dict, out: Path | None = None) -> str:
+    lines = ["", f"== diagnosis: {d['dataset']} ==", verdict_line(d)]
+    lines.append(f"noise floor {d['noise_floor_um']:.3f} um ({d['noise']['method']}); "
+                 f"base: core{''.join(' + ' + e for e in d['base_effects'])}")  # fmt: skip
+    for k, s in enumerate(d["steps"], 1):
+        tag = " (ambiguous with " + ", ".join(s["ambiguous_with"]) + ")" if s["ambiguous_with"] else ""
+        tag += "" if s["confirmed"] else " (not confirmed)"
+        shrink = 1 - s["heldout_rmse_after_um"] / s["heldout_rmse_before_um"]
+        lines.append(f"  step {k}: {s['effect']}{tag}: held-out RMSE {s['heldout_rmse_before_um']:.3f} -> "
+                     f"{s['heldout_rmse_after_um']:.3f} um ({shrink:.0%} less), BIC gain {s['bic_gain']:.1f}")  # fmt: skip
+    lines.append(f"where (before): {d['localisation']['before']['summary']}")
+    lines.append(f"where (after):  {d['localisation']['after']['summary']}")
+    for e, why in d["skipped"].items():
+        lines.append(f"skipped {e}: {why}")
+    if out is not None:
+        lines.append(f"report: {out / 'report.md'}  ({d['runtime_s']:.0f} s)")
+    return "\n".join(lines)

@@ -1,0 +1,263 @@
+"""Name the missing effect: candidates, held-out scores, information criterion, the test.
+
+Issue "Discrepancy workflow", steps 1, 3-5. The current model is the seed 000
+core (:class:`~thermbench.models.physics.PhysicsModel`: fixed-bearing heat, nut
+heat, convection, constant ambient) plus the effects found so far. Each
+canonical effect not yet in it is a candidate: added, re-identified from the
+current parameters (warm start), scored by
+
+* its *held-out* RMSE: the gains re-solved on the training runs of each fold
+  with the nonlinear parameters of the full-data fit (fast; the effect's
+  proper leave-one-run-out score is computed for the one that is named), and
+* BIC = n ln(SSE/n) + p ln n on all runs (Schwarz 1978); the gain is
+  BIC(current) - BIC(candidate), > 0 favours the candidate.
+
+The test (:class:`SignificanceTest`): a candidate is *significant* when the systematic
+error it explains on held-out runs, sqrt(RMSE_before^2 - RMSE_after^2), is at
+least ``explained_x_floor`` times the noise floor and its BIC gain exceeds
+``bic_min`` (10: "very strong" evidence, Kass & Raftery 1995). The best
+significant candidate (lowest held-out RMSE) is named; another significant one
+*ties* with it when what the best explains beyond it, sqrt(RMSE_other^2 -
+RMSE_best^2), is below ``tie_x_floor`` times the floor: the data cannot tell
+them apart, and both names are reported instead of a guess. The named effect
+is added only when its proper leave-one-run-out score passes the same test.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import lsq_linear
+
+from ..data.io import Dataset
+from ..models.base import readings
+from ..models.physics import CORE_GAINS, CORE_NONLINEAR, PhysicsModel
+from ..sim.effects import EFFECTS, make_effect
+
+#: the candidates, in the order they are tried (the canonical effect library)
+CANDIDATES = tuple(EFFECTS)
+#: nonlinear parameters identified by SQP together with an effect (its heat gains are linear)
+OWN_PARAMS = {
+    "motor_heat": ("tau_s",),
+    "origin_drift": ("beta_um_per_K",),
+    "fixed_fixed_constraint": ("kappa",),
+}
+
+
+@dataclass(frozen=True)
+class SignificanceTest:
+    explained_x_floor: float = 2.0
+    bic_min: float = 10.0
+    tie_x_floor: float = 1.0
+
+    def describe(self) -> str:
+        return (
+            f"named when the held-out error it explains, sqrt(RMSE_before^2 - RMSE_after^2), is >= "
+            f"{self.explained_x_floor:g} x the noise floor and its BIC gain is > {self.bic_min:g}; "
+            f"two significant candidates tie when the better explains < {self.tie_x_floor:g} x the noise "
+            f"floor beyond the other"
+        )
+
+
+@dataclass
+class Settings:
+    """What the search needs besides the data (from ``conf/diagnose.yaml``)."""
+
+    physics: dict = field(default_factory=dict)  # PhysicsModel numerics/solver options
+    starts: dict = field(default_factory=dict)  # "<effect>.<param>" -> start values screened
+    test: SignificanceTest = field(default_factory=SignificanceTest)
+    candidates: Sequence[str] = CANDIDATES
+    say: Callable[[str], None] = print
+
+
+def ambient_sensor(ds: Dataset) -> str | None:
+    return next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
+
+
+def unavailable(effect: str, ds: Dataset) -> str | None:
+    """Why ``effect`` cannot be tried on this dataset (None: it can)."""
+    if effect == "ambient_drift" and ambient_sensor(ds) is None:
+        return "no ambient temperature sensor (no sensor at location 'ambient' in metadata.yaml)"
+    if effect == "load_dependent_heat" and "load_N" not in ds.process.columns:
+        return "no axial load in the process log (column load_N absent)"
+    return None
+
+
+def n_params(effects: Sequence[str]) -> int:
+    """Identified parameters of core + effects (the ambient series adds none)."""
+    p = len(CORE_GAINS) + len(CORE_NONLINEAR)
+    for e in effects:
+        p += len(make_effect(e).heat_gains) + len(OWN_PARAMS.get(e, ()))
+    return p
+
+
+def make_model(
+    effects: Sequence[str], ds: Dataset, settings: Settings, warm: PhysicsModel | None = None, start: dict | None = None
+) -> PhysicsModel:
+    """The physics model with ``effects`` on the core, warm-started from ``warm``'s parameters.
+
+    ``ambient_drift`` is the measured ambient series as the model's ambient
+    (without it the ambient is constant, as in the seed 000 core)."""
+    eff, identify = {}, list(CORE_NONLINEAR)
+    for e in effects:
+        if e == "ambient_drift":
+            continue
+        params = dict(warm.effects_.get(e, {})) if warm is not None else {}
+        params.update((start or {}).get(e, {}))
+        eff[e] = params
+        identify += [f"{e}.{p}" for p in OWN_PARAMS.get(e, ())]
+    initial = {k: warm.params_[k] for k in CORE_NONLINEAR} if warm is not None else None
+    amb = ambient_sensor(ds) if "ambient_drift" in effects else None
+    return PhysicsModel(effects=eff, identify=identify, initial=initial, ambient_sensor=amb, **settings.physics)
+
+
+def bic(sse: float, n: int, p: int) -> float:
+    return float(n * np.log(max(sse, 1e-300) / n) + p * np.log(n))
+
+
+@dataclass
+class Fitted:
+    """A fitted model of the search with its scores."""
+
+    effects: tuple[str, ...]
+    model: PhysicsModel
+    sse: float
+    n: int
+    bic: float
+    heldout_fast_um: float
+    fit_s: float
+
+    @property
+    def identified(self) -> dict:
+        return {k: float(v) for k, v in self.model.params_.items()}
+
+
+def folds_for(runs: Sequence[str], cv) -> list[tuple[list[str], list[str]]]:
+    """Leave-one-run-out folds, or the declared split ``{train: [...], test: [...]}``."""
+    runs = list(runs)
+    if cv in (None, "loro"):
+        if len(runs) < 2:
+            raise ValueError(f"cv=loro needs at least 2 runs, the dataset has {runs}")
+        return [([r for r in runs if r != h], [h]) for h in runs]
+    if isinstance(cv, dict) and {"train", "test"} <= set(cv):
+        train, test = [str(r) for r in cv["train"]], [str(r) for r in cv["test"]]
+        bad = [r for r in train + test if r not in runs]
+        if bad or not train or not test or set(train) & set(test):
+            raise ValueError(
+                f"config key 'cv': train and test must be disjoint, non-empty lists of runs of the dataset "
+                f"{runs}; got train={train}, test={test}"
+            )
+        return [(train, test)]
+    raise ValueError(f"config key 'cv': expected 'loro' or {{train: [...], test: [...]}}, got {cv!r}")
+
+
+def heldout_fast(model: PhysicsModel, ds: Dataset, runs: Sequence[str], folds) -> float:
+    """Held-out RMSE with the gains re-solved per fold at the model's nonlinear parameters."""
+    units, per_run = model.gain_basis(ds, runs)
+    rd = readings(ds, runs)
+    index = {r: i for i, r in enumerate(runs)}
+    mask = [(rd.loc[rd["run_id"] == r, "cycle"] > 0).to_numpy() for r in runs]
+    sq, n = 0.0, 0
+    for train, test in folds:
+        tr = [index[r] for r in train]
+        a = np.concatenate([per_run[i][1] for i in tr])
+        b = np.concatenate([per_run[i][2] - per_run[i][0] for i in tr])
+        g = lsq_linear(a, b, bounds=(np.zeros(a.shape[1]), np.inf), method="bvls").x if a.shape[1] else np.zeros(0)
+        for r in test:
+            e0, a_t, y = per_run[index[r]]
+            res = (y - e0 - a_t @ g)[mask[index[r]]]
+            sq += float(res @ res)
+            n += res.size
+    return float(np.sqrt(sq / max(n, 1)))
+
+
+def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitted:
+    t0 = time.perf_counter()
+    model = make_model(effects, ds, settings, warm, start).fit(ds, runs)
+    fit_s = time.perf_counter() - t0
+    n = len(readings(ds, runs))
+    sse = model.train_rmse_um_**2 * n
+    return Fitted(tuple(effects), model, sse, n, bic(sse, n, n_params(effects)), heldout_fast(model, ds, runs, folds), fit_s)
+
+
+def heldout_loro(effects, ds, runs, folds, settings, warm: PhysicsModel | None) -> tuple[float, pd.DataFrame]:
+    """Proper held-out score: every parameter re-identified on each fold's training runs
+    (warm-started); returns the pooled RMSE over readings after the cold reference and
+    the table of held-out predictions."""
+    parts = []
+    for train, test in folds:
+        m = make_model(effects, ds, settings, warm).fit(ds, train)
+        for run in test:
+            rd, pred = m.referenced_thermal_um(ds, run)
+            parts.append(rd.assign(predicted_um=pred, residual_um=rd["thermal_um"].to_numpy() - pred))
+    table = pd.concat(parts, ignore_index=True)
+    r = table.loc[table["cycle"] > 0, "residual_um"].to_numpy()
+    return float(np.sqrt(np.mean(r**2))), table
+
+
+def screen_start(effect: str, current: Fitted, ds, runs, settings) -> dict:
+    """Start values of the candidate's own nonlinear parameters: the best of the
+    configured grid with every other nonlinear parameter held (gains solved)."""
+    grid = {p: settings.starts.get(f"{effect}.{p}") for p in OWN_PARAMS.get(effect, ())}
+    grid = {p: list(v) for p, v in grid.items() if v}
+    if not grid:
+        return {}
+    best, best_sse = {}, np.inf
+    for p, values in grid.items():
+        for v in values:
+            start = {effect: {p: float(v)}}
+            m = make_model([*current.effects, effect], ds, settings, current.model, start)
+            m.set_params(identify=[])
+            m.fit(ds, runs)
+            if m.train_rmse_um_ < best_sse:
+                best, best_sse = start, m.train_rmse_um_
+    return best
+
+
+def explained(before_um: float, after_um: float) -> float:
+    return float(np.sqrt(max(0.0, before_um**2 - after_um**2)))
+
+
+def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float, skip: dict) -> list[dict]:
+    """Try every candidate not in the current model; one record per candidate."""
+    out = []
+    for eid in settings.candidates:
+        if eid in current.effects:
+            continue
+        if eid in skip:
+            out.append({"effect": eid, "skipped": skip[eid]})
+            continue
+        start = screen_start(eid, current, ds, runs, settings)
+        f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start)
+        rec = {
+            "effect": eid,
+            "skipped": None,
+            "heldout_rmse_um": f.heldout_fast_um,
+            "explained_um": explained(current.heldout_fast_um, f.heldout_fast_um),
+            "bic_gain": current.bic - f.bic,
+            "train_rmse_um": float(np.sqrt(f.sse / f.n)),
+            "fit_s": f.fit_s,
+            "fitted": f,
+        }
+        t = settings.test
+        rec["significant"] = bool(rec["explained_um"] >= t.explained_x_floor * floor_um and rec["bic_gain"] > t.bic_min)
+        settings.say(
+            f"[diagnose]   {eid:<24s} held-out {f.heldout_fast_um:7.3f} um  explains {rec['explained_um']:6.3f} um  "
+            f"BIC gain {rec['bic_gain']:9.1f}  {'significant' if rec['significant'] else '-':11s} ({f.fit_s:.1f} s)"
+        )
+        out.append(rec)
+    return out
+
+
+def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[dict | None, list[str]]:
+    """The best significant candidate and the candidates it ties with."""
+    sig = sorted((c for c in cands if c.get("significant")), key=lambda c: c["heldout_rmse_um"])
+    if not sig:
+        return None, []
+    best = sig[0]
+    ties = [c["effect"] for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um]
+    return best, ties
