@@ -36,6 +36,7 @@ test: $(VENV)/.installed-dev
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_simulator.py
 	$(BIN)/python benchmarks/bench_identification.py
+	$(BIN)/python benchmarks/bench_diagnose.py --runtime
 
 clean:
 	rm -rf $(VENV) data/ .pytest_cache

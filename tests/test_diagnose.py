@@ -28,9 +28,13 @@ PHYSICS = settings_from_config(load_config("diagnose", ["data_dir=x", "out_dir=x
 FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png", "candidates_step1.png")
 
 
+def _strict(name):
+    raise ValueError(f"diagnosis.json is not strict JSON: {name}")
+
+
 def run_cli(data, out, *args) -> dict:
     assert main(["diagnose", str(data), "--out", str(out), *args, "track=false"]) == 0
-    return json.loads((out / "diagnosis.json").read_text())
+    return json.loads((out / "diagnosis.json").read_text(), parse_constant=_strict)
 
 
 def calibrated(effect: str, seed: int, world=WORLD) -> dict:
@@ -93,6 +97,20 @@ def test_negative_control_names_nothing_and_logs_to_mlflow(clean_data, tmp_path)
     assert "diagnosis/diagnosis.json" in files and "diagnosis/report.md" in files
 
 
+def test_declared_split_and_base_effects(clean_data, tmp_path):
+    d = run_cli(clean_data, tmp_path / "out", "--base", "ambient_drift", "--max-effects", "1",
+                "cv={train: [run1, run2], test: [run3]}")  # fmt: skip
+    assert d["base_effects"] == ["ambient_drift"]
+    assert d["cv"]["kind"] == "split" and d["cv"]["fit_runs"] == ["run1", "run2"]
+    assert d["missing_effects"] == [] and d["verdict"] == "none"
+    # held-out means the test run only, and ambient_drift is not tried again
+    held = pd.read_csv(tmp_path / "out" / "heldout_residuals.csv")
+    assert set(held["run_id"]) == {"run3"}
+    assert "ambient_drift" not in {c["effect"] for c in d["scans"][0]["candidates"]}
+    # the model with the measured ambient was identified: the ambient sensor is its input
+    assert d["final"]["effects"] == ["ambient_drift"]
+
+
 def test_two_hidden_effects_are_both_named(tmp_path):
     effects = {e: calibrated(e, seed=3) for e in ("ambient_drift", "quadratic_friction_heat")}
     data = hidden.make(tmp_path / "data", effects, seed=3, world=WORLD)
@@ -124,7 +142,24 @@ def test_bad_input_is_one_line_exit_2(clean_data, tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "cv={train: [run1], test: [run9]}", "track=false"]) == 2
     assert "'cv'" in capsys.readouterr().err
+    for override, key in (("+physics.foo=1", "'physics'"), ("max_effects=abc", "'max_effects'"),
+                          ("starts.motor_heat.tau_s=[abc]", "'starts.motor_heat.tau_s'"),
+                          ("test.bic_min=x", "'test.bic_min'"), ("candidates=[nut_magic]", "'candidates'")):  # fmt: skip
+        assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), override, "track=false"]) == 2
+        err = capsys.readouterr().err
+        assert key in err and "Traceback" not in err, (override, err)
     assert not (tmp_path / "o").exists()  # nothing half-written
+    # the output directory is replaced as a whole: never the dataset, never someone's files
+    before = sorted(p.name for p in clean_data.iterdir())
+    assert main(["diagnose", str(clean_data), "--out", str(clean_data), "track=false"]) == 2
+    assert "dataset directory" in capsys.readouterr().err
+    assert main(["diagnose", str(clean_data), "--out", str(clean_data.parent), "track=false"]) == 2
+    assert sorted(p.name for p in clean_data.iterdir()) == before
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "mine.txt").write_text("keep")
+    assert main(["diagnose", str(clean_data), "--out", str(other), "track=false"]) == 2
+    assert "not an earlier diagnosis" in capsys.readouterr().err and (other / "mine.txt").exists()
 
 
 # ------------------------------------------------------------------- parts ---

@@ -85,6 +85,7 @@ def localise(t: pd.DataFrame, floor_um: float) -> dict:
     t = t[t["cycle"] > 0]
     blocks = block_stats(t, ["run_id", "position", "phase"], floor_um)
     by_pos = block_stats(t, ["position"], floor_um).set_index("position")
+    by_pos = by_pos.reindex([p for p in POSITION_BINS if p in by_pos.index])
     by_phase = block_stats(t[t["phase"] != "steady"], ["phase"], floor_um)
     by_phase = by_phase.set_index("phase") if len(by_phase) else by_phase
     by_run = block_stats(t, ["run_id"], floor_um).set_index("run_id")

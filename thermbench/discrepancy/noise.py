@@ -35,20 +35,24 @@ class NoiseFloor:
         return asdict(self)
 
 
-def repeat_scatter(rd: pd.DataFrame, window_s: float) -> tuple[float, int]:
-    """Pooled SD of readings of one target of a run taken within ``window_s`` of each other;
-    (nan, 0) when no target is read twice that quickly."""
-    ss, dof = 0.0, 0
+def repeat_scatter(rd: pd.DataFrame, window_s: float) -> tuple[float, int, int]:
+    """Pooled SD of readings of one target of a run taken within ``window_s`` of the
+    group's first reading; returns (sigma, degrees of freedom, groups), (nan, 0, 0)
+    when no target is read twice that quickly."""
+    ss, dof, groups = 0.0, 0, 0
     for _, g in rd.sort_values("t_s").groupby(["run_id", "target_mm"], sort=False):
         t = g["t_s"].to_numpy()
         y = g["error_um"].to_numpy()
-        cluster = np.concatenate([[0], np.cumsum(np.diff(t) > window_s)])
-        for c in np.unique(cluster):
-            v = y[cluster == c]
-            if v.size > 1:
-                ss += float(np.sum((v - v.mean()) ** 2))
-                dof += v.size - 1
-    return (float(np.sqrt(ss / dof)), dof) if dof else (float("nan"), 0)
+        start = 0
+        for k in range(1, t.size + 1):
+            if k == t.size or t[k] - t[start] > window_s:  # close the group [start, k)
+                v = y[start:k]
+                if v.size > 1:
+                    ss += float(np.sum((v - v.mean()) ** 2))
+                    dof += v.size - 1
+                    groups += 1
+                start = k
+    return (float(np.sqrt(ss / dof)), dof, groups) if dof else (float("nan"), 0, 0)
 
 
 def high_frequency_scatter(rd: pd.DataFrame, residual_col: str = "residual_um") -> tuple[float, int]:
@@ -68,14 +72,14 @@ def high_frequency_scatter(rd: pd.DataFrame, residual_col: str = "residual_um") 
 def estimate_noise_floor(rd: pd.DataFrame, window_s: float = 60.0, min_groups: int = 20) -> NoiseFloor:
     """Noise floor of readings ``rd`` (columns run_id, t_s, target_mm, error_um, cycle and
     the residual of a physics model ``residual_um``); see the module docstring."""
-    rep, n_rep = repeat_scatter(rd[rd["cycle"] > 0], window_s)
+    rep, n_rep, groups = repeat_scatter(rd[rd["cycle"] > 0], window_s)
     hf, n_hf = high_frequency_scatter(rd)
     estimates = {}
     if n_rep:
         estimates["repeat"] = (rep, n_rep)
     if n_hf:
         estimates["high_frequency"] = (hf, n_hf)
-    if n_rep >= min_groups:
+    if groups >= min_groups:
         sigma, method = rep, "repeat"
     elif n_hf:
         sigma, method = hf, "high_frequency"

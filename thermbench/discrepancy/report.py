@@ -82,7 +82,7 @@ def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[
         heldout_figure(d, out / FIGURES[2]).name,
     ]
     for k, scan in enumerate(d["scans"], 1):
-        names.append(candidates_figure(scan, d["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
+        names.append(candidates_figure(scan, scan["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
     return names
 
 
@@ -104,12 +104,13 @@ def _loc_md(loc: dict) -> str:
     return "\n".join(lines)
 
 
-def write_markdown(d: dict, figures: list[str], out: Path) -> Path:
+def write_markdown(d: dict, out: Path) -> Path:
     md = [f"# Diagnosis of `{d['dataset']}`", "", f"**{verdict_line(d)}**", ""]
     md += [f"- base model: seed 000 core (fixed-bearing heat, nut heat, convection, constant ambient)"
            f"{''.join(' + ' + e for e in d['base_effects'])}",  # fmt: skip
            f"- noise floor: {d['noise_floor_um']:.3f} um ({d['noise']['method']}; per-reading scatter "
-           f"{d['noise']['reading_sigma_um']:.3f} um; estimates {d['noise']['estimates']})",
+           f"{d['noise']['reading_sigma_um']:.3f} um; estimates: "
+           + ", ".join(f"{k} {v[0]:.3f} um from {v[1]}" for k, v in d["noise"]["estimates"].items()) + ")",
            f"- cross-validation: {d['cv']['kind']} ({len(d['cv']['folds'])} fold(s))",
            f"- test: {d['test']['description']}", f"- runtime: {d['runtime_s']:.0f} s"]
     for note in d["notes"]:
@@ -145,6 +146,12 @@ def write_markdown(d: dict, figures: list[str], out: Path) -> Path:
 
 
 def verdict_line(d: dict) -> str:
+    if d["verdict"] == "not_searched":
+        return "no search (max_effects = 0): the base model's disagreement is mapped below"
+    if d["verdict"] == "not_confirmed":
+        s = d["steps"][-1]
+        return (f"no missing effect confirmed: {s['effect']} passed the screening but not the held-out test with "
+                f"every parameter re-identified per fold")  # fmt: skip
     if d["verdict"] == "ambiguous":
         amb = "; ".join(" or ".join(a) for a in d["ambiguous"])
         found = f"missing: {', '.join(d['missing_effects'])}; then " if d["missing_effects"] else ""

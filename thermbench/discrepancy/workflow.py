@@ -19,12 +19,14 @@ the figures atomically into the output directory and logs them to MLflow.
 from __future__ import annotations
 
 import json
+import os
 import time
-from dataclasses import dataclass
+from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+import pandas as pd
 
 from .._atomic import atomic_dir
 from ..data.io import Dataset, load_dataset
@@ -33,6 +35,7 @@ from . import localise as loc
 from .noise import estimate_noise_floor
 from .search import (
     CANDIDATES,
+    OWN_PARAMS,
     Settings,
     SignificanceTest,
     decide,
@@ -43,6 +46,10 @@ from .search import (
     score_candidates,
     unavailable,
 )
+
+
+#: floor used when the data look noise-free (a zero floor would make every difference significant)
+MIN_FLOOR_UM = 1e-3
 
 
 class DiagnoseError(ValueError):
@@ -88,16 +95,21 @@ def run_diagnosis(
         folds = folds_for(runs, cv)
     except ValueError as exc:
         raise DiagnoseError(str(exc)) from None
+    # what the models are identified on: every run (leave-one-run-out) or the declared train runs
+    fit_runs = runs if len(folds) > 1 else folds[0][0]
     skip = {e: why for e in settings.candidates if e not in base and (why := unavailable(e, ds)) is not None}
     for e, why in skip.items():
         say(f"[diagnose] candidate {e} skipped: {why}")
 
     say(f"[diagnose] {len(runs)} runs, {len(ds.errors)} readings; base: core{''.join(' + ' + e for e in base)}")
-    current = fit_full(base, ds, runs, folds, settings)
+    current = fit_full(base, ds, fit_runs, folds, settings)
     say(f"[diagnose] base identified in {current.fit_s:.1f} s: train RMSE {np.sqrt(current.sse / current.n):.3f} um")
-    before_um, table = heldout_loro(base, ds, runs, folds, settings, current.model)
-    noise = estimate_noise_floor(_in_sample_table(current.model, ds, runs), noise_window_s, noise_min_groups)
+    before_um, table, fold_models = heldout_loro(base, ds, folds, settings)
+    noise = estimate_noise_floor(_in_sample_table(current.model, ds, fit_runs), noise_window_s, noise_min_groups)
     floor = noise.noise_floor_um
+    if floor < MIN_FLOOR_UM:
+        notes.append(f"noise floor estimated at {floor:.2g} um (noise-free data?); {MIN_FLOOR_UM} um used")
+        floor = MIN_FLOOR_UM
     say(f"[diagnose] noise floor {floor:.3f} um ({noise.method}); held-out RMSE of the base {before_um:.3f} um")
     pf_mm = lambda m: m.params_["pf_m"] * 1000.0  # noqa: E731
     loc_before = loc.localise(loc.annotate(table, ds, pf_mm(current.model), floor), floor)
@@ -106,18 +118,19 @@ def run_diagnosis(
     steps, scans, missing, ambiguous = [], [], [], []
     tables = {"before": table}
     while len(missing) < int(max_effects):
-        say(f"[diagnose] step {len(steps) + 1}: trying {len(settings.candidates) - len(current.effects)} candidate(s) "
-            f"on core{''.join(' + ' + e for e in current.effects)}")  # fmt: skip
-        cands = score_candidates(current, ds, runs, folds, settings, floor, skip)
+        n_try = sum(1 for c in settings.candidates if c not in current.effects and c not in skip)
+        say(f"[diagnose] step {len(steps) + 1}: trying {n_try} candidate(s) on core"
+            f"{''.join(' + ' + e for e in current.effects)}")  # fmt: skip
+        cands = score_candidates(current, ds, fit_runs, folds, settings, floor, skip)
         best, ties = decide(cands, floor, settings.test)
-        scans.append({"effects": list(current.effects), "heldout_fast_um": current.heldout_fast_um,
+        scans.append({"effects": list(current.effects), "heldout_fast_um": current.heldout_fast_um, "noise_floor_um": floor,
                       "candidates": [_public(c) for c in cands], "named": best["effect"] if best else None,
                       "ambiguous_with": ties})  # fmt: skip
         if best is None:
             say("[diagnose] no candidate passes the test: nothing (more) is missing that these data can show")
             break
         new = [*current.effects, best["effect"]]
-        after_um, after_table = heldout_loro(new, ds, runs, folds, settings, best["fitted"].model)
+        after_um, after_table, new_fold_models = heldout_loro(new, ds, folds, settings, fold_models, best["effect"])
         step = {
             "effect": best["effect"],
             "ambiguous_with": ties,
@@ -126,31 +139,38 @@ def run_diagnosis(
             "explained_um": explained(before_um, after_um),
             "bic_gain": best["bic_gain"],
             "identified": best["fitted"].identified,
+            "confirmed": explained(before_um, after_um) >= settings.test.explained_x_floor * floor,
         }
-        ok = step["explained_um"] >= settings.test.explained_x_floor * floor
-        step["confirmed"] = bool(ok)
         steps.append(step)
+        if not step["confirmed"]:
+            say(f"[diagnose] {best['effect']} passed the screening but not the held-out test with every parameter "
+                f"re-identified per fold ({before_um:.3f} -> {after_um:.3f} um); stopping")  # fmt: skip
+            break
         if ties:
             ambiguous.append([best["effect"], *ties])
             say(f"[diagnose] ambiguous: {' or '.join([best['effect'], *ties])} explain the data alike; not guessing")
             break
-        if not ok:
-            say(f"[diagnose] {best['effect']} not confirmed by leave-one-run-out "
-                f"({before_um:.3f} -> {after_um:.3f} um); stopping")  # fmt: skip
-            break
         say(f"[diagnose] missing effect: {best['effect']}: held-out RMSE {before_um:.3f} -> {after_um:.3f} um "
             f"({1 - after_um / before_um:.0%} less)")  # fmt: skip
         missing.append(best["effect"])
-        current, before_um = best["fitted"], after_um
+        current, before_um, fold_models = best["fitted"], after_um, new_fold_models
         tables[f"step{len(steps)}"] = after_table
         # the floor is a property of the data, best seen through the best model so far
-        noise = estimate_noise_floor(_in_sample_table(current.model, ds, runs), noise_window_s, noise_min_groups)
-        if noise.noise_floor_um < floor:
-            floor = noise.noise_floor_um
+        grown = estimate_noise_floor(_in_sample_table(current.model, ds, fit_runs), noise_window_s, noise_min_groups)
+        if MIN_FLOOR_UM <= grown.noise_floor_um < floor:
+            noise, floor = grown, grown.noise_floor_um
             say(f"[diagnose] noise floor re-estimated with the grown model: {floor:.3f} um")
     final_table = tables[list(tables)[-1]]
     loc_after = loc.localise(loc.annotate(final_table, ds, pf_mm(current.model), floor), floor)
     first = steps[0]["heldout_rmse_before_um"] if steps else before_um
+    if ambiguous:
+        verdict = "ambiguous"
+    elif missing:
+        verdict = "found"
+    elif steps:
+        verdict = "not_confirmed"
+    else:
+        verdict = "none" if int(max_effects) > 0 else "not_searched"
     return {
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
         "base_effects": list(base),
@@ -168,10 +188,11 @@ def run_diagnosis(
             "heldout_rmse_base_um": first,
             "identified": current.identified,
         },
-        "cv": {"kind": "loro" if cv in (None, "loro") else "split", "folds": [{"train": a, "test": b} for a, b in folds]},
+        "cv": {"kind": "loro" if len(folds) > 1 else "split", "fit_runs": list(fit_runs),
+               "folds": [{"train": a, "test": b} for a, b in folds]},  # fmt: skip
         "test": {"description": settings.test.describe(), **vars(settings.test)},
         "notes": notes,
-        "verdict": "ambiguous" if ambiguous else "found" if missing else "none",
+        "verdict": verdict,
         "runtime_s": time.perf_counter() - t_start,
         "_tables": tables,
     }
@@ -179,8 +200,6 @@ def run_diagnosis(
 
 def _in_sample_table(model, ds, runs):
     """Readings of ``runs`` with the in-sample residual of ``model`` (for the noise floor)."""
-    import pandas as pd
-
     parts = [rd.assign(residual_um=rd["thermal_um"].to_numpy() - pred)
              for rd, pred in (model.referenced_thermal_um(ds, r) for r in runs)]  # fmt: skip
     return pd.concat(parts, ignore_index=True)
@@ -191,17 +210,50 @@ def _public(c: dict) -> dict:
 
 
 # ------------------------------------------------------------------ the job ---
-def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
-    test = dict(cfg.get("test") or {})
+def _number(value, key: str, kind=float):
     try:
-        t = SignificanceTest(**{k: float(v) for k, v in test.items()})
-    except TypeError as exc:
-        raise DiagnoseError(f"config key 'test': {exc}; known: explained_x_floor, bic_min, tie_x_floor") from None
+        if isinstance(value, bool):
+            raise ValueError
+        return kind(value)
+    except (TypeError, ValueError):
+        raise DiagnoseError(f"config key {key!r}: expected {'an integer' if kind is int else 'a number'}, got {value!r}") from None
+
+
+#: PhysicsModel options the diagnose config may set (the rest are the workflow's to choose)
+PHYSICS_KEYS = {"dx_m": float, "dt_s": float, "macro_dt_s": float, "max_iter": int, "ftol": float,
+                "geometric_degree": int, "preprocess": None, "bounds": None}  # fmt: skip
+
+
+def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
+    """:class:`Settings` from the composed ``conf/diagnose.yaml``, every key checked."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    test = dict(cfg.get("test") or {})
+    known = {f.name for f in fields(SignificanceTest)}
+    if bad := sorted(set(test) - known):
+        raise DiagnoseError(f"config key 'test': unknown key(s) {bad}; known: {sorted(known)}")
+    t = SignificanceTest(**{k: _number(v, f"test.{k}") for k, v in test.items()})
+    physics = dict(cfg.get("physics") or {})
+    if bad := sorted(set(physics) - set(PHYSICS_KEYS)):
+        raise DiagnoseError(f"config key 'physics': unknown or reserved key(s) {bad}; allowed: {sorted(PHYSICS_KEYS)}")
+    physics = {k: (_number(v, f"physics.{k}", PHYSICS_KEYS[k]) if PHYSICS_KEYS[k] else v) for k, v in physics.items()}
+    starts = {}
+    for eid, params in dict(cfg.get("starts") or {}).items():
+        if eid not in OWN_PARAMS or not isinstance(params, dict):
+            raise DiagnoseError(f"config key 'starts.{eid}': expected one of {sorted(OWN_PARAMS)} with "
+                                f"{{param: [values]}}, e.g. starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
+        for param, values in params.items():
+            if param not in OWN_PARAMS[eid]:
+                raise DiagnoseError(f"config key 'starts.{eid}.{param}': {eid} has {list(OWN_PARAMS[eid])}")
+            values = values if isinstance(values, (list, tuple)) else [values]
+            starts.setdefault(eid, {})[param] = [_number(v, f"starts.{eid}.{param}") for v in values]
     return Settings(
-        physics=dict(cfg.get("physics") or {}),
-        starts={str(k): list(v) for k, v in dict(cfg.get("starts") or {}).items()},
+        physics=physics,
+        starts=starts,
         test=t,
-        candidates=list(cfg.get("candidates") or CANDIDATES),
+        candidates=_check_effects(_as_list(cfg.get("candidates")) or list(CANDIDATES), "candidates"),
         say=say,
     )
 
@@ -212,6 +264,24 @@ def _as_list(v) -> list[str]:
     if isinstance(v, str):
         return [s for s in v.split(",") if s.strip()]
     return [str(x) for x in v]
+
+
+def check_out_dir(out_dir, data_dir) -> Path:
+    """The output directory, refused when replacing it could lose anything: it is (or
+    contains) the dataset, or it holds files that are not a previous diagnosis."""
+    out = Path(out_dir).expanduser().resolve()
+    data = Path(data_dir).expanduser().resolve()
+    if out == data or data.is_relative_to(out):
+        raise DiagnoseError(f"--out {out}: is or contains the dataset directory {data}; choose another directory")
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "diagnosis.json").exists())):
+        raise DiagnoseError(f"--out {out}: exists and is not an earlier diagnosis (no diagnosis.json); "
+                            "choose a new or empty directory")  # fmt: skip
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not os.access(parent, os.W_OK):
+        raise DiagnoseError(f"--out {out}: {parent} is not writable")
+    return out
 
 
 def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
@@ -227,28 +297,25 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     for key in ("data_dir", "out_dir"):
         if not conf.get(key) or conf[key] == "???":
             raise DiagnoseError(f"config key {key!r}: required (thermbench diagnose DATA_DIR --out OUT_DIR)")
-    _check_effects(_as_list(conf.get("base")), "base")  # before anything is opened or loaded
+    # everything the user can get wrong is checked before anything is loaded or fitted
+    base = _check_effects(_as_list(conf.get("base")), "base")
+    settings = settings_from_config(conf, say)
+    max_effects = _number(conf.get("max_effects", 3), "max_effects", int)
+    noise = dict(conf.get("noise") or {})
+    window_s = _number(noise.get("repeat_window_s", 60.0), "noise.repeat_window_s")
+    min_groups = _number(noise.get("min_groups", 20), "noise.min_groups", int)
+    out = check_out_dir(conf["out_dir"], conf["data_dir"])
     track = bool(conf.get("track", True))
     exp_id = tracking.connect(conf["tracking"]) if track else None  # an unreachable server fails first
     ds = load_dataset(conf["data_dir"])
-    noise = dict(conf.get("noise") or {})
-    d = run_diagnosis(
-        ds,
-        base=_as_list(conf.get("base")),
-        max_effects=int(conf.get("max_effects", 3)),
-        cv=conf.get("cv", "loro"),
-        settings=settings_from_config(conf, say),
-        noise_window_s=float(noise.get("repeat_window_s", 60.0)),
-        noise_min_groups=int(noise.get("min_groups", 20)),
-    )
+    d = run_diagnosis(ds, base=base, max_effects=max_effects, cv=conf.get("cv", "loro"), settings=settings,
+                      noise_window_s=window_s, noise_min_groups=min_groups)  # fmt: skip
     tables = d.pop("_tables")
-    out = Path(conf["out_dir"])
+    d = _finite(d)
     with atomic_dir(out) as tmp:
-        (tmp / "diagnosis.json").write_text(json.dumps(d, indent=2, default=_json_default), encoding="utf-8")
-        figures = write_figures(d, tables, tmp, settings_from_config(conf).test.explained_x_floor)
-        write_markdown(d, figures, tmp)
-        import pandas as pd
-
+        (tmp / "diagnosis.json").write_text(json.dumps(d, indent=2, allow_nan=False, default=_json_default), encoding="utf-8")
+        write_figures(d, tables, tmp, settings.test.explained_x_floor)
+        write_markdown(d, tmp)
         pd.concat([t.assign(model=k) for k, t in tables.items()], ignore_index=True).to_csv(tmp / "heldout_residuals.csv", index=False)
     if track:
         import mlflow
@@ -264,6 +331,17 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
         d["mlflow_run_id"] = run.info.run_id
     say(terminal_verdict(d, out))
     return d
+
+
+def _finite(o):
+    """NaN and infinities -> None, so that diagnosis.json is strict JSON."""
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not np.isfinite(o):
+        return None
+    return o
 
 
 def _json_default(o):
