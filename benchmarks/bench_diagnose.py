@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import pandas as pd  # noqa: E402
 from joblib import Parallel, delayed  # noqa: E402
 
+from thermbench._atomic import write_text_atomic  # noqa: E402
 from thermbench.config import load_config  # noqa: E402
 from thermbench.data.io import load_dataset  # noqa: E402
 from thermbench.discrepancy import hidden  # noqa: E402
@@ -159,7 +160,7 @@ def main() -> None:
     rows = []
     for part in Parallel(n_jobs=args.n_jobs, return_as="generator_unordered")(jobs):
         rows.extend(part)
-        pd.DataFrame(rows).to_csv(out, index=False)
+        write_text_atomic(out, pd.DataFrame(rows).to_csv(index=False))
     summarise(pd.DataFrame(rows))
 
 
