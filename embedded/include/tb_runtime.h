@@ -1,0 +1,164 @@
+/*
+ * tb_runtime.h - thermbench embedded thermal-error compensator runtime.
+ *
+ * Plain C99, no heap, nothing beyond <math.h>/<string.h>/<stdint.h>/<stddef.h>.
+ * Models arrive as data files at run time (the data-only analogue of seed 002
+ * §2.5 "dynamic loading": new models without reflashing, and no code is ever
+ * executed from a file). A file is parsed in place: its float32 payload stays
+ * where it is (flash or a caller buffer) and only the model's running state is
+ * placed in a caller-supplied arena, sized by tb_model_arena_bytes().
+ *
+ * File format v1 (little-endian; written by thermbench.export.fileformat):
+ *   0  char[4] magic "TBMF"        4  u16 version (1)      6  u16 kind
+ *   8  u16 n_dims (<= 8)           10 u16 flags (0)       12 u32 dims[8]
+ *   44 u32 n_payload               48 float32 payload[n_payload]
+ *   48 + 4 n_payload   u32 CRC-32 (IEEE 802.3, as zlib.crc32) of all bytes before it
+ *
+ * Use:
+ *   tb_model m; tb_model_open(&m, buf, len);                 validate + parse
+ *   static uint8_t arena[...]; tb_model_start(&m, arena, sizeof arena);
+ *   per control cycle (one process-log sample): tb_model_step(&m, &sample);
+ *   tb_model_predict(&m, t_s, axis_mm, &thermal_um, &total_um);  compensation = -total
+ *
+ * Timing rule (what makes the C reproduce the Python models exactly): a value at
+ * time t is final once the runtime has been stepped to a sample at or after t
+ * (tb_model_ready_s() >= t). Between samples, inputs are linear in time, as
+ * numpy.interp over the process log; the physics model answers from the
+ * thermal-error table of its last two macro steps (seed 000 §4.3), the
+ * auto-regressive model from its last two grid steps.
+ *
+ * All numbers carry their unit in the name (_s, _mm, _um, _C, _mm_min, _N).
+ */
+#ifndef TB_RUNTIME_H
+#define TB_RUNTIME_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#ifndef TB_REAL
+#define TB_REAL double /* -DTB_REAL=float for a single-precision FPU (Cortex-M4) */
+#endif
+typedef TB_REAL tb_real;
+
+#define TB_MAGIC "TBMF"
+#define TB_FORMAT_VERSION 1u
+#define TB_HEADER_BYTES 48u
+#define TB_MAX_DIMS 8u
+
+/* hard limits: a file beyond them is "absurd" (TB_E_DIMS), never an overflow */
+#define TB_MAX_SENSORS 16u
+#define TB_MAX_FILTER_STEPS 4u
+#define TB_MAX_PAYLOAD 4194304u /* float32 values (16 MB) */
+#define TB_MAX_POLY 16u
+#define TB_MAX_TABLE 4096u
+#define TB_MAX_SUPPORT 65536u
+#define TB_MAX_LAYERS 8u
+#define TB_MAX_WIDTH 256u
+#define TB_MAX_GRU_HIDDEN 128u
+#define TB_MAX_LAGS 4096u
+#define TB_MAX_NODES 4096u
+#define TB_MAX_AR_ORDER 64u
+#define TB_MAX_LEVELS 64u
+#define TB_MAX_CONDITIONS 64u
+#define TB_MAX_FEEDS 64u /* distinct feeds in one classifier window */
+#define TB_MAX_WINDOW 100000u
+#define TB_START_SAMPLES 5u /* the limit filter checks the first reading against the next 5 */
+
+/* model kinds */
+enum {
+    TB_KIND_MLR_CURVE = 1,  /* seed 002 eq. 6-11 / seed 004: curve coefficients linear in dT */
+    TB_KIND_MLR_SEED001 = 2, /* seed 001 eq. 12 */
+    TB_KIND_LSSVM = 3,      /* seed 002 eq. 12-14 (full or reduced set) */
+    TB_KIND_MLP = 4,
+    TB_KIND_GRU = 5,
+    TB_KIND_PHYSICS = 6,    /* seed 000 §3.1-3.2 finite differences + effects */
+    TB_KIND_AR = 7,         /* seed 003 ARX on operating parameters */
+    TB_KIND_CLASSIFIER = 8, /* seed 002 eq. 15-19 proximity naive Bayes */
+    TB_KIND_MAX = 8
+};
+
+/* error codes (all < 0) */
+enum {
+    TB_OK = 0,
+    TB_E_SIZE = -1,     /* truncated, or length disagrees with n_payload */
+    TB_E_MAGIC = -2,
+    TB_E_VERSION = -3,
+    TB_E_KIND = -4,
+    TB_E_CRC = -5,
+    TB_E_DIMS = -6,     /* a dimension is absurd or disagrees with the payload layout */
+    TB_E_NAN = -7,      /* NaN or infinity in the payload */
+    TB_E_PAYLOAD = -8,  /* a value out of its domain (code, index, order, sign) */
+    TB_E_ARENA = -9,    /* arena too small or misaligned */
+    TB_E_STATE = -10,   /* call out of order (not opened/started, wrong kind) */
+    TB_E_INPUT = -11,   /* bad sample: non-finite, time not increasing, too few temperatures */
+    TB_E_SAMPLING = -12, /* the log is not sampled at the model's period */
+    TB_E_LATE = -13,    /* query older than the runtime still holds */
+    TB_E_NOTREADY = -14, /* no state yet (before the first samples) */
+    TB_E_ARG = -15
+};
+
+const char *tb_strerror(int code);
+
+/* one control cycle: one process-log sample */
+typedef struct {
+    double t_s;
+    double axis_mm;
+    double feed_mm_min;
+    double load_N;
+    const double *temps_C; /* the exported input sensors, in manifest order */
+    uint32_t n_temps;
+    int measuring; /* nonzero inside a measuring cycle (left out of the motion features) */
+} tb_sample;
+
+/* a parsed model: views into the file, plus its state once started */
+typedef struct {
+    const uint8_t *payload;
+    uint32_t n_payload;
+    uint16_t kind;
+    uint32_t dims[TB_MAX_DIMS];
+    /* offsets (in float32 values) of the parsed sections */
+    uint32_t off[24];
+    uint32_t n_sensors;
+    uint32_t max_channel; /* largest temps_C index used + 1 */
+    void *state;
+    size_t state_bytes;
+} tb_model;
+
+int tb_crc32_check(const uint8_t *file, size_t len, uint32_t *crc_out);
+int tb_model_open(tb_model *m, const uint8_t *file, size_t len);
+size_t tb_model_arena_bytes(const tb_model *m);
+int tb_model_start(tb_model *m, void *arena, size_t arena_bytes);
+int tb_model_step(tb_model *m, const tb_sample *s);
+int tb_model_finish(tb_model *m);
+double tb_model_ready_s(const tb_model *m);
+/* thermal part and total (geometric + thermal) positioning error, um; compensation = -total */
+int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *thermal_um, double *total_um);
+double tb_model_geometric_um(const tb_model *m, double axis_mm);
+
+/* classifier (kind TB_KIND_CLASSIFIER): the condition index in force at t (-1: none yet) */
+int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label);
+
+/* a per-condition bank (seed 002 §2.4-2.5): the classifier picks the member model */
+typedef struct {
+    tb_model *classifier;
+    tb_model *members[TB_MAX_CONDITIONS];
+    uint32_t n_members;
+} tb_bank;
+
+int tb_bank_init(tb_bank *b, tb_model *classifier, tb_model *const *members, uint32_t n_members);
+/* swap in a newly loaded (opened and started) model for condition i at run time */
+int tb_bank_set_member(tb_bank *b, uint32_t i, tb_model *member);
+int tb_bank_step(tb_bank *b, const tb_sample *s);
+int tb_bank_finish(tb_bank *b);
+double tb_bank_ready_s(const tb_bank *b);
+int tb_bank_predict(const tb_bank *b, double t_s, double axis_mm, double *thermal_um, double *total_um,
+                    int32_t *label);
+
+#ifdef __cplusplus
+}
+#endif
+#endif /* TB_RUNTIME_H */

@@ -1,0 +1,194 @@
+/*
+ * tb_replay - host driver of the thermbench runtime (what thermbench replay and the
+ * parity tests run). Not part of the embedded runtime: it may use stdio.
+ *
+ *   tb_replay --info FILE...               per file: kind, file bytes, state bytes
+ *   tb_replay MODEL_FILE < stream          one model
+ *   tb_replay --bank CLF M0 M1 ... < stream  a per-condition bank (members in class order)
+ *
+ * stream (text, one record per line):
+ *   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   a process-log sample
+ *   Q t_s axis_mm                                              a query (times nondecreasing)
+ * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s),
+ * the rest after tb_*_finish at the end of the stream. Output, one line per query:
+ *   t_s axis_mm thermal_um total_um label rc
+ */
+#include "tb_runtime.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define MAX_FILES (TB_MAX_CONDITIONS + 1)
+#define FILE_POOL (64u * 1024u * 1024u)
+#define ARENA_POOL (64u * 1024u * 1024u)
+#define MAX_TEMPS 64
+
+static uint8_t file_pool[FILE_POOL];
+static uint64_t arena_pool[ARENA_POOL / 8];
+
+static tb_model models[MAX_FILES];
+static size_t file_used, arena_used;
+
+static int load(const char *path, tb_model *m, size_t *len_out)
+{
+    FILE *f = fopen(path, "rb");
+    size_t n;
+    int rc;
+    if (!f) {
+        fprintf(stderr, "tb_replay: cannot open %s\n", path);
+        return 2;
+    }
+    n = fread(file_pool + file_used, 1, FILE_POOL - file_used, f);
+    fclose(f);
+    rc = tb_model_open(m, file_pool + file_used, n);
+    if (rc != TB_OK) {
+        fprintf(stderr, "tb_replay: %s: error %d: %s\n", path, rc, tb_strerror(rc));
+        return 3;
+    }
+    file_used += (n + 7u) & ~(size_t)7u;
+    if (len_out) *len_out = n;
+    return 0;
+}
+
+static int start(tb_model *m)
+{
+    size_t need = tb_model_arena_bytes(m);
+    int rc;
+    if (arena_used + need + 8 > ARENA_POOL) return 4;
+    rc = tb_model_start(m, (uint8_t *)arena_pool + arena_used, need);
+    arena_used += (need + 7u) & ~(size_t)7u;
+    if (rc != TB_OK) {
+        fprintf(stderr, "tb_replay: start: error %d: %s\n", rc, tb_strerror(rc));
+        return 4;
+    }
+    return 0;
+}
+
+typedef struct {
+    double t, x;
+} query_t;
+
+static query_t *queries;
+static size_t n_q, q_done;
+
+static tb_bank bank;
+static int use_bank;
+
+static double ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
+
+static void answer(double upto, int all)
+{
+    while (q_done < n_q && (all || queries[q_done].t <= upto)) {
+        double th = 0, tot = 0;
+        int32_t lab = -1;
+        int rc;
+        if (use_bank) rc = tb_bank_predict(&bank, queries[q_done].t, queries[q_done].x, &th, &tot, &lab);
+        else rc = tb_model_predict(&models[0], queries[q_done].t, queries[q_done].x, &th, &tot);
+        printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, th, tot, (int)lab, rc);
+        q_done++;
+    }
+}
+
+int main(int argc, char **argv)
+{
+    int i, rc, n_files = 0;
+    char line[8192];
+    size_t cap_q = 1024;
+    if (argc < 2) {
+        fprintf(stderr, "usage: tb_replay [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        return 1;
+    }
+    if (strcmp(argv[1], "--info") == 0) {
+        for (i = 2; i < argc; i++) {
+            size_t len = 0;
+            tb_model m;
+            if (load(argv[i], &m, &len)) return 3;
+            printf("%s %d %lu %lu %lu\n", argv[i], (int)m.kind, (unsigned long)len,
+                   (unsigned long)tb_model_arena_bytes(&m), (unsigned long)sizeof(tb_model));
+        }
+        return 0;
+    }
+    if (strcmp(argv[1], "--bank") == 0) {
+        tb_model *members[TB_MAX_CONDITIONS];
+        use_bank = 1;
+        if (argc < 4 || argc - 2 > (int)MAX_FILES) return 1;
+        for (i = 2; i < argc; i++) {
+            if ((rc = load(argv[i], &models[n_files], 0)) != 0) return rc;
+            if ((rc = start(&models[n_files])) != 0) return rc;
+            n_files++;
+        }
+        for (i = 1; i < n_files; i++) members[i - 1] = &models[i];
+        rc = tb_bank_init(&bank, &models[0], members, (uint32_t)(n_files - 1));
+        if (rc != TB_OK) {
+            fprintf(stderr, "tb_replay: bank: error %d: %s\n", rc, tb_strerror(rc));
+            return 5;
+        }
+    } else {
+        if ((rc = load(argv[1], &models[0], 0)) != 0) return rc;
+        if ((rc = start(&models[0])) != 0) return rc;
+    }
+    queries = (query_t *)malloc(cap_q * sizeof(query_t));
+    if (!queries) return 6;
+    /* the queries may come anywhere in the stream: read everything first */
+    {
+        static char *lines_buf;
+        size_t used = 0, cap = 1u << 20;
+        char *p;
+        lines_buf = (char *)malloc(cap);
+        if (!lines_buf) return 6;
+        while (fgets(line, sizeof line, stdin)) {
+            size_t l = strlen(line);
+            if (line[0] == 'Q') {
+                if (n_q == cap_q) {
+                    cap_q *= 2;
+                    queries = (query_t *)realloc(queries, cap_q * sizeof(query_t));
+                    if (!queries) return 6;
+                }
+                if (sscanf(line + 1, "%lf %lf", &queries[n_q].t, &queries[n_q].x) != 2) return 7;
+                n_q++;
+                continue;
+            }
+            if (used + l + 1 > cap) {
+                while (used + l + 1 > cap) cap *= 2;
+                lines_buf = (char *)realloc(lines_buf, cap);
+                if (!lines_buf) return 6;
+            }
+            memcpy(lines_buf + used, line, l + 1);
+            used += l + 1;
+        }
+        for (p = lines_buf; p < lines_buf + used; p += strlen(p) + 1) {
+            tb_sample s;
+            double temps[MAX_TEMPS];
+            char *q = p + 1, *end;
+            int n = 0, meas;
+            if (p[0] != 'S') continue;
+            s.t_s = strtod(q, &end); q = end;
+            s.axis_mm = strtod(q, &end); q = end;
+            s.feed_mm_min = strtod(q, &end); q = end;
+            s.load_N = strtod(q, &end); q = end;
+            meas = (int)strtol(q, &end, 10); q = end;
+            for (;;) {
+                double v = strtod(q, &end);
+                if (end == q || n == MAX_TEMPS) break;
+                temps[n++] = v;
+                q = end;
+            }
+            s.measuring = meas;
+            s.temps_C = temps;
+            s.n_temps = (uint32_t)n;
+            rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
+            if (rc != TB_OK) {
+                fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", s.t_s, rc, tb_strerror(rc));
+                return 8;
+            }
+            answer(ready(), 0);
+        }
+        free(lines_buf);
+    }
+    rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
+    if (rc != TB_OK) return 9;
+    answer(0, 1);
+    free(queries);
+    return 0;
+}

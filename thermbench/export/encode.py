@@ -1,0 +1,334 @@
+"""Fitted thermbench models -> compact model files (payload layouts of format v1).
+
+Every payload starts with the sample period ``period_s`` (0: any sampling; the GRU
+history and the classifier window need a uniformly sampled log), then, for models
+that read temperatures, the **sensor block**::
+
+    channel[S]                        index of each sensor in the exported input list
+    per sensor: n_steps, (type, p1, p2) x 4   preprocessing chain (seed 002 §2.3.1):
+                                      type 1 limit filter (limit_C, max_hold or 0),
+                                      type 2 Kalman (R, Q); unused steps are zeros
+
+then the **geometric block** (the geometric error the model separated)::
+
+    gtype, n, off, scl, data..., m, origin, extra[m]
+    gtype 0: none; 1: polynomial sum_i c_i (off + scl x)^i (numpy Polynomial with its
+    domain map, n = degree + 1); 2: table x[n] (increasing), y[n], linear in between;
+    plus sum_k extra_k (x - origin)^k (the AR model's cold-state curve)
+
+then the kind's body (see each ``_encode_*``). Temperatures enter as rises dT above
+the run's first filtered sample, as in the Python models.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.polynomial import Polynomial
+
+from ..models.base import ModelError, ThermalErrorModel
+from ..preprocess.filters import KalmanFilter, LimitFilter, resolve_steps
+from .fileformat import Kind
+
+MAX_FILTER_STEPS = 4
+ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
+
+
+class ExportError(ValueError):
+    """A model that cannot be exported as asked; the message says which part and why."""
+
+
+@dataclass
+class Encoded:
+    """One model file's content and what its manifest says about it."""
+
+    kind: Kind
+    dims: list[int]
+    payload: list[float]
+    sensors: list[str] = field(default_factory=list)  # in channel order of this file
+    needs_load: bool = False
+    period_s: float = 0.0
+    notes: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------ blocks ---
+def filter_chain(preprocess, column: str, where: str) -> list[float]:
+    """The sensor block entries of one sensor: n_steps then 4 (type, p1, p2) triples."""
+    try:
+        steps = resolve_steps(preprocess)
+    except ValueError as exc:
+        raise ExportError(f"{where}: preprocess: {exc}") from None
+    if len(steps) > MAX_FILTER_STEPS:
+        raise ExportError(f"{where}: preprocess has {len(steps)} steps; the runtime runs at most {MAX_FILTER_STEPS}")
+    out = [float(len(steps))]
+    for s in steps:
+        if type(s) is LimitFilter:
+            limit, max_hold = s._check()
+            out += [1.0, limit, float(max_hold or 0)]
+        elif type(s) is KalmanFilter:
+            R, Q = s.params_for(column)
+            out += [2.0, R, Q]
+        else:
+            raise ExportError(
+                f"{where}: preprocess step {type(s).__name__} has no C implementation "
+                "(the runtime runs LimitFilter and KalmanFilter, seed 002 §2.3.1)"
+            )
+    return out + [0.0] * (3 * (MAX_FILTER_STEPS - len(steps)))
+
+
+def sensor_block(sensors: Sequence[str], preprocess, channels: dict[str, int], where: str) -> list[float]:
+    out = [float(channels[s]) for s in sensors]
+    for s in sensors:
+        out += filter_chain(preprocess, f"{s}_C", where)
+    return out
+
+
+def geometric_block(geom, where: str) -> list[float]:
+    """The geometric block of a fitted geometric-error callable."""
+    from ..models.autoregressive import _GeometricPlusCurve
+    from ..models.separation import TargetTable
+
+    extra: list[float] = [0.0, 0.0]
+    if isinstance(geom, _GeometricPlusCurve):
+        extra = [float(geom.coef.size), geom.origin_mm, *map(float, geom.coef)]
+        geom = geom.base
+    if geom is None:
+        head = [0.0, 0.0, 0.0, 0.0]
+    elif isinstance(geom, Polynomial):
+        off, scl = geom.mapparms()
+        head = [1.0, float(geom.coef.size), float(off), float(scl), *map(float, geom.coef)]
+    elif isinstance(geom, TargetTable):
+        head = [2.0, float(geom.axis_mm.size), 0.0, 0.0, *map(float, geom.axis_mm), *map(float, geom.error_um)]
+    else:
+        raise ExportError(f"{where}: geometric error of type {type(geom).__name__} has no file encoding")
+    return head + extra
+
+
+def _channels_for(sensors: Sequence[str], channels: dict[str, int] | None) -> dict[str, int]:
+    if channels is None:
+        return {s: i for i, s in enumerate(sensors)}
+    missing = [s for s in sensors if s not in channels]
+    if missing:
+        raise ExportError(f"sensors {missing} are not among the exported inputs {list(channels)}")
+    return channels
+
+
+# ------------------------------------------------------------------ kinds ---
+def _encode_mlr_curve(m, channels, where) -> Encoded:
+    """seed 002 eq. 6-11 / seed 004. Body: origin, coef[(D+1) x (1+S)] (row i: k_i0, k_i1..)."""
+    S, D = len(m.sensors_), int(m.shape_degree_)
+    ch = _channels_for(m.sensors_, channels)
+    payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [float(m.origin_), *np.asarray(m.curve_coef_, dtype=float).ravel()]
+    return Encoded(Kind.MLR_CURVE, [S, D], payload, list(m.sensors_))
+
+
+def _encode_mlr001(m, channels, where) -> Encoded:
+    """seed 001 eq. 12. Body: origin, a1..am, b1, c."""
+    ch = _channels_for(m.sensors_, channels)
+    payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [float(m.origin_), *np.asarray(m._coef_vector_, dtype=float)]
+    return Encoded(Kind.MLR_SEED001, [2, int(m.degree_)], payload, list(m.sensors_))
+
+
+def _encode_lssvm(m, channels, where, reduced: dict | None = None) -> Encoded:
+    """seed 002 eq. 12-14. Body: mean[d], scale[d], sigma2, b (hi, lo), alpha hi[N], lo[N],
+    sv[N x d] (d = S + 1,
+    features [dT..., position]); ``reduced``: a reduced-set expansion (:mod:`.reduce`)."""
+    r = m.regressor_
+    S = len(m.sensors_)
+    ch = _channels_for(m.sensors_, channels)
+    alpha, sv, b = (r.alpha_, r.X_fit_, r.b_) if reduced is None else (reduced["alpha"], reduced["sv"], reduced["b"])
+    payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [*map(float, r.mean_), *map(float, r.scale_), float(r.sigma2_), *split_f32(b)]
+    payload += [*split_f32(alpha), *np.asarray(sv, dtype=float).ravel()]
+    return Encoded(Kind.LSSVM, [S, int(np.asarray(alpha).size)], payload, list(m.sensors_))
+
+
+def split_f32(values) -> list[float]:
+    """``values`` as float32 hi parts then lo parts (hi + lo = the value to ~1e-14 relative):
+    LSSVM weights are large and cancel, and float32 alone would move a prediction by
+    ~1e-8 x sum|alpha| (0.006 um on the seed000_x bank)."""
+    v = np.atleast_1d(np.asarray(values, dtype=float))
+    hi = v.astype(np.float32).astype(float)
+    return [*hi, *(v - hi)]
+
+
+def _linear_layers(net) -> tuple[list, str | None]:
+    from torch import nn
+
+    from ..models.neural import ACTIVATIONS
+
+    layers, act = [], None
+    for mod in net.body:
+        if isinstance(mod, nn.Linear):
+            layers.append(mod)
+        else:
+            name = next((k for k, v in ACTIVATIONS.items() if isinstance(mod, v)), None)
+            if name is None:
+                raise ExportError(f"MLP layer {type(mod).__name__} has no C implementation")
+            act = name
+    return layers, act
+
+
+def _encode_mlp(m, channels, where) -> Encoded:
+    """Body: in_mean[d], in_scale[d], y_mean, y_scale, widths[L], then per layer W (out x in), b."""
+    S = len(m.sensors_)
+    ch = _channels_for(m.sensors_, channels)
+    layers, act = _linear_layers(m.net_)
+    act = act or m.activation
+    payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [*map(float, m.input_mean_[0]), *map(float, m.input_scale_[0]), m.y_mean_um_, m.y_scale_um_]
+    payload += [float(l.out_features) for l in layers]
+    for l in layers:
+        payload += [*l.weight.detach().double().numpy().ravel(), *l.bias.detach().double().numpy()]
+    return Encoded(Kind.MLP, [S, len(layers), ACTIVATION_CODES[act]], payload, list(m.sensors_))
+
+
+def _encode_gru(m, channels, where, period_s: float) -> Encoded:
+    """Body: step_s, seq_mean[S], seq_scale[S], p_mean, p_scale, y_mean, y_scale, W_ih (3H x S),
+    W_hh (3H x H), b_ih, b_hh (PyTorch gate order r, z, n), head W ((D+1) x H), head b."""
+    if not period_s > 0:
+        raise ExportError(f"{where}: the GRU history needs the log's sample period (got {period_s})")
+    S = len(m.sensors_)
+    ch = _channels_for(m.sensors_, channels)
+    g, head = m.net_.gru, m.net_.head
+    H = int(g.hidden_size)
+    D = int(m.net_.degree)
+    t = lambda x: x.detach().double().numpy().ravel()  # noqa: E731
+    payload = [period_s, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [float(m.step_s), *map(float, m.input_mean_[0]), *map(float, m.input_scale_[0])]
+    payload += [float(m.input_mean_[1][0]), float(m.input_scale_[1][0]), m.y_mean_um_, m.y_scale_um_]
+    payload += [*t(g.weight_ih_l0), *t(g.weight_hh_l0), *t(g.bias_ih_l0), *t(g.bias_hh_l0), *t(head.weight), *t(head.bias)]
+    return Encoded(Kind.GRU, [S, H, D, int(m.n_lags_)], payload, list(m.sensors_), period_s=period_s)
+
+
+PHYSICS_PARAMS = (
+    "dx_m dt_s per_step macro_dt_s n_nodes n_bearing nut_length_m fixed_bearing_length_m length_m cap_J_K "
+    "cond_W_K side_area_m2 end_area_m2 alpha_per_K k1 k2 k3 k4 pf_m ambient_mode amb_amplitude_C amb_period_s "
+    "amb_phase_s amb_rate_C_per_h free_end kF free_k_nodes motor k_motor tau_motor_s k5 load k6 fixed_fixed kappa "
+    "origin_drift beta_um_per_K housing_tau_s housing_gain_K_per_W housing_gain_K_per_mm_min housing_coupling"
+).split()
+
+
+def _encode_physics(m, channels, where) -> Encoded:
+    """seed 000 §3.1-3.2 + effects. Body: the 41 values of :data:`PHYSICS_PARAMS`."""
+    from ..sim.effects import (
+        AmbientDrift,
+        FixedFixedConstraint,
+        FreeEndBearingHeat,
+        LoadDependentHeat,
+        MotorHeat,
+        OriginDrift,
+        QuadraticFrictionHeat,
+    )
+
+    sm = m.model_
+    g, core, num = sm.geom, sm.core, sm.numerics
+    eff = {e.id: e for e in sm.effects}
+    known = {c.id for c in (AmbientDrift, FixedFixedConstraint, FreeEndBearingHeat, LoadDependentHeat, MotorHeat,
+                            OriginDrift, QuadraticFrictionHeat)}  # fmt: skip
+    unknown = sorted(set(eff) - known)
+    if unknown:
+        raise ExportError(f"{where}: effect(s) {unknown} have no C implementation")
+    sensors = [m.ambient_name_] if m.ambient_name_ else []
+    ch = _channels_for(sensors, channels)
+    amb = eff.get(AmbientDrift.id)
+    mode = 1 if sensors else (2 if amb is not None else 0)
+    fe, mo, qf, ld, ff, od = (eff.get(k) for k in (FreeEndBearingHeat.id, MotorHeat.id, QuadraticFrictionHeat.id,
+                                                      LoadDependentHeat.id, FixedFixedConstraint.id, OriginDrift.id))  # fmt: skip
+    house = sm.housings["fixed_bearing_housing"]
+    if od is not None and (house.source != "fixed_bearing" or house.screw_at != "fixed_end"):
+        raise ExportError(f"{where}: origin_drift: the runtime models the fixed-bearing housing driven by the "
+                          f"fixed bearing at the fixed end; this model's housing is {house}")  # fmt: skip
+    n = g.n_nodes
+    vals = {
+        "dx_m": num.dx_m, "dt_s": num.dt_s, "per_step": num.per_step, "macro_dt_s": num.macro_dt_s, "n_nodes": n,
+        "n_bearing": g.n_bearing, "nut_length_m": sm.screw.nut_length_m,
+        "fixed_bearing_length_m": sm.screw.fixed_bearing_length_m, "length_m": sm.screw.length_m,
+        "cap_J_K": g.cap_J_K, "cond_W_K": sm.material_conductance(core.lambda_W_mK), "side_area_m2": g.side_area_m2,
+        "end_area_m2": g.end_area_m2, "alpha_per_K": sm.material.alpha_per_K, "k1": core.k1_W_m2K_per_mm_min,
+        "k2": core.k2_W_m2K, "k3": core.k3_W_per_mm_min, "k4": core.k4_W_per_mm_min, "pf_m": core.pf_m,
+        "ambient_mode": mode,
+        "amb_amplitude_C": amb.amplitude_C if amb else 0.0, "amb_period_s": amb.period_s if amb else 0.0,
+        "amb_phase_s": amb.phase_s if amb else 0.0, "amb_rate_C_per_h": amb.rate_C_per_h if amb else 0.0,
+        "free_end": fe is not None, "kF": fe.kF_W_per_mm_min if fe else 0.0,
+        "free_k_nodes": max(1, int(math.ceil(fe.length_m / num.dx_m - 1e-9))) if fe else 0,
+        "motor": mo is not None, "k_motor": mo.k_motor_W_per_mm_min if mo else 0.0, "tau_motor_s": mo.tau_s if mo else 0.0,
+        "k5": qf.k5_W_per_mm_min2 if qf else 0.0, "load": ld is not None, "k6": ld.k6_W_per_N_mm_min if ld else 0.0,
+        "fixed_fixed": ff is not None, "kappa": ff.kappa if ff else 0.0,
+        "origin_drift": od is not None, "beta_um_per_K": od.beta_um_per_K if od else 0.0,
+        "housing_tau_s": house.tau_s, "housing_gain_K_per_W": house.gain_K_per_W,
+        "housing_gain_K_per_mm_min": house.gain_K_per_mm_min, "housing_coupling": house.screw_coupling,
+    }  # fmt: skip
+    payload = [0.0, *sensor_block(sensors, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
+    payload += [float(vals[k]) for k in PHYSICS_PARAMS]
+    return Encoded(Kind.PHYSICS, [len(sensors), n], payload, sensors, needs_load=ld is not None)
+
+
+def _encode_ar(m, channels, where) -> Encoded:
+    """seed 003 (our reading). Body: origin, sample_s, nu x (column code 0 feed / 1 load, power),
+    ar[(D+1) x na], input[(D+1) x nb x nu], offset[D+1]."""
+    codes = {"feed_mm_min": 0, "load_N": 1}
+    terms = []
+    for col, power in m.operating_:
+        if col not in codes:
+            raise ExportError(f"{where}: operating column {col!r}: the runtime reads feed_mm_min and load_N only")
+        terms += [float(codes[col]), float(power)]
+    D = int(m.shape_degree_)
+    payload = [0.0, *geometric_block(m.geometric_, where), float(m.origin_), float(m.sample_), *terms]
+    payload += [*np.asarray(m.ar_coef_, dtype=float).ravel(), *np.asarray(m.input_coef_, dtype=float).ravel()]
+    payload += [*np.asarray(m.offset_, dtype=float)]
+    return Encoded(Kind.AR, [D, int(m.na_), int(m.nb_), len(m.operating_)], payload,
+                   needs_load=any(c == "load_N" for c, _ in m.operating_))  # fmt: skip
+
+
+def encode_classifier(bank, period_s: float, where: str = "classifier") -> Encoded:
+    """seed 002 eq. 15-19 with the bank's window. Body: window_s, step_s, min_moving_s,
+    levels A[nA] (stroke), B[nB] (start + end), C[nC] (feed), then per condition its
+    three level indices (conditions in the classifier's class order)."""
+    from ..classify import FACTORS, ProximityNaiveBayes
+
+    clf = bank.classifier_
+    if type(clf) is not ProximityNaiveBayes:
+        raise ExportError(f"{where}: classifier {type(clf).__name__} has no C implementation (ProximityNaiveBayes has)")
+    if not period_s > 0:
+        raise ExportError(f"{where}: the motion window needs the log's sample period (got {period_s})")
+    lv = [np.asarray(clf.levels_[f], dtype=float) for f in FACTORS]
+    payload = [period_s, float(bank.window_s), float(bank.step_s), float(bank.min_moving_s)]
+    payload += [*lv[0], *lv[1], *lv[2], *np.asarray(clf.condition_levels_, dtype=float).ravel()]
+    return Encoded(Kind.CLASSIFIER, [len(clf.classes_), lv[0].size, lv[1].size, lv[2].size], payload, period_s=period_s)
+
+
+def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, period_s: float = 1.0,
+           where: str = "model", lssvm_reduced: dict | None = None) -> Encoded:  # fmt: skip
+    """The file content of one fitted model of any family but the bank (see :func:`thermbench.export.bundle`)."""
+    from ..models.autoregressive import AutoRegressiveSeed003
+    from ..models.lssvm import PSOLSSVM
+    from ..models.mlr import MLRSeed001, _CurveRegression
+    from ..models.neural import GRUModel, MLPModel
+    from ..models.physics import PhysicsModel
+
+    if not hasattr(model, "train_runs_"):
+        raise ExportError(f"{where}: the model is not fitted")
+    try:
+        if isinstance(model, _CurveRegression):
+            return _encode_mlr_curve(model, channels, where)
+        if isinstance(model, MLRSeed001):
+            return _encode_mlr001(model, channels, where)
+        if isinstance(model, PSOLSSVM):
+            return _encode_lssvm(model, channels, where, lssvm_reduced)
+        if isinstance(model, MLPModel):
+            return _encode_mlp(model, channels, where)
+        if isinstance(model, GRUModel):
+            return _encode_gru(model, channels, where, period_s)
+        if isinstance(model, PhysicsModel):
+            return _encode_physics(model, channels, where)
+        if isinstance(model, AutoRegressiveSeed003):
+            return _encode_ar(model, channels, where)
+    except ModelError as exc:
+        raise ExportError(f"{where}: {exc}") from None
+    raise ExportError(f"{where}: no file encoding for {type(model).__name__}")

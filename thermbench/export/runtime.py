@@ -1,0 +1,128 @@
+"""Build and drive the portable C runtime (``embedded/``) from Python.
+
+:func:`build` compiles the runtime with one of its host tools by gcc (C99, ``-Wall
+-Wextra -Werror``), cached by a hash of the sources and flags; :func:`replay`
+streams a run's process log through it (``tb_replay``) and returns its
+predictions at query points; :func:`info` reads each file's kind, size and state
+bytes as the runtime sees them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
+SANITIZE = ("-fsanitize=address,undefined", "-fno-omit-frame-pointer", "-fno-sanitize-recover=all", "-g")
+
+
+class RuntimeUnavailable(RuntimeError):
+    """The C runtime cannot be built or run here (no compiler, sources missing, ...)."""
+
+
+class RuntimeFailed(RuntimeError):
+    """The C runtime ran and reported an error (its message is included)."""
+
+
+def embedded_dir() -> Path:
+    """``$THERMBENCH_EMBEDDED_DIR``, else ``embedded/`` next to the package (a source checkout)."""
+    env = os.environ.get("THERMBENCH_EMBEDDED_DIR")
+    d = Path(env) if env else Path(__file__).resolve().parents[2] / "embedded"
+    if not (d / "src" / "tb_runtime.c").exists():
+        raise RuntimeUnavailable(f"the C runtime sources are not at {d}; set THERMBENCH_EMBEDDED_DIR to the project's embedded/")
+    return d
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("THERMBENCH_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "thermbench")
+    return Path(base) / "embedded"
+
+
+def sources(tool: str) -> list[Path]:
+    d = embedded_dir()
+    return [d / "src" / "tb_runtime.c", d / "tools" / f"{tool}.c"]
+
+
+def build(tool: str = "tb_replay", extra_flags: Sequence[str] = (), sanitize: bool = False, cc: str | None = None) -> Path:
+    """Compile ``embedded/tools/<tool>.c`` with the runtime; returns the executable (cached)."""
+    cc = cc or os.environ.get("CC", "gcc")
+    if shutil.which(cc) is None:
+        raise RuntimeUnavailable(f"no C compiler {cc!r} on PATH: the C runtime needs one (install gcc)")
+    d = embedded_dir()
+    flags = [*CFLAGS, *(SANITIZE if sanitize else ()), *extra_flags, f"-I{d / 'include'}"]
+    h = hashlib.sha256()
+    for p in [*sources(tool), d / "include" / "tb_runtime.h"]:
+        h.update(p.read_bytes())
+    h.update(" ".join([cc, *flags]).encode())
+    out = cache_dir() / f"{tool}-{h.hexdigest()[:16]}"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    os.close(fd)
+    try:
+        cmd = [cc, *flags, *map(str, sources(tool)), "-o", tmp, "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeFailed(f"compiling the C runtime failed ({' '.join(cmd)}):\n{res.stderr}")
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def stream_text(samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame) -> str:
+    """The ``tb_replay`` input: queries (``t_s``, ``axis_mm``) then samples (``t_s``, ``axis_mm``,
+    ``feed_mm_min``, optional ``load_N`` and ``measuring``, and the ``temps`` columns)."""
+    n = len(samples)
+    cols = [samples["t_s"], samples["axis_mm"], samples["feed_mm_min"],
+            samples["load_N"] if "load_N" in samples else np.zeros(n),
+            samples["measuring"].astype(int) if "measuring" in samples else np.zeros(n, dtype=int)]  # fmt: skip
+    arr = np.column_stack([np.asarray(c, dtype=float) for c in cols] + [samples[c].to_numpy(dtype=float) for c in temps])
+    lines = [f"Q {t!r} {x!r}" for t, x in zip(queries["t_s"].astype(float), queries["axis_mm"].astype(float))]
+    fmt = "S " + " ".join(["%.17g"] * 4 + ["%d"] + ["%.17g"] * len(temps))
+    lines += [fmt % (r[0], r[1], r[2], r[3], int(r[4]), *r[5:]) for r in arr]
+    return "\n".join(lines) + "\n"
+
+
+def run_tool(exe: Path, args: Sequence[str], stdin: str = "", env: dict | None = None, valgrind: Sequence[str] = ()) -> str:
+    cmd = [*valgrind, str(exe), *map(str, args)]
+    res = subprocess.run(cmd, input=stdin, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        raise RuntimeFailed(f"{exe.name} exited with {res.returncode}: {res.stderr.strip()[-2000:]}")
+    return res.stdout
+
+
+def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
+           bank: bool = False, sanitize: bool = False, exe: Path | None = None) -> pd.DataFrame:  # fmt: skip
+    """Run the C runtime over ``samples`` and answer ``queries``: a DataFrame with ``t_s``,
+    ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``."""
+    exe = exe or build("tb_replay", sanitize=sanitize)
+    args = (["--bank"] if bank else []) + [str(f) for f in files]
+    out = run_tool(exe, args, stream_text(samples, temps, queries))
+    rows = [ln.split() for ln in out.splitlines() if ln.strip()]
+    df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
+    df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})
+    bad = df[df["rc"] != 0]
+    if not bad.empty:
+        raise RuntimeFailed(f"the runtime could not answer {len(bad)} of {len(df)} queries (first: t={bad['t_s'].iloc[0]} s, "
+                            f"code {bad['rc'].iloc[0]})")  # fmt: skip
+    return df
+
+
+def info(files: Sequence[Path]) -> pd.DataFrame:
+    """Per file, as the runtime sees it: ``kind``, ``file_bytes``, ``state_bytes`` (the arena its
+    running state needs) and ``model_bytes`` (the ``tb_model`` handle)."""
+    out = run_tool(build("tb_replay"), ["--info", *map(str, files)])
+    rows = [ln.split() for ln in out.splitlines() if ln.strip()]
+    df = pd.DataFrame(rows, columns=["file", "kind", "file_bytes", "state_bytes", "model_bytes"])
+    return df.astype({"kind": int, "file_bytes": int, "state_bytes": int, "model_bytes": int})
