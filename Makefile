@@ -1,6 +1,8 @@
 # Two commands do all set-up on a fresh machine:
 #   make demo   create .venv, install thermbench, run the main job (the robustness benchmark)
+#               and export its models for the embedded compensator (exports/, C runtime checked)
 #   make test   create/update .venv with dev extras, run the whole test suite
+#   make fuzz   libFuzzer on the C runtime's model-file loader (needs clang; FUZZ_SECONDS=300)
 # torch is pinned to the CPU build 2.13.0 through constraints.txt, so pip never
 # resolves a multi-GB CUDA build.
 
@@ -11,7 +13,10 @@ PIP    := $(BIN)/python -m pip
 export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 
-.PHONY: demo test install install-dev bench clean
+FUZZ_SECONDS ?= 300
+FUZZ_DIR     ?= build/fuzz
+
+.PHONY: demo test install install-dev bench fuzz clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +34,7 @@ install-dev: $(VENV)/.installed-dev
 
 demo: $(VENV)/.installed
 	$(BIN)/thermbench benchmark
+	$(BIN)/thermbench export
 
 test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q
@@ -37,6 +43,15 @@ bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_simulator.py
 	$(BIN)/python benchmarks/bench_identification.py
 	$(BIN)/python benchmarks/bench_diagnose.py --runtime
+	$(BIN)/python benchmarks/bench_export.py exports
+
+# the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
+fuzz:
+	mkdir -p $(FUZZ_DIR)/corpus
+	clang -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined -Iembedded/include \
+	  embedded/src/tb_runtime.c embedded/fuzz/tb_fuzz_loader.c -o $(FUZZ_DIR)/tb_fuzz -lm
+	$(FUZZ_DIR)/tb_fuzz -max_total_time=$(FUZZ_SECONDS) -max_len=65536 -print_final_stats=1 \
+	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus embedded/fuzz/corpus
 
 clean:
-	rm -rf $(VENV) data/ .pytest_cache
+	rm -rf $(VENV) data/ .pytest_cache build/

@@ -41,10 +41,12 @@ def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that are user mistakes: reported in one line, no traceback."""
     from .data.io import DatasetError
     from .experiment import ExperimentError
+    from .export import ExportError, ModelFileError, RuntimeUnavailable
     from .models.base import ModelError
     from .tracking import TrackingError
 
-    return (ConfigError, DatasetError, ExperimentError, ModelError, TrackingError, FileNotFoundError)
+    return (ConfigError, DatasetError, ExperimentError, ModelError, TrackingError, FileNotFoundError, ExportError,
+            ModelFileError, RuntimeUnavailable)  # fmt: skip
 
 
 def print_result(res) -> None:

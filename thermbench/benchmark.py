@@ -260,14 +260,20 @@ def benchmark(cfg: DictConfig) -> JobResult:
     models = {f"{o['dataset']}__{o['family']}__{a}": m for o in done_tasks for a, m in o["models"].items()}
     chosen_keys = [f"{r.dataset}__{r.family}__{r.approach}" for r in chosen.itertuples()]
     model_dir = Path(str(cfg.export_dir))
-    save_models(models, model_dir, chosen=chosen_keys)
+    extra = {}
+    for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
+        cell = headline_metrics(g, list(g.loc[g["kind"] == "validation", "run_id"].unique()))
+        extra[f"{d}__{f}__{a}"] = {"dataset": str(d), "metrics": {k: float(v) for k, v in cell.items()}}
     logged = {}
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
+        for v in extra.values():
+            v["mlflow_run_id"] = run.info.run_id  # the run that holds these models (thermbench export reads it)
+        save_models(models, model_dir, chosen=chosen_keys, extra=extra)
         mlflow.set_tags(tracking.standard_tags(";".join(data_hashes), h, "benchmark"))
         tracking.log_config(conf)
         metrics = {}
         for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
-            cell = headline_metrics(g, list(g.loc[g["kind"] == "validation", "run_id"].unique()))
+            cell = extra[f"{d}__{f}__{a}"]["metrics"]
             for k in ("validation_worst_compensation_rate", "validation_max_abs_residual_um"):
                 if k in cell:
                     metrics[f"{d}/{f}/{a}/{k}"] = cell[k]

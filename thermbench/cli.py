@@ -6,6 +6,10 @@
                                                seed 002 §2.4 condition classifier: the chosen condition
     thermbench diagnose DATA_DIR --out OUT_DIR [--base EFFECT,...] [--max-effects K] [overrides...]
                                                discrepancy workflow: name the effect the physics model misses
+    thermbench replay MODEL_DIR DATA_DIR --run ID [--out OUT_DIR]
+                                               an exported model in the C runtime over a run's log: before/after
+    thermbench precompensate PROGRAM.nc --model MODEL.joblib --out OUT.nc [--verify] [...]
+                                               seed 003: rewrite a part program against the predicted error
     thermbench train|evaluate|benchmark|export [hydra overrides...] [-m]
                                                Hydra jobs (thermbench.app): conf/<job>.yaml
 """
@@ -97,12 +101,35 @@ def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int
     return 0
 
 
+def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None) -> int:
+    from .export.replay import format_replay, replay_run, write_replay
+
+    res = replay_run(Path(model_dir), Path(data_dir), run)
+    out_dir = Path(out) if out else Path("replays") / f"{Path(model_dir).name}__{run}"
+    write_replay(res, out_dir)
+    print(format_replay(res["figures"]))
+    print(f"  -> {out_dir.resolve()}")
+    return 0
+
+
+def cmd_precompensate(args) -> int:
+    from .precompensate import format_summary, run_precompensate
+
+    res = run_precompensate(args.program, args.model, args.out, dataset=args.dataset,
+                            truth="auto" if args.verify else None, axis=args.axis, rapid_mm_min=args.rapid,
+                            sample_s=args.sample, start_mm=args.start_mm, work_offset_mm=args.work_offset,
+                            ambient_C=args.ambient, decimals=args.decimals)  # fmt: skip
+    print(format_summary(res))
+    return 0
+
+
 HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 
 
 def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
     from .data.io import DatasetError
+    from .export import RuntimeUnavailable
     from .models.base import ModelError
     from .tracking import TrackingError
 
@@ -136,6 +163,27 @@ def main(argv: list[str] | None = None) -> int:
     p_dia.add_argument("--base", default=None, help="canonical effects already in the model, comma-separated")
     p_dia.add_argument("--max-effects", type=int, default=None, help="add at most K effects (default 3)")
     p_dia.add_argument("overrides", nargs="*", help="Hydra overrides of conf/diagnose.yaml, e.g. track=false")
+    p_rep = sub.add_parser("replay", help="drive an exported model in the C runtime with a run's process log; "
+                           "error before/after compensation")  # fmt: skip
+    p_rep.add_argument("model_dir", help="a directory written by thermbench export (manifest.json)")
+    p_rep.add_argument("data_dir", help="dataset directory in the contract format")
+    p_rep.add_argument("--run", required=True, help="run id to replay")
+    p_rep.add_argument("--out", default=None, help="output directory (default replays/<model>__<run>)")
+    p_pre = sub.add_parser("precompensate", help="seed 003: revise a part program before machining (no sensors)")
+    p_pre.add_argument("program", help="G-code program (mm, G21)")
+    p_pre.add_argument("--model", required=True, help="fitted physics or AR model (.joblib), e.g. "
+                       "models/benchmark/seed000_x__physics__global.joblib")  # fmt: skip
+    p_pre.add_argument("--out", required=True, help="rewritten program (written atomically)")
+    p_pre.add_argument("--dataset", default=None, help="dataset the model was trained on: benchmark name or directory "
+                       "(default: from a benchmark model file name <dataset>__<family>__<approach>.joblib)")  # fmt: skip
+    p_pre.add_argument("--axis", default="X")
+    p_pre.add_argument("--rapid", type=float, default=10000.0, help="G0 feed, mm/min")
+    p_pre.add_argument("--sample", type=float, default=1.0, help="planned process log step, s (<= 1)")
+    p_pre.add_argument("--start-mm", type=float, default=None, help="axis position before the first block")
+    p_pre.add_argument("--work-offset", type=float, default=0.0, help="axis position = program coordinate + this, mm")
+    p_pre.add_argument("--ambient", type=float, default=20.0, help="ambient held constant for a physics model, °C")
+    p_pre.add_argument("--decimals", type=int, default=4)
+    p_pre.add_argument("--verify", action="store_true", help="replay both programs in the simulator that made --dataset")
     # overrides may follow the options (argparse matches positionals in one chunk)
     args, extra = parser.parse_known_args(argv)
     if extra and (args.command != "diagnose" or any(e.startswith("-") for e in extra)):
@@ -145,10 +193,15 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra])
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
+        if args.command == "replay":
+            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out)
+        if args.command == "precompensate":
+            return cmd_precompensate(args)
         if args.command == "classify":
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
-    except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError) as exc:  # user mistakes
+    except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError,
+            RuntimeUnavailable) as exc:  # user mistakes  # fmt: skip
         print(f"thermbench: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

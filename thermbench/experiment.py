@@ -331,23 +331,20 @@ def evaluate(cfg: DictConfig) -> JobResult:
 
 
 def export(cfg: DictConfig) -> JobResult:
-    """Write the model ``export.model_uri`` (or ``models:/<export.name>@<export.alias>``) to
-    ``export.out_dir``: the fitted model (joblib) and a manifest. (The compact model file and
-    the C runtime replace the joblib file when the export issue lands.)"""
-    tracking.connect(cfg.tracking)
-    e = cfg.export
-    uri = tracking.model_uri(e.get("name"), e.get("alias"), e.get("model_uri"))
-    model = tracking.load_model(uri)
-    stem = (e.get("name") or uri.replace("models:/", "").replace("runs:/", "")).replace("/", "_").replace("@", "_")
-    out = Path(str(e.out_dir)) / stem
-    paths = save_models({stem: model}, out, chosen=[stem], source={stem: uri})
-    table = pd.DataFrame([{"model": stem, "source": uri, "file": str(paths[stem])}])
-    return _finish(JobResult("export", table, outputs={"dir": str(out)}))
+    """``thermbench export``: fitted models -> export directories for the embedded compensator
+    (:mod:`thermbench.export`). The source is the benchmark's model directory (default), a
+    fitted model file, or an MLflow model (``export.model_uri`` or ``export.name`` + alias)."""
+    from .export.job import run_export
+
+    table, outputs = run_export(cfg)
+    return _finish(JobResult("export", table, outputs=outputs))
 
 
-def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] = (), source: Mapping[str, str] | None = None) -> dict[str, Path]:
+def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] = (), source: Mapping[str, str] | None = None,
+                extra: Mapping[str, Mapping] | None = None) -> dict[str, Path]:  # fmt: skip
     """Write ``out_dir`` anew: each fitted model as ``<key>.joblib`` plus ``manifest.yaml``
-    marking the chosen ones. The directory is replaced as a whole (no stale or half-written files)."""
+    marking the chosen ones (``extra[key]`` adds entries, e.g. dataset and metrics). The
+    directory is replaced as a whole (no stale or half-written files)."""
     out_dir = Path(out_dir)
     manifest = {}
     with atomic_dir(out_dir) as tmp:
@@ -361,6 +358,7 @@ def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] 
                 "train_runs": list(getattr(m, "train_runs_", [])),
                 "sensors": list(inp.sensors),
                 "source": (source or {}).get(key, "benchmark"),
+                **dict((extra or {}).get(key, {})),
             }
         (tmp / "manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False), encoding="utf-8")
     return {key: out_dir / f"{key}.joblib" for key in models}

@@ -67,6 +67,7 @@ typedef TB_REAL tb_real;
 #define TB_MAX_FEEDS 64u /* distinct feeds in one classifier window */
 #define TB_MAX_WINDOW 100000u
 #define TB_START_SAMPLES 5u /* the limit filter checks the first reading against the next 5 */
+#define TB_MAX_GAP_S 60.0   /* longest gap between samples (the contract logs at >= 1 Hz) */
 
 /* model kinds */
 enum {
@@ -121,7 +122,7 @@ typedef struct {
     uint16_t kind;
     uint32_t dims[TB_MAX_DIMS];
     /* offsets (in float32 values) of the parsed sections */
-    uint32_t off[24];
+    uint32_t off[12];
     uint32_t n_sensors;
     uint32_t max_channel; /* largest temps_C index used + 1 */
     void *state;

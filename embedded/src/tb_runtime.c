@@ -76,6 +76,14 @@ int tb_crc32_check(const uint8_t *file, size_t len, uint32_t *crc_out)
     return TB_OK;
 }
 
+/* floor(v) as an integer clamped to [lo, hi] (NaN -> lo): no float-to-int overflow */
+static int64_t floor_clamp(double v, int64_t lo, int64_t hi)
+{
+    if (!(v >= (double)lo)) return lo;
+    if (v >= (double)hi) return hi;
+    return (int64_t)floor(v);
+}
+
 static double interp1(double t, double t0, double t1, double v0, double v1)
 {
     /* numpy.interp between two samples, clamped */
@@ -278,7 +286,7 @@ typedef struct {
 } motion_t;
 
 typedef struct {
-    uint32_t S;
+    uint32_t S, n_steps; /* channels; filter steps allocated per channel */
     uint32_t n_in;      /* samples received */
     uint32_t started;   /* startup buffer flushed */
     double period_s;
@@ -293,11 +301,22 @@ typedef struct {
     tb_real *h_dT;      /* NHIST x S */
 } common_t;
 
-static void common_carve(arena_t *a, common_t **cm, uint32_t S)
+static uint32_t max_steps(const tb_model *m)
 {
+    uint32_t j, mx = 0;
+    for (j = 0; j < m->n_sensors; j++) {
+        uint32_t n = (uint32_t)PV(m, m->off[O_SENS] + m->n_sensors + SENS_PER * j);
+        if (n > mx) mx = n;
+    }
+    return mx ? mx : 1;
+}
+
+static void common_carve(const tb_model *m, arena_t *a, common_t **cm, uint32_t S)
+{
+    uint32_t ns = max_steps(m);
     common_t *c = (common_t *)carve(a, sizeof(common_t));
     tb_real *bt = (tb_real *)carve(a, sizeof(tb_real) * NBUF * (S ? S : 1));
-    fstate_t *fs = (fstate_t *)carve(a, sizeof(fstate_t) * TB_MAX_FILTER_STEPS * (S ? S : 1));
+    fstate_t *fs = (fstate_t *)carve(a, sizeof(fstate_t) * ns * (S ? S : 1));
     tb_real *t0 = (tb_real *)carve(a, sizeof(tb_real) * (S ? S : 1));
     tb_real *hd = (tb_real *)carve(a, sizeof(tb_real) * NHIST * (S ? S : 1));
     if (a->p && !a->err) {
@@ -307,7 +326,8 @@ static void common_carve(arena_t *a, common_t **cm, uint32_t S)
         c->fs = fs;
         c->T0 = t0;
         c->h_dT = hd;
-        memset(fs, 0, sizeof(fstate_t) * TB_MAX_FILTER_STEPS * (S ? S : 1));
+        c->n_steps = ns;
+        memset(fs, 0, sizeof(fstate_t) * ns * (S ? S : 1));
     }
     *cm = c;
 }
@@ -377,7 +397,7 @@ static void chain_batch(const tb_model *m, common_t *c, uint32_t j, tb_real *v, 
     uint32_t k, i, nsteps = (uint32_t)PV(m, s_at);
     for (k = 0; k < nsteps; k++) {
         uint32_t at = s_at + 1 + FSTEP_VALS * k;
-        fstate_t *f = &c->fs[j * TB_MAX_FILTER_STEPS + k];
+        fstate_t *f = &c->fs[j * c->n_steps + k];
         if (PV(m, at) == 1 && n >= 2) { /* limit filter: first reading a glitch the next ones agree on? */
             uint32_t nn = n - 1 < TB_START_SAMPLES ? n - 1 : TB_START_SAMPLES;
             tb_real med = median_small(v + 1, nn), lo = v[1], hi = v[1];
@@ -397,7 +417,7 @@ static tb_real chain_one(const tb_model *m, common_t *c, uint32_t j, tb_real z)
     uint32_t s_at = m->off[O_SENS] + c->S + SENS_PER * j;
     uint32_t k, nsteps = (uint32_t)PV(m, s_at);
     for (k = 0; k < nsteps; k++)
-        z = fstep_apply(m, s_at + 1 + FSTEP_VALS * k, &c->fs[j * TB_MAX_FILTER_STEPS + k], z);
+        z = fstep_apply(m, s_at + 1 + FSTEP_VALS * k, &c->fs[j * c->n_steps + k], z);
     return z;
 }
 
@@ -616,7 +636,7 @@ static void parse_kind(cur_t *c, tb_model *m)
         parse_sensors(c, m, S);
         parse_geom(c, m);
         m->off[O_BODY] = c->pos;
-        take_val(c, 0, 1e7f, 1); /* step_s */
+        take_val(c, 1e-3f, 1e7f, 0); /* step_s */
         at = take(c, 2 * S);
         for (i = 0; i < S && !c->err; i++)
             if (!(PV(m, at + S + i) > 0)) c->err = TB_E_PAYLOAD;
@@ -647,7 +667,10 @@ static void parse_kind(cur_t *c, tb_model *m)
         dt = PV(m, at + P_DT);
         if (!(dx > 0) || !(dt > 0) || PV(m, at + P_NODES) != (tb_real)n || !(PV(m, at + P_PER_STEP) >= 1) ||
             PV(m, at + P_PER_STEP) != floor(PV(m, at + P_PER_STEP)) || PV(m, at + P_PER_STEP) > 1e6 ||
-            !(PV(m, at + P_MACRO) > 0) || !(PV(m, at + P_NB) >= 0) || PV(m, at + P_NB) > (tb_real)n ||
+            !(PV(m, at + P_MACRO) / PV(m, at + P_PER_STEP) >= (tb_real)1e-3) || PV(m, at + P_MACRO) > 1e5 ||
+            !(fabs((double)(PV(m, at + P_L) / dx) - (double)n) <= 0.5 + 1e-6 * (double)n ||
+              (n == 2 && (double)(PV(m, at + P_L) / dx) < 2.5)) ||
+            !(PV(m, at + P_NB) >= 0) || PV(m, at + P_NB) > (tb_real)n ||
             PV(m, at + P_NB) != floor(PV(m, at + P_NB)) || !(PV(m, at + P_NUT_LEN) > 0) ||
             !(PV(m, at + P_L) > 0) || !(PV(m, at + P_CAP) > 0) || !(PV(m, at + P_COND) >= 0) ||
             (PV(m, at + P_NB) > 0 && !(PV(m, at + P_BEAR_LEN) > 0)) || PV(m, at + P_AMB_MODE) < 0 ||
@@ -669,7 +692,7 @@ static void parse_kind(cur_t *c, tb_model *m)
         parse_sensors(c, m, 0);
         parse_geom(c, m);
         m->off[O_BODY] = take(c, 1); /* origin */
-        take_val(c, 0, 1e7f, 1);     /* sample_s */
+        take_val(c, 1, 1e7f, 0);     /* sample_s >= 1 s (seed 003: 600 s) */
         m->off[O_A] = c->pos;        /* terms: (column code 0 feed / 1 load, power > 0) */
         for (i = 0; i < nu && !c->err; i++) {
             take_int(c, 0, 1);
@@ -689,8 +712,8 @@ static void parse_kind(cur_t *c, tb_model *m)
         }
         if (!(PV(m, 0) > 0)) { c->err = TB_E_PAYLOAD; return; }
         m->off[O_BODY] = c->pos;
-        take_val(c, 0, 1e6f, 1); /* window_s */
-        take_val(c, 0, 1e6f, 1); /* step_s */
+        take_val(c, 0, 1e6f, 1);     /* window_s */
+        take_val(c, 1e-3f, 1e6f, 0); /* step_s */
         take_val(c, 0, 1e6f, 0); /* min_moving_s */
         if (!c->err && PV(m, m->off[O_BODY]) / PV(m, 0) > (tb_real)TB_MAX_WINDOW) c->err = TB_E_DIMS;
         m->off[O_A] = take(c, nA + nB + nC);
@@ -768,7 +791,7 @@ typedef struct {
     int32_t lab[4];
     uint32_t lab_n, lab_head;
     int32_t held;
-    float *scratch;        /* 2 x cap: feeds of the window for clustering */
+    float *scratch;        /* 2 x TB_MAX_FEEDS: distinct feeds of the window and their levels */
 } clf_t;
 
 static size_t floats_for_window(double window_s, double period_s)
@@ -797,21 +820,21 @@ static void kind_carve(const tb_model *m, arena_t *a, void **ks)
     case TB_KIND_PHYSICS: {
         uint32_t n = d[1];
         phys_t *p = (phys_t *)carve(a, sizeof(phys_t));
-        tb_real *arr = (tb_real *)carve(a, sizeof(tb_real) * (8u * n + 2u * (n + 1u)));
+        tb_real *arr = (tb_real *)carve(a, sizeof(tb_real) * (6u * n + 4u * (n + 1u)));
         if (a->p && !a->err) {
             memset(p, 0, sizeof *p);
-            memset(arr, 0, sizeof(tb_real) * (8u * n + 2u * (n + 1u)));
+            memset(arr, 0, sizeof(tb_real) * (6u * n + 4u * (n + 1u)));
             p->n = n;
             p->per_step = (uint32_t)PV(m, m->off[O_BODY] + P_PER_STEP);
             p->theta = arr;
-            p->q_nut = arr + n;
-            p->h_cov = arr + 2 * n;
-            p->diag = arr + 3 * n;
-            p->rhs = arr + 4 * n;
-            p->y1 = arr + 5 * n;
-            p->y2 = arr + 6 * n;
-            p->cp = arr + 7 * n;
-            p->snap_u = arr + 8 * n;
+            p->diag = arr + n;
+            p->rhs = arr + 2 * n;
+            p->y1 = arr + 3 * n;
+            p->y2 = arr + 4 * n;
+            p->cp = arr + 5 * n;
+            p->q_nut = arr + 6 * n;           /* n + 1 */
+            p->h_cov = arr + 7 * n + 1;       /* n + 1 */
+            p->snap_u = arr + 8 * n + 2;      /* 2 (n + 1) */
         }
         *ks = p;
         break;
@@ -835,7 +858,7 @@ static void kind_carve(const tb_model *m, arena_t *a, void **ks)
     case TB_KIND_CLASSIFIER: {
         clf_t *k = (clf_t *)carve(a, sizeof(clf_t));
         size_t cap = floats_for_window((double)PV(m, m->off[O_BODY]), (double)PV(m, 0));
-        float *arr = (float *)carve(a, sizeof(float) * 5u * cap);
+        float *arr = (float *)carve(a, sizeof(float) * (3u * cap + 2u * TB_MAX_FEEDS));
         if (a->p && !a->err) {
             memset(k, 0, sizeof *k);
             k->cap = (uint32_t)cap;
@@ -872,7 +895,7 @@ static size_t layout(const tb_model *m, void *arena, size_t bytes, state_t **st_
     } else {
         common_t *cm;
         void *ks;
-        common_carve(&a, &cm, m->n_sensors);
+        common_carve(m, &a, &cm, m->n_sensors);
         if (arena && !a.err) {
             cm->period_s = (double)PV(m, 0);
         }
@@ -945,50 +968,91 @@ static void solve_tridiag(uint32_t n, const tb_real *diag, tb_real off, const tb
     for (i = n - 1; i-- > 0;) out[i] -= cprime[i] * out[i + 1];
 }
 
-/* one macro step: step averages -> SDIRK2 (the same scheme as thermbench.sim.kernels.macro_run) */
-static void phys_macro(const tb_model *m, phys_t *p)
+/* the parameters the hot loops use, decoded once per call (payload reads cannot be hoisted
+ * by the compiler: the payload is bytes, which may alias the state) */
+typedef struct {
+    uint32_t n, nb, free_k;
+    int motor, free_end, load, od, amb_mode;
+    double dt, macro;
+    tb_real dx, half, L, pf, sign, per_node, k1, k2, k3, k4, k5, k6, kF, kmotor, a_motor;
+    tb_real cap, cond, side, end, bear_len, h_tau, h_gain_w, h_gain_v, h_coupling;
+} phys_par_t;
+
+static void phys_params(const tb_model *m, const phys_t *p, phys_par_t *q)
 {
-    uint32_t i, n = p->n, nb = (uint32_t)PP(m, P_NB);
+    q->n = p->n;
+    q->nb = (uint32_t)PP(m, P_NB);
+    q->macro = (double)PP(m, P_MACRO);
+    q->dt = q->macro / (double)p->per_step; /* as dt_s in Python */
+    q->dx = PP(m, P_DX);
+    q->half = PP(m, P_NUT_LEN) / 2;
+    q->L = PP(m, P_L);
+    q->pf = PP(m, P_PF);
+    q->sign = q->pf <= 0 ? 1 : -1;
+    q->per_node = q->dx / PP(m, P_NUT_LEN);
+    q->k1 = PP(m, P_K1);
+    q->k2 = PP(m, P_K2);
+    q->k3 = PP(m, P_K3);
+    q->k4 = PP(m, P_K4);
+    q->k5 = PP(m, P_K5);
+    q->load = PP(m, P_LOAD) != 0;
+    q->k6 = PP(m, P_K6);
+    q->free_end = PP(m, P_FREE) != 0;
+    q->kF = PP(m, P_KF);
+    q->free_k = (uint32_t)PP(m, P_FREE_K);
+    q->motor = PP(m, P_MOTOR) != 0;
+    q->kmotor = PP(m, P_KMOTOR);
+    q->a_motor = q->motor ? (tb_real)exp(-q->dt / (double)PP(m, P_TAU_MOTOR)) : 0;
+    q->od = PP(m, P_OD) != 0;
+    q->amb_mode = (int)PP(m, P_AMB_MODE);
+    q->cap = PP(m, P_CAP);
+    q->cond = PP(m, P_COND);
+    q->side = PP(m, P_SIDE);
+    q->end = PP(m, P_END);
+    q->bear_len = PP(m, P_BEAR_LEN);
+    q->h_tau = PP(m, P_H_TAU);
+    q->h_gain_w = PP(m, P_H_GAIN_W);
+    q->h_gain_v = PP(m, P_H_GAIN_V);
+    q->h_coupling = PP(m, P_H_COUPLING);
+}
+
+/* one macro step: step averages -> SDIRK2 (the same scheme as thermbench.sim.kernels.macro_run);
+ * the nut heat and cover arrive as difference arrays (thermbench.sim.kernels.accumulate_step_averages) */
+static void phys_macro(const phys_par_t *c, phys_t *p)
+{
+    uint32_t i, n = c->n, nb = c->nb;
     tb_real inv = (tb_real)1 / (tb_real)p->per_step;
     tb_real h_mean = p->h_sum * inv, qb_mean = p->qb_sum * inv, ta = p->dta_sum * inv;
-    tb_real cap = PP(m, P_CAP), cond = PP(m, P_COND), dtm = PP(m, P_MACRO);
-    tb_real gamma = (tb_real)(1.0 - sqrt(2.0) / 2.0), gh = gamma * dtm, off = -gh * cond;
-    tb_real c1 = (1 - gamma) / gamma;
-    tb_real *q = p->q_nut, *g = p->h_cov; /* reused in place as q and g */
-    tb_real local = 0;
-    uint32_t nloc = nb > 0 ? nb : 1;
-    /* housing input at the step start (origin drift): fixed-end temperature */
-    for (i = 0; i < nloc && i < n; i++) local += p->theta[i];
-    local /= (tb_real)nloc;
+    tb_real gamma = (tb_real)(1.0 - sqrt(2.0) / 2.0), gh = gamma * (tb_real)c->macro, off = -gh * c->cond;
+    tb_real c1 = (1 - gamma) / gamma, qa = 0, ha = 0;
+    tb_real *q = p->q_nut, *g = p->h_cov; /* difference arrays in, step averages out (in place) */
     for (i = 0; i < n; i++) {
-        tb_real area = PP(m, P_SIDE) + (i == n - 1 ? PP(m, P_END) : 0);
+        tb_real area = c->side + (i == n - 1 ? c->end : 0);
         if (i < nb) area = 0;
-        q[i] = q[i] * inv;
-        if (i < nb) q[i] += qb_mean * PP(m, P_DX) / PP(m, P_BEAR_LEN);
-        g[i] = (h_mean - g[i] * inv) * area;
+        qa += q[i];
+        ha += g[i];
+        q[i] = qa * inv;
+        if (i < nb) q[i] += qb_mean * c->dx / c->bear_len;
+        g[i] = (h_mean - ha * inv) * area;
     }
-    if (PP(m, P_MOTOR) != 0) q[0] += p->motor_sum * inv;
-    if (PP(m, P_FREE) != 0) {
-        uint32_t k = (uint32_t)PP(m, P_FREE_K);
-        for (i = n - k; i < n; i++) q[i] += p->free_sum * inv * ((tb_real)1 / (tb_real)k);
-    }
+    if (c->motor) q[0] += p->motor_sum * inv;
+    if (c->free_end)
+        for (i = n - c->free_k; i < n; i++) q[i] += p->free_sum * inv * ((tb_real)1 / (tb_real)c->free_k);
     for (i = 0; i < n; i++) {
         tb_real nbh = (i == 0 || i == n - 1) ? 1 : 2;
-        p->diag[i] = cap + gh * (nbh * cond + g[i]);
-        p->rhs[i] = cap * p->theta[i] + gh * (q[i] + g[i] * ta);
+        p->diag[i] = c->cap + gh * (nbh * c->cond + g[i]);
+        p->rhs[i] = c->cap * p->theta[i] + gh * (q[i] + g[i] * ta);
     }
     solve_tridiag(n, p->diag, off, p->rhs, p->y1, p->cp);
-    for (i = 0; i < n; i++) p->rhs[i] = cap * (p->theta[i] + c1 * (p->y1[i] - p->theta[i])) + gh * (q[i] + g[i] * ta);
+    for (i = 0; i < n; i++) p->rhs[i] = c->cap * (p->theta[i] + c1 * (p->y1[i] - p->theta[i])) + gh * (q[i] + g[i] * ta);
     solve_tridiag(n, p->diag, off, p->rhs, p->y2, p->cp);
     for (i = 0; i < n; i++) p->theta[i] = p->y2[i];
-    if (PP(m, P_OD) != 0) { /* fixed-bearing housing, first-order lag over the macro step */
-        tb_real a = (tb_real)exp(-(double)dtm / (double)PP(m, P_H_TAU));
-        tb_real u = PP(m, P_H_GAIN_W) * qb_mean + PP(m, P_H_GAIN_V) * (p->v_sum * inv) + PP(m, P_H_COUPLING) * p->theta_b_local +
-                    p->amb_b_start;
+    if (c->od) { /* fixed-bearing housing, first-order lag over the macro step */
+        tb_real a = (tb_real)exp(-c->macro / (double)c->h_tau);
+        tb_real u = c->h_gain_w * qb_mean + c->h_gain_v * (p->v_sum * inv) + c->h_coupling * p->theta_b_local + p->amb_b_start;
         p->housing_y = a * p->housing_y + (1 - a) * u;
     }
-    (void)local;
-    for (i = 0; i < n; i++) {
+    for (i = 0; i <= n; i++) {
         q[i] = 0;
         g[i] = 0;
     }
@@ -1009,77 +1073,105 @@ static tb_real phys_ambient_rise(const tb_model *m, const phys_t *p, double t, t
     return 0;
 }
 
+/* add value x cover to the difference array d (thermbench.sim.kernels._add_cover) */
+static void add_cover(tb_real *d, int64_t lo, int64_t hi, tb_real w_lo, tb_real w_hi, tb_real v)
+{
+    d[lo] += v;
+    d[hi + 1] -= v;
+    d[lo] -= v * (1 - w_lo);
+    d[lo + 1] += v * (1 - w_lo);
+    if (hi != lo) {
+        d[hi] -= v * (1 - w_hi);
+        d[hi + 1] += v * (1 - w_hi);
+    }
+}
+
 /* fine steps with times <= t_hi (inclusive), values interpolated from the previous sample to
- * (t_hi, x, f, load, amb) as numpy.interp over the log; `hold`: past the log, values held */
+ * (t_hi, x, f, load, amb) as numpy.interp over the log; stops at j_stop */
 static void phys_fine(const tb_model *m, phys_t *p, double t_hi, tb_real x1, tb_real f1, tb_real l1, tb_real a1,
                       uint64_t j_stop)
 {
-    uint32_t n = p->n, nb = (uint32_t)PP(m, P_NB);
-    double macro = (double)PP(m, P_MACRO), dt = macro / (double)p->per_step; /* as dt_s in Python */
-    tb_real dx = PP(m, P_DX), half = PP(m, P_NUT_LEN) / 2, L = PP(m, P_L), pf = PP(m, P_PF);
-    tb_real sign = pf <= 0 ? 1 : -1, per_node = dx / PP(m, P_NUT_LEN);
-    tb_real a_motor = PP(m, P_MOTOR) != 0 ? (tb_real)exp(-dt / (double)PP(m, P_TAU_MOTOR)) : 0;
+    phys_par_t c;
+    double span = t_hi - p->prev_t;
+    tb_real sx, sf, sl, sa;
+    phys_params(m, p, &c);
+    /* the slopes of numpy.interp between the previous sample and this one, computed once */
+    sx = span > 0 ? (x1 - p->prev_x) / (tb_real)span : 0;
+    sf = span > 0 ? (f1 - p->prev_f) / (tb_real)span : 0;
+    sl = span > 0 ? (l1 - p->prev_load) / (tb_real)span : 0;
+    sa = span > 0 ? (a1 - p->prev_amb) / (tb_real)span : 0;
     for (;;) {
-        double tf = p->t0 + (double)p->j * dt;
-        tb_real axis, v, load, amb, xs, h, qn, qb, a, b;
+        double tf = p->t0 + (double)p->j * c.dt;
+        tb_real axis, v, load, amb, xs, h, qn, qb, a, b, u;
         if (p->j >= j_stop || tf > t_hi) break;
         if (p->pending_snap) break; /* the boundary ambient is not known yet */
-        axis = (tb_real)interp1(tf, p->prev_t, t_hi, p->prev_x, x1);
-        v = (tb_real)fabs(interp1(tf, p->prev_t, t_hi, p->prev_f, f1));
-        load = (tb_real)interp1(tf, p->prev_t, t_hi, p->prev_load, l1);
-        amb = phys_ambient_rise(m, p, tf, (tb_real)interp1(tf, p->prev_t, t_hi, p->prev_amb, a1));
-        if (p->j % p->per_step == 0) { /* step start: housing inputs */
-            uint32_t i, nl = nb > 0 ? nb : 1;
-            tb_real s = 0;
-            for (i = 0; i < nl && i < n; i++) s += p->theta[i];
-            p->theta_b_local = s / (tb_real)nl;
+        if (tf <= p->prev_t || span <= 0) {
+            u = 0;
+        } else {
+            u = (tb_real)(tf - p->prev_t);
         }
-        xs = sign * (axis / (tb_real)1000 - pf);
+        if (tf >= t_hi && span > 0) {
+            axis = x1;
+            v = (tb_real)fabs((double)f1);
+            load = l1;
+            amb = a1;
+        } else {
+            axis = p->prev_x + u * sx;
+            v = (tb_real)fabs((double)(p->prev_f + u * sf));
+            load = p->prev_load + u * sl;
+            amb = p->prev_amb + u * sa;
+        }
+        if (c.amb_mode != 1) amb = phys_ambient_rise(m, p, tf, amb);
+        if (p->j % p->per_step == 0) { /* step start: housing inputs */
+            uint32_t i, nl = c.nb > 0 ? c.nb : 1;
+            tb_real s0 = 0;
+            if (c.od) {
+                for (i = 0; i < nl && i < c.n; i++) s0 += p->theta[i];
+                p->theta_b_local = s0 / (tb_real)nl;
+            }
+            p->amb_b_start = p->k == 0 ? 0 : p->snap_amb[p->snap_cur];
+        }
+        xs = c.sign * (axis / (tb_real)1000 - c.pf);
         if (xs < 0) xs = 0;
-        if (xs > L) xs = L;
-        h = PP(m, P_K1) * v + PP(m, P_K2);
-        qb = PP(m, P_K3) * v;
-        qn = PP(m, P_K4) * v + PP(m, P_K5) * v * v;
-        if (PP(m, P_LOAD) != 0) qn += PP(m, P_K6) * load * v;
+        if (xs > c.L) xs = c.L;
+        h = c.k1 * v + c.k2;
+        qb = c.k3 * v;
+        qn = c.k4 * v + c.k5 * v * v;
+        if (c.load) qn += c.k6 * load * v;
         /* nut cover (thermbench.sim.kernels._nut_cover) */
-        a = xs - half;
-        b = xs + half;
-        if (a < (tb_real)nb * dx) a = (tb_real)nb * dx;
-        if (b > (tb_real)n * dx) b = (tb_real)n * dx;
+        a = xs - c.half;
+        b = xs + c.half;
+        if (a < (tb_real)c.nb * c.dx) a = (tb_real)c.nb * c.dx;
+        if (b > (tb_real)c.n * c.dx) b = (tb_real)c.n * c.dx;
         if (b > a) {
-            int64_t lo = (int64_t)floor((double)(a / dx)), hi = (int64_t)floor((double)(b / dx)), i;
+            int64_t lo = floor_clamp((double)(a / c.dx), 0, (int64_t)c.n - 1);
+            int64_t hi = floor_clamp((double)(b / c.dx), 0, (int64_t)c.n - 1);
             tb_real w_lo, w_hi;
-            if (hi >= (int64_t)n) hi = (int64_t)n - 1;
-            if (lo < 0) lo = 0;
             if (lo == hi) {
-                w_lo = w_hi = (b - a) / dx;
+                w_lo = w_hi = (b - a) / c.dx;
             } else {
-                w_lo = (tb_real)(lo + 1) - a / dx;
-                w_hi = b / dx - (tb_real)hi;
+                w_lo = (tb_real)(lo + 1) - a / c.dx;
+                w_hi = b / c.dx - (tb_real)hi;
             }
-            for (i = lo; i <= hi && i < (int64_t)n; i++) {
-                tb_real w = i == lo ? w_lo : (i == hi ? w_hi : 1);
-                p->q_nut[i] += qn * per_node * w;
-                p->h_cov[i] += h * w;
-            }
+            add_cover(p->q_nut, lo, hi, w_lo, w_hi, qn * c.per_node);
+            add_cover(p->h_cov, lo, hi, w_lo, w_hi, h);
         }
         p->h_sum += h;
         p->qb_sum += qb;
         p->dta_sum += amb;
         p->v_sum += v;
-        if (PP(m, P_MOTOR) != 0) {
-            p->motor_sum += PP(m, P_KMOTOR) * p->motor_y;
-            p->motor_y = a_motor * p->motor_y + (1 - a_motor) * v;
+        if (c.motor) {
+            p->motor_sum += c.kmotor * p->motor_y;
+            p->motor_y = c.a_motor * p->motor_y + (1 - c.a_motor) * v;
         }
-        if (PP(m, P_FREE) != 0) p->free_sum += PP(m, P_KF) * v;
-        if (p->j % p->per_step == 0) p->amb_b_start = p->k == 0 ? 0 : p->snap_amb[p->snap_cur];
+        if (c.free_end) p->free_sum += c.kF * v;
         p->j++;
         if (p->j % p->per_step == 0) {
-            phys_macro(m, p);
+            phys_macro(&c, p);
             p->pending_snap = 1;
         }
         if (p->pending_snap) {
-            double t_b = p->t0 + (double)p->k * macro;
+            double t_b = p->t0 + (double)p->k * c.macro;
             if (t_b <= t_hi) {
                 tb_real amb_b = phys_ambient_rise(m, p, t_b, (tb_real)interp1(t_b, p->prev_t, t_hi, p->prev_amb, a1));
                 phys_snapshot(m, p, t_b, amb_b);
@@ -1087,7 +1179,6 @@ static void phys_fine(const tb_model *m, phys_t *p, double t_hi, tb_real x1, tb_
             }
         }
     }
-    (void)macro;
 }
 
 static void phys_sample(const tb_model *m, phys_t *p, const motion_t *mo, const tb_real *dT)
@@ -1125,7 +1216,7 @@ static void phys_finish(const tb_model *m, phys_t *p)
 {
     /* thermbench integrates ceil(span / macro) whole steps, the log's last values held */
     double span = p->prev_t - p->t0, macro = (double)PP(m, P_MACRO);
-    uint64_t steps = (uint64_t)ceil(span / macro - 1e-9), j_stop;
+    uint64_t steps = (uint64_t)-floor_clamp(-(span / macro - 1e-9), -((int64_t)1 << 40), 0), j_stop; /* ceil */
     if (!p->have_t0) return;
     if (steps < 1) steps = 1;
     j_stop = steps * p->per_step;
@@ -1163,7 +1254,7 @@ static int phys_predict(const tb_model *m, const phys_t *p, double t, double axi
     if (x < 0) x = 0;
     if (x > L) x = L;
     nodes = x / dx;
-    mi = (int64_t)floor((double)nodes);
+    mi = floor_clamp((double)nodes, 0, (int64_t)n - 1);
     if (mi < 0) mi = 0;
     if (mi > (int64_t)n - 1) mi = (int64_t)n - 1;
     f = nodes - (tb_real)mi;
@@ -1222,7 +1313,7 @@ static void ar_sample(const tb_model *m, ar_t *r, const motion_t *mo, int final)
         /* thermbench simulates ceil(span / sample_s) intervals; the last one may be partial */
         uint64_t total;
         if (!r->started) return;
-        total = (uint64_t)ceil((r->last_t - r->t0) / dt - 1e-9);
+        total = (uint64_t)-floor_clamp(-((r->last_t - r->t0) / dt - 1e-9), -((int64_t)1 << 40), 0); /* ceil */
         while (r->k < total) {
             for (q = 0; q < nu; q++) u[q] = r->ucount ? r->usum[q] / (tb_real)r->ucount : r->last_v[q];
             ar_close(m, r, u);
@@ -1314,7 +1405,7 @@ static int gru_predict(const tb_model *m, const gru_t *g, const common_t *cm, do
         if (pos <= 0) { i0 = i1 = 0; w = 0; }
         else if (tau >= t_newest) { i0 = i1 = g->n - 1; w = 0; }
         else {
-            i0 = (uint32_t)floor(pos);
+            i0 = (uint32_t)floor_clamp(pos, 0, (int64_t)g->n - 1);
             if (i0 >= g->n - 1) i0 = g->n - 2;
             i1 = i0 + 1;
             w = pos - (double)i0;
@@ -1493,7 +1584,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
 {
     uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo = (uint32_t)-1, hi = 0, a, b;
     double window = (double)PV(m, body), min_moving = (double)PV(m, body + 2), period = k->period;
-    float *u = k->scratch, *lev = k->scratch + k->cap;
+    float *u = k->scratch, *lev = k->scratch + TB_MAX_FEEDS;
     tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], x0 = 0, x1 = 0, total = 0;
     uint32_t dom = 0;
     int found = 0;
@@ -1517,6 +1608,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
         if (!(f > 0)) continue;
         for (j = 0; j < nu && u[j] < f; j++) {}
         if (j < nu && u[j] == f) continue;
+        if (nu == TB_MAX_FEEDS) return -2; /* more distinct feeds than the runtime clusters */
         for (q = nu; q > j; q--) u[q] = u[q - 1];
         u[j] = f;
         nu++;
@@ -1741,6 +1833,7 @@ int tb_model_step(tb_model *m, const tb_sample *s)
     if (m->max_channel > 0 && (!s->temps_C || s->n_temps < m->max_channel)) return TB_E_INPUT;
     if (c->n_in > 0) {
         if (!(s->t_s > c->t_last)) return TB_E_INPUT;
+        if (s->t_s - c->t_last > TB_MAX_GAP_S) return TB_E_SAMPLING;
         if (c->period_s > 0 && fabs(s->t_s - c->t_last - c->period_s) > 1e-3 * c->period_s) return TB_E_SAMPLING;
     }
     {

@@ -13,7 +13,7 @@ Layout, little-endian (the C side: ``embedded/include/tb_runtime.h``)::
     48+4n u32    CRC-32 (zlib.crc32, IEEE 802.3) of every byte before it
 
 The payload is float32 (integers in it are exact below 2**24). Each kind's
-payload layout is documented with its encoder in :mod:`thermbench.export.encode`.
+payload layout is documented with its encoder in :mod:`thermbench.export.encoding`.
 """
 
 from __future__ import annotations

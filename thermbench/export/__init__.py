@@ -1,0 +1,19 @@
+"""Export for the embedded compensator: compact model files, the C runtime's Python side.
+
+* :mod:`.fileformat` - the ``.tbm`` binary format (header, float32 payload, CRC-32);
+* :mod:`.encoding` - fitted models of every family and the condition classifier -> payloads;
+* :mod:`.reduce` - reduced-set LSSVM;
+* :mod:`.bundle` - an export directory (files, manifest.json, ONNX, parity check);
+* :mod:`.runtime` - build and drive the C runtime in ``embedded/``;
+* :mod:`.job` - the ``thermbench export`` Hydra job; :mod:`.replay` - ``thermbench replay``.
+"""
+
+from .bundle import ExportOptions, export_model, read_manifest, replay_dir
+from .encoding import ExportError, encode, encode_classifier
+from .fileformat import Kind, ModelFileError, pack, unpack
+from .runtime import RuntimeFailed, RuntimeUnavailable
+
+__all__ = [
+    "ExportError", "ExportOptions", "Kind", "ModelFileError", "RuntimeFailed", "RuntimeUnavailable", "encode",
+    "encode_classifier", "export_model", "pack", "read_manifest", "replay_dir", "unpack",
+]  # fmt: skip

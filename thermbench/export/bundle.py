@@ -1,0 +1,348 @@
+"""An exported model directory: compact model files, a JSON manifest, ONNX for the nets.
+
+``export_model(model, out_dir, ...)`` writes, atomically (the directory appears
+whole or not at all)::
+
+    out_dir/manifest.json      inputs in order with units, preprocessing, training
+                               dataset hash and runs, metrics, MLflow run id, files
+                               (bytes, CRC-32, kind, dims), parity and footprint
+    out_dir/model.tbm          one model (any family), or for a per-condition bank
+    out_dir/classifier.tbm     seed 002 eq. 15-19 with the bank's motion window
+    out_dir/member_NN.tbm      the condition models, in the classifier's class order
+    out_dir/model.reduced.tbm  PSO-LSSVM with a reduced set of centres (when asked)
+    out_dir/model.onnx         MLP/GRU thermal part, float32, checked with onnxruntime
+
+and, when a dataset is given, checks before writing that the C runtime loads every
+file and reproduces the Python model on the held-out runs within ``parity_tol_um``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import warnings
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+from .. import __version__
+from .._atomic import atomic_dir
+from ..classify import measuring_intervals
+from ..models.bank import ConditionBank
+from ..models.base import ThermalErrorModel
+from . import fileformat, runtime
+from .encoding import Encoded, ExportError, encode, encode_classifier
+from .reduce import reduced_lssvm
+
+MANIFEST = "manifest.json"
+FORMAT = "thermbench-export/1"
+
+
+@dataclass
+class ExportOptions:
+    """What to write besides the model file. ``lssvm_reduced_size``: also write a reduced-set
+    LSSVM with that many centres; ``verify``: run the C runtime on the dataset's held-out
+    runs and fail above ``parity_tol_um``; ``onnx``: ONNX for the neural families."""
+
+    lssvm_reduced_size: int | None = None
+    seed: int = 0
+    onnx: bool = True
+    verify: bool = True
+    parity_tol_um: float = 0.01
+
+
+# ----------------------------------------------------------------- inputs ---
+def model_inputs(model: ThermalErrorModel) -> list[str]:
+    """The temperature sensors the exported files read, in channel order."""
+    if isinstance(model, ConditionBank):
+        out: list[str] = []
+        for lab in [str(c) for c in model.classifier_.classes_]:
+            out += [s for s in model.models_[lab].required_inputs().sensors if s not in out]
+        return out
+    return list(model.required_inputs().sensors)
+
+
+def sample_period_s(ds) -> float:
+    """The process log's sample period (median step; the contract logs at >= 1 Hz)."""
+    dt = ds.process.groupby("run_id", sort=False)["t_s"].diff().dropna()
+    return float(np.median(dt)) if len(dt) else 1.0
+
+
+def process_samples(ds, run: str) -> pd.DataFrame:
+    """The run's process log with ``measuring`` (inside a measuring cycle: what the
+    compensator knows and leaves out of the motion features)."""
+    pr = ds.process_run(run).copy()
+    t = pr["t_s"].to_numpy()
+    meas = np.zeros(t.size, dtype=bool)
+    for a, b in measuring_intervals(pr, ds.errors_run(run)):
+        meas |= (t >= a) & (t <= b)
+    pr["measuring"] = meas
+    return pr
+
+
+def _filters_json(enc: Encoded, sensor: str) -> list[dict]:
+    """The preprocessing chain of one sensor, from the encoded sensor block."""
+    i = enc.sensors.index(sensor)
+    S = len(enc.sensors)
+    at = 1 + S + 13 * i
+    p = enc.payload
+    out = []
+    for k in range(int(p[at])):
+        typ, a, b = p[at + 1 + 3 * k : at + 4 + 3 * k]
+        if typ == 1:
+            out.append({"filter": "limit", "limit_C": a, "max_hold": int(b) or None, "ref": "seed 002 §2.3.1 eq. 1"})
+        else:
+            out.append({"filter": "kalman", "R": a, "Q": b, "ref": "seed 002 §2.3.1 eq. 2-3"})
+    return out
+
+
+# ------------------------------------------------------------------- onnx ---
+def write_onnx(model, path: Path, ds=None, runs: Sequence[str] = ()) -> dict:
+    """The net's thermal part as ONNX (float32, inputs in raw units, standardisation inside),
+    run by onnxruntime against the Python model; returns the check's figures."""
+    import io
+
+    import onnxruntime as ort
+    import torch
+    from torch import nn
+
+    from ..models.neural import GRUModel
+
+    gru = isinstance(model, GRUModel)
+    means = [torch.tensor(np.asarray(m, dtype=np.float32)) for m in model.input_mean_]
+    scales = [torch.tensor(np.asarray(s, dtype=np.float32)) for s in model.input_scale_]
+    net = _float32_copy(model.net_)
+    ym, ys = float(model.y_mean_um_), float(model.y_scale_um_)
+
+    class Wrap(nn.Module):
+        def forward(self, *xs):
+            z = [(x - m) / s for x, m, s in zip(xs, means, scales)]
+            return net(*z) * ys + ym
+
+    S = len(model.sensors_)
+    if gru:
+        example = (torch.zeros(2, model.n_lags_ + 1, S), torch.zeros(2, 1))
+        names = ["dT_history_C", "axis_mm"]
+        axes = {"dT_history_C": {0: "n"}, "axis_mm": {0: "n"}, "thermal_um": {0: "n"}}
+    else:
+        example = (torch.zeros(2, S + 1),)
+        names = ["dT_C_and_axis_mm"]
+        axes = {"dT_C_and_axis_mm": {0: "n"}, "thermal_um": {0: "n"}}
+    buf = io.BytesIO()
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tracer notes on the GRU's shape checks; the result is checked below
+        torch.onnx.export(Wrap().eval(), example, buf, dynamo=False, input_names=names, output_names=["thermal_um"],
+                          dynamic_axes=axes, opset_version=17)  # fmt: skip
+    data = buf.getvalue()
+    path.write_bytes(data)
+    # check: onnxruntime against the Python model on held-out readings (or the training scale)
+    if ds is not None and runs:
+        from ..models.base import readings
+
+        rd = readings(ds, list(runs))
+        feats = [model._inputs(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy()) for r, g in rd.groupby("run_id", sort=False)]
+        inputs = [np.concatenate([f[i] for f in feats]) for i in range(len(feats[0]))]
+        with torch.no_grad():
+            ref = model._forward(inputs).numpy() * ys + ym
+    else:
+        rng = np.random.default_rng(0)
+        inputs = [m + s * rng.standard_normal((64, *np.shape(m))) for m, s in zip(model.input_mean_, model.input_scale_)]
+        if gru:
+            inputs[0] = np.repeat(inputs[0][:, None, :], model.n_lags_ + 1, axis=1)
+        with torch.no_grad():
+            ref = model._forward(inputs).numpy() * ys + ym
+    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    got = sess.run(None, {n: np.asarray(a, dtype=np.float32) for n, a in zip(names, inputs)})[0]
+    return {"file": path.name, "bytes": len(data), "inputs": names, "output": "thermal_um",
+            "onnxruntime_max_abs_diff_um": float(np.max(np.abs(got - ref))), "n_checked": int(ref.size),
+            "note": "thermal part only, float32; the geometric part is in the .tbm file"}  # fmt: skip
+
+
+def _float32_copy(net):
+    import copy
+
+    out = copy.deepcopy(net).float().eval()
+    for p in out.parameters():
+        p.requires_grad_(False)
+    return out
+
+
+# ----------------------------------------------------------------- parity ---
+def python_predictions(model, ds, run: str, q: pd.DataFrame) -> np.ndarray:
+    return model.predict_at(ds, run, q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
+
+
+def readings_queries(ds, run: str) -> pd.DataFrame:
+    er = ds.errors_run(run)
+    return pd.DataFrame({"t_s": er["t_s"].to_numpy(), "axis_mm": er["target_mm"].to_numpy(), "error_um": er["error_um"].to_numpy()})
+
+
+def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
+               exe: Path | None = None, manifest: dict | None = None) -> pd.DataFrame:  # fmt: skip
+    """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory."""
+    model_dir = Path(model_dir)
+    man = manifest if manifest is not None else read_manifest(model_dir)
+    temps = []
+    for s in man["temperatures"]:
+        col = ds.metadata.sensor_column(s) if s in ds.metadata.sensors else None
+        if col is None or col not in ds.process.columns:
+            raise ExportError(f"{model_dir}: the model reads sensor {s!r}, which dataset {ds.path} lacks; "
+                              f"it has {list(ds.metadata.sensors)}")  # fmt: skip
+        temps.append(col)
+    samples = process_samples(ds, run)
+    if man.get("needs_load") and "load_N" not in samples:
+        raise ExportError(f"{model_dir}: the model reads load_N, which run {run!r} of {ds.path} lacks")
+    if man["kind"] == "bank":
+        files = [model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
+        return runtime.replay(files, samples, temps, queries, bank=True, sanitize=sanitize, exe=exe)
+    f = man["files"].get(variant)
+    if f is None:
+        raise ExportError(f"{model_dir}: no file variant {variant!r}; it has {sorted(man['files'])}")
+    return runtime.replay([model_dir / f["file"]], samples, temps, queries, sanitize=sanitize, exe=exe)
+
+
+def read_manifest(model_dir: Path) -> dict:
+    p = Path(model_dir) / MANIFEST
+    if not p.exists():
+        raise ExportError(f"{model_dir}: no {MANIFEST}; export a model there with `thermbench export`")
+    try:
+        man = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise ExportError(f"{p}: not valid JSON ({exc})") from None
+    if man.get("format") != FORMAT:
+        raise ExportError(f"{p}: format {man.get('format')!r}, expected {FORMAT!r}")
+    return man
+
+
+# ----------------------------------------------------------------- export ---
+def _file_entry(path: Path, enc: Encoded) -> dict:
+    data = path.read_bytes()
+    return {"file": path.name, "bytes": len(data), "crc32": f"{zlib.crc32(data[:-4]) & 0xFFFFFFFF:08x}",
+            "kind": enc.kind.name, "dims": list(enc.dims)}  # fmt: skip
+
+
+def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, heldout: Sequence[str] = (),
+                 source: dict | None = None, options: ExportOptions | None = None) -> dict:  # fmt: skip
+    """Write the export directory of one fitted model (see the module docstring); returns the manifest."""
+    from ..models.lssvm import PSOLSSVM
+    from ..models.neural import GRUModel, MLPModel
+    from ..models.physics import PhysicsModel
+
+    opts = options or ExportOptions()
+    if not isinstance(model, ThermalErrorModel) or not hasattr(model, "train_runs_"):
+        raise ExportError(f"{name}: expected a fitted thermbench model, got {type(model).__name__}")
+    period = sample_period_s(ds) if ds is not None else 1.0
+    temps = model_inputs(model)
+    channels = {s: i for i, s in enumerate(temps)}
+    out_dir = Path(out_dir)
+    source = dict(source or {})
+    heldout = [r for r in heldout if ds is not None and r in ds.run_ids]
+    man: dict[str, Any] = {"format": FORMAT, "name": name, "family": f"{type(model).__module__}.{type(model).__name__}",
+                           "thermbench_version": __version__,
+                           "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
+    with atomic_dir(out_dir) as tmp:
+        encs: dict[str, Encoded] = {}
+        models_py: dict[str, ThermalErrorModel] = {}
+        if isinstance(model, ConditionBank):
+            labels = [str(c) for c in model.classifier_.classes_]
+            enc = encode_classifier(model, period, f"{name}: classifier")
+            fileformat.write(tmp / "classifier.tbm", enc.kind, enc.dims, enc.payload)
+            members = []
+            for i, lab in enumerate(labels):
+                e = encode(model.models_[lab], channels, period, f"{name}: condition {lab!r}")
+                fname = f"member_{i:02d}.tbm"
+                fileformat.write(tmp / fname, e.kind, e.dims, e.payload)
+                encs[fname] = e
+                members.append({"label": lab, "file": fname, "train_runs": list(model.models_[lab].train_runs_),
+                                "family": type(model.models_[lab]).__name__, **_file_entry(tmp / fname, e)})  # fmt: skip
+            man["kind"] = "bank"
+            man["bank"] = {"classifier": "classifier.tbm", "classifier_file": _file_entry(tmp / "classifier.tbm", enc),
+                           "window_s": float(model.window_s), "step_s": float(model.step_s),
+                           "min_moving_s": float(model.min_moving_s), "members": members,
+                           "ref": "seed 002 §2.4-2.5: the classifier picks the condition model at run time"}  # fmt: skip
+            man["files"] = {}
+            models_py["bank"] = model
+        else:
+            e = encode(model, channels, period, name)
+            fileformat.write(tmp / "model.tbm", e.kind, e.dims, e.payload)
+            encs["model"] = e
+            man["kind"] = e.kind.name
+            man["files"] = {"model": _file_entry(tmp / "model.tbm", e)}
+            models_py["model"] = model
+            if isinstance(model, PSOLSSVM) and opts.lssvm_reduced_size:
+                red = reduced_lssvm(model, int(opts.lssvm_reduced_size), opts.seed)
+                er = encode(red, channels, period, f"{name} (reduced)")
+                fileformat.write(tmp / "model.reduced.tbm", er.kind, er.dims, er.payload)
+                man["files"]["reduced"] = _file_entry(tmp / "model.reduced.tbm", er)
+                man["files"]["reduced"]["support_vectors"] = int(red.n_support_)
+                man["files"]["reduced"]["from_support_vectors"] = int(red.reduced_from_)
+                models_py["reduced"] = red
+            if isinstance(model, PhysicsModel):
+                num = model.model_.numerics
+                man["physics"] = {"dx_m": num.dx_m, "dt_s": num.dt_s, "macro_dt_s": num.macro_dt_s,
+                                  "n_nodes": model.model_.geom.n_nodes, "effects": [e.id for e in model.model_.effects],
+                                  "params": {k: float(v) for k, v in model.params_.items()},
+                                  "ref": "seed 000 §3.1-3.2, §4.1; compensation table §4.3"}  # fmt: skip
+            if opts.onnx and isinstance(model, (MLPModel, GRUModel)):
+                man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
+        man["needs_load"] = any(e.needs_load for e in encs.values())
+        man["sample_period_s"] = period
+        man["temperatures"] = temps
+        man["inputs"] = _inputs_json(ds, temps, man["needs_load"], man["kind"] == "bank")
+        man["preprocessing"] = {s: _filters_json(next(e for e in encs.values() if s in e.sensors), s) for s in temps}
+        man["delta_T"] = "rise above the first filtered sample of the run (seed 002 eq. 10)"
+        man["outputs"] = {"thermal_um": "thermal part of the positioning error", "total_um":
+                          "geometric + thermal positioning error (measured - commanded); compensation = -total_um"}  # fmt: skip
+        man["training"] = {"runs": list(model.train_runs_), **({"dataset": str(ds.path), "dataset_hash": ds.content_hash()}
+                           if ds is not None else {}), **source.pop("training", {})}  # fmt: skip
+        man["metrics"] = source.pop("metrics", {})
+        man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
+        man["source"] = source
+        if opts.verify and ds is not None and heldout:
+            man["parity"] = _verify(tmp, man, models_py, ds, heldout, opts.parity_tol_um, name)
+        (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return man
+
+
+def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool) -> list[dict]:
+    out = [{"name": "t_s", "unit": "s", "what": "time of the process sample (uniform period)"},
+           {"name": "axis_mm", "unit": "mm", "what": "axis position"},
+           {"name": "feed_mm_min", "unit": "mm/min", "what": "feed"}]  # fmt: skip
+    if needs_load:
+        out.append({"name": "load_N", "unit": "N", "what": "axial load"})
+    if bank:
+        out.append({"name": "measuring", "unit": "flag", "what": "1 inside a measuring cycle (left out of the motion window)"})
+    for i, s in enumerate(temps):
+        loc = ds.metadata.sensors.get(s) if ds is not None else None
+        out.append({"name": f"{s}_C", "unit": "°C", "sensor": s, "location": loc, "channel": i})
+    return out
+
+
+def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str) -> dict:
+    """C runtime vs the Python model at every reading of ``runs`` (parity), per file variant."""
+    out: dict[str, Any] = {"runs": list(runs), "tolerance_um": tol_um}
+    exe = runtime.build("tb_replay")
+    for variant, model in models_py.items():
+        worst, n, err_c, err_py = 0.0, 0, [], []
+        for run in runs:
+            q = readings_queries(ds, run)
+            c = replay_dir(tmp, ds, run, q, "model" if variant == "bank" else variant, exe=exe, manifest=man)
+            py = python_predictions(model, ds, run, q)
+            worst = max(worst, float(np.max(np.abs(c["total_um"].to_numpy() - py))))
+            n += len(q)
+            err_c.append(q["error_um"].to_numpy() - c["total_um"].to_numpy())
+            err_py.append(q["error_um"].to_numpy() - py)
+        key = "model" if variant == "bank" else variant
+        out[key] = {"max_abs_diff_um": worst, "n_readings": n,
+                    "heldout_rmse_um_c": float(np.sqrt(np.mean(np.concatenate(err_c) ** 2))),
+                    "heldout_rmse_um_python": float(np.sqrt(np.mean(np.concatenate(err_py) ** 2)))}  # fmt: skip
+        if worst > tol_um:
+            raise ExportError(f"{name} ({variant}): the C runtime differs from the Python model by {worst:.4g} um on "
+                              f"held-out runs {list(runs)}, above parity_tol_um={tol_um}")  # fmt: skip
+    if "reduced" in out:
+        out["reduced_cost_um"] = out["reduced"]["heldout_rmse_um_python"] - out["model"]["heldout_rmse_um_python"]
+    return out

@@ -1,0 +1,150 @@
+"""``thermbench export``: the Hydra job (``conf/export.yaml``) over :func:`export_model`.
+
+Sources, in order of precedence: ``export.model_uri`` / ``export.name`` (an MLflow
+model: its run id and metrics go into the manifest), else ``export.source``: a
+directory written by ``thermbench benchmark`` (``manifest.yaml``; ``export.select``
+picks ``all``, the ``chosen`` ones or a list of keys) or one fitted model file
+(``.joblib``). Each model is exported to ``export.out_dir/<key>``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import joblib
+import pandas as pd
+import yaml
+from omegaconf import DictConfig, OmegaConf
+
+from ..config import ConfigError
+from .bundle import ExportOptions, export_model
+from .encoding import ExportError
+
+KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "out_dir", "lssvm_reduced_size", "onnx", "verify",
+        "parity_tol_um", "seed"}  # fmt: skip
+
+
+def _options(e: dict) -> ExportOptions:
+    size = e.get("lssvm_reduced_size")
+    if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
+        raise ConfigError(f"config key 'export.lssvm_reduced_size': expected null or an integer >= 1, got {size!r}")
+    tol = e.get("parity_tol_um", 0.01)
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol > 0:
+        raise ConfigError(f"config key 'export.parity_tol_um': expected a number > 0, got {tol!r}")
+    for k in ("onnx", "verify"):
+        if not isinstance(e.get(k, True), bool):
+            raise ConfigError(f"config key 'export.{k}': expected true or false, got {e.get(k)!r}")
+    seed = e.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError(f"config key 'export.seed': expected an integer, got {seed!r}")
+    return ExportOptions(size, seed, bool(e.get("onnx", True)), bool(e.get("verify", True)), float(tol))
+
+
+def _dataset_names() -> list[str]:
+    from ..config import config_dir
+
+    return sorted(p.stem for p in (config_dir() / "dataset").glob("*.yaml"))
+
+
+def _infer_dataset(key: str) -> str | None:
+    """``<dataset>__<family>__<approach>`` (benchmark keys), ``thermbench-<dataset>`` (registered)
+    or ``<dataset>-<family>-<approach>`` (logged model names)."""
+    for name in sorted(_dataset_names(), key=len, reverse=True):
+        if key.startswith(f"{name}__") or key == f"thermbench-{name}" or key.startswith(f"{name}-"):
+            return name
+    return None
+
+
+def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
+    """(key, fitted model, source info) of every model to export."""
+    from .. import tracking
+
+    if e.get("model_uri") or e.get("name"):
+        import mlflow
+
+        tracking.connect(cfg.tracking)
+        uri = tracking.model_uri(e.get("name"), e.get("alias"), e.get("model_uri"))
+        model = tracking.load_model(uri)
+        run_id = mlflow.models.get_model_info(uri).run_id
+        metrics = dict(mlflow.get_run(run_id).data.metrics) if run_id else {}
+        key = e.get("name") or uri.split("/")[-1]
+        key = str(key).replace("@", "_").replace("/", "_")
+        return [(key, model, {"uri": uri, "mlflow_run_id": run_id, "metrics": metrics})]
+    src = Path(str(e.get("source") or ""))
+    if src.is_file():
+        if src.suffix != ".joblib":
+            raise ConfigError(f"config key 'export.source': {src} is not a fitted model file (.joblib) or a model directory")
+        return [(src.stem, joblib.load(src), {"file": str(src)})]
+    if not src.is_dir():
+        raise ConfigError(
+            f"config key 'export.source': {src} does not exist; run `thermbench benchmark` first (it writes "
+            "models/benchmark), or name a fitted model file (.joblib), or set export.model_uri / export.name"
+        )
+    mpath = src / "manifest.yaml"
+    if not mpath.exists():
+        raise ConfigError(f"config key 'export.source': {src} has no manifest.yaml (a directory written by thermbench benchmark)")
+    manifest = yaml.safe_load(mpath.read_text(encoding="utf-8")) or {}
+    sel = e.get("select", "all")
+    if sel == "all":
+        keys = list(manifest)
+    elif sel == "chosen":
+        keys = [k for k, v in manifest.items() if v.get("chosen")]
+    elif isinstance(sel, (list, tuple)):
+        keys = [str(k) for k in sel]
+        unknown = [k for k in keys if k not in manifest]
+        if unknown:
+            raise ConfigError(f"config key 'export.select': {unknown} are not in {mpath}; it has {list(manifest)}")
+    else:
+        raise ConfigError(f"config key 'export.select': expected all, chosen or a list of keys, got {sel!r}")
+    out = []
+    for k in keys:
+        entry = manifest[k]
+        f = src / entry["file"]
+        if not f.exists():
+            raise ConfigError(f"{mpath}: {k}: file {f} is missing")
+        info = {"file": str(f), "metrics": dict(entry.get("metrics") or {}), "mlflow_run_id": entry.get("mlflow_run_id"),
+                "dataset_name": entry.get("dataset"), "chosen": bool(entry.get("chosen"))}  # fmt: skip
+        out.append((k, joblib.load(f), info))
+    return out
+
+
+def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
+    from ..experiment import group_option, load_split
+
+    e = OmegaConf.to_container(cfg.export, resolve=True) if isinstance(cfg.export, DictConfig) else dict(cfg.export)
+    unknown = sorted(set(e) - KEYS)
+    if unknown:
+        raise ConfigError(f"config key(s) {['export.' + k for k in unknown]} unknown; known: {sorted(KEYS)}")
+    opts = _options(e)
+    out_root = Path(str(e.get("out_dir") or "exports"))
+    rows = []
+    splits: dict[str, Any] = {}
+    for key, model, info in _items(e, cfg):
+        dname = e.get("dataset") or info.pop("dataset_name", None) or _infer_dataset(key)
+        info.pop("dataset_name", None)
+        ds, heldout = None, []
+        if dname:
+            if dname not in splits:
+                splits[dname] = load_split(group_option("dataset", str(dname)))
+            sp = splits[dname]
+            ds = sp.dataset
+            train = set(getattr(model, "train_runs_", []))
+            heldout = [r for r in sp.validation if r not in train] or [r for r in ds.run_ids if r not in train]
+        elif opts.verify:
+            raise ConfigError(
+                f"{key}: cannot tell which dataset it was trained on; set export.dataset (a conf/dataset option: "
+                f"{_dataset_names()}) or export.verify=false"
+            )
+        source = {**info, "training": {"dataset_name": dname}} if dname else info
+        man = export_model(model, out_root / key, key, ds, heldout, source=source, options=opts)
+        files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
+                 else list(man["files"].values()))  # fmt: skip
+        par = man.get("parity", {}).get("model", {})
+        rows.append({"model": key, "kind": man["kind"], "files": len(files), "bytes": sum(f["bytes"] for f in files),
+                     "largest_file_bytes": max(f["bytes"] for f in files),
+                     "parity_max_abs_diff_nm": None if par.get("max_abs_diff_um") is None else 1000 * par["max_abs_diff_um"],
+                     "heldout_rmse_um": par.get("heldout_rmse_um_c"), "dir": str(out_root / key)})  # fmt: skip
+    if not rows:
+        raise ExportError("nothing to export: export.select matched no model")
+    return pd.DataFrame(rows), {"dir": str(out_root)}

@@ -1,0 +1,139 @@
+"""``thermbench replay MODEL_DIR DATA_DIR --run ID``: the exported model in the C runtime,
+driven by a run's process log at the control cycle, error before and after compensation.
+
+The C runtime (``tb_replay``) is stepped with every process sample (one control
+cycle); a per-condition bank's classifier switches models online from the motion
+window (seed 002 §2.4-2.5). The runtime is asked for the compensation at every
+sample (at the axis position of that moment, what the compensator sends to the
+CNC) and at every interferometer reading. Before = the measured thermal error
+(reading minus the cold reference, as seed 000 §5 and seed 002 §3 report it);
+after = reading minus the runtime's predicted positioning error: what the axis
+would show with that compensation applied (:mod:`thermbench.metrics`).
+
+Outputs, written atomically to ``--out``: ``replay.json`` (figures), ``readings.csv``,
+``compensation.csv`` and two figures: the errors at the measuring points before and
+after over time (seed 000 Fig. 13 analogue) and per measuring cycle the max |error|
+before/after with the condition the bank had chosen (seed 002 Fig. 22 analogue).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .._atomic import atomic_dir
+from ..data.io import load_dataset
+from ..data.reference import thermal_errors
+from ..metrics import cycle_curves, residual_metrics
+from .bundle import read_manifest, replay_dir
+from .encoding import ExportError
+
+
+def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False) -> dict:
+    """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``."""
+    model_dir, data_dir = Path(model_dir), Path(data_dir)
+    man = read_manifest(model_dir)
+    ds = load_dataset(data_dir)
+    if run not in ds.run_ids:
+        raise ExportError(f"--run {run!r}: not a run of {data_dir}; its runs: {ds.run_ids}")
+    te = thermal_errors(ds)
+    te = te[te["run_id"] == run].reset_index(drop=True)
+    pr = ds.process_run(run)
+    q_read = pd.DataFrame({"t_s": te["t_s"].to_numpy(), "axis_mm": te["target_mm"].to_numpy()})
+    q_ctrl = pd.DataFrame({"t_s": pr["t_s"].to_numpy(), "axis_mm": pr["axis_mm"].to_numpy()})
+    both = pd.concat([q_read.assign(src=0), q_ctrl.assign(src=1)], ignore_index=True)
+    order = np.argsort(both["t_s"].to_numpy(), kind="stable")
+    res = replay_dir(model_dir, ds, run, both.iloc[order][["t_s", "axis_mm"]].reset_index(drop=True), sanitize=sanitize)
+    res.index = order
+    res = res.sort_index()
+    src = both["src"].to_numpy()
+    rd, ctrl = res[src == 0].reset_index(drop=True), res[src == 1].reset_index(drop=True)
+    readings = te[["t_s", "target_mm", "error_um", "thermal_um"]].copy()
+    readings["predicted_um"] = rd["total_um"].to_numpy()
+    readings["residual_um"] = readings["error_um"] - readings["predicted_um"]
+    labels = None
+    if man["kind"] == "bank":
+        names = [m["label"] for m in man["bank"]["members"]]
+        labels = [names[i] if i >= 0 else None for i in ctrl["label"]]
+        readings["condition"] = [names[i] if i >= 0 else None for i in rd["label"]]
+    comp = pd.DataFrame({"t_s": ctrl["t_s"], "axis_mm": ctrl["axis_mm"], "thermal_um": ctrl["thermal_um"],
+                         "compensation_um": -ctrl["total_um"]})  # fmt: skip
+    if labels is not None:
+        comp["condition"] = labels
+    m = residual_metrics(readings["error_um"], readings["predicted_um"], readings["thermal_um"])
+    figures = {
+        "model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
+        "n_readings": len(readings), "n_control_cycles": len(comp),
+        "before_max_abs_um": m["max_abs_error_um"], "after_max_abs_um": m["max_abs_residual_um"],
+        "before_interval_um": [float(readings["thermal_um"].min()), float(readings["thermal_um"].max())],
+        "after_interval_um": [float(readings["residual_um"].min()), float(readings["residual_um"].max())],
+        "before_pv_um": m["pv_error_um"], "after_pv_um": m["pv_residual_um"], "after_rmse_um": m["rmse_um"],
+        "compensation_rate": m["compensation_rate"],
+        "pv_reduction": 1.0 - m["pv_residual_um"] / m["pv_error_um"] if m["pv_error_um"] > 0 else float("nan"),
+    }  # fmt: skip
+    if labels is not None:
+        switches = int(sum(1 for a, b in zip(labels[:-1], labels[1:]) if a != b and b is not None))
+        figures["condition_switches"] = switches
+        figures["conditions_used"] = sorted({lab for lab in labels if lab is not None})
+    return {"figures": figures, "readings": readings, "compensation": comp,
+            "cycles": cycle_curves(te, readings["predicted_um"].to_numpy())}  # fmt: skip
+
+
+def write_replay(result: dict, out_dir: Path) -> Path:
+    """Write the replay's files and figures to ``out_dir`` (replaced as a whole)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = result["figures"]
+    with atomic_dir(out_dir) as tmp:
+        (tmp / "replay.json").write_text(json.dumps(f, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        result["readings"].to_csv(tmp / "readings.csv", index=False)
+        result["compensation"].to_csv(tmp / "compensation.csv", index=False)
+        rd = result["readings"]
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        for a, col, title in ((ax[0], "thermal_um", "without compensation"), (ax[1], "residual_um", "with compensation (C runtime)")):
+            sc = a.scatter(rd["t_s"] / 3600.0, rd[col], c=rd["target_mm"], s=6, cmap="viridis")
+            a.set_title(title)
+            a.set_xlabel("time, h")
+            a.grid(alpha=0.3)
+        ax[0].set_ylabel("error at the measuring points, µm")
+        fig.colorbar(sc, ax=ax, label="target, mm")
+        fig.suptitle(f"{f['model']} on {f['run']}: max |error| {f['before_max_abs_um']:.1f} → {f['after_max_abs_um']:.1f} µm")
+        fig.savefig(tmp / "errors_before_after.png", dpi=110)
+        plt.close(fig)
+        cy = result["cycles"]
+        fig, ax = plt.subplots(figsize=(8, 4))
+        ax.plot(cy["t_s"] / 3600.0, cy["before_um"], "o-", label="before (max |thermal error|)")
+        ax.plot(cy["t_s"] / 3600.0, cy["after_um"], "s-", label="after (max |residual|)")
+        comp = result["compensation"]
+        if "condition" in comp:
+            ax2 = ax.twinx()
+            codes = {c: i for i, c in enumerate(sorted({c for c in comp["condition"] if isinstance(c, str)}))}
+            ax2.step(comp["t_s"] / 3600.0, [codes.get(c, -1) for c in comp["condition"]], where="post", color="grey", alpha=0.5)
+            ax2.set_yticks([-1, *codes.values()], ["none", *codes])
+            ax2.set_ylabel("condition chosen online")
+        ax.set_xlabel("time, h")
+        ax.set_ylabel("per measuring cycle, µm")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left")
+        fig.tight_layout()
+        fig.savefig(tmp / "cycles_before_after.png", dpi=110)
+        plt.close(fig)
+    return Path(out_dir)
+
+
+def format_replay(f: dict) -> str:
+    lines = [
+        f"replay {f['model']} ({f['kind']}) on run {f['run']}: {f['n_control_cycles']} control cycles, {f['n_readings']} readings",
+        f"  before: max |error| {f['before_max_abs_um']:.2f} µm, interval [{f['before_interval_um'][0]:.2f}, {f['before_interval_um'][1]:.2f}] µm",
+        f"  after:  max |error| {f['after_max_abs_um']:.2f} µm, interval [{f['after_interval_um'][0]:.2f}, {f['after_interval_um'][1]:.2f}] µm, RMS {f['after_rmse_um']:.2f} µm",
+        f"  compensation rate {100 * f['compensation_rate']:.1f} %, P-V reduced by {100 * f['pv_reduction']:.1f} %",
+    ]  # fmt: skip
+    if "condition_switches" in f:
+        lines.append(f"  classifier: {f['condition_switches']} switches, conditions used {f['conditions_used']}")
+    return "\n".join(lines)
