@@ -302,10 +302,35 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
+        man["footprint"] = footprint(tmp, man)
         if opts.verify and ds is not None and heldout:
             man["parity"] = _verify(tmp, man, models_py, ds, heldout, opts.parity_tol_um, name)
         (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
+
+
+#: seed 002's compensator, an STM32F407 (1 MB flash, 192 KB RAM, 168 MHz): the issue's budget per model
+BUDGET = {"file_bytes": 64 * 1024, "ram_bytes": 16 * 1024, "small_file_bytes": 1024}
+SMALL_KINDS = ("MLR_CURVE", "MLR_SEED001", "CLASSIFIER")
+
+
+def footprint(model_dir: Path, man: dict) -> dict:
+    """File bytes and RAM (state arena + model handles) as the C runtime reports them, against
+    :data:`BUDGET` (MLR files and the classifier <= 1 KB). Instruction counts: benchmarks/bench_export.py."""
+    if man["kind"] == "bank":
+        entries = [man["bank"]["classifier_file"], *man["bank"]["members"]]
+        names = [man["bank"]["classifier"], *[m["file"] for m in man["bank"]["members"]]]
+    else:
+        entries = [man["files"]["model"]]
+        names = [man["files"]["model"]["file"]]
+    inf = runtime.info([Path(model_dir) / n for n in names])
+    ram = int(inf["state_bytes"].sum() + inf["model_bytes"].sum())
+    over = [f"{n}: {e['bytes']} B file" for n, e in zip(names, entries)
+            if e["bytes"] > (BUDGET["small_file_bytes"] if e["kind"] in SMALL_KINDS else BUDGET["file_bytes"])]  # fmt: skip
+    if ram > BUDGET["ram_bytes"]:
+        over.append(f"{ram} B RAM")
+    return {"file_bytes": int(inf["file_bytes"].sum()), "ram_bytes": ram, "budget": BUDGET,
+            "within_budget": not over, "over_budget": over}  # fmt: skip
 
 
 def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool) -> list[dict]:

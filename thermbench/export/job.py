@@ -9,6 +9,7 @@ picks ``all``, the ``chosen`` ones or a list of keys) or one fitted model file
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -144,7 +145,11 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
         rows.append({"model": key, "kind": man["kind"], "files": len(files), "bytes": sum(f["bytes"] for f in files),
                      "largest_file_bytes": max(f["bytes"] for f in files),
                      "parity_max_abs_diff_nm": None if par.get("max_abs_diff_um") is None else 1000 * par["max_abs_diff_um"],
-                     "heldout_rmse_um": par.get("heldout_rmse_um_c"), "dir": str(out_root / key)})  # fmt: skip
+                     "heldout_rmse_um": par.get("heldout_rmse_um_c"), "ram_bytes": man["footprint"]["ram_bytes"],
+                     "within_budget": man["footprint"]["within_budget"], "dir": str(out_root / key)})  # fmt: skip
+        if not man["footprint"]["within_budget"]:
+            print(f"thermbench export: warning: {key} exceeds the STM32F407 budget: "
+                  f"{', '.join(man['footprint']['over_budget'])}", file=sys.stderr)  # fmt: skip
     if not rows:
         raise ExportError("nothing to export: export.select matched no model")
     return pd.DataFrame(rows), {"dir": str(out_root)}
