@@ -44,6 +44,7 @@ bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_identification.py
 	$(BIN)/python benchmarks/bench_diagnose.py --runtime
 	$(BIN)/python benchmarks/bench_export.py exports
+	$(BIN)/python benchmarks/bench_lssvm_reduced.py
 
 # the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
 fuzz:

@@ -35,6 +35,8 @@ from thermbench import experiment, tracking
 from thermbench.config import load_config
 from thermbench.data.reference import thermal_errors
 from thermbench.datasets import load_benchmark
+from thermbench.export import read_manifest, replay_dir
+from thermbench.export.bundle import readings_queries
 from thermbench.tracking import TrackingError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -255,23 +257,23 @@ def test_alias_resolves_for_export_and_evaluate(workdir):
 
     out_dir = workdir / "exports"
     res = experiment.export(compose("export", workdir, f"export.name={REGISTERED}", "export.alias=champion",
-                                    f"export.out_dir={out_dir}"))
+                                    f"export.out_dir={out_dir}", "export.onnx=false"))
     folder = out_dir / REGISTERED
-    assert res.outputs["dir"] == str(folder)
-    assert sorted(p.name for p in folder.iterdir()) == sorted([f"{REGISTERED}.joblib", "manifest.yaml"])
-    manifest = yaml.safe_load((folder / "manifest.yaml").read_text())
-    entry = manifest[REGISTERED]
-    assert entry["file"] == f"{REGISTERED}.joblib" and entry["chosen"] is True
-    assert entry["source"] == f"models:/{REGISTERED}@champion"
-    assert entry["class"] == "thermbench.models.mlr.MLRSeed001" and entry["train_runs"] == ["state1"]
+    assert res.outputs["dir"] == str(out_dir)
+    assert sorted(p.name for p in folder.iterdir()) == ["manifest.json", "model.tbm"]
+    manifest = read_manifest(folder)
+    assert manifest["mlflow_run_id"] == v1.mlflow_run_id  # the run that logged version 1
+    assert manifest["source"]["uri"] == f"models:/{REGISTERED}@champion"
+    assert manifest["family"] == "thermbench.models.mlr.MLRSeed001" and manifest["training"]["runs"] == ["state1"]
+    assert manifest["metrics"] == store_client(workdir).get_run(v1.mlflow_run_id).data.metrics
 
-    exported = joblib.load(folder / f"{REGISTERED}.joblib")
+    # the exported file, run by the C runtime, is version 1 (state1), not the latest (state2) model
     ds = load_benchmark(DATASET)
-    er = ds.errors_run("valid3")
-    args = (ds, "valid3", er["t_s"].to_numpy(), er["target_mm"].to_numpy())
-    np.testing.assert_allclose(exported.predict_at(*args), reference_fit(ds, ["state1"]).predict_at(*args), atol=1e-9, rtol=0)
-    # and it is version 1, not the latest (state2) model
-    assert np.max(np.abs(exported.predict_at(*args) - reference_fit(ds, ["state2"]).predict_at(*args))) > 0.1
+    q = readings_queries(ds, "valid3")
+    c = replay_dir(folder, ds, "valid3", q)["total_um"].to_numpy()
+    args = (ds, "valid3", q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
+    np.testing.assert_allclose(c, reference_fit(ds, ["state1"]).predict_at(*args), atol=0.01, rtol=0)
+    assert np.max(np.abs(c - reference_fit(ds, ["state2"]).predict_at(*args))) > 0.1
 
     with pytest.raises(TrackingError, match=f"models:/{REGISTERED}@nope"):
         experiment.export(compose("export", workdir, f"export.name={REGISTERED}", "export.alias=nope",

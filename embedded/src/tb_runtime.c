@@ -674,10 +674,11 @@ static void parse_kind(cur_t *c, tb_model *m)
             PV(m, at + P_NB) != floor(PV(m, at + P_NB)) || !(PV(m, at + P_NUT_LEN) > 0) ||
             !(PV(m, at + P_L) > 0) || !(PV(m, at + P_CAP) > 0) || !(PV(m, at + P_COND) >= 0) ||
             (PV(m, at + P_NB) > 0 && !(PV(m, at + P_BEAR_LEN) > 0)) || PV(m, at + P_AMB_MODE) < 0 ||
+            PV(m, at + P_AMB_MODE) != floor(PV(m, at + P_AMB_MODE)) ||
             PV(m, at + P_AMB_MODE) > 2 || (PV(m, at + P_AMB_MODE) == 1) != (d[0] == 1) ||
             (PV(m, at + P_AMB_MODE) == 2 && !(PV(m, at + P_AMB_PERIOD) > 0)) ||
-            (PV(m, at + P_FREE) != 0 && (PV(m, at + P_FREE_K) < 1 || PV(m, at + P_FREE_K) > (tb_real)n ||
-                                         PV(m, at + P_FREE_K) != floor(PV(m, at + P_FREE_K)))) ||
+            !(PV(m, at + P_FREE_K) >= (PV(m, at + P_FREE) != 0 ? 1 : 0)) || PV(m, at + P_FREE_K) > (tb_real)n ||
+            PV(m, at + P_FREE_K) != floor(PV(m, at + P_FREE_K)) ||
             (PV(m, at + P_MOTOR) != 0 && !(PV(m, at + P_TAU_MOTOR) > 0)) ||
             (PV(m, at + P_OD) != 0 && !(PV(m, at + P_H_TAU) > 0)))
             c->err = TB_E_PAYLOAD;
@@ -999,7 +1000,7 @@ static void phys_params(const tb_model *m, const phys_t *p, phys_par_t *q)
     q->k6 = PP(m, P_K6);
     q->free_end = PP(m, P_FREE) != 0;
     q->kF = PP(m, P_KF);
-    q->free_k = (uint32_t)PP(m, P_FREE_K);
+    q->free_k = q->free_end ? (uint32_t)PP(m, P_FREE_K) : 0; /* validated only when present */
     q->motor = PP(m, P_MOTOR) != 0;
     q->kmotor = PP(m, P_KMOTOR);
     q->a_motor = q->motor ? (tb_real)exp(-q->dt / (double)PP(m, P_TAU_MOTOR)) : 0;

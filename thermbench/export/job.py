@@ -52,7 +52,7 @@ def _infer_dataset(key: str) -> str | None:
     """``<dataset>__<family>__<approach>`` (benchmark keys), ``thermbench-<dataset>`` (registered)
     or ``<dataset>-<family>-<approach>`` (logged model names)."""
     for name in sorted(_dataset_names(), key=len, reverse=True):
-        if key.startswith(f"{name}__") or key == f"thermbench-{name}" or key.startswith(f"{name}-"):
+        if key.startswith((f"{name}__", f"{name}-", f"thermbench-{name}-")) or key == f"thermbench-{name}":
             return name
     return None
 
@@ -68,10 +68,13 @@ def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
         uri = tracking.model_uri(e.get("name"), e.get("alias"), e.get("model_uri"))
         model = tracking.load_model(uri)
         run_id = mlflow.models.get_model_info(uri).run_id
-        metrics = dict(mlflow.get_run(run_id).data.metrics) if run_id else {}
+        run = mlflow.get_run(run_id) if run_id else None
+        metrics = dict(run.data.metrics) if run else {}
+        params = dict(run.data.params) if run else {}
         key = e.get("name") or uri.split("/")[-1]
         key = str(key).replace("@", "_").replace("/", "_")
-        return [(key, model, {"uri": uri, "mlflow_run_id": run_id, "metrics": metrics})]
+        return [(key, model, {"uri": uri, "mlflow_run_id": run_id, "metrics": metrics,
+                              "dataset_name": params.get("dataset.name") or params.get("dataset")})]  # fmt: skip
     src = Path(str(e.get("source") or ""))
     if src.is_file():
         if src.suffix != ".joblib":

@@ -75,8 +75,10 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
         "pv_reduction": 1.0 - m["pv_residual_um"] / m["pv_error_um"] if m["pv_error_um"] > 0 else float("nan"),
     }  # fmt: skip
     if labels is not None:
-        switches = int(sum(1 for a, b in zip(labels[:-1], labels[1:]) if a != b and b is not None))
-        figures["condition_switches"] = switches
+        switches = int(sum(1 for a, b in zip(labels[:-1], labels[1:]) if a != b and a is not None and b is not None))
+        first = next((i for i, lab in enumerate(labels) if lab is not None), None)
+        figures["condition_switches"] = switches  # between conditions, after the first classification
+        figures["first_condition_at_s"] = None if first is None else float(comp["t_s"].iloc[first] - comp["t_s"].iloc[0])
         figures["conditions_used"] = sorted({lab for lab in labels if lab is not None})
     return {"figures": figures, "readings": readings, "compensation": comp,
             "cycles": cycle_curves(te, readings["predicted_um"].to_numpy())}  # fmt: skip
@@ -135,5 +137,6 @@ def format_replay(f: dict) -> str:
         f"  compensation rate {100 * f['compensation_rate']:.1f} %, P-V reduced by {100 * f['pv_reduction']:.1f} %",
     ]  # fmt: skip
     if "condition_switches" in f:
-        lines.append(f"  classifier: {f['condition_switches']} switches, conditions used {f['conditions_used']}")
+        lines.append(f"  classifier: first condition after {f['first_condition_at_s']:.0f} s, then {f['condition_switches']} "
+                     f"switches; conditions used {f['conditions_used']}")  # fmt: skip
     return "\n".join(lines)
