@@ -49,7 +49,7 @@ bench: $(VENV)/.installed
 # the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
 fuzz:
 	mkdir -p $(FUZZ_DIR)/corpus
-	clang -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined -Iembedded/include \
+	clang -g -O1 -fsanitize=fuzzer,address,undefined,float-cast-overflow -fno-sanitize-recover=undefined -Iembedded/include \
 	  embedded/src/tb_runtime.c embedded/fuzz/tb_fuzz_loader.c -o $(FUZZ_DIR)/tb_fuzz -lm
 	$(FUZZ_DIR)/tb_fuzz -max_total_time=$(FUZZ_SECONDS) -max_len=65536 -print_final_stats=1 \
 	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus embedded/fuzz/corpus

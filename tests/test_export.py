@@ -323,3 +323,52 @@ def test_export_job_and_replay_command(exported, ds, seed001_data_root, tmp_path
     # a user mistake: one line, exit 2
     assert main(["replay", str(out), str(ds.path), "--run", "nope", "--out", str(rep)]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+# ------------------------------------------------------- hostile streams ---
+def _without_row(ds, run: str, t_s: float):
+    """``ds`` with the process sample of ``run`` at ``t_s`` removed (what a compensator that
+    skipped that sample has seen)."""
+    from thermbench.data.io import Dataset
+
+    pr = ds.process
+    keep = ~((pr["run_id"] == run) & (pr["t_s"] == t_s))
+    assert (~keep).sum() == 1
+    return Dataset(ds.metadata, pr[keep].reset_index(drop=True), ds.errors, path=ds.path)
+
+
+def test_a_refused_sample_is_skipped_and_the_models_go_on(exported, ds, tmp_path):
+    """A NaN temperature (and an impossible feed) at one sample: the runtime refuses that sample
+    with an error code; a compensator skips it, and the GRU (uniform history: the gap is filled
+    as numpy.interp fills it) and a bank (all models refuse it together) then agree with the
+    Python models on the log without that sample."""
+    from thermbench.export.bundle import process_samples
+
+    run = "valid2"
+    pr = process_samples(ds, run)
+    t_bad = float(pr["t_s"].iloc[3000])
+    bad = pr.copy()
+    bad.loc[3000, ds.metadata.sensor_column("T_nut")] = np.nan
+    bad.loc[4000, "feed_mm_min"] = 1e200
+    ds_skip = _without_row(_without_row(ds, run, t_bad), run, float(pr["t_s"].iloc[4000]))
+    bank = ConditionBank(MLRSeed002(sensors=["T_nut", "T_bed"])).fit(ds, TRAIN)
+    export_model(bank, tmp_path / "bank", "bank", ds, [run], options=ExportOptions(verify=False))
+    q = readings_queries(ds, run)
+    for model, d in ((exported["gru"][0], exported["gru"][1]), (bank, tmp_path / "bank")):
+        with pytest.raises(runtime.RuntimeFailed, match="error -11"):
+            replay_dir(d, ds, run, q, samples=bad)
+        c = replay_dir(d, ds, run, q, samples=bad, lenient=True)
+        py = model.predict_at(ds_skip, run, q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
+        assert np.max(np.abs(c["total_um"].to_numpy() - py)) < TOL_UM
+
+
+def test_a_log_off_the_sampling_grid_is_refused_not_mispredicted(exported, ds):
+    """The GRU history assumes the log's period; a clock running 0.09 % fast (each step within
+    1e-3 of the period) is refused once it leaves the grid, instead of predicting 0.1 um off."""
+    from thermbench.export.bundle import process_samples
+
+    pr = process_samples(ds, "valid2")
+    drift = pr.assign(t_s=pr["t_s"] * 1.0009)
+    q = readings_queries(ds, "valid2").assign(t_s=lambda d: d["t_s"] * 1.0009)
+    with pytest.raises(runtime.RuntimeFailed, match="error -12"):
+        replay_dir(exported["gru"][1], ds, "valid2", q, samples=drift)

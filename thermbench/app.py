@@ -41,12 +41,12 @@ def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that are user mistakes: reported in one line, no traceback."""
     from .data.io import DatasetError
     from .experiment import ExperimentError
-    from .export import ExportError, ModelFileError, RuntimeUnavailable
+    from .export import ExportError, ModelFileError, RuntimeFailed, RuntimeUnavailable
     from .models.base import ModelError
     from .tracking import TrackingError
 
     return (ConfigError, DatasetError, ExperimentError, ModelError, TrackingError, FileNotFoundError, ExportError,
-            ModelFileError, RuntimeUnavailable)  # fmt: skip
+            ModelFileError, RuntimeUnavailable, RuntimeFailed)  # fmt: skip
 
 
 def print_result(res) -> None:

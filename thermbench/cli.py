@@ -129,7 +129,7 @@ HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
     from .data.io import DatasetError
-    from .export import RuntimeUnavailable
+    from .export import RuntimeFailed, RuntimeUnavailable
     from .models.base import ModelError
     from .tracking import TrackingError
 
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
     except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError,
-            RuntimeUnavailable) as exc:  # user mistakes  # fmt: skip
+            RuntimeUnavailable, RuntimeFailed) as exc:  # user mistakes, and the C runtime's refusals  # fmt: skip
         print(f"thermbench: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -6,8 +6,10 @@
  * Every input is tried twice: as it is (so the header checks, the length check and the
  * CRC-32 are fuzzed) and with its payload count and CRC-32 patched to match (so the
  * mutations reach the payload parser). A file that opens is then started in an arena
- * and stepped through a few samples and queries: a hostile file must give an error
- * code, never an out-of-bounds access (ASan) or undefined behaviour (UBSan).
+ * and stepped through a few samples and queries, then through hostile samples made
+ * from the input's own bytes (NaN, inf, huge values, time going back, gaps): a hostile
+ * file or stream must give an error code, never an out-of-bounds access (ASan) or
+ * undefined behaviour (UBSan, with float-cast-overflow).
  */
 #include "tb_runtime.h"
 
@@ -40,6 +42,22 @@ static void exercise(const uint8_t *buf, size_t size)
         s.measuring = (i % 11) == 0;
         if (tb_model_step(&m, &s) != TB_OK) break;
         if (m.kind != TB_KIND_CLASSIFIER) tb_model_predict(&m, (double)i - 0.5, s.axis_mm, &th, &tot);
+    }
+    for (i = 0; i + 32 <= (int)size && i < 32 * 8; i += 32) { /* hostile samples from the input's bytes */
+        double v[4], temps[64], th, tot;
+        tb_sample s;
+        int k;
+        memcpy(v, buf + i, sizeof v);
+        for (k = 0; k < 64; k++) temps[k] = v[(k + 3) % 4];
+        s.t_s = 40.0 + v[0];
+        s.axis_mm = v[1];
+        s.feed_mm_min = v[2];
+        s.load_N = v[3];
+        s.temps_C = temps;
+        s.n_temps = (uint32_t)(buf[i] % 65);
+        s.measuring = buf[i + 1] & 1;
+        (void)tb_model_step(&m, &s);
+        if (m.kind != TB_KIND_CLASSIFIER) (void)tb_model_predict(&m, v[0], v[1], &th, &tot);
     }
     tb_model_finish(&m);
     if (m.kind == TB_KIND_CLASSIFIER) {

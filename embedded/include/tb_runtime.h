@@ -65,9 +65,15 @@ typedef TB_REAL tb_real;
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
 #define TB_MAX_FEEDS 64u /* distinct feeds in one classifier window */
-#define TB_MAX_WINDOW 100000u
+#define TB_MAX_WINDOW 20000u /* samples in a classifier window or GRU history */
 #define TB_START_SAMPLES 5u /* the limit filter checks the first reading against the next 5 */
 #define TB_MAX_GAP_S 60.0   /* longest gap between samples (the contract logs at >= 1 Hz) */
+/* plausible inputs: anything beyond is refused (TB_E_INPUT), not computed with */
+#define TB_MAX_AXIS_MM 1e7
+#define TB_MAX_FEED_MM_MIN 1e6
+#define TB_MAX_LOAD_N 1e9
+#define TB_MIN_TEMP_C (-273.15)
+#define TB_MAX_TEMP_C 2000.0
 
 /* model kinds */
 enum {
@@ -151,7 +157,8 @@ typedef struct {
 } tb_bank;
 
 int tb_bank_init(tb_bank *b, tb_model *classifier, tb_model *const *members, uint32_t n_members);
-/* swap in a newly loaded (opened and started) model for condition i at run time */
+/* swap in a newly loaded (opened and started) model for condition i: before the first sample,
+ * or once the new model has been stepped with the same samples as the bank (TB_E_STATE otherwise) */
 int tb_bank_set_member(tb_bank *b, uint32_t i, tb_model *member);
 int tb_bank_step(tb_bank *b, const tb_sample *s);
 int tb_bank_finish(tb_bank *b);

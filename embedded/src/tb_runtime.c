@@ -147,7 +147,7 @@ enum {
     O_A, O_B, O_C, O_D, O_E, O_F, O_G, O_H /* kind-specific sub-sections */
 };
 
-#define FSTEP_VALS 3u
+#define FSTEP_VALS 5u /* type, p1 (hi, lo), p2 (hi, lo): float32 pairs keep the double thresholds */
 #define SENS_PER (1u + FSTEP_VALS * TB_MAX_FILTER_STEPS)
 
 /* sensor block: S channel indices, then per sensor [n_steps, (type, p1, p2) x 4] */
@@ -166,8 +166,9 @@ static void parse_sensors(cur_t *c, tb_model *m, uint32_t S)
         at = take(c, FSTEP_VALS * TB_MAX_FILTER_STEPS);
         if (c->err) return;
         for (k = 0; k < TB_MAX_FILTER_STEPS; k++) {
-            tb_real type = PV(m, at + FSTEP_VALS * k), p1 = PV(m, at + FSTEP_VALS * k + 1),
-                    p2 = PV(m, at + FSTEP_VALS * k + 2);
+            tb_real type = PV(m, at + FSTEP_VALS * k);
+            tb_real p1 = PV(m, at + FSTEP_VALS * k + 1) + PV(m, at + FSTEP_VALS * k + 2);
+            tb_real p2 = PV(m, at + FSTEP_VALS * k + 3) + PV(m, at + FSTEP_VALS * k + 4);
             if (k >= n) {
                 if (type != 0) c->err = TB_E_PAYLOAD;
                 continue;
@@ -290,7 +291,7 @@ typedef struct {
     uint32_t n_in;      /* samples received */
     uint32_t started;   /* startup buffer flushed */
     double period_s;
-    double t_last;
+    double t_first, t_last; /* first and last accepted sample */
     motion_t buf[NBUF];
     tb_real *buf_T;     /* NBUF x S raw temperatures */
     fstate_t *fs;       /* S x TB_MAX_FILTER_STEPS */
@@ -335,7 +336,7 @@ static void common_carve(const tb_model *m, arena_t *a, common_t **cm, uint32_t 
 /* one filter step on one value (streaming; the limit filter's start handled by the caller) */
 static tb_real fstep_apply(const tb_model *m, uint32_t at, fstate_t *f, tb_real z)
 {
-    tb_real type = PV(m, at), p1 = PV(m, at + 1), p2 = PV(m, at + 2);
+    tb_real type = PV(m, at), p1 = PV(m, at + 1) + PV(m, at + 2), p2 = PV(m, at + 3) + PV(m, at + 4);
     if (type == 1) { /* seed 002 eq. 1 with thermbench's last-accepted rule and max_hold */
         uint32_t max_hold = (uint32_t)p2;
         if (!f->started) {
@@ -405,7 +406,8 @@ static void chain_batch(const tb_model *m, common_t *c, uint32_t j, tb_real *v, 
                 if (v[i] < lo) lo = v[i];
                 if (v[i] > hi) hi = v[i];
             }
-            if (fabs((double)(v[0] - med)) > (double)PV(m, at + 1) && (double)(hi - lo) <= (double)PV(m, at + 1))
+            double limit = (double)(PV(m, at + 1) + PV(m, at + 2));
+            if (fabs((double)(v[0] - med)) > limit && (double)(hi - lo) <= limit)
                 v[0] = med;
         }
         for (i = 0; i < n; i++) v[i] = fstep_apply(m, at, f, v[i]);
@@ -468,7 +470,8 @@ static int hist_at(const common_t *c, double t, tb_real *out)
 /* ------------------------------------------------------ kind interface */
 typedef struct {
     common_t *cm;
-    void *ks; /* kind state */
+    void *ks;     /* kind state */
+    int finished; /* tb_model_finish was called: no more samples */
 } state_t;
 
 static void kind_carve(const tb_model *m, arena_t *a, void **ks);
@@ -508,6 +511,7 @@ static void flush_start(tb_model *m, state_t *st)
 
 /* ------------------------------------------------------------- open */
 static void parse_kind(cur_t *c, tb_model *m);
+static double horizon_s(const tb_model *m);
 
 int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
 {
@@ -652,6 +656,7 @@ static void parse_kind(cur_t *c, tb_model *m)
         m->off[O_F] = take(c, D + 1);
         if (!c->err && (double)K * (double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) > (double)TB_MAX_WINDOW)
             c->err = TB_E_DIMS;
+        if (!c->err && (double)(K + 1) * 3.0 * (double)H * (double)(H + S) > 2e7) c->err = TB_E_DIMS; /* work per predict */
         break;
     }
     case TB_KIND_PHYSICS: {
@@ -668,6 +673,7 @@ static void parse_kind(cur_t *c, tb_model *m)
         if (!(dx > 0) || !(dt > 0) || PV(m, at + P_NODES) != (tb_real)n || !(PV(m, at + P_PER_STEP) >= 1) ||
             PV(m, at + P_PER_STEP) != floor(PV(m, at + P_PER_STEP)) || PV(m, at + P_PER_STEP) > 1e6 ||
             !(PV(m, at + P_MACRO) / PV(m, at + P_PER_STEP) >= (tb_real)1e-3) || PV(m, at + P_MACRO) > 1e5 ||
+            PV(m, at + P_MACRO) < (tb_real)0.1 || (double)n * (double)PV(m, at + P_PER_STEP) > 4e6 ||
             !(fabs((double)(PV(m, at + P_L) / dx) - (double)n) <= 0.5 + 1e-6 * (double)n ||
               (n == 2 && (double)(PV(m, at + P_L) / dx) < 2.5)) ||
             !(PV(m, at + P_NB) >= 0) || PV(m, at + P_NB) > (tb_real)n ||
@@ -715,6 +721,7 @@ static void parse_kind(cur_t *c, tb_model *m)
         m->off[O_BODY] = c->pos;
         take_val(c, 0, 1e6f, 1);     /* window_s */
         take_val(c, 1e-3f, 1e6f, 0); /* step_s */
+        if (!c->err && PV(m, m->off[O_BODY] + 1) < PV(m, 0)) c->err = TB_E_PAYLOAD; /* step >= the period */
         take_val(c, 0, 1e6f, 0); /* min_moving_s */
         if (!c->err && PV(m, m->off[O_BODY]) / PV(m, 0) > (tb_real)TB_MAX_WINDOW) c->err = TB_E_DIMS;
         m->off[O_A] = take(c, nA + nB + nC);
@@ -1315,6 +1322,7 @@ static void ar_sample(const tb_model *m, ar_t *r, const motion_t *mo, int final)
         uint64_t total;
         if (!r->started) return;
         total = (uint64_t)-floor_clamp(-((r->last_t - r->t0) / dt - 1e-9), -((int64_t)1 << 40), 0); /* ceil */
+        if (total < 1) total = 1;
         while (r->k < total) {
             for (q = 0; q < nu; q++) u[q] = r->ucount ? r->usum[q] / (tb_real)r->ucount : r->last_v[q];
             ar_close(m, r, u);
@@ -1375,6 +1383,21 @@ static void gru_push(const tb_model *m, gru_t *g, double t, const tb_real *dT)
 {
     uint32_t S = m->dims[0], j;
     double period = (double)PV(m, 0);
+    if (g->n > 0) { /* samples missing in between (a dropped or rejected one): the values numpy.interp gives */
+        uint32_t newest = (g->head + g->cap - 1) % g->cap, k, d;
+        double t_new = g->t_first + (double)(g->n - 1) * period;
+        d = (uint32_t)floor_clamp((t - t_new) / period + 0.5, 1, (int64_t)g->cap);
+        for (k = 1; k < d; k++) {
+            tb_real w = (tb_real)k / (tb_real)d;
+            for (j = 0; j < S; j++) {
+                tb_real v0 = (tb_real)g->ring[newest * S + j];
+                g->ring[g->head * S + j] = (float)(v0 + w * (dT[j] - v0));
+            }
+            g->head = (g->head + 1) % g->cap;
+            if (g->n < g->cap) g->n++;
+            else g->t_first += period;
+        }
+    }
     if (g->n == 0) g->t_first = t;
     for (j = 0; j < S; j++) g->ring[g->head * S + j] = (float)dT[j];
     g->head = (g->head + 1) % g->cap;
@@ -1730,6 +1753,7 @@ static void clf_label_push(clf_t *k, double T, int32_t raw)
 static void clf_classify_due(const tb_model *m, clf_t *k, double t_now, int final)
 {
     double step = (double)PV(m, m->off[O_BODY] + 1);
+    if (!k->have_t0) return;
     for (;;) {
         double T = k->t0 + (double)k->g_next * step;
         if (!final && !(T < t_now)) break;
@@ -1746,9 +1770,6 @@ static int clf_step(const tb_model *m, clf_t *k, const tb_sample *s)
         k->have_t0 = 1;
         k->t0 = s->t_s;
         k->period = (double)PV(m, 0);
-    } else {
-        double dt = s->t_s - k->last_t;
-        if (fabs(dt - k->period) > 1e-3 * k->period) return TB_E_SAMPLING;
     }
     if (k->n == k->cap) { /* drop the oldest */
         k->n--;
@@ -1773,6 +1794,7 @@ int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label)
     double best = -1e300;
     if (!clf || !clf->state || clf->kind != TB_KIND_CLASSIFIER || !label) return TB_E_STATE;
     k = (const clf_t *)((const state_t *)clf->state)->ks;
+    if (k->have_t0 && t_s > tb_model_ready_s(clf) + horizon_s(clf)) return TB_E_NOTREADY;
     if (k->lab_n == 0) {
         *label = -1;
         return k->have_t0 ? TB_OK : TB_E_NOTREADY;
@@ -1816,34 +1838,61 @@ static void kind_finish(tb_model *m, state_t *st)
     }
 }
 
-int tb_model_step(tb_model *m, const tb_sample *s)
+/* is sample s acceptable to model m? (changes nothing) */
+static int check_sample(const tb_model *m, const tb_sample *s)
 {
-    state_t *st;
-    common_t *c;
+    const state_t *st;
+    const common_t *c;
     uint32_t j;
     if (!m || !m->state) return TB_E_STATE;
-    if (!s || !isfinite(s->t_s) || !isfinite(s->axis_mm) || !isfinite(s->feed_mm_min) || !isfinite(s->load_N))
+    st = (const state_t *)m->state;
+    if (st->finished) return TB_E_STATE;
+    if (!s || !isfinite(s->t_s) || !isfinite(s->axis_mm) || !isfinite(s->feed_mm_min) || !isfinite(s->load_N) ||
+        fabs(s->axis_mm) > TB_MAX_AXIS_MM || fabs(s->feed_mm_min) > TB_MAX_FEED_MM_MIN || fabs(s->load_N) > TB_MAX_LOAD_N)
         return TB_E_INPUT;
-    st = (state_t *)m->state;
     if (m->kind == TB_KIND_CLASSIFIER) {
-        clf_t *k = (clf_t *)st->ks;
+        const clf_t *k = (const clf_t *)st->ks;
         if (k->have_t0 && !(s->t_s > k->last_t)) return TB_E_INPUT;
-        return clf_step(m, k, s);
+        if (k->have_t0 && s->t_s - k->last_t > TB_MAX_GAP_S) return TB_E_SAMPLING;
+        return TB_OK;
     }
+    if (m->kind == TB_KIND_AR) /* a negative value to a fractional power (thermbench raises there too) */
+        for (j = 0; j < m->dims[3]; j++) {
+            tb_real code = PV(m, m->off[O_A] + 2 * j), power = PV(m, m->off[O_A] + 2 * j + 1);
+            double v = code == 0 ? s->feed_mm_min : s->load_N;
+            if (v < 0 && power != floor(power)) return TB_E_INPUT;
+        }
     c = st->cm;
     if (m->max_channel > 0 && (!s->temps_C || s->n_temps < m->max_channel)) return TB_E_INPUT;
     if (c->n_in > 0) {
         if (!(s->t_s > c->t_last)) return TB_E_INPUT;
         if (s->t_s - c->t_last > TB_MAX_GAP_S) return TB_E_SAMPLING;
-        if (c->period_s > 0 && fabs(s->t_s - c->t_last - c->period_s) > 1e-3 * c->period_s) return TB_E_SAMPLING;
+        if (c->period_s > 0) { /* on the period's grid from the first sample (samples may be missing) */
+            double k = floor((s->t_s - c->t_first) / c->period_s + 0.5);
+            if (fabs(s->t_s - (c->t_first + k * c->period_s)) > 1e-3 * c->period_s) return TB_E_SAMPLING;
+        }
     }
+    for (j = 0; j < c->S; j++) {
+        double v = s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
+        if (!isfinite(v) || v < TB_MIN_TEMP_C || v > TB_MAX_TEMP_C) return TB_E_INPUT;
+    }
+    return TB_OK;
+}
+
+int tb_model_step(tb_model *m, const tb_sample *s)
+{
+    state_t *st;
+    common_t *c;
+    uint32_t j;
+    int rc = check_sample(m, s);
+    if (rc != TB_OK) return rc;
+    st = (state_t *)m->state;
+    if (m->kind == TB_KIND_CLASSIFIER) return clf_step(m, (clf_t *)st->ks, s);
+    c = st->cm;
     {
         tb_real raw[TB_MAX_SENSORS];
-        for (j = 0; j < c->S; j++) {
-            uint32_t ch = (uint32_t)PV(m, m->off[O_SENS] + j);
-            if (!isfinite(s->temps_C[ch])) return TB_E_INPUT;
-            raw[j] = (tb_real)s->temps_C[ch];
-        }
+        for (j = 0; j < c->S; j++) raw[j] = (tb_real)s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
+        if (c->n_in == 0) c->t_first = s->t_s;
         c->t_last = s->t_s;
         if (!c->started) {
             motion_t *b = &c->buf[c->n_in];
@@ -1877,6 +1926,8 @@ int tb_model_finish(tb_model *m)
     state_t *st;
     if (!m || !m->state) return TB_E_STATE;
     st = (state_t *)m->state;
+    if (st->finished) return TB_OK;
+    st->finished = 1;
     if (m->kind == TB_KIND_CLASSIFIER) {
         clf_classify_due(m, (clf_t *)st->ks, 0, 1);
         return TB_OK;
@@ -1912,14 +1963,27 @@ double tb_model_ready_s(const tb_model *m)
     }
 }
 
+/* how far past tb_model_ready_s a query may lie (the state is held, in real time) */
+static double horizon_s(const tb_model *m)
+{
+    switch (m->kind) {
+    case TB_KIND_PHYSICS: return (double)PV(m, m->off[O_BODY] + P_MACRO) + TB_MAX_GAP_S;
+    case TB_KIND_AR: return (double)PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S;
+    case TB_KIND_CLASSIFIER: return (double)PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S;
+    default: return TB_MAX_GAP_S;
+    }
+}
+
 int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *thermal_um, double *total_um)
 {
     const state_t *st;
     tb_real dT[TB_MAX_SENSORS], th = 0;
+    double total;
     int rc = TB_OK;
     if (!m || !m->state) return TB_E_STATE;
     if (m->kind == TB_KIND_CLASSIFIER) return TB_E_STATE;
     if (!isfinite(t_s) || !isfinite(axis_mm)) return TB_E_ARG;
+    if (t_s > tb_model_ready_s(m) + horizon_s(m)) return TB_E_NOTREADY; /* stalled or not stepped that far */
     st = (const state_t *)m->state;
     switch (m->kind) {
     case TB_KIND_PHYSICS: rc = phys_predict(m, (const phys_t *)st->ks, t_s, axis_mm, &th); break;
@@ -1934,8 +1998,10 @@ int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *ther
         else th = mlp_eval(m, dT, axis_mm);
     }
     if (rc != TB_OK) return rc;
+    total = (double)th + tb_model_geometric_um(m, axis_mm);
+    if (!isfinite(total)) return TB_E_INPUT; /* only hostile inputs get here */
     if (thermal_um) *thermal_um = (double)th;
-    if (total_um) *total_um = (double)th + tb_model_geometric_um(m, axis_mm);
+    if (total_um) *total_um = total;
     return TB_OK;
 }
 
@@ -1945,19 +2011,27 @@ int tb_bank_init(tb_bank *b, tb_model *classifier, tb_model *const *members, uin
     uint32_t i;
     if (!b || !classifier || !members || classifier->kind != TB_KIND_CLASSIFIER || !classifier->state) return TB_E_STATE;
     if (n_members != classifier->dims[0] || n_members > TB_MAX_CONDITIONS) return TB_E_ARG;
+    for (i = 0; i < n_members; i++)
+        if (!members[i] || !members[i]->state || members[i]->kind == TB_KIND_CLASSIFIER) return TB_E_STATE;
     b->classifier = classifier;
     b->n_members = n_members;
-    for (i = 0; i < n_members; i++) {
-        if (!members[i] || !members[i]->state || members[i]->kind == TB_KIND_CLASSIFIER) return TB_E_STATE;
-        b->members[i] = members[i];
-    }
+    for (i = 0; i < n_members; i++) b->members[i] = members[i];
     return TB_OK;
 }
 
 int tb_bank_set_member(tb_bank *b, uint32_t i, tb_model *member)
 {
-    if (!b || i >= b->n_members) return TB_E_ARG;
+    const clf_t *k;
+    const common_t *c;
+    if (!b || !b->classifier || i >= b->n_members) return TB_E_ARG;
     if (!member || !member->state || member->kind == TB_KIND_CLASSIFIER) return TB_E_STATE;
+    /* a member must have seen the same samples as the bank (its dT baseline is the run's first
+     * sample, a physics member integrates from the cold start): swap before the first sample,
+     * or bring the new model up to date with the run's log first */
+    k = (const clf_t *)((const state_t *)b->classifier->state)->ks;
+    c = ((const state_t *)member->state)->cm;
+    if (k->have_t0 != (c->n_in > 0)) return TB_E_STATE;
+    if (k->have_t0 && (c->t_first != k->t0 || c->t_last != k->last_t)) return TB_E_STATE;
     b->members[i] = member;
     return TB_OK;
 }
@@ -1967,6 +2041,9 @@ int tb_bank_step(tb_bank *b, const tb_sample *s)
     uint32_t i;
     int rc;
     if (!b || !b->classifier) return TB_E_STATE;
+    rc = check_sample(b->classifier, s); /* all or nothing: a sample one model refuses changes none */
+    for (i = 0; i < b->n_members && rc == TB_OK; i++) rc = check_sample(b->members[i], s);
+    if (rc != TB_OK) return rc;
     rc = tb_model_step(b->classifier, s);
     if (rc != TB_OK) return rc;
     for (i = 0; i < b->n_members; i++) {

@@ -5,6 +5,8 @@
  *   tb_replay --info FILE...               per file: kind, file bytes, state bytes
  *   tb_replay MODEL_FILE < stream          one model
  *   tb_replay --bank CLF M0 M1 ... < stream  a per-condition bank (members in class order)
+ *   --lenient (first option): a sample the runtime refuses (bad value, off the sampling grid) is
+ *   skipped, as a compensator would, and counted on stderr; otherwise it stops the replay
  *
  * stream (text, one record per line):
  *   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   a process-log sample
@@ -73,7 +75,8 @@ static query_t *queries;
 static size_t n_q, q_done;
 
 static tb_bank bank;
-static int use_bank;
+static int use_bank, lenient;
+static unsigned long rejected;
 
 static double ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
@@ -95,8 +98,13 @@ int main(int argc, char **argv)
     int i, rc, n_files = 0;
     char line[8192];
     size_t cap_q = 1024;
+    if (argc >= 2 && strcmp(argv[1], "--lenient") == 0) {
+        lenient = 1;
+        argv++;
+        argc--;
+    }
     if (argc < 2) {
-        fprintf(stderr, "usage: tb_replay [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        fprintf(stderr, "usage: tb_replay [--lenient] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
         return 1;
     }
     if (strcmp(argv[1], "--info") == 0) {
@@ -178,6 +186,10 @@ int main(int argc, char **argv)
             s.temps_C = temps;
             s.n_temps = (uint32_t)n;
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
+            if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
+                rejected++;
+                continue;
+            }
             if (rc != TB_OK) {
                 fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", s.t_s, rc, tb_strerror(rc));
                 return 8;
@@ -188,6 +200,7 @@ int main(int argc, char **argv)
     }
     rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
     if (rc != TB_OK) return 9;
+    if (rejected) fprintf(stderr, "tb_replay: %lu sample(s) refused and skipped\n", rejected);
     answer(0, 1);
     free(queries);
     return 0;

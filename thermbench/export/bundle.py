@@ -86,13 +86,16 @@ def process_samples(ds, run: str) -> pd.DataFrame:
 
 def _filters_json(enc: Encoded, sensor: str) -> list[dict]:
     """The preprocessing chain of one sensor, from the encoded sensor block."""
+    from .encoding import FSTEP_VALS, SENSOR_VALS
+
     i = enc.sensors.index(sensor)
     S = len(enc.sensors)
-    at = 1 + S + 13 * i
+    at = 1 + S + SENSOR_VALS * i
     p = enc.payload
     out = []
     for k in range(int(p[at])):
-        typ, a, b = p[at + 1 + 3 * k : at + 4 + 3 * k]
+        q = at + 1 + FSTEP_VALS * k
+        typ, a, b = p[q], p[q + 1] + p[q + 2], p[q + 3] + p[q + 4]
         if typ == 1:
             out.append({"filter": "limit", "limit_C": a, "max_hold": int(b) or None, "ref": "seed 002 §2.3.1 eq. 1"})
         else:
@@ -182,7 +185,8 @@ def readings_queries(ds, run: str) -> pd.DataFrame:
 
 
 def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
-               exe: Path | None = None, manifest: dict | None = None) -> pd.DataFrame:  # fmt: skip
+               exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
+               lenient: bool = False) -> pd.DataFrame:  # fmt: skip
     """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory."""
     model_dir = Path(model_dir)
     man = manifest if manifest is not None else read_manifest(model_dir)
@@ -193,16 +197,16 @@ def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: st
             raise ExportError(f"{model_dir}: the model reads sensor {s!r}, which dataset {ds.path} lacks; "
                               f"it has {list(ds.metadata.sensors)}")  # fmt: skip
         temps.append(col)
-    samples = process_samples(ds, run)
+    samples = process_samples(ds, run) if samples is None else samples
     if man.get("needs_load") and "load_N" not in samples:
         raise ExportError(f"{model_dir}: the model reads load_N, which run {run!r} of {ds.path} lacks")
     if man["kind"] == "bank":
         files = [model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
-        return runtime.replay(files, samples, temps, queries, bank=True, sanitize=sanitize, exe=exe)
+        return runtime.replay(files, samples, temps, queries, bank=True, sanitize=sanitize, exe=exe, lenient=lenient)
     f = man["files"].get(variant)
     if f is None:
         raise ExportError(f"{model_dir}: no file variant {variant!r}; it has {sorted(man['files'])}")
-    return runtime.replay([model_dir / f["file"]], samples, temps, queries, sanitize=sanitize, exe=exe)
+    return runtime.replay([model_dir / f["file"]], samples, temps, queries, sanitize=sanitize, exe=exe, lenient=lenient)
 
 
 def read_manifest(model_dir: Path) -> dict:
@@ -241,6 +245,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
     out_dir = Path(out_dir)
     source = dict(source or {})
     heldout = [r for r in heldout if ds is not None and r in ds.run_ids]
+    period_note = "median step of the dataset's process log" if ds is not None else "assumed (no dataset given)"
     man: dict[str, Any] = {"format": FORMAT, "name": name, "family": f"{type(model).__module__}.{type(model).__name__}",
                            "thermbench_version": __version__,
                            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
@@ -291,9 +296,17 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                 man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
         man["needs_load"] = any(e.needs_load for e in encs.values())
         man["sample_period_s"] = period
+        man["sample_period_from"] = period_note
         man["temperatures"] = temps
         man["inputs"] = _inputs_json(ds, temps, man["needs_load"], man["kind"] == "bank")
-        man["preprocessing"] = {s: _filters_json(next(e for e in encs.values() if s in e.sensors), s) for s in temps}
+        per_file = {f: {s: _filters_json(e, s) for s in e.sensors} for f, e in encs.items()}
+        man["preprocessing"] = {}
+        for s in temps:
+            chains = [pf[s] for pf in per_file.values() if s in pf]
+            man["preprocessing"][s] = chains[0] if all(c == chains[0] for c in chains) else "per member (bank.members[].preprocessing)"
+        if man["kind"] == "bank":
+            for mem in man["bank"]["members"]:
+                mem["preprocessing"] = per_file[mem["file"]]
         man["delta_T"] = "rise above the first filtered sample of the run (seed 002 eq. 10)"
         man["outputs"] = {"thermal_um": "thermal part of the positioning error", "total_um":
                           "geometric + thermal positioning error (measured - commanded); compensation = -total_um"}  # fmt: skip
@@ -303,8 +316,11 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
         man["footprint"] = footprint(tmp, man)
-        if opts.verify and ds is not None and heldout:
-            man["parity"] = _verify(tmp, man, models_py, ds, heldout, opts.parity_tol_um, name)
+        if opts.verify and ds is not None:
+            # parity on held-out runs; when every run trained the model, on those (parity, not accuracy)
+            runs = heldout or list(model.train_runs_)
+            man["parity"] = _verify(tmp, man, models_py, ds, runs, opts.parity_tol_um, name)
+            man["parity"]["runs_are_training_runs"] = not heldout
         (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
 
@@ -323,7 +339,11 @@ def footprint(model_dir: Path, man: dict) -> dict:
     else:
         entries = [man["files"]["model"]]
         names = [man["files"]["model"]["file"]]
-    inf = runtime.info([Path(model_dir) / n for n in names])
+    try:
+        inf = runtime.info([Path(model_dir) / n for n in names])
+    except runtime.RuntimeUnavailable as exc:  # export.verify=false works without gcc; RAM is then unknown
+        return {"file_bytes": int(sum(e["bytes"] for e in entries)), "ram_bytes": None, "budget": BUDGET,
+                "within_budget": None, "over_budget": [], "note": f"RAM not measured: {exc}"}  # fmt: skip
     ram = int(inf["state_bytes"].sum() + inf["model_bytes"].sum())
     over = [f"{n}: {e['bytes']} B file" for n, e in zip(names, entries)
             if e["bytes"] > (BUDGET["small_file_bytes"] if e["kind"] in SMALL_KINDS else BUDGET["file_bytes"])]  # fmt: skip

@@ -34,6 +34,12 @@ from ..preprocess.filters import KalmanFilter, LimitFilter, resolve_steps
 from .fileformat import Kind
 
 MAX_FILTER_STEPS = 4
+FSTEP_VALS = 5  # type, p1 (float32 hi, lo), p2 (hi, lo): the limit keeps its double value
+SENSOR_VALS = 1 + FSTEP_VALS * MAX_FILTER_STEPS
+#: the C runtime's limits (tb_runtime.h); a model beyond them is refused at export, not by the loader
+LIMITS = {"sensors": 16, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
+          "lags": 4096, "nodes": 4096, "ar_order": 64, "ar_terms": 8, "levels": 64, "conditions": 64,
+          "window_samples": 20000}  # fmt: skip
 ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
 
 
@@ -55,6 +61,38 @@ class Encoded:
 
 
 # ------------------------------------------------------------------ blocks ---
+def split_f32(values) -> list[float]:
+    """``values`` as float32 hi parts then lo parts (hi + lo = the value to ~1e-14 relative):
+    LSSVM weights are large and cancel, and float32 alone would move a prediction by
+    ~1e-8 x sum|alpha| (0.006 um on the seed000_x bank); a filter threshold keeps its value."""
+    v = np.atleast_1d(np.asarray(values, dtype=float))
+    hi = v.astype(np.float32).astype(float)
+    return [*hi, *(v - hi)]
+
+
+def check_limits(enc: "Encoded", where: str) -> "Encoded":
+    """Refuse what the C runtime would refuse (:data:`LIMITS`), with the reason."""
+    d, k = enc.dims, enc.kind
+    checks = {
+        Kind.MLR_CURVE: lambda: [("sensors", d[0]), ("poly", d[1] + 1)],
+        Kind.MLR_SEED001: lambda: [("poly", d[1])],
+        Kind.LSSVM: lambda: [("sensors", d[0]), ("support", d[1])],
+        Kind.MLP: lambda: [("sensors", d[0]), ("layers", d[1])],
+        Kind.GRU: lambda: [("sensors", d[0]), ("gru_hidden", d[1]), ("poly", d[2] + 1), ("lags", d[3])],
+        Kind.PHYSICS: lambda: [("nodes", d[1])],
+        Kind.AR: lambda: [("poly", d[0] + 1), ("ar_order", d[1]), ("ar_order", d[2]), ("ar_terms", d[3])],
+        Kind.CLASSIFIER: lambda: [("conditions", d[0]), ("levels", max(d[1:4]))],
+    }[k]()
+    for name, value in checks:
+        if value > LIMITS[name]:
+            raise ExportError(f"{where}: {name} = {value} exceeds the C runtime's limit {LIMITS[name]} "
+                              f"({k.name}); a smaller model is needed (e.g. export.lssvm_reduced_size for an LSSVM)")  # fmt: skip
+    for name, value in enc.notes.get("limits", []):
+        if value > LIMITS[name]:
+            raise ExportError(f"{where}: {name} = {value} exceeds the C runtime's limit {LIMITS[name]} ({k.name})")
+    return enc
+
+
 def filter_chain(preprocess, column: str, where: str) -> list[float]:
     """The sensor block entries of one sensor: n_steps then 4 (type, p1, p2) triples."""
     try:
@@ -67,16 +105,16 @@ def filter_chain(preprocess, column: str, where: str) -> list[float]:
     for s in steps:
         if type(s) is LimitFilter:
             limit, max_hold = s._check()
-            out += [1.0, limit, float(max_hold or 0)]
+            out += [1.0, *split_f32(limit), *split_f32(float(max_hold or 0))]
         elif type(s) is KalmanFilter:
             R, Q = s.params_for(column)
-            out += [2.0, R, Q]
+            out += [2.0, *split_f32(R), *split_f32(Q)]
         else:
             raise ExportError(
                 f"{where}: preprocess step {type(s).__name__} has no C implementation "
                 "(the runtime runs LimitFilter and KalmanFilter, seed 002 §2.3.1)"
             )
-    return out + [0.0] * (3 * (MAX_FILTER_STEPS - len(steps)))
+    return out + [0.0] * (FSTEP_VALS * (MAX_FILTER_STEPS - len(steps)))
 
 
 def sensor_block(sensors: Sequence[str], preprocess, channels: dict[str, int], where: str) -> list[float]:
@@ -148,15 +186,6 @@ def _encode_lssvm(m, channels, where, reduced: dict | None = None) -> Encoded:
     return Encoded(Kind.LSSVM, [S, int(np.asarray(alpha).size)], payload, list(m.sensors_))
 
 
-def split_f32(values) -> list[float]:
-    """``values`` as float32 hi parts then lo parts (hi + lo = the value to ~1e-14 relative):
-    LSSVM weights are large and cancel, and float32 alone would move a prediction by
-    ~1e-8 x sum|alpha| (0.006 um on the seed000_x bank)."""
-    v = np.atleast_1d(np.asarray(values, dtype=float))
-    hi = v.astype(np.float32).astype(float)
-    return [*hi, *(v - hi)]
-
-
 def _linear_layers(net) -> tuple[list, str | None]:
     from torch import nn
 
@@ -185,7 +214,8 @@ def _encode_mlp(m, channels, where) -> Encoded:
     payload += [float(l.out_features) for l in layers]
     for l in layers:
         payload += [*l.weight.detach().double().numpy().ravel(), *l.bias.detach().double().numpy()]
-    return Encoded(Kind.MLP, [S, len(layers), ACTIVATION_CODES[act]], payload, list(m.sensors_))
+    return Encoded(Kind.MLP, [S, len(layers), ACTIVATION_CODES[act]], payload, list(m.sensors_),
+                   notes={"limits": [("width", max(l.out_features for l in layers))]})
 
 
 def _encode_gru(m, channels, where, period_s: float) -> Encoded:
@@ -203,7 +233,8 @@ def _encode_gru(m, channels, where, period_s: float) -> Encoded:
     payload += [float(m.step_s), *map(float, m.input_mean_[0]), *map(float, m.input_scale_[0])]
     payload += [float(m.input_mean_[1][0]), float(m.input_scale_[1][0]), m.y_mean_um_, m.y_scale_um_]
     payload += [*t(g.weight_ih_l0), *t(g.weight_hh_l0), *t(g.bias_ih_l0), *t(g.bias_hh_l0), *t(head.weight), *t(head.bias)]
-    return Encoded(Kind.GRU, [S, H, D, int(m.n_lags_)], payload, list(m.sensors_), period_s=period_s)
+    return Encoded(Kind.GRU, [S, H, D, int(m.n_lags_)], payload, list(m.sensors_), period_s=period_s,
+                   notes={"limits": [("window_samples", int(math.ceil(m.n_lags_ * float(m.step_s) / period_s)))]})
 
 
 PHYSICS_PARAMS = (
@@ -300,7 +331,11 @@ def encode_classifier(bank, period_s: float, where: str = "classifier") -> Encod
     lv = [np.asarray(clf.levels_[f], dtype=float) for f in FACTORS]
     payload = [period_s, float(bank.window_s), float(bank.step_s), float(bank.min_moving_s)]
     payload += [*lv[0], *lv[1], *lv[2], *np.asarray(clf.condition_levels_, dtype=float).ravel()]
-    return Encoded(Kind.CLASSIFIER, [len(clf.classes_), lv[0].size, lv[1].size, lv[2].size], payload, period_s=period_s)
+    enc = Encoded(Kind.CLASSIFIER, [len(clf.classes_), lv[0].size, lv[1].size, lv[2].size], payload, period_s=period_s,
+                  notes={"limits": [("window_samples", int(math.ceil(float(bank.window_s) / period_s)))]})
+    if float(bank.step_s) < period_s:
+        raise ExportError(f"{where}: step_s {bank.step_s} s is shorter than the log's sample period {period_s} s")
+    return check_limits(enc, where)
 
 
 def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, period_s: float = 1.0,
@@ -316,19 +351,21 @@ def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, per
         raise ExportError(f"{where}: the model is not fitted")
     try:
         if isinstance(model, _CurveRegression):
-            return _encode_mlr_curve(model, channels, where)
-        if isinstance(model, MLRSeed001):
-            return _encode_mlr001(model, channels, where)
-        if isinstance(model, PSOLSSVM):
-            return _encode_lssvm(model, channels, where, lssvm_reduced)
-        if isinstance(model, MLPModel):
-            return _encode_mlp(model, channels, where)
-        if isinstance(model, GRUModel):
-            return _encode_gru(model, channels, where, period_s)
-        if isinstance(model, PhysicsModel):
-            return _encode_physics(model, channels, where)
-        if isinstance(model, AutoRegressiveSeed003):
-            return _encode_ar(model, channels, where)
+            enc = _encode_mlr_curve(model, channels, where)
+        elif isinstance(model, MLRSeed001):
+            enc = _encode_mlr001(model, channels, where)
+        elif isinstance(model, PSOLSSVM):
+            enc = _encode_lssvm(model, channels, where, lssvm_reduced)
+        elif isinstance(model, MLPModel):
+            enc = _encode_mlp(model, channels, where)
+        elif isinstance(model, GRUModel):
+            enc = _encode_gru(model, channels, where, period_s)
+        elif isinstance(model, PhysicsModel):
+            enc = _encode_physics(model, channels, where)
+        elif isinstance(model, AutoRegressiveSeed003):
+            enc = _encode_ar(model, channels, where)
+        else:
+            raise ExportError(f"{where}: no file encoding for {type(model).__name__}")
     except ModelError as exc:
         raise ExportError(f"{where}: {exc}") from None
-    raise ExportError(f"{where}: no file encoding for {type(model).__name__}")
+    return check_limits(enc, where)

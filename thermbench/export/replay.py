@@ -137,6 +137,9 @@ def format_replay(f: dict) -> str:
         f"  compensation rate {100 * f['compensation_rate']:.1f} %, P-V reduced by {100 * f['pv_reduction']:.1f} %",
     ]  # fmt: skip
     if "condition_switches" in f:
-        lines.append(f"  classifier: first condition after {f['first_condition_at_s']:.0f} s, then {f['condition_switches']} "
-                     f"switches; conditions used {f['conditions_used']}")  # fmt: skip
+        if f["first_condition_at_s"] is None:
+            lines.append("  classifier: no motion window was classified (no condition model used; geometric part only)")
+        else:
+            lines.append(f"  classifier: first condition after {f['first_condition_at_s']:.0f} s, then "
+                         f"{f['condition_switches']} switches; conditions used {f['conditions_used']}")  # fmt: skip
     return "\n".join(lines)

@@ -21,7 +21,8 @@ import numpy as np
 import pandas as pd
 
 CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
-SANITIZE = ("-fsanitize=address,undefined", "-fno-omit-frame-pointer", "-fno-sanitize-recover=all", "-g")
+SANITIZE = ("-fsanitize=address,undefined,float-cast-overflow", "-fno-omit-frame-pointer", "-fno-sanitize-recover=all",
+            "-g")  # fmt: skip
 
 
 class RuntimeUnavailable(RuntimeError):
@@ -98,16 +99,17 @@ def run_tool(exe: Path, args: Sequence[str], stdin: str = "", env: dict | None =
     cmd = [*valgrind, str(exe), *map(str, args)]
     res = subprocess.run(cmd, input=stdin, capture_output=True, text=True, env=env)
     if res.returncode != 0:
-        raise RuntimeFailed(f"{exe.name} exited with {res.returncode}: {res.stderr.strip()[-2000:]}")
+        raise RuntimeFailed(f"the C runtime ({exe.name}) stopped: {res.stderr.strip()[-2000:]}")
     return res.stdout
 
 
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
-           bank: bool = False, sanitize: bool = False, exe: Path | None = None) -> pd.DataFrame:  # fmt: skip
+           bank: bool = False, sanitize: bool = False, exe: Path | None = None, lenient: bool = False) -> pd.DataFrame:  # fmt: skip
     """Run the C runtime over ``samples`` and answer ``queries``: a DataFrame with ``t_s``,
-    ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``."""
+    ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``.
+    ``lenient``: samples the runtime refuses are skipped (as a compensator would), not an error."""
     exe = exe or build("tb_replay", sanitize=sanitize)
-    args = (["--bank"] if bank else []) + [str(f) for f in files]
+    args = (["--lenient"] if lenient else []) + (["--bank"] if bank else []) + [str(f) for f in files]
     out = run_tool(exe, args, stream_text(samples, temps, queries))
     rows = [ln.split() for ln in out.splitlines() if ln.strip()]
     df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
