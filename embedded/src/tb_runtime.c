@@ -273,7 +273,7 @@ static void *carve(arena_t *a, size_t bytes)
  * sample is filtered per channel and its rise dT above the first filtered value kept
  * in a short history for interpolation. */
 #define NBUF (TB_START_SAMPLES + 1u)
-#define NHIST 8u
+#define NHIST (NBUF + 1u) /* the startup buffer is processed at once; queries in it still interpolate */
 
 typedef struct {
     tb_real prev, last_rej, est, P;
