@@ -303,6 +303,12 @@ def test_export_job_and_replay_command(exported, ds, seed001_data_root, tmp_path
     assert man["metrics"] == {"x_um": 1.0} and man["mlflow_run_id"] == "abc"
     assert set(man["parity"]["runs"]) == {"valid1", "valid2", "valid3", "valid4"}
     assert table["parity_max_abs_diff_nm"].iloc[0] < 1000 * TOL_UM
+    # one fitted model file, its dataset named
+    one = tmp_path / "models" / "seed001_vmc_x__mlr_seed001__global.joblib"
+    cfg = load_config("export", [f"export.source={one}", "export.dataset=seed001_vmc_x", f"export.out_dir={tmp_path / 'o2'}"])
+    t2, _ = run_export(cfg)
+    assert t2["model"].tolist() == [one.stem] and t2["parity_max_abs_diff_nm"].iloc[0] < 1000 * TOL_UM
+    assert read_manifest(tmp_path / "o2" / one.stem)["source"]["file"] == str(one)
     # a key nobody knows is named
     bad = load_config("export", [f"export.source={tmp_path / 'models'}", "+export.colour=red"])
     with pytest.raises(Exception, match="export.colour"):
