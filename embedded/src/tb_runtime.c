@@ -1407,7 +1407,7 @@ static void gru_push(const tb_model *m, gru_t *g, double t, const tb_real *dT)
 
 static tb_real sigm(tb_real x) { return (tb_real)(1.0 / (1.0 + exp(-(double)x))); }
 
-static int gru_predict(const tb_model *m, const gru_t *g, const common_t *cm, double t, double axis_mm, tb_real *thermal)
+static int gru_predict(const tb_model *m, const gru_t *g, double t, double axis_mm, tb_real *thermal)
 {
     uint32_t S = m->dims[0], H = m->dims[1], D = m->dims[2], K = m->dims[3], j, i, k;
     uint32_t body = m->off[O_BODY];
@@ -1416,7 +1416,6 @@ static int gru_predict(const tb_model *m, const gru_t *g, const common_t *cm, do
     tb_real p, out = 0, pw = 1;
     uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
     double t_newest;
-    (void)cm;
     if (g->n == 0) return TB_E_NOTREADY;
     t_newest = g->t_first + (double)(g->n - 1) * period;
     for (j = 0; j < H; j++) h[j] = 0;
@@ -1468,7 +1467,6 @@ static int gru_predict(const tb_model *m, const gru_t *g, const common_t *cm, do
         pw *= p;
     }
     *thermal = out * PV(m, body + 4 + 2 * S) + PV(m, body + 3 + 2 * S);
-    (void)t_newest;
     return TB_OK;
 }
 
@@ -1604,7 +1602,7 @@ static int32_t clf_predict_one(const tb_model *m, tb_real A, tb_real B, tb_real 
 
 /* features of the window (T - window, T] (thermbench.classify.window_features, with the feed
  * levels clustered over the window and its two neighbour samples); returns the raw label or -1 */
-static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
+static int32_t clf_window(const tb_model *m, clf_t *k, double T)
 {
     uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo = (uint32_t)-1, hi = 0, a, b;
     double window = (double)PV(m, body), min_moving = (double)PV(m, body + 2), period = k->period;
@@ -1640,19 +1638,13 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
     if (nu == 0) return -1;
     /* chain clustering within 1 % (thermbench.classify._cluster_feeds): lev[j] = level of u[j] */
     {
-        tb_real sum = u[0];
-        uint32_t cnt = 1, j;
+        uint32_t j;
         lev[0] = 0;
         for (j = 1; j < nu; j++) {
             if ((tb_real)u[j] - (tb_real)u[j - 1] > (tb_real)0.01 * (tb_real)u[j]) nlev++;
             lev[j] = (float)nlev;
-            sum += u[j];
-            cnt++;
         }
         nlev++;
-        (void)sum;
-        (void)cnt;
-        if (nlev > TB_MAX_FEEDS) return -2;
     }
     for (i = 0; i < nlev; i++) time_in[i] = feed_in[i] = 0;
     for (i = lo; i < hi; i++) {
@@ -1713,8 +1705,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
     } while (0)
             LEVEL(i, c0);
             if (c0 != (int32_t)dom) continue;
-            if (i == 0 && k->g_next == 0) continue;
-            if (i == 0) continue; /* the sample before it has left the ring */
+            if (i == 0) continue; /* run start (same[0] is False) or the sample before it left the ring */
             LEVEL(i - 1, cprev);
             LEVEL(i + 1, c1n);
             if (i + 2 < k->n) LEVEL(i + 2, c2);
@@ -1737,7 +1728,6 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T, int have_next)
         x0 = down;
         x1 = up;
     }
-    (void)have_next;
     return clf_predict_one(m, x1 - x0, x0 + x1, feed_in[dom] / time_in[dom]);
 }
 
@@ -1758,7 +1748,7 @@ static void clf_classify_due(const tb_model *m, clf_t *k, double t_now, int fina
         double T = k->t0 + (double)k->g_next * step;
         if (!final && !(T < t_now)) break;
         if (final && T > k->last_t + 1e-9) break;
-        clf_label_push(k, T, clf_window(m, k, T, !final));
+        clf_label_push(k, T, clf_window(m, k, T));
         k->g_next++;
     }
 }
@@ -1988,7 +1978,7 @@ int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *ther
     switch (m->kind) {
     case TB_KIND_PHYSICS: rc = phys_predict(m, (const phys_t *)st->ks, t_s, axis_mm, &th); break;
     case TB_KIND_AR: rc = ar_predict(m, (const ar_t *)st->ks, t_s, axis_mm, &th); break;
-    case TB_KIND_GRU: rc = gru_predict(m, (const gru_t *)st->ks, st->cm, t_s, axis_mm, &th); break;
+    case TB_KIND_GRU: rc = gru_predict(m, (const gru_t *)st->ks, t_s, axis_mm, &th); break;
     default:
         rc = hist_at(st->cm, t_s, dT);
         if (rc != TB_OK) break;
