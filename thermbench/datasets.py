@@ -32,6 +32,16 @@ def names() -> list[str]:
     return list(_registry())
 
 
+def of_key(key: str) -> str | None:
+    """The benchmark dataset a model key names: ``<dataset>__<family>__<approach>`` (benchmark
+    model files), ``<dataset>-...`` (logged model names) or ``thermbench-<dataset>[-...]``
+    (registered names); None when it names none."""
+    for name in sorted(names(), key=len, reverse=True):
+        if key.startswith((f"{name}__", f"{name}-", f"thermbench-{name}-")) or key == f"thermbench-{name}":
+            return name
+    return None
+
+
 def _registry() -> dict:
     return yaml.safe_load((config_dir() / "benchmark_datasets.yaml").read_text(encoding="utf-8"))
 

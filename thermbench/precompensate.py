@@ -861,14 +861,6 @@ def _load_model(path: Path):
         raise PrecompError(f"{path}: not a joblib model file ({type(exc).__name__}: {exc})") from None
 
 
-def _dataset_from_model_path(path: Path) -> str | None:
-    """The benchmark dataset named in a benchmark model file name ``<dataset>__<family>__<approach>.joblib``."""
-    from . import datasets
-
-    name = path.stem.split("__", 1)[0]
-    return name if "__" in path.stem and name in datasets.names() else None
-
-
 def run_precompensate(
     program_path,
     model_path,
@@ -899,7 +891,9 @@ def run_precompensate(
         raise PrecompError(f"{out_path}: the output would overwrite the input program; expected another file name")
     model = _load_model(model_path)
     if dataset is None:
-        dataset = _dataset_from_model_path(model_path)
+        from . import datasets
+
+        dataset = datasets.of_key(model_path.stem)
         if dataset is None:
             raise PrecompError(
                 f"{model_path}: cannot tell which dataset the model was trained on; expected --dataset NAME_OR_DIR"

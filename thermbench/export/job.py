@@ -18,6 +18,7 @@ import pandas as pd
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
+from .. import datasets
 from ..config import ConfigError
 from .bundle import ExportOptions, export_model
 from .encoding import ExportError
@@ -46,15 +47,6 @@ def _dataset_names() -> list[str]:
     from ..config import config_dir
 
     return sorted(p.stem for p in (config_dir() / "dataset").glob("*.yaml"))
-
-
-def _infer_dataset(key: str) -> str | None:
-    """``<dataset>__<family>__<approach>`` (benchmark keys), ``thermbench-<dataset>`` (registered)
-    or ``<dataset>-<family>-<approach>`` (logged model names)."""
-    for name in sorted(_dataset_names(), key=len, reverse=True):
-        if key.startswith((f"{name}__", f"{name}-", f"thermbench-{name}-")) or key == f"thermbench-{name}":
-            return name
-    return None
 
 
 def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
@@ -125,7 +117,7 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
     rows = []
     splits: dict[str, Any] = {}
     for key, model, info in _items(e, cfg):
-        dname = e.get("dataset") or info.pop("dataset_name", None) or _infer_dataset(key)
+        dname = e.get("dataset") or info.pop("dataset_name", None) or datasets.of_key(key)
         info.pop("dataset_name", None)
         ds, heldout = None, []
         if dname:
