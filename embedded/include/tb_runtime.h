@@ -128,7 +128,7 @@ typedef struct {
     uint16_t kind;
     uint32_t dims[TB_MAX_DIMS];
     /* offsets (in float32 values) of the parsed sections */
-    uint32_t off[12];
+    uint32_t off[10]; /* section offsets (tb_runtime.c: O_COUNT) */
     uint32_t n_sensors;
     uint32_t max_channel; /* largest temps_C index used + 1 */
     void *state;

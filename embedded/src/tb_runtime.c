@@ -144,8 +144,11 @@ enum {
     O_SENS,       /* sensor block */
     O_GEOM,       /* geometric block */
     O_BODY,       /* kind-specific body */
-    O_A, O_B, O_C, O_D, O_E, O_F, O_G, O_H /* kind-specific sub-sections */
+    O_A, O_B, O_C, O_D, O_E, O_F, /* kind-specific sub-sections */
+    O_COUNT
 };
+
+typedef char off_fits_[(sizeof(((tb_model *)0)->off) / sizeof(uint32_t) >= O_COUNT) ? 1 : -1];
 
 #define FSTEP_VALS 5u /* type, p1 (hi, lo), p2 (hi, lo): float32 pairs keep the double thresholds */
 #define SENS_PER (1u + FSTEP_VALS * TB_MAX_FILTER_STEPS)
