@@ -52,3 +52,21 @@ def seed001_data_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("benchmark")
     datasets.build("seed001_vmc_x", root)
     return root
+
+
+@pytest.fixture(scope="session")
+def seed001_exports(seed001_data_root, tmp_path_factory):
+    """Two exported models of ``seed001_vmc_x`` (fitted on its five loading states, parity-checked
+    on valid1): ``mlr`` (seed 002 MLR) and ``bank`` (seed 002 §2.4-2.5 per-condition bank of
+    seed 001 MLR), the cheapest families: for the live runtime and the compensator."""
+    from thermbench import datasets
+    from thermbench.export import export_model
+    from thermbench.models.bank import ConditionBank
+    from thermbench.models.mlr import MLRSeed001, MLRSeed002
+
+    ds = datasets.load_benchmark("seed001_vmc_x", seed001_data_root)
+    root = tmp_path_factory.mktemp("exports")
+    states = ["state1", "state2", "state3", "state4", "state5"]
+    for name, model in {"mlr": MLRSeed002(), "bank": ConditionBank(MLRSeed001())}.items():
+        export_model(model.fit(ds, states), root / name, name, ds, ["valid1"])
+    return root

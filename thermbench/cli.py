@@ -10,6 +10,11 @@
                                                an exported model in the C runtime over a run's log: before/after
     thermbench precompensate PROGRAM.nc --model MODEL.joblib --out OUT.nc [--verify] [...]
                                                seed 003: rewrite a part program against the predicted error
+    thermbench compensator MODEL_DIR --endpoint opc.tcp://HOST:PORT --nodes nodes.yaml [overrides...]
+                                               OPC UA compensator: the exported model against a live machine
+    thermbench sim-cnc [--endpoint URL] [overrides...]
+                                               a simulated CNC axis behind an OPC UA server (closed loop)
+    thermbench certs OUT_DIR                   self-signed certificates for Basic256Sha256 sign-and-encrypt
     thermbench train|evaluate|benchmark|export [hydra overrides...] [-m]
                                                Hydra jobs (thermbench.app): conf/<job>.yaml
 """
@@ -123,6 +128,55 @@ def cmd_precompensate(args) -> int:
     return 0
 
 
+def _quiet_asyncua() -> None:
+    import logging
+
+    logging.getLogger("asyncua").setLevel(logging.ERROR)  # its INFO/WARNING chatter (session timeouts, ...)
+
+
+def _compose(name: str, overrides: list[str], **paths):
+    from omegaconf import OmegaConf
+
+    from .config import load_config
+
+    cfg = load_config(name, overrides)
+    for key, value in paths.items():  # paths and URLs go in after composition: no Hydra quoting
+        if value is not None:
+            OmegaConf.update(cfg, key, value)
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[str]) -> int:
+    from .compensator.client import format_summary, run_compensator
+
+    _quiet_asyncua()
+    cfg = _compose("compensator", overrides)
+    print(format_summary(run_compensator(Path(model_dir), endpoint, Path(nodes), cfg)))
+    return 0
+
+
+def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
+    import asyncio
+
+    from .compensator.simcnc import build_machine, format_figures, serve
+
+    _quiet_asyncua()
+    cfg = _compose("sim_cnc", overrides, endpoint=endpoint)
+    machine = build_machine(cfg)
+    print(f"sim-cnc: run {machine.run}, {len(machine.samples)} samples at {cfg['speed']:g}x real time on {cfg['endpoint']}"
+          + (" (starts when the compensator first writes)" if cfg["start"] == "on_compensator" else ""), flush=True)  # fmt: skip
+    print(format_figures(asyncio.run(serve(cfg, machine))))
+    return 0
+
+
+def cmd_certs(out_dir: str, days: int, host: str | None) -> int:
+    from .compensator.certs import make_certificates
+
+    for role, path in make_certificates(out_dir, days=days, host=host).items():
+        print(f"{role:20s} {path}")
+    return 0
+
+
 HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 
 
@@ -184,13 +238,32 @@ def main(argv: list[str] | None = None) -> int:
     p_pre.add_argument("--ambient", type=float, default=20.0, help="ambient held constant for a physics model, °C")
     p_pre.add_argument("--decimals", type=int, default=4)
     p_pre.add_argument("--verify", action="store_true", help="replay both programs in the simulator that made --dataset")
+    p_cmp = sub.add_parser("compensator", help="OPC UA compensator: read the machine, run the exported model in the "
+                           "C runtime, write the compensation (conf/compensator.yaml)")  # fmt: skip
+    p_cmp.add_argument("model_dir", help="a directory written by thermbench export (manifest.json)")
+    p_cmp.add_argument("--endpoint", required=True, help="the machine's OPC UA endpoint, opc.tcp://HOST:PORT[/path]")
+    p_cmp.add_argument("--nodes", required=True, help="nodes.yaml: node ids of the inputs and outputs")
+    p_cmp.add_argument("overrides", nargs="*", help="overrides of conf/compensator.yaml, e.g. period_s=0.1 output=line")
+    p_sim_cnc = sub.add_parser("sim-cnc", help="a simulated CNC axis behind an OPC UA server (conf/sim_cnc.yaml)")
+    p_sim_cnc.add_argument("--endpoint", default=None, help="endpoint to serve (default from conf/sim_cnc.yaml)")
+    p_sim_cnc.add_argument("overrides", nargs="*", help="overrides, e.g. dataset=seed001_vmc_x run=valid1 speed=100")
+    p_certs = sub.add_parser("certs", help="self-signed OPC UA application certificates (server and client)")
+    p_certs.add_argument("out_dir")
+    p_certs.add_argument("--days", type=int, default=365)
+    p_certs.add_argument("--host", default=None, help="host name in the certificates (default: this host's)")
     # overrides may follow the options (argparse matches positionals in one chunk)
     args, extra = parser.parse_known_args(argv)
-    if extra and (args.command != "diagnose" or any(e.startswith("-") for e in extra)):
+    if extra and (args.command not in ("diagnose", "compensator", "sim-cnc") or any(e.startswith("-") for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         if args.command == "diagnose":
             return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra])
+        if args.command == "compensator":
+            return cmd_compensator(args.model_dir, args.endpoint, args.nodes, [*args.overrides, *extra])
+        if args.command == "sim-cnc":
+            return cmd_sim_cnc(args.endpoint, [*args.overrides, *extra])
+        if args.command == "certs":
+            return cmd_certs(args.out_dir, args.days, args.host)
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "replay":
@@ -201,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
     except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError,
-            RuntimeUnavailable, RuntimeFailed) as exc:  # user mistakes, and the C runtime's refusals  # fmt: skip
+            RuntimeUnavailable, RuntimeFailed, FileExistsError) as exc:  # user mistakes, and the C runtime's refusals  # fmt: skip
         print(f"thermbench: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

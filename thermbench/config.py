@@ -40,3 +40,19 @@ def load_config(name: str = "simulate", overrides: Sequence[str] = (), return_hy
         raise
     except Exception as exc:  # hydra's override/composition errors are user mistakes
         raise ConfigError(f"config {name!r} with overrides {list(overrides)}: {exc}") from None
+
+
+def with_defaults(name: str, cfg) -> dict:
+    """``cfg`` (a mapping, e.g. from a test or a notebook) over the defaults of
+    ``conf/<name>.yaml``, as a plain dict; a key the config does not have is an error."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    base = load_config(name)
+    plain = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg or {})
+    try:
+        merged = OmegaConf.merge(base, OmegaConf.create(plain))
+        return OmegaConf.to_container(merged, resolve=True)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        raise ConfigError(f"config {name!r}: key {key!r}: {str(exc).splitlines()[0]}") from None

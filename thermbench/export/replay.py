@@ -63,17 +63,8 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
                          "compensation_um": -ctrl["total_um"]})  # fmt: skip
     if labels is not None:
         comp["condition"] = labels
-    m = residual_metrics(readings["error_um"], readings["predicted_um"], readings["thermal_um"])
-    figures = {
-        "model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
-        "n_readings": len(readings), "n_control_cycles": len(comp),
-        "before_max_abs_um": m["max_abs_error_um"], "after_max_abs_um": m["max_abs_residual_um"],
-        "before_interval_um": [float(readings["thermal_um"].min()), float(readings["thermal_um"].max())],
-        "after_interval_um": [float(readings["residual_um"].min()), float(readings["residual_um"].max())],
-        "before_pv_um": m["pv_error_um"], "after_pv_um": m["pv_residual_um"], "after_rmse_um": m["rmse_um"],
-        "compensation_rate": m["compensation_rate"],
-        "pv_reduction": 1.0 - m["pv_residual_um"] / m["pv_error_um"] if m["pv_error_um"] > 0 else float("nan"),
-    }  # fmt: skip
+    figures = {"model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
+               "n_readings": len(readings), "n_control_cycles": len(comp), **compensation_figures(readings)}  # fmt: skip
     if labels is not None:
         switches = int(sum(1 for a, b in zip(labels[:-1], labels[1:]) if a != b and a is not None and b is not None))
         first = next((i for i, lab in enumerate(labels) if lab is not None), None)
@@ -82,6 +73,21 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
         figures["conditions_used"] = sorted({lab for lab in labels if lab is not None})
     return {"figures": figures, "readings": readings, "compensation": comp,
             "cycles": cycle_curves(te, readings["predicted_um"].to_numpy())}  # fmt: skip
+
+
+def compensation_figures(readings: pd.DataFrame) -> dict:
+    """Before/after figures over interferometer readings with ``error_um`` (as read),
+    ``thermal_um`` (minus the cold reference), ``predicted_um`` and ``residual_um``
+    (= error - predicted): what ``thermbench replay`` and ``thermbench sim-cnc`` report."""
+    m = residual_metrics(readings["error_um"], readings["predicted_um"], readings["thermal_um"])
+    return {
+        "before_max_abs_um": m["max_abs_error_um"], "after_max_abs_um": m["max_abs_residual_um"],
+        "before_interval_um": [float(readings["thermal_um"].min()), float(readings["thermal_um"].max())],
+        "after_interval_um": [float(readings["residual_um"].min()), float(readings["residual_um"].max())],
+        "before_pv_um": m["pv_error_um"], "after_pv_um": m["pv_residual_um"], "after_rmse_um": m["rmse_um"],
+        "compensation_rate": m["compensation_rate"],
+        "pv_reduction": 1.0 - m["pv_residual_um"] / m["pv_error_um"] if m["pv_error_um"] > 0 else float("nan"),
+    }  # fmt: skip
 
 
 def write_replay(result: dict, out_dir: Path) -> Path:

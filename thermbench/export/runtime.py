@@ -1,7 +1,8 @@
 """Build and drive the portable C runtime (``embedded/``) from Python.
 
 :func:`build` compiles the runtime with one of its host tools by gcc (C99, ``-Wall
--Wextra -Werror``), cached by a hash of the sources and flags; :func:`replay`
+-Wextra -Werror``), cached by a hash of the sources and flags, :func:`build_shared` the runtime
+alone as a shared library (the in-process binding, :mod:`.native`); :func:`replay`
 streams a run's process log through it (``tb_replay``) and returns its
 predictions at query points; :func:`info` reads each file's kind, size and state
 bytes as the runtime sees them.
@@ -54,23 +55,38 @@ def sources(tool: str) -> list[Path]:
 
 def build(tool: str = "tb_replay", extra_flags: Sequence[str] = (), sanitize: bool = False, cc: str | None = None) -> Path:
     """Compile ``embedded/tools/<tool>.c`` with the runtime; returns the executable (cached)."""
+    return _compile(tool, sources(tool), extra_flags, sanitize, cc)
+
+
+def build_shared(sanitize: bool = False, cc: str | None = None) -> Path:
+    """Compile the runtime alone (``src/tb_runtime.c``) as a shared library for in-process use
+    (:mod:`.native`); returns ``libtb_runtime-<hash>.so`` (cached like :func:`build`). A
+    ``sanitize`` build loads only into a process with the sanitizer runtimes preloaded."""
+    src = embedded_dir() / "src" / "tb_runtime.c"
+    return _compile("libtb_runtime", [src], ("-shared", "-fPIC"), sanitize, cc, suffix=".so")
+
+
+def _compile(stem: str, srcs: Sequence[Path], extra_flags: Sequence[str], sanitize: bool, cc: str | None,
+             suffix: str = "") -> Path:  # fmt: skip
+    """gcc ``srcs`` with :data:`CFLAGS` into ``<cache_dir>/<stem>-<hash><suffix>``, the hash over the
+    sources, the header, the compiler and the flags; written atomically, reused when present."""
     cc = cc or os.environ.get("CC", "gcc")
     if shutil.which(cc) is None:
         raise RuntimeUnavailable(f"no C compiler {cc!r} on PATH: the C runtime needs one (install gcc)")
     d = embedded_dir()
     flags = [*CFLAGS, *(SANITIZE if sanitize else ()), *extra_flags, f"-I{d / 'include'}"]
     h = hashlib.sha256()
-    for p in [*sources(tool), d / "include" / "tb_runtime.h"]:
+    for p in [*srcs, d / "include" / "tb_runtime.h"]:
         h.update(p.read_bytes())
     h.update(" ".join([cc, *flags]).encode())
-    out = cache_dir() / f"{tool}-{h.hexdigest()[:16]}"
+    out = cache_dir() / f"{stem}-{h.hexdigest()[:16]}{suffix}"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
     os.close(fd)
     try:
-        cmd = [cc, *flags, *map(str, sources(tool)), "-o", tmp, "-lm"]
+        cmd = [cc, *flags, *map(str, srcs), "-o", tmp, "-lm"]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             raise RuntimeFailed(f"compiling the C runtime failed ({' '.join(cmd)}):\n{res.stderr}")

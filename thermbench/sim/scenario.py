@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict, replace
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
@@ -138,8 +138,13 @@ def simulate_run(model: ScrewThermalModel, traj: Trajectory, ambient_C: float) -
     return model.run(traj.sample(t), ambient_C=ambient_C, duration_s=traj.now)
 
 
-def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
-    """Simulate every run of the protocol on the machine; return the dataset and a summary."""
+def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[Dataset, dict]:
+    """Simulate every run of the protocol on the machine; return the dataset and a summary.
+
+    ``runs_only``: simulate just these runs (the same numbers as in the full dataset: each
+    run draws from its own seeded stream); the summary then also holds each run's
+    :class:`ThermalHistory` under ``histories`` and the geometric error under ``geometric``
+    (what ``thermbench sim-cnc`` needs for the error at any position and time)."""
     c = _plain(cfg)
     clean = bool(c.get("clean", False))
     seed = int(c.get("seed", 0))
@@ -162,10 +167,16 @@ def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
 
     root_rng = np.random.default_rng(seed)
     runs = protocol_runs(c, root_rng)
+    if runs_only is not None:
+        unknown = sorted(set(runs_only) - set(runs))
+        if unknown:
+            raise ValueError(f"run(s) {unknown} are not in protocol {c['protocol'].get('name')!r}; its runs: {list(runs)}")
     uses_load = any(p.load_N for r in runs.values() for p in r["phases"]) or model.effect("load_dependent_heat")
-    process_frames, error_frames, summary_runs = [], [], {}
-    for run_id, run in runs.items():
-        rng = np.random.default_rng([seed, len(summary_runs) + 1])
+    process_frames, error_frames, summary_runs, histories = [], [], {}, {}
+    for index, (run_id, run) in enumerate(runs.items()):
+        if runs_only is not None and run_id not in runs_only:
+            continue
+        rng = np.random.default_rng([seed, index + 1])
         run_meas = replace(meas, every_s=float(run["measure_every_s"])) if run.get("measure_every_s") else meas
         traj = build_run(run["phases"], run_meas, start_mm=meas.targets_mm[0])
         hist = simulate_run(model, traj, ambient0)
@@ -189,6 +200,7 @@ def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
         error_frames.append(
             pd.DataFrame({"run_id": run_id, "t_s": rt, "target_mm": rx, "error_um": ifm.read(thermal, rx, rng)})
         )
+        histories[run_id] = hist
         summary_runs[run_id] = {
             "duration_h": traj.now / 3600.0,
             "max_thermal_error_um": float(np.max(np.abs(hist.error_field_um(np.asarray(meas.targets_mm))))),
@@ -208,6 +220,7 @@ def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
             "runs": {
                 rid: {"condition": r["condition"], **({"notes": r["notes"]} if r["notes"] else {})}
                 for rid, r in runs.items()
+                if runs_only is None or rid in runs_only
             },
             "simulation": {
                 "seed": seed,
@@ -220,4 +233,7 @@ def simulate_dataset(cfg: Any) -> tuple[Dataset, dict]:
         }
     )
     ds = Dataset(meta, pd.concat(process_frames, ignore_index=True), pd.concat(error_frames, ignore_index=True))
-    return ds, {"machine": m["name"], "runs": summary_runs}
+    summary = {"machine": m["name"], "runs": summary_runs}
+    if runs_only is not None:
+        summary.update(histories=histories, geometric=geometric)
+    return ds, summary

@@ -1,0 +1,282 @@
+"""The OPC UA compensator against ``sim-cnc`` on 127.0.0.1: the closed loop reduces the
+simulated error by what ``thermbench replay`` predicts (value and error-line forms),
+faults (server restart, NaN / out-of-range sensors, frozen data), security
+(user/password, Basic256Sha256 sign-and-encrypt with pinned certificates) and the
+refusal to write any node but the configured ones.
+
+Everything runs in one event loop per test: the server and the client are both asyncua
+(the client steps the exported model in the C runtime through ctypes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench.cli import main
+from thermbench.compensator.certs import make_certificates
+from thermbench.compensator.client import Compensator, CompensatorError, RefusedWrite
+from thermbench.compensator.control import Flags
+from thermbench.compensator.simcnc import SimCnc, SimCncError, build_machine, nodes_yaml, serve
+from thermbench.datasets import load_benchmark
+from thermbench.export.replay import replay_run
+
+RUN = "valid1"
+HELD, STALE, INPUT_HELD = int(Flags.HELD), int(Flags.STALE), int(Flags.INPUT_HELD)
+DISCONNECTED, RESTARTED = int(Flags.DISCONNECTED), int(Flags.RESTARTED)
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def ds(seed001_data_root):
+    return load_benchmark("seed001_vmc_x", seed001_data_root)
+
+
+@pytest.fixture(scope="module")
+def machine(ds):
+    """valid1's first 15 minutes, simulated by sim-cnc (not read from the dataset)."""
+    return build_machine({"dataset": "seed001_vmc_x", "run": RUN, "duration_s": 900})
+
+
+@pytest.fixture
+def nodes_file(machine, tmp_path):
+    p = tmp_path / "nodes.yaml"
+    p.write_text(yaml.safe_dump(nodes_yaml(machine)))
+    return p
+
+
+def _client_cfg(tmp_path, **kw):
+    cfg = {"period_s": 0.004, "log": str(tmp_path / "cycles.csv"), "rate_limit_um_s": 20.0, "stale_after_s": 2.0,
+           "reconnect": {"initial_s": 0.05, "max_s": 0.4, "factor": 2.0}}  # fmt: skip
+    cfg.update(kw)
+    return cfg
+
+
+async def _closed_loop(machine, model_dir, nodes, tmp_path, sim_kw=None, **client_kw):
+    port = _port()
+    ep = f"opc.tcp://127.0.0.1:{port}/sim"
+    scfg = {"endpoint": ep, "run": RUN, "speed": 100.0, "linger_s": 0.3, "out_dir": str(tmp_path / "sim"), **(sim_kw or {})}
+    ready = asyncio.Event()
+    server = asyncio.ensure_future(serve(scfg, machine, ready))
+    await asyncio.wait([asyncio.ensure_future(ready.wait()), server], return_when=asyncio.FIRST_COMPLETED)
+    if server.done():
+        server.result()  # the server failed to start: raise its error
+    comp = Compensator(model_dir, ep, nodes, _client_cfg(tmp_path, **client_kw))
+    summary = await comp.run()
+    figures = await server
+    return figures, summary, pd.read_csv(tmp_path / "cycles.csv")
+
+
+def test_sim_cnc_runs_the_benchmark_run_the_model_was_checked_on(machine, ds):
+    """The simulated run is the benchmark dataset's valid1 (each run draws its own seeded stream)."""
+    pr = ds.process_run(RUN)
+    pr = pr[pr["t_s"] <= 900].reset_index(drop=True)
+    for col in ("t_s", "axis_mm", "feed_mm_min", "T_nut_C", "T_bed_C"):
+        np.testing.assert_array_equal(machine.samples[col].to_numpy(), pr[col].to_numpy())
+    er = ds.errors_run(RUN)
+    np.testing.assert_array_equal(machine.readings["error_um"].to_numpy(), er[er["t_s"] <= 900]["error_um"].to_numpy())
+    # the simulator also knows the error at every sample's position: at the readings it is the
+    # interferometer's value without its noise (conf/instruments/realistic.yaml: 0.2 µm)
+    at = np.interp(machine.readings["t_s"], machine.samples["t_s"], machine.sample_error_um)
+    dwell = machine.readings["t_s"].isin(machine.samples["t_s"]) & np.isclose(
+        np.interp(machine.readings["t_s"], machine.samples["t_s"], machine.samples["axis_mm"]), machine.readings["target_mm"])
+    assert dwell.sum() >= 10
+    assert np.max(np.abs((at - machine.readings["error_um"])[dwell])) < 1.5
+
+
+def test_closed_loop_reduces_the_error_as_replay_predicts(machine, seed001_exports, nodes_file, tmp_path):
+    f, s, log = asyncio.run(_closed_loop(machine, seed001_exports / "mlr", nodes_file, tmp_path))
+    rep = replay_run(seed001_exports / "mlr", tmp_path / "sim" / "dataset", RUN)["figures"]
+    assert f["before_max_abs_um"] == rep["before_max_abs_um"] > 15.0
+    assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]  # the loop compensates ...
+    assert abs(f["after_max_abs_um"] - rep["after_max_abs_um"]) < 0.1  # ... as much as replay says
+    assert abs(f["after_rmse_um"] - rep["after_rmse_um"]) < 0.1
+    assert f["samples_after_rms_um"] < 0.5 * f["samples_before_max_abs_um"]
+    # the client saw (nearly) every sample, and the log has one line per cycle
+    assert log["t_s"].dropna().nunique() > 0.9 * len(machine.samples)
+    assert len(log) == s["cycles"] and s["flags"].get("DISCONNECTED", 0) == 0
+    # the compensation written never stepped faster than the rate limit (machine time)
+    v = log.dropna(subset=["value_um"])
+    dv, dt = np.diff(v["value_um"].to_numpy()), np.diff(v["t_s"].to_numpy())
+    assert np.all(np.abs(dv) <= 20.0 * dt + 1e-9)
+
+
+def test_error_line_output_feeds_a_stock_controller(machine, seed001_exports, nodes_file, tmp_path):
+    """output=line: offset/slope/reference (SD43900/SD43910/SD43920) fitted over the travel;
+    the machine applies only that line."""
+    f, s, log = asyncio.run(_closed_loop(machine, seed001_exports / "mlr", nodes_file, tmp_path, sim_kw={"apply": "line"},
+                                         output="line", line={"travel_mm": [0.0, 550.0], "n_points": 12, "ref_mm": 0.0}))  # fmt: skip
+    rep = replay_run(seed001_exports / "mlr", tmp_path / "sim" / "dataset", RUN)["figures"]
+    last = log.dropna(subset=["offset_um"]).iloc[-1]
+    assert last["ref_mm"] == 0.0 and log["value_um"].isna().all()
+    assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]
+    # a straight line cannot follow the model's curvature along the axis: within 1 µm RMS of replay
+    assert f["after_rmse_um"] < rep["after_rmse_um"] + 1.0
+
+
+def test_faulty_sensors_and_frozen_data_are_held_and_flagged(ds, seed001_exports, nodes_file, tmp_path):
+    faults = {"sensor": [{"sensor": "T_nut", "from_s": 100, "to_s": 160, "value": math.nan},
+                         {"sensor": "T_bed", "from_s": 200, "to_s": 230, "value": 500.0}],
+              "freeze": [{"from_s": 300, "to_s": 400}]}  # fmt: skip
+    m = build_machine({"data_dir": str(ds.path), "run": RUN, "duration_s": 500})  # played back from the dataset
+    f, s, log = asyncio.run(_closed_loop(m, seed001_exports / "mlr", nodes_file, tmp_path,
+                                         sim_kw={"faults": faults}, stale_after_s=0.3, rate_limit_um_s=2.0))  # fmt: skip
+    nan_win = log[(log["t_s"] >= 100) & (log["t_s"] < 160)]
+    assert len(nan_win) > 20 and nan_win["held"].eq("T_nut_C").all() and (nan_win["flags"] & INPUT_HELD).all()
+    before = log[log["t_s"] < 100]["T_nut_C"].iloc[-1]
+    assert (nan_win["T_nut_C"] == before).all()  # held at the last good value
+    hot = log[(log["t_s"] >= 200) & (log["t_s"] < 230)]
+    assert hot["held"].eq("T_bed_C").all() and (hot["T_bed_C"] < 80).all()
+    stale = log[(log["flags"] & STALE) > 0]
+    assert len(stale) > 10 and (stale["flags"] & HELD).all()
+    assert stale["value_um"].nunique() == 1  # the compensation held at one value while the data was frozen
+    v = log.dropna(subset=["value_um"])
+    dv, dt = np.diff(v["value_um"].to_numpy()), np.diff(v["t_s"].to_numpy())
+    assert np.all(np.abs(dv) <= 2.0 * dt + 1e-9)  # never faster than the rate limit, faults or not
+    assert (log[log["t_s"] > 420]["flags"] & (STALE | INPUT_HELD)).eq(0).all()  # recovered
+
+
+def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machine, seed001_exports, nodes_file, tmp_path):
+    async def scenario():
+        port = _port()
+        ep = f"opc.tcp://127.0.0.1:{port}/sim"
+        cfg = {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "immediate"}
+        a = SimCnc(machine, cfg)
+        await a.start_server()
+        clock = asyncio.ensure_future(a.run_clock())
+        comp = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, period_s=0.01, duration_s=6.0))
+        task = asyncio.ensure_future(comp.run())
+        await asyncio.sleep(1.0)
+        clock.cancel()
+        await a.stop_server()  # the server goes away ...
+        await asyncio.sleep(1.2)
+        b = SimCnc(machine, cfg)  # ... and comes back with its machine clock restarted
+        await b.start_server()
+        clock = asyncio.ensure_future(b.run_clock())
+        summary = await task
+        clock.cancel()
+        await b.stop_server()
+        return comp, summary
+
+    comp, s, = asyncio.run(scenario())
+    log = pd.read_csv(tmp_path / "cycles.csv")
+    down = log[(log["flags"] & DISCONNECTED) > 0]
+    assert len(down) > 50 and (down["flags"] & HELD).all()
+    last_good = log.loc[: down.index[0] - 1].dropna(subset=["value_um"])["value_um"].iloc[-1]
+    assert (down["value_um"] == last_good).all()  # held at the last good value
+    assert s["flags"]["reconnects"] >= 1 and s["flags"]["connection_lost"] >= 1
+    gaps = np.diff(list(comp.connect_attempts))
+    assert len(gaps) >= 3 and np.all(np.diff(gaps[:3]) > 0)  # back-off: each wait longer than the last
+    # ... up to reconnect.max_s (plus the attempt itself; the server shares this event loop)
+    assert 0.4 <= np.median(gaps[3:]) < 0.5
+    after = log.loc[down.index[-1] + 1:]
+    assert (after["flags"] & RESTARTED).any()  # the server's clock restarted: a new timeline
+    assert ((after["flags"] & HELD) == 0).any()  # and fresh compensation again
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pki")
+    return make_certificates(root / "ok"), make_certificates(root / "stranger")
+
+
+def test_security_user_password_and_basic256sha256(machine, seed001_exports, nodes_file, certs, tmp_path, monkeypatch):
+    from asyncua import Client, ua
+
+    ok, stranger = certs
+    monkeypatch.setenv("THERMBENCH_OPCUA_PASSWORD", "s3cret")
+
+    def sec(c=ok, **kw):
+        return {"user": "operator", "policy": "Basic256Sha256", "certificate": str(c["client_certificate"]),
+                "private_key": str(c["client_private_key"]), "server_certificate": str(ok["server_certificate"]), **kw}  # fmt: skip
+
+    async def scenario():
+        port = _port()
+        ep = f"opc.tcp://127.0.0.1:{port}/sim"
+        srv = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "immediate",
+                               "security": {"user": "operator", "certificate": str(ok["server_certificate"]),
+                                            "private_key": str(ok["server_private_key"]),
+                                            "trusted_clients": [str(ok["client_certificate"])]}})  # fmt: skip
+        await srv.start_server()
+        clock = asyncio.ensure_future(srv.run_clock())
+        try:
+            comp = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, period_s=0.01, max_cycles=60,
+                                                                                       security=sec()))  # fmt: skip
+            s = await comp.run()
+            written = srv.server.read_attribute_value(srv.comp["value"]).Value.Value
+            refused = {}
+            for name, cfg in {"wrong password": sec(password_env="WRONG_PW"), "no encryption": {"user": "operator"},
+                              "untrusted certificate": sec(stranger)}.items():  # fmt: skip
+                try:
+                    await Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, max_cycles=1,
+                                                                                           security=cfg)).run()  # fmt: skip
+                except CompensatorError as exc:
+                    refused[name] = str(exc)
+            # the compensator writes its outputs and nothing else, even over a good session
+            session_writer = None
+            c2 = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, security=sec()))
+            await c2.session.open()
+            session_writer = c2.session.writer
+            feed_id = "ns=2;s=X.Feed_mm_min"
+            before = srv.server.read_attribute_value(srv.ids["feed_mm_min"]).Value.Value
+            with pytest.raises(RefusedWrite, match="X.Feed_mm_min"):
+                await session_writer.write_node(feed_id, ua.Variant(1234.5, ua.VariantType.Double))
+            with pytest.raises(RefusedWrite):
+                await session_writer.write({"feed": ua.Variant(1.0, ua.VariantType.Double)})
+            after = srv.server.read_attribute_value(srv.ids["feed_mm_min"]).Value.Value
+            await c2.session.close()
+            # and the server itself refuses writes to an input (read-only node)
+            raw = Client(ep)
+            raw.application_uri = "urn:thermbench:compensator"
+            raw.set_user("operator")
+            raw.set_password("s3cret")
+            await raw.set_security_string(f"Basic256Sha256,SignAndEncrypt,{ok['client_certificate']},"
+                                          f"{ok['client_private_key']},{ok['server_certificate']}")  # fmt: skip
+            async with raw:
+                with pytest.raises(ua.UaStatusCodeError):
+                    await raw.get_node(feed_id).write_value(ua.Variant(1.0, ua.VariantType.Double))
+            return s, written, refused, before, after
+        finally:
+            clock.cancel()
+            await srv.stop_server()
+
+    monkeypatch.setenv("WRONG_PW", "guess")
+    s, written, refused, before, after = asyncio.run(scenario())
+    assert s["cycles"] == 60 and math.isfinite(written) and written != 0.0
+    assert set(refused) == {"wrong password", "no encryption", "untrusted certificate"}
+    assert all("cannot connect" in m for m in refused.values())
+    assert "BadUserAccessDenied" in refused["wrong password"]
+    assert "No matching endpoints" in refused["no encryption"]  # the server offers sign-and-encrypt only
+    assert "BadCertificateUntrusted" in refused["untrusted certificate"]
+    assert after == before
+
+
+def test_cli_errors_name_what_is_wrong(machine, seed001_exports, nodes_file, tmp_path, capsys):
+    ep = f"opc.tcp://127.0.0.1:{_port()}/nothing-here"
+    assert main(["compensator", str(seed001_exports / "mlr"), "--endpoint", ep, "--nodes", str(nodes_file), "timeout_s=0.5",
+                 f"log={tmp_path / 'c.csv'}"]) == 2  # fmt: skip
+    assert "cannot connect to " + ep in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(nodes_file.read_text().replace("T_nut:", "T_other:"))
+    assert main(["compensator", str(seed001_exports / "mlr"), "--endpoint", ep, "--nodes", str(bad)]) == 2
+    assert "inputs.temperatures" in capsys.readouterr().err
+    assert main(["compensator", str(seed001_exports / "mlr"), "--endpoint", ep, "--nodes", str(nodes_file), "perod_s=1"]) == 2
+    assert "perod_s" in capsys.readouterr().err
+    assert main(["sim-cnc", "run=nope", "duration_s=10"]) == 2
+    assert "'nope'" in capsys.readouterr().err
+    with pytest.raises(SimCncError, match=r"faults.sensor\[0\]"):
+        SimCnc(machine, {"faults": {"sensor": [{"sensor": "T_x", "from_s": 0, "to_s": 1, "value": 0}]}})
+    assert main(["certs", str(tmp_path / "pki")]) == 0
+    assert main(["certs", str(tmp_path / "pki")]) == 2
+    assert "never overwritten" in capsys.readouterr().err

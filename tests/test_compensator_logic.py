@@ -1,0 +1,226 @@
+"""The compensator's cycle rules without a network (thermbench.compensator.control) and
+its nodes file: input guard, regridding onto the model's sample period, stale and
+backwards timestamps, restart after a long outage, rate limit, the error line."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings, fit_line
+from thermbench.compensator.nodes import NodesError, load_nodes
+
+
+class FakeModel:
+    """The LiveModel interface; predicts ``a + b x + c x^2`` (+ ``shift`` from the last
+    temperature), records every step and start."""
+
+    temperatures = ["T_nut"]
+    needs_load = False
+
+    def __init__(self, period_s=1.0, a=5.0, b=0.02, c=0.0):
+        self.period_s, self.a, self.b, self.c = period_s, a, b, c
+        self.steps, self.starts, self.ready_s = [], 0, math.nan
+
+    def start(self):
+        self.starts += 1
+        self.ready_s = math.nan
+
+    def step(self, t_s, axis_mm, feed_mm_min, temps_C, load_N=0.0, measuring=False):
+        self.steps.append((t_s, axis_mm, feed_mm_min, list(temps_C), measuring))
+        self.ready_s = t_s
+        return 0
+
+    def _total(self, x):
+        return self.a + self.b * x + self.c * x * x + (self.steps[-1][3][0] - 20.0 if self.steps else 0.0)
+
+    def predict(self, t_s, axis_mm):
+        return 0, 0.0, float(self._total(axis_mm)), -1
+
+    def predict_many(self, t_s, axis_mm):
+        x = np.asarray(axis_mm, dtype=float)
+        return np.zeros(x.size, dtype=int), self._total(x)
+
+
+def _r(ts, x=100.0, feed=3000.0, temp=20.0, **extra):
+    d = {"axis_mm": Reading(x, ts), "feed_mm_min": Reading(feed, ts), "T_nut_C": Reading(temp, ts)}
+    d.update(extra)
+    return d
+
+
+def _logic(model=None, output="value", **kw):
+    cfg = {"rate_limit_um_s": 1000.0, "ranges": {"temperature_C": [-20, 80]}, **kw}
+    return CycleLogic(model or FakeModel(), Settings.from_config(cfg), output)
+
+
+def test_compensation_is_minus_the_predicted_error_and_ramps_from_zero():
+    lg = _logic()
+    c = lg.cycle(_r(1000.0, x=100.0), now_wall_s=0.0)
+    assert c.t_s == 0.0 and c.predicted_um == pytest.approx(5.0 + 0.02 * 100.0)
+    assert c.value_um == 0.0 and c.flags == Flags.RATE_LIMITED  # no machine time has passed: no step yet
+    c = lg.cycle(_r(1001.0, x=100.0), now_wall_s=0.1)
+    assert c.value_um == pytest.approx(-7.0) and c.flags == 0
+    err = _logic(convention="error")
+    err.cycle(_r(0.0, x=100.0), 0.0)
+    assert err.cycle(_r(1.0, x=100.0), 0.1).value_um == pytest.approx(7.0)
+
+
+def test_rate_limit_holds_each_step_to_rate_times_machine_time():
+    m = FakeModel(period_s=1.0, a=50.0, b=0.0)
+    lg = _logic(m, rate_limit_um_s=10.0)
+    vals, flags = [], []
+    for k in range(8):
+        c = lg.cycle(_r(1000.0 + k), now_wall_s=0.01 * k)
+        vals.append(c.value_um)
+        flags.append(c.flags)
+    d = np.diff([0.0, *vals])
+    assert np.all(np.abs(d) <= 10.0 * 1.0 + 1e-9)  # 10 µm/s over 1 s steps of machine time
+    assert vals[0] == 0.0 and vals[5] == pytest.approx(-50.0)  # 0, -10, ..., -50 reached at the 6th cycle
+    assert flags[1] & Flags.RATE_LIMITED and not flags[6] & Flags.RATE_LIMITED
+
+
+def test_nan_and_out_of_range_temperatures_are_held_and_flagged():
+    m = FakeModel()
+    lg = _logic(m)
+    lg.cycle(_r(0.0, temp=21.0), 0.0)
+    c = lg.cycle(_r(1.0, temp=float("nan")), 0.1)
+    assert c.flags & Flags.INPUT_HELD and c.held == ["T_nut_C"] and m.steps[-1][3] == [21.0]
+    c = lg.cycle(_r(2.0, temp=500.0), 0.2)  # beyond ranges.temperature_C
+    assert c.held == ["T_nut_C"] and m.steps[-1][3] == [21.0]
+    c = lg.cycle({**_r(3.0), "T_nut_C": Reading(22.0, 3.0, good=False)}, 0.3)  # bad status from the server
+    assert c.held == ["T_nut_C"]
+    c = lg.cycle(_r(4.0, temp=23.0), 0.4)
+    assert not c.held and c.flags & Flags.INPUT_HELD == 0 and m.steps[-1][3] == [23.0]
+
+
+def test_a_temperature_older_than_the_axis_is_stale_and_held():
+    m = FakeModel()
+    lg = _logic(m, input_max_age_s=5.0)
+    lg.cycle(_r(0.0, temp=21.0), 0.0)
+    r = _r(30.0, temp=25.0)
+    r["T_nut_C"] = Reading(25.0, 20.0)  # 10 s behind the axis
+    c = lg.cycle(r, 0.1)
+    assert c.held == ["T_nut_C"] and m.steps[-1][3] == [21.0]
+
+
+def test_no_good_value_yet_means_no_sample_and_nothing_written():
+    m = FakeModel()
+    lg = _logic(m)
+    c = lg.cycle(_r(0.0, temp=float("nan")), 0.0)
+    assert c.flags & Flags.NOT_READY and c.flags & Flags.HELD and c.value_um is None and not m.steps
+
+
+def test_model_is_stepped_on_its_grid_with_the_latest_values():
+    m = FakeModel(period_s=1.0)
+    lg = _logic(m)
+    for i in range(31):  # 0.1 s cycles, positions moving
+        lg.cycle(_r(500.0 + 0.1 * i, x=float(i)), 0.1 * i)
+    assert [s[0] for s in m.steps] == [0.0, 1.0, 2.0, 3.0]
+    assert [s[1] for s in m.steps] == [0.0, 10.0, 20.0, 30.0]  # the value read when the grid point passed
+
+
+def test_stale_timestamps_hold_the_compensation():
+    lg = _logic(stale_after_s=0.5)
+    good = lg.cycle(_r(0.0), 0.0)
+    assert not good.flags & Flags.HELD
+    c = lg.cycle(_r(0.0), 0.3)
+    assert not c.flags & Flags.STALE
+    c = lg.cycle(_r(0.0, x=400.0), 0.9)  # same timestamp for 0.9 s of the client's clock
+    assert c.flags & Flags.STALE and c.flags & Flags.HELD and c.value_um == good.value_um
+    c = lg.cycle(_r(1.0), 1.0)
+    assert not c.flags & (Flags.STALE | Flags.HELD)
+
+
+def test_a_timestamp_going_backwards_is_refused():
+    m = FakeModel()
+    lg = _logic(m)
+    lg.cycle(_r(10.0), 0.0)
+    lg.cycle(_r(11.0), 0.1)
+    n = len(m.steps)
+    c = lg.cycle(_r(9.0, x=300.0), 0.2)
+    assert c.flags & Flags.CLOCK and c.flags & Flags.HELD and len(m.steps) == n
+
+
+def test_max_age_against_the_wall_clock():
+    lg = _logic(max_age_s=1.0)
+    c = lg.cycle(_r(100.0), now_wall_s=0.0, now_epoch_s=105.0)
+    assert c.flags & Flags.STALE
+
+
+def test_an_outage_longer_than_the_runtime_bridges_restarts_the_model():
+    m = FakeModel()
+    lg = _logic(m)
+    lg.cycle(_r(0.0), 0.0)
+    lg.cycle(_r(1.0), 0.1)
+    c = lg.cycle(_r(200.0), 0.2)  # 199 s without samples (> TB_MAX_GAP_S 60 s)
+    assert c.flags & Flags.RESTARTED and m.starts == 1 and m.steps[-1][0] == 200.0
+
+
+def test_error_line_of_a_linear_error_is_exact_and_ref_is_where_offset_applies():
+    m = FakeModel(a=3.0, b=0.04)
+    lg = _logic(m, output="line", line={"travel_mm": [0.0, 500.0], "n_points": 11, "ref_mm": 100.0}, rate_limit_um_s=1e9)
+    lg.cycle(_r(0.0), 0.0)
+    c = lg.cycle(_r(1.0), 0.1)
+    # comp = -(3 + 0.04 x): at ref 100 mm -7 µm, slope -0.04 µm/mm = -40 µm/m
+    assert c.line.ref_mm == 100.0
+    assert c.line.offset_um == pytest.approx(-7.0) and c.line.slope_um_per_m == pytest.approx(-40.0)
+    assert c.value_um is None
+
+
+def test_error_line_is_the_least_squares_line_of_a_curved_error():
+    x = np.linspace(0.0, 500.0, 21)
+    comp = -(2.0 + 0.01 * x + 4e-5 * x * x)
+    ln = fit_line(x, comp, ref_mm=0.0)
+    resid = comp - ln.at(x)
+    assert abs(resid.sum()) < 1e-9 and abs((resid * x).sum()) < 1e-6  # normal equations of least squares
+
+
+def test_settings_name_the_bad_key():
+    with pytest.raises(ValueError, match="rate_limit_um_s"):
+        Settings.from_config({"rate_limit_um_s": 0})
+    with pytest.raises(ValueError, match="line.travel_mm"):
+        Settings.from_config({"line": {"travel_mm": [500, 0]}})
+    with pytest.raises(ValueError, match="convention"):
+        Settings.from_config({"convention": "minus"})
+    with pytest.raises(ValueError, match="line.travel_mm"):
+        CycleLogic(FakeModel(), Settings.from_config({}), "line")
+
+
+NODES = """
+inputs:
+  axis_mm: "ns=2;s=X.Position_mm"
+  feed_mm_min: "ns=2;s=X.Feed_mm_min"
+  temperatures: {T_nut: "ns=2;s=X.T_nut_C"}
+outputs:
+  value: {node: "ns=2;s=X.TempComp_um", unit: um}
+"""
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (NODES.replace("T_nut:", "T_bed:"), "inputs.temperatures: the model reads sensor"),
+        (NODES.replace("unit: um", "unit: inch"), "outputs.value.unit"),
+        (NODES + "  colour: red\n", "outputs.colour"),
+        (NODES.replace("ns=2;s=X.TempComp_um", "ns=2;s=X.Feed_mm_min"), "both an input and an output"),
+        ("inputs: [", "not valid YAML"),
+    ],
+)
+def test_nodes_file_errors_name_the_key(tmp_path, text, message):
+    p = tmp_path / "nodes.yaml"
+    p.write_text(text)
+    with pytest.raises(NodesError, match=message) as e:
+        load_nodes(p, ["T_nut"])
+    assert str(p) in str(e.value)
+
+
+def test_nodes_file_needs_the_nodes_of_the_output_form(tmp_path):
+    p = tmp_path / "nodes.yaml"
+    p.write_text(NODES)
+    assert load_nodes(p, ["T_nut"]).output_ids() == {"value": "ns=2;s=X.TempComp_um"}
+    with pytest.raises(NodesError, match="outputs.line"):
+        load_nodes(p, ["T_nut"], output="line")
+    with pytest.raises(NodesError, match="inputs.load_N"):
+        load_nodes(p, ["T_nut"], needs_load=True)

@@ -1,0 +1,15 @@
+"""The compensator beside the machine (OPC UA) and a simulated CNC to close the loop on.
+
+* :mod:`.nodes`: ``nodes.yaml``, the machine's node ids for the model's inputs and outputs;
+* :mod:`.control`: one cycle without I/O (input guard, model step, error line, rate limit);
+* :mod:`.client`: ``thermbench compensator``, the asyncua client loop;
+* :mod:`.simcnc`: ``thermbench sim-cnc``, the asyncua server running the simulator;
+* :mod:`.certs`: ``thermbench certs``, self-signed certificates for Basic256Sha256.
+"""
+
+from .client import CompensatorError, RefusedWrite, run_compensator
+from .control import Flags
+from .nodes import NodesError
+from .simcnc import SimCncError
+
+__all__ = ["CompensatorError", "Flags", "NodesError", "RefusedWrite", "SimCncError", "run_compensator"]

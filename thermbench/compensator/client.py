@@ -1,0 +1,410 @@
+"""``thermbench compensator MODEL_DIR --endpoint opc.tcp://HOST:PORT --nodes nodes.yaml``.
+
+An OPC UA client (asyncua) beside the machine, the role of seed 002's STM32
+compensator (§2.5, Fig. 14: it reads the CNC's axis state and temperatures and writes
+the compensation back over OPC UA). Every cycle (``period_s`` of the client's clock,
+scheduled on absolute deadlines so the cycle never drifts) it
+
+1. reads the input nodes of ``nodes.yaml`` in one request (values and source timestamps);
+2. runs :class:`~thermbench.compensator.control.CycleLogic`: input guard, the exported
+   model stepped in the C runtime (:class:`thermbench.export.native.LiveModel`), rate limit;
+3. writes the compensation, as the value at the current position and/or the error line
+   (offset, slope, reference position) a stock controller takes, and the status flags;
+4. appends one line to the cycle log (CSV, flushed every cycle).
+
+A lost connection is retried in the background with exponential back-off while the
+cycles go on, flagged ``DISCONNECTED`` with the compensation held at its last good value
+(written again as soon as the server is back). Writes go through :class:`GuardedWriter`,
+which refuses any node but the configured outputs.
+
+Security: user name and password (the password from an environment variable, never
+from a file), and ``Basic256Sha256`` sign-and-encrypt with the client's certificate and
+the server certificate it pins (``thermbench certs`` makes self-signed pairs).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .._atomic import write_text_atomic
+from .control import Cycle, CycleLogic, Flags, Reading, Settings, flag_names
+from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
+
+CLIENT_APP_URI = "urn:thermbench:compensator"
+
+
+class CompensatorError(ValueError):
+    """A compensator set-up that cannot work (names the config key, file or node)."""
+
+
+class RefusedWrite(PermissionError):
+    """The compensator was asked to write a node that is not one of its configured outputs."""
+
+
+def _ua():
+    from asyncua import ua
+
+    return ua
+
+
+class GuardedWriter:
+    """Writes only the configured output nodes; anything else is refused before the network."""
+
+    def __init__(self, client, outputs: Mapping[str, str]) -> None:
+        self.client = client
+        self.outputs = dict(outputs)
+        self.allowed = frozenset(outputs.values())
+
+    async def write_node(self, node_id: str, variant) -> None:
+        if node_id not in self.allowed:
+            raise RefusedWrite(f"refused to write node {node_id!r}: not one of the configured outputs {sorted(self.allowed)}")
+        await self.client.write_values([self.client.get_node(node_id)], [_ua().DataValue(variant)])
+
+    async def write(self, values: Mapping[str, Any]) -> None:
+        """Write ``output name -> ua.Variant`` in one request."""
+        ids = []
+        for name in values:
+            if name not in self.outputs:
+                raise RefusedWrite(f"refused to write output {name!r}: not configured in the nodes file")
+            ids.append(self.outputs[name])
+        if ids:
+            await self.client.write_values([self.client.get_node(i) for i in ids], [_ua().DataValue(v) for v in values.values()])
+
+
+def _connection_errors() -> tuple[type[BaseException], ...]:
+    """What a lost or refused connection raises (asyncua's status-code errors included)."""
+    return (OSError, asyncio.TimeoutError, _ua().UaError)
+
+
+def _seconds(dt) -> float | None:
+    return None if dt is None else dt.timestamp()
+
+
+def output_variants(c: Cycle, nodes: Nodes, output: str) -> dict[str, Any]:
+    """The values one cycle writes, in each node's unit (nothing before the first prediction)."""
+    ua = _ua()
+    dbl = ua.VariantType.Double
+    out: dict[str, Any] = {}
+    o = nodes.outputs
+    if output in ("value", "both") and c.value_um is not None:
+        out["value"] = ua.Variant(c.value_um * LENGTH_UNITS[o.value.unit], dbl)
+    if output in ("line", "both") and c.line is not None:
+        out["offset"] = ua.Variant(c.line.offset_um * LENGTH_UNITS[o.line.offset.unit], dbl)
+        out["slope"] = ua.Variant(c.line.slope_um_per_m * SLOPE_UNITS[o.line.slope.unit], dbl)
+        out["ref"] = ua.Variant(c.line.ref_mm * 1e3 * LENGTH_UNITS[o.line.ref.unit], dbl)
+    if o.status:
+        out["status"] = ua.Variant(int(c.flags), ua.VariantType.Int32)
+    return out
+
+
+@dataclass
+class Security:
+    user: str | None = None
+    password_env: str = "THERMBENCH_OPCUA_PASSWORD"
+    policy: str | None = None
+    mode: str = "SignAndEncrypt"
+    certificate: str | None = None
+    private_key: str | None = None
+    server_certificate: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None) -> "Security":
+        cfg = dict(cfg or {})
+        unknown = sorted(set(cfg) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise CompensatorError(f"config key(s) {['security.' + k for k in unknown]}: unknown; "
+                                   f"known: {sorted(cls.__dataclass_fields__)}")  # fmt: skip
+        s = cls(**cfg)
+        if s.policy not in (None, "Basic256Sha256"):
+            raise CompensatorError(f"config key 'security.policy': expected null or Basic256Sha256, got {s.policy!r}")
+        if s.mode not in ("Sign", "SignAndEncrypt"):
+            raise CompensatorError(f"config key 'security.mode': expected Sign or SignAndEncrypt, got {s.mode!r}")
+        if s.policy:
+            for key in ("certificate", "private_key"):
+                p = getattr(s, key)
+                if not p or not Path(p).is_file():
+                    raise CompensatorError(f"config key 'security.{key}': {p!r} is not a file "
+                                           "(make a pair with `thermbench certs DIR`)")  # fmt: skip
+            if s.server_certificate and not Path(s.server_certificate).is_file():
+                raise CompensatorError(f"config key 'security.server_certificate': {s.server_certificate!r} is not a file")
+        if s.user and not os.environ.get(s.password_env):
+            raise CompensatorError(f"config key 'security.user' is set, so the password is read from the environment "
+                                   f"variable {s.password_env} (security.password_env), which is not set")  # fmt: skip
+        return s
+
+
+async def connect_client(endpoint: str, sec: Security, timeout_s: float):
+    """A connected asyncua client with the configured identity and security."""
+    from asyncua import Client, ua
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+
+    client = Client(endpoint, timeout=timeout_s)
+    client.application_uri = CLIENT_APP_URI
+    if sec.user:
+        client.set_user(sec.user)
+        client.set_password(os.environ[sec.password_env])
+    if sec.policy:
+        await client.set_security(SecurityPolicyBasic256Sha256, certificate=sec.certificate, private_key=sec.private_key,
+                                  server_certificate=sec.server_certificate, mode=getattr(ua.MessageSecurityMode, sec.mode))  # fmt: skip
+    await asyncio.wait_for(client.connect(), timeout_s)
+    return client
+
+
+class Session:
+    """One connection to the machine: its input and output nodes, checked on connect."""
+
+    def __init__(self, endpoint: str, nodes: Nodes, sec: Security, timeout_s: float) -> None:
+        self.endpoint, self.nodes, self.sec, self.timeout_s = endpoint, nodes, sec, timeout_s
+        self.client = None
+        self.writer: GuardedWriter | None = None
+        self.inputs = nodes.input_ids()
+
+    async def open(self) -> None:
+        ua = _ua()
+        client = await connect_client(self.endpoint, self.sec, self.timeout_s)
+        try:
+            outs = self.nodes.output_ids()
+            ids = list(outs.values())
+            access = await client.read_attributes([client.get_node(i) for i in ids], ua.AttributeIds.UserAccessLevel)
+            for name, nid, dv in zip(outs, ids, access):
+                if not dv.StatusCode.is_good():
+                    raise CompensatorError(f"nodes file: output {name} node {nid!r} does not exist on {self.endpoint} "
+                                           f"({dv.StatusCode.name})")  # fmt: skip
+                if not int(dv.Value.Value) & ua.AccessLevel.CurrentWrite.mask:
+                    raise CompensatorError(f"nodes file: output {name} node {nid!r} is not writable for this user on {self.endpoint}")
+            self.input_nodes = [client.get_node(i) for i in self.inputs.values()]
+            first = await client.read_attributes(self.input_nodes)
+            for (name, nid), dv in zip(self.inputs.items(), first):
+                if dv.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown:
+                    raise CompensatorError(f"nodes file: input {name} node {nid!r} does not exist on {self.endpoint}")
+        except BaseException:
+            await _quiet_disconnect(client)
+            raise
+        self.client = client
+        self.writer = GuardedWriter(client, outs)
+
+    async def read(self) -> dict[str, Reading]:
+        dvs = await asyncio.wait_for(self.client.read_attributes(self.input_nodes), self.timeout_s)
+        out = {}
+        for name, dv in zip(self.inputs, dvs):
+            ts = _seconds(dv.SourceTimestamp) or _seconds(dv.ServerTimestamp)
+            v = dv.Value.Value if dv.Value is not None else None
+            out[name] = Reading(v, ts, dv.StatusCode.is_good() if dv.StatusCode is not None else True)
+        return out
+
+    async def write(self, values: Mapping[str, Any]) -> None:
+        await asyncio.wait_for(self.writer.write(values), self.timeout_s)
+
+    async def close(self) -> None:
+        client, self.client, self.writer = self.client, None, None
+        if client is not None:
+            await _quiet_disconnect(client)
+
+
+async def _quiet_disconnect(client) -> None:
+    try:
+        await asyncio.wait_for(client.disconnect(), 2.0)
+    except Exception:  # the connection is gone already: nothing to close
+        pass
+
+
+class CycleLog:
+    """The per-cycle CSV log (one line per cycle, flushed each time)."""
+
+    def __init__(self, path: Path, inputs: list[str]) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.inputs = inputs
+        self.fh = open(self.path, "w", newline="", encoding="utf-8", buffering=1)
+        self.w = csv.writer(self.fh)
+        self.w.writerow(["wall_s", "cycle", "t_s", "late_ms", "cycle_ms", *inputs, "held", "value_um", "offset_um",
+                         "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names"])  # fmt: skip
+
+    def write(self, wall_s: float, k: int, c: Cycle, late_ms: float, cycle_ms: float) -> None:
+        ln = c.line
+        self.w.writerow([f"{wall_s:.6f}", k, _f(c.t_s), f"{late_ms:.3f}", f"{cycle_ms:.3f}",
+                         *[_f(c.inputs.get(n)) for n in self.inputs], ";".join(c.held), _f(c.value_um),
+                         _f(ln.offset_um if ln else None), _f(ln.slope_um_per_m if ln else None), _f(ln.ref_mm if ln else None),
+                         _f(c.predicted_um), c.label, c.rc, c.flags, flag_names(c.flags)])  # fmt: skip
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def _f(v) -> str:
+    return "" if v is None or (isinstance(v, float) and math.isnan(v)) else repr(float(v))
+
+
+def cycle_stats(durations_ms, late_ms, index, starts_s, period_s: float) -> dict:
+    """Cycle-time distribution and schedule drift of a run of cycles: ``index`` is each
+    cycle's deadline number (deadline = start + index * period), so the mean period is the
+    slope of start time over it and the drift the trend of the start lateness over the run."""
+    d = np.asarray(durations_ms, dtype=float)
+    lt = np.asarray(late_ms, dtype=float)
+    st = np.asarray(starts_s, dtype=float)
+    k = np.asarray(index, dtype=float)
+    if d.size == 0:
+        return {"cycles": 0}
+    q = np.percentile(d, [50, 90, 99])
+    lq = np.percentile(lt, [50, 99])
+    fit = d.size > 2 and k[-1] > k[0]
+    slope = float(np.polyfit(k, st - st[0], 1)[0]) if fit else float("nan")
+    trend = float(np.polyfit(k, lt, 1)[0]) * (k[-1] - k[0]) if fit else float("nan")
+    return {"cycles": int(d.size), "cycle_ms": {"p50": q[0], "p90": q[1], "p99": q[2], "max": float(d.max()),
+                                                "mean": float(d.mean())},
+            "late_ms": {"p50": lq[0], "p99": lq[1], "max": float(lt.max())},
+            "over_period": int(np.sum(d > 1e3 * period_s)),
+            "mean_period_ms": 1e3 * slope, "drift_ms": trend}  # fmt: skip
+
+
+class Compensator:
+    """The control loop (see the module docstring); :meth:`run` returns the summary."""
+
+    def __init__(self, model_dir: str | Path, endpoint: str, nodes_path: str | Path, cfg: Mapping[str, Any]) -> None:
+        from ..config import with_defaults
+        from ..export.native import LiveModel
+
+        cfg = with_defaults("compensator", cfg)
+        self.period_s = float(cfg.get("period_s", 0.1))
+        if not self.period_s > 0:
+            raise CompensatorError(f"config key 'period_s': must be > 0 s, got {self.period_s}")
+        self.output = str(cfg.get("output", "value"))
+        self.model = LiveModel(model_dir)
+        self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output)
+        self.logic = CycleLogic(self.model, Settings.from_config(cfg), self.output, has_load=self.model.needs_load,
+                                has_measuring=self.nodes.inputs.measuring is not None)  # fmt: skip
+        self.sec = Security.from_config(cfg.get("security"))
+        self.endpoint = endpoint
+        self.timeout_s = float(cfg.get("timeout_s", 2.0))
+        rc = dict(cfg.get("reconnect") or {})
+        self.backoff0, self.backoff_max = float(rc.get("initial_s", 0.2)), float(rc.get("max_s", 10.0))
+        self.backoff_factor = float(rc.get("factor", 2.0))
+        self.max_cycles = None if cfg.get("max_cycles") is None else int(cfg["max_cycles"])
+        self.duration_s = None if cfg.get("duration_s") is None else float(cfg["duration_s"])
+        self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
+        self.session = Session(endpoint, self.nodes, self.sec, self.timeout_s)
+        self.stop_requested = False
+        self.connect_attempts: collections.deque = collections.deque(maxlen=1000)  # loop times of reconnection attempts
+
+    async def run(self) -> dict:
+        """Connect (the first connection must succeed: a wrong endpoint or credentials are a
+        set-up error), then cycle until done / max_cycles / duration_s / :meth:`stop`."""
+        try:
+            await self.session.open()
+        except CompensatorError:
+            raise
+        except Exception as exc:
+            raise CompensatorError(f"cannot connect to {self.endpoint}: {type(exc).__name__}: {exc}") from None
+        log = CycleLog(self.log_path, self.logic.names)
+        loop = asyncio.get_running_loop()
+        durations = collections.deque(maxlen=100_000)
+        lates = collections.deque(maxlen=100_000)
+        starts = collections.deque(maxlen=100_000)
+        index = collections.deque(maxlen=100_000)
+        counts = collections.Counter()
+        connecting: asyncio.Task | None = None
+        backoff, next_try = self.backoff0, 0.0
+        t_start = loop.time()
+        k = 0
+        try:
+            while not self.stop_requested:
+                deadline = t_start + k * self.period_s
+                now = loop.time()
+                if now < deadline:
+                    await asyncio.sleep(deadline - now)
+                begin = loop.time()
+                done = False
+                if connecting is not None and connecting.done():  # a reconnection attempt has ended
+                    exc = connecting.exception()
+                    connecting = None
+                    if exc is None:
+                        backoff = self.backoff0
+                        counts["reconnects"] += 1
+                        self.logic.reconnected()
+                    else:
+                        self.last_error = f"{type(exc).__name__}: {exc}"
+                        next_try = begin + backoff
+                        backoff = min(backoff * self.backoff_factor, self.backoff_max)
+                if self.session.client is None:
+                    if connecting is None and begin >= next_try:
+                        connecting = asyncio.ensure_future(self.session.open())
+                        self.connect_attempts.append(begin)
+                if self.session.client is None:
+                    c = self.logic.hold(Flags.DISCONNECTED)
+                else:
+                    c = None
+                    try:
+                        readings = await self.session.read()
+                        c = self.logic.cycle(readings, begin, time.time())
+                        await self.session.write(output_variants(c, self.nodes, self.output))
+                        done = bool(readings.get("done") and readings["done"].value)
+                    except _connection_errors() as exc:
+                        counts["connection_lost"] += 1
+                        self.last_error = f"{type(exc).__name__}: {exc}"
+                        await self.session.close()
+                        next_try = loop.time() + backoff
+                        c = self.logic.hold(Flags.DISCONNECTED, c.t_s if c is not None else math.nan)
+                end = loop.time()
+                cyc_ms, late_ms = 1e3 * (end - begin), 1e3 * (begin - deadline)
+                durations.append(cyc_ms)
+                lates.append(late_ms)
+                starts.append(begin)
+                index.append(k)
+                for f in Flags:
+                    if f.value and c.flags & f.value:
+                        counts[f.name] += 1
+                log.write(time.time(), k, c, late_ms, cyc_ms)
+                k += 1
+                if end - deadline > self.period_s:  # overran: skip the missed deadlines, do not burst
+                    missed = int((end - t_start) / self.period_s) - k + 1
+                    if missed > 0:
+                        counts["skipped_deadlines"] += missed
+                        k += missed
+                if done or (self.max_cycles is not None and len(durations) >= self.max_cycles):
+                    break
+                if self.duration_s is not None and end - t_start >= self.duration_s:
+                    break
+        finally:
+            log.close()
+            if connecting is not None:
+                connecting.cancel()
+            await self.session.close()
+        summary = {"endpoint": self.endpoint, "model": self.model.manifest.get("name"), "period_s": self.period_s,
+                   "output": self.output, "log": str(self.log_path), "flags": dict(counts),
+                   **cycle_stats(durations, lates, index, starts, self.period_s)}  # fmt: skip
+        write_text_atomic(self.log_path.with_suffix(".summary.json"), json.dumps(summary, indent=2, default=float) + "\n")
+        return summary
+
+    def stop(self) -> None:
+        self.stop_requested = True
+
+
+def run_compensator(model_dir, endpoint: str, nodes_path, cfg: Mapping[str, Any]) -> dict:
+    """Plain entry point (the CLI's): run the loop to its end and return the summary."""
+    return asyncio.run(Compensator(model_dir, endpoint, nodes_path, cfg).run())
+
+
+def format_summary(s: dict) -> str:
+    if not s.get("cycles"):
+        return f"compensator: no cycles ran against {s['endpoint']}"
+    c, lt = s["cycle_ms"], s["late_ms"]
+    flags = ", ".join(f"{k} {v}" for k, v in sorted(s["flags"].items())) or "none"
+    return "\n".join([
+        f"compensator {s['model']} -> {s['endpoint']}: {s['cycles']} cycles at {1e3 * s['period_s']:.0f} ms ({s['output']})",
+        f"  cycle time p50 {c['p50']:.2f} ms, p90 {c['p90']:.2f} ms, p99 {c['p99']:.2f} ms, max {c['max']:.2f} ms; "
+        f"start lateness p50 {lt['p50']:.2f} ms, p99 {lt['p99']:.2f} ms; mean period {s['mean_period_ms']:.3f} ms, "
+        f"lateness trend over the run {s['drift_ms']:+.2f} ms",
+        f"  flags: {flags}",
+        f"  log -> {s['log']}",
+    ])  # fmt: skip

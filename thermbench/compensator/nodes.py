@@ -1,0 +1,155 @@
+"""``nodes.yaml``: which OPC UA nodes of the machine the compensator reads and writes.
+
+A machine's controller publishes its axis state and the temperature sensors under its
+own node ids; this file maps them to the exported model's inputs (the sensor names of
+its ``manifest.json``) and names the nodes the compensation goes to. Example (the
+address space of ``thermbench sim-cnc``, which can write this file for a model with
+``--write-nodes``)::
+
+    inputs:
+      axis_mm: "ns=2;s=X.Position_mm"
+      feed_mm_min: "ns=2;s=X.Feed_mm_min"
+      load_N: null                      # only for models that read the axial load
+      measuring: "ns=2;s=X.Measuring"   # optional: inside a measuring cycle (banks)
+      done: "ns=2;s=Machine.ProgramDone"  # optional: the compensator stops when true
+      temperatures:                     # every sensor the model reads, by manifest name
+        T_nut: "ns=2;s=X.T_nut_C"
+    outputs:
+      value:                            # compensation at the current axis position
+        node: "ns=2;s=X.TempComp_um"
+        unit: um
+      line:                             # the controller's own temperature compensation:
+        offset: {node: "ns=2;s=X.SD43900_TEMP_COMP_ABS_VALUE", unit: mm}
+        slope:  {node: "ns=2;s=X.SD43910_TEMP_COMP_SLOPE", unit: ratio}
+        ref:    {node: "ns=2;s=X.SD43920_TEMP_COMP_REF_POSITION", unit: mm}
+      status: "ns=2;s=X.TempComp_Status"  # optional: the flags word of every cycle
+
+The compensator writes to these output nodes and to no other (a write anywhere else is
+refused before it reaches the network); an output node may not also be an input.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+# value of 1 µm in each unit a controller may take a length or a slope in
+LENGTH_UNITS = {"um": 1.0, "mm": 1e-3, "0.1um": 10.0}  # Beckhoff P-AXIS-00272/273: 0.1 µm
+SLOPE_UNITS = {"um_per_m": 1.0, "ratio": 1e-6}  # Beckhoff P-AXIS-00274: µm/m; SINUMERIK tan(beta)
+
+
+class NodesError(ValueError):
+    """A nodes file that cannot be used (names the file and key)."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_blank(cls, v):
+        if isinstance(v, str) and not v.strip():
+            raise ValueError("an empty node id")
+        return v
+
+
+class LengthNode(_Strict):
+    node: str
+    unit: Literal["um", "mm", "0.1um"] = "um"
+
+
+class SlopeNode(_Strict):
+    node: str
+    unit: Literal["um_per_m", "ratio"] = "ratio"
+
+
+class LineNodes(_Strict):
+    offset: LengthNode  # error-line value at the reference position (SINUMERIK SD43900)
+    slope: SlopeNode  # its gradient (SD43910)
+    ref: LengthNode  # the reference position (SD43920)
+
+
+class Inputs(_Strict):
+    axis_mm: str
+    feed_mm_min: str
+    load_N: str | None = None
+    measuring: str | None = None
+    done: str | None = None
+    temperatures: dict[str, str]
+
+
+class Outputs(_Strict):
+    value: LengthNode | None = None
+    line: LineNodes | None = None
+    status: str | None = None
+
+
+class Nodes(_Strict):
+    inputs: Inputs
+    outputs: Outputs
+
+    def input_ids(self) -> dict[str, str]:
+        """input name -> node id (temperatures as ``<sensor>_C``), in read order."""
+        i = self.inputs
+        out = {"axis_mm": i.axis_mm, "feed_mm_min": i.feed_mm_min}
+        for key in ("load_N", "measuring", "done"):
+            if getattr(i, key):
+                out[key] = getattr(i, key)
+        out.update({f"{s}_C": n for s, n in i.temperatures.items()})
+        return out
+
+    def output_ids(self) -> dict[str, str]:
+        """output name -> node id: the only nodes the compensator may write."""
+        o, out = self.outputs, {}
+        if o.value:
+            out["value"] = o.value.node
+        if o.line:
+            out.update({"offset": o.line.offset.node, "slope": o.line.slope.node, "ref": o.line.ref.node})
+        if o.status:
+            out["status"] = o.status
+        return out
+
+
+def _where(loc: tuple) -> str:
+    return ".".join(str(p) for p in loc)
+
+
+def load_nodes(path: str | Path, sensors: list[str] | None = None, needs_load: bool = False,
+               output: str = "value") -> Nodes:  # fmt: skip
+    """Read and check ``path`` against the model (its ``sensors``, whether it reads the load)
+    and the output form (``value``, ``line`` or ``both``)."""
+    path = Path(path)
+    if not path.exists():
+        raise NodesError(f"{path}: no such nodes file (see thermbench/compensator/nodes.py for its form)")
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise NodesError(f"{path}: not valid YAML ({exc})") from None
+    try:
+        nodes = Nodes.model_validate(raw if raw is not None else {})
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        raise NodesError(f"{path}: key {_where(e['loc']) or '(top)'}: {e['msg']}") from None
+    missing = [s for s in (sensors or []) if s not in nodes.inputs.temperatures]
+    if missing:
+        raise NodesError(f"{path}: key inputs.temperatures: the model reads sensor(s) {missing}, which have no node; "
+                         f"mapped: {sorted(nodes.inputs.temperatures)}")  # fmt: skip
+    if needs_load and not nodes.inputs.load_N:
+        raise NodesError(f"{path}: key inputs.load_N: the model reads the axial load, so it needs a node")
+    if output not in ("value", "line", "both"):
+        raise NodesError(f"compensator output {output!r}: expected value, line or both")
+    if output in ("value", "both") and nodes.outputs.value is None:
+        raise NodesError(f"{path}: key outputs.value: output form {output!r} writes the value at the current position")
+    if output in ("line", "both") and nodes.outputs.line is None:
+        raise NodesError(f"{path}: key outputs.line: output form {output!r} writes the error line (offset, slope, ref)")
+    ins, outs = nodes.input_ids(), nodes.output_ids()
+    both = sorted(set(ins.values()) & set(outs.values()))
+    if both:
+        raise NodesError(f"{path}: node(s) {both} are both an input and an output; the compensator never writes an input")
+    dup = [n for n in set(outs.values()) if list(outs.values()).count(n) > 1]
+    if dup:
+        raise NodesError(f"{path}: key outputs: node(s) {sorted(dup)} named for more than one output")
+    return nodes
