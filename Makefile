@@ -45,6 +45,7 @@ bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_diagnose.py --runtime
 	$(BIN)/python benchmarks/bench_export.py exports
 	$(BIN)/python benchmarks/bench_lssvm_reduced.py
+	$(BIN)/python benchmarks/bench_compensator.py
 
 # the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
 fuzz:

@@ -42,6 +42,7 @@ from .control import Cycle, CycleLogic, Flags, Reading, Settings, flag_names
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
 CLIENT_APP_URI = "urn:thermbench:compensator"
+STATS_CYCLES = 100_000  # the run's summary covers the last this many cycles
 
 
 class CompensatorError(ValueError):
@@ -268,6 +269,28 @@ def cycle_stats(durations_ms, late_ms, index, starts_s, period_s: float) -> dict
             "mean_period_ms": 1e3 * slope, "drift_ms": trend}  # fmt: skip
 
 
+class Ring:
+    """The last ``n`` values of a float series in a buffer allocated once (the loop's
+    statistics take no memory per cycle, however long it runs)."""
+
+    def __init__(self, n: int) -> None:
+        self.buf = np.full(n, np.nan)  # written now: the pages are resident from the start, not one by one
+        self.n = 0
+
+    def append(self, v: float) -> None:
+        self.buf[self.n % self.buf.size] = v
+        self.n += 1
+
+    def values(self) -> np.ndarray:
+        if self.n <= self.buf.size:
+            return self.buf[: self.n].copy()
+        i = self.n % self.buf.size
+        return np.concatenate([self.buf[i:], self.buf[:i]])
+
+    def __len__(self) -> int:
+        return self.n
+
+
 class Compensator:
     """The control loop (see the module docstring); :meth:`run` returns the summary."""
 
@@ -308,10 +331,7 @@ class Compensator:
             raise CompensatorError(f"cannot connect to {self.endpoint}: {type(exc).__name__}: {exc}") from None
         log = CycleLog(self.log_path, self.logic.names)
         loop = asyncio.get_running_loop()
-        durations = collections.deque(maxlen=100_000)
-        lates = collections.deque(maxlen=100_000)
-        starts = collections.deque(maxlen=100_000)
-        index = collections.deque(maxlen=100_000)
+        durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
         counts = collections.Counter()
         connecting: asyncio.Task | None = None
         backoff, next_try = self.backoff0, 0.0
@@ -382,7 +402,7 @@ class Compensator:
             await self.session.close()
         summary = {"endpoint": self.endpoint, "model": self.model.manifest.get("name"), "period_s": self.period_s,
                    "output": self.output, "log": str(self.log_path), "flags": dict(counts),
-                   **cycle_stats(durations, lates, index, starts, self.period_s)}  # fmt: skip
+                   **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip
         write_text_atomic(self.log_path.with_suffix(".summary.json"), json.dumps(summary, indent=2, default=float) + "\n")
         return summary
 
