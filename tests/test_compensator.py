@@ -11,6 +11,7 @@ Everything runs in one event loop per test: the server and the client are both a
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import socket
 
@@ -46,7 +47,7 @@ def ds(seed001_data_root):
 @pytest.fixture(scope="module")
 def machine(ds):
     """valid1's first 15 minutes, simulated by sim-cnc (not read from the dataset)."""
-    return build_machine({"dataset": "seed001_vmc_x", "run": RUN, "duration_s": 900})
+    return build_machine({"benchmark": "seed001_vmc_x", "run": RUN, "duration_s": 900})
 
 
 @pytest.fixture
@@ -54,6 +55,16 @@ def nodes_file(machine, tmp_path):
     p = tmp_path / "nodes.yaml"
     p.write_text(yaml.safe_dump(nodes_yaml(machine)))
     return p
+
+
+def _time_steps_within(log: pd.DataFrame, rate_um_s: float, period_s: float = 1.0) -> bool:
+    """Between consecutive cycles at the same axis position, the written value changed by at
+    most rate x machine time (at most one sample period per cycle): the limit on change in time."""
+    v = log.dropna(subset=["value_um"])
+    same = np.diff(v["axis_mm"].to_numpy()) == 0
+    dv, dt = np.abs(np.diff(v["value_um"].to_numpy())), np.minimum(np.diff(v["t_s"].to_numpy()), period_s)
+    dt = np.where(np.isfinite(dt), dt, period_s)
+    return bool(same.sum() > 100 and np.all(dv[same] <= rate_um_s * dt[same] + 1e-9))
 
 
 def _client_cfg(tmp_path, **kw):
@@ -106,10 +117,7 @@ def test_closed_loop_reduces_the_error_as_replay_predicts(machine, seed001_expor
     # the client saw (nearly) every sample, and the log has one line per cycle
     assert log["t_s"].dropna().nunique() > 0.9 * len(machine.samples)
     assert len(log) == s["cycles"] and s["flags"].get("DISCONNECTED", 0) == 0
-    # the compensation written never stepped faster than the rate limit (machine time)
-    v = log.dropna(subset=["value_um"])
-    dv, dt = np.diff(v["value_um"].to_numpy()), np.diff(v["t_s"].to_numpy())
-    assert np.all(np.abs(dv) <= 20.0 * dt + 1e-9)
+    assert _time_steps_within(log, 20.0)  # the compensation never changed in time faster than the limit
 
 
 def test_error_line_output_feeds_a_stock_controller(machine, seed001_exports, nodes_file, tmp_path):
@@ -130,6 +138,9 @@ def test_faulty_sensors_and_frozen_data_are_held_and_flagged(ds, seed001_exports
                          {"sensor": "T_bed", "from_s": 200, "to_s": 230, "value": 500.0}],
               "freeze": [{"from_s": 300, "to_s": 400}]}  # fmt: skip
     m = build_machine({"data_dir": str(ds.path), "run": RUN, "duration_s": 500})  # played back from the dataset
+    no_status = yaml.safe_load(nodes_file.read_text())
+    del no_status["outputs"]["status"]  # optional: the machine still starts (on the first read)
+    nodes_file.write_text(yaml.safe_dump(no_status))
     f, s, log = asyncio.run(_closed_loop(m, seed001_exports / "mlr", nodes_file, tmp_path,
                                          sim_kw={"faults": faults}, stale_after_s=0.3, rate_limit_um_s=2.0))  # fmt: skip
     nan_win = log[(log["t_s"] >= 100) & (log["t_s"] < 160)]
@@ -141,13 +152,22 @@ def test_faulty_sensors_and_frozen_data_are_held_and_flagged(ds, seed001_exports
     stale = log[(log["flags"] & STALE) > 0]
     assert len(stale) > 10 and (stale["flags"] & HELD).all()
     assert stale["value_um"].nunique() == 1  # the compensation held at one value while the data was frozen
-    v = log.dropna(subset=["value_um"])
-    dv, dt = np.diff(v["value_um"].to_numpy()), np.diff(v["t_s"].to_numpy())
-    assert np.all(np.abs(dv) <= 2.0 * dt + 1e-9)  # never faster than the rate limit, faults or not
+    assert _time_steps_within(log, 2.0)  # never faster than the rate limit, faults or not
     assert (log[log["t_s"] > 420]["flags"] & (STALE | INPUT_HELD)).eq(0).all()  # recovered
 
 
 def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machine, seed001_exports, nodes_file, tmp_path):
+    async def fresh_after_restart(log_path, n=20, timeout_s=30.0):
+        """Wait until the log shows the new timeline and then n fresh (not held) cycles."""
+        end = asyncio.get_running_loop().time() + timeout_s
+        while asyncio.get_running_loop().time() < end:
+            await asyncio.sleep(0.2)
+            log = pd.read_csv(log_path)
+            r = log.index[(log["flags"] & RESTARTED) > 0]
+            if len(r) and ((log.loc[r[0]:, "flags"] & HELD) == 0).sum() >= n:
+                return
+        raise AssertionError("no fresh compensation after the server came back")
+
     async def scenario():
         port = _port()
         ep = f"opc.tcp://127.0.0.1:{port}/sim"
@@ -155,7 +175,7 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
         a = SimCnc(machine, cfg)
         await a.start_server()
         clock = asyncio.ensure_future(a.run_clock())
-        comp = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, period_s=0.01, duration_s=6.0))
+        comp = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, period_s=0.01))
         task = asyncio.ensure_future(comp.run())
         await asyncio.sleep(1.0)
         clock.cancel()
@@ -164,25 +184,29 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
         b = SimCnc(machine, cfg)  # ... and comes back with its machine clock restarted
         await b.start_server()
         clock = asyncio.ensure_future(b.run_clock())
-        summary = await task
-        clock.cancel()
-        await b.stop_server()
+        try:
+            await fresh_after_restart(tmp_path / "cycles.csv")
+        finally:
+            comp.stop()
+            summary = await task
+            clock.cancel()
+            await b.stop_server()
         return comp, summary
 
-    comp, s, = asyncio.run(scenario())
+    comp, s = asyncio.run(scenario())
     log = pd.read_csv(tmp_path / "cycles.csv")
     down = log[(log["flags"] & DISCONNECTED) > 0]
     assert len(down) > 50 and (down["flags"] & HELD).all()
     last_good = log.loc[: down.index[0] - 1].dropna(subset=["value_um"])["value_um"].iloc[-1]
     assert (down["value_um"] == last_good).all()  # held at the last good value
-    assert s["flags"]["reconnects"] >= 1 and s["flags"]["connection_lost"] >= 1
+    assert s["flags"]["reconnects"] >= 1 and s["flags"]["connection_lost"] >= 1 and s["ended"] == "stopped"
     gaps = np.diff(list(comp.connect_attempts))
     assert len(gaps) >= 3 and np.all(np.diff(gaps[:3]) > 0)  # back-off: each wait longer than the last
     # ... up to reconnect.max_s (plus the attempt itself; the server shares this event loop)
     assert 0.4 <= np.median(gaps[3:]) < 0.5
     after = log.loc[down.index[-1] + 1:]
     assert (after["flags"] & RESTARTED).any()  # the server's clock restarted: a new timeline
-    assert ((after["flags"] & HELD) == 0).any()  # and fresh compensation again
+    assert _time_steps_within(log, 20.0)  # and the compensation never stepped, across the outage too
 
 
 @pytest.fixture(scope="module")
@@ -216,13 +240,27 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
             s = await comp.run()
             written = srv.server.read_attribute_value(srv.comp["value"]).Value.Value
             refused = {}
-            for name, cfg in {"wrong password": sec(password_env="WRONG_PW"), "no encryption": {"user": "operator"},
+            for name, cfg in {"wrong password": sec(password_env="WRONG_PW"), "no encryption": {},
                               "untrusted certificate": sec(stranger)}.items():  # fmt: skip
                 try:
                     await Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, max_cycles=1,
                                                                                            security=cfg)).run()  # fmt: skip
                 except CompensatorError as exc:
                     refused[name] = str(exc)
+            # an output node of another data type is a set-up error, found when connecting
+            wrong = yaml.safe_load(nodes_file.read_text())
+            wrong["outputs"] = {"value": {"node": "ns=2;s=X.TempComp_Status", "unit": "um"}}
+            (tmp_path / "wrong.yaml").write_text(yaml.safe_dump(wrong))
+            with pytest.raises(CompensatorError, match="data type"):
+                await Compensator(seed001_exports / "mlr", ep, tmp_path / "wrong.yaml", _client_cfg(tmp_path, security=sec())).run()
+            # Ctrl-C (the task cancelled) still leaves the summary beside the log
+            stopped = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, log=str(tmp_path / "int.csv"),
+                                                                                        security=sec()))  # fmt: skip
+            t = asyncio.ensure_future(stopped.run())
+            await asyncio.sleep(1.0)
+            stopped.stop("interrupted")  # what the command's SIGINT handler does
+            await t
+            interrupted = json.loads((tmp_path / "int.summary.json").read_text())
             # the compensator writes its outputs and nothing else, even over a good session
             session_writer = None
             c2 = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, security=sec()))
@@ -246,18 +284,24 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
             async with raw:
                 with pytest.raises(ua.UaStatusCodeError):
                     await raw.get_node(feed_id).write_value(ua.Variant(1.0, ua.VariantType.Double))
-            return s, written, refused, before, after
+            return s, written, refused, before, after, interrupted
         finally:
             clock.cancel()
             await srv.stop_server()
 
     monkeypatch.setenv("WRONG_PW", "guess")
-    s, written, refused, before, after = asyncio.run(scenario())
+    s, written, refused, before, after, interrupted = asyncio.run(scenario())
+    assert interrupted["ended"] == "interrupted" and interrupted["cycles"] > 10
     assert s["cycles"] == 60 and math.isfinite(written) and written != 0.0
     assert set(refused) == {"wrong password", "no encryption", "untrusted certificate"}
     assert all("cannot connect" in m for m in refused.values())
     assert "BadUserAccessDenied" in refused["wrong password"]
     assert "No matching endpoints" in refused["no encryption"]  # the server offers sign-and-encrypt only
+    # and the client never sends a password unencrypted, nor trusts an unpinned server
+    with pytest.raises(CompensatorError, match="never sent unencrypted"):
+        Compensator(seed001_exports / "mlr", "opc.tcp://127.0.0.1:1", nodes_file, {"security": {"user": "operator"}})
+    with pytest.raises(CompensatorError, match="server_certificate"):
+        Compensator(seed001_exports / "mlr", "opc.tcp://127.0.0.1:1", nodes_file, {"security": sec(server_certificate=None)})
     assert "BadCertificateUntrusted" in refused["untrusted certificate"]
     assert after == before
 
@@ -273,6 +317,10 @@ def test_cli_errors_name_what_is_wrong(machine, seed001_exports, nodes_file, tmp
     assert "inputs.temperatures" in capsys.readouterr().err
     assert main(["compensator", str(seed001_exports / "mlr"), "--endpoint", ep, "--nodes", str(nodes_file), "perod_s=1"]) == 2
     assert "perod_s" in capsys.readouterr().err
+    assert main(["sim-cnc", "run=nope", "duration_s=10"]) == 2
+    assert "'nope'" in capsys.readouterr().err
+    assert main(["sim-cnc", "security.user=operator"]) == 2  # a password server without encryption
+    assert "never taken unencrypted" in capsys.readouterr().err
     assert main(["sim-cnc", "run=nope", "duration_s=10"]) == 2
     assert "'nope'" in capsys.readouterr().err
     with pytest.raises(SimCncError, match=r"faults.sensor\[0\]"):

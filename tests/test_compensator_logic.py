@@ -27,21 +27,24 @@ class FakeModel:
     def start(self):
         self.starts += 1
         self.ready_s = math.nan
+        self.steps = []
 
     def step(self, t_s, axis_mm, feed_mm_min, temps_C, load_N=0.0, measuring=False):
         self.steps.append((t_s, axis_mm, feed_mm_min, list(temps_C), measuring))
         self.ready_s = t_s
         return 0
 
-    def _total(self, x):
-        return self.a + self.b * x + self.c * x * x + (self.steps[-1][3][0] - 20.0 if self.steps else 0.0)
+    def _total(self, t, x):
+        """The error the model state at ``t`` (the last step at or before it) predicts."""
+        past = [s for s in self.steps if s[0] <= t + 1e-12]
+        return self.a + self.b * x + self.c * x * x + (past[-1][3][0] - 20.0 if past else 0.0)
 
     def predict(self, t_s, axis_mm):
-        return 0, 0.0, float(self._total(axis_mm)), -1
+        return 0, 0.0, float(self._total(t_s, axis_mm)), -1
 
     def predict_many(self, t_s, axis_mm):
         x = np.asarray(axis_mm, dtype=float)
-        return np.zeros(x.size, dtype=int), self._total(x)
+        return np.zeros(x.size, dtype=int), self._total(t_s, x)
 
 
 def _r(ts, x=100.0, feed=3000.0, temp=20.0, **extra):
@@ -155,7 +158,7 @@ def test_an_outage_longer_than_the_runtime_bridges_restarts_the_model():
     lg.cycle(_r(0.0), 0.0)
     lg.cycle(_r(1.0), 0.1)
     c = lg.cycle(_r(200.0), 0.2)  # 199 s without samples (> TB_MAX_GAP_S 60 s)
-    assert c.flags & Flags.RESTARTED and m.starts == 1 and m.steps[-1][0] == 200.0
+    assert c.flags & Flags.RESTARTED and m.starts == 1 and m.steps == [(200.0, 100.0, 3000.0, [20.0], False)]
 
 
 def test_error_line_of_a_linear_error_is_exact_and_ref_is_where_offset_applies():
@@ -224,3 +227,76 @@ def test_nodes_file_needs_the_nodes_of_the_output_form(tmp_path):
         load_nodes(p, ["T_nut"], output="line")
     with pytest.raises(NodesError, match="inputs.load_N"):
         load_nodes(p, ["T_nut"], needs_load=True)
+
+
+def test_no_step_after_an_outage_or_a_freeze():
+    """After 30 s without fresh values (held), a 30 K jump still ramps at the limit: dt per
+    cycle is at most one sample period."""
+    m = FakeModel(period_s=1.0, a=0.0, b=0.0)
+    lg = _logic(m, rate_limit_um_s=1.0)
+    lg.cycle(_r(0.0), 0.0)
+    lg.cycle(_r(1.0), 0.1)
+    v0 = lg.value_um
+    lg.hold(Flags.DISCONNECTED)  # the outage
+    c = lg.cycle(_r(31.0, temp=50.0), 0.2)  # 30 s later, the error is 30 µm larger
+    assert abs(c.value_um - v0) <= 1.0 + 1e-9 and c.flags & Flags.RATE_LIMITED
+    frozen = _logic(FakeModel(a=0.0, b=0.0), rate_limit_um_s=1.0)
+    frozen.cycle(_r(0.0), 0.0)
+    frozen.cycle(_r(1.0), 0.1)
+    c = frozen.cycle(_r(101.0, temp=50.0), 0.2)  # a 100 s jump of machine time (freeze, then a sample)
+    assert abs(c.value_um) <= 1.0 + 1e-9
+
+
+def test_the_limit_acts_on_change_in_time_not_along_the_axis():
+    """Moving 100 mm in one cycle changes the value by the error's gradient at once; a change
+    in time (30 K) at the same position ramps."""
+    m = FakeModel(period_s=1.0, a=0.0, b=0.1)  # 0.1 µm/mm along the axis
+    lg = _logic(m, rate_limit_um_s=1.0)
+    lg.cycle(_r(0.0, x=0.0), 0.0)
+    lg.cycle(_r(1.0, x=0.0), 0.1)
+    c = lg.cycle(_r(1.05, x=100.0), 0.15)  # same model state, axis moved 100 mm
+    assert c.value_um == pytest.approx(-10.0) and not c.flags & Flags.RATE_LIMITED
+    c = lg.cycle(_r(2.0, x=100.0, temp=50.0), 0.2)  # +30 µm in time at this position
+    assert c.value_um == pytest.approx(-10.0 - 0.95) and c.flags & Flags.RATE_LIMITED  # 1 µm/s x 0.95 s
+
+
+def test_start_up_ramps_from_the_controllers_value_and_undo_forgets_an_unwritten_cycle():
+    lg = _logic(FakeModel(a=0.0, b=0.0), rate_limit_um_s=1.0)
+    lg.resume(value_um=-30.0)
+    c = lg.cycle(_r(0.0), 0.0)
+    assert c.value_um == -30.0  # not a step to 0
+    c = lg.cycle(_r(1.0), 0.1)
+    assert c.value_um == pytest.approx(-29.0)
+    lg.cycle(_r(2.0), 0.2)
+    lg.undo()  # that write failed
+    assert lg.value_um == pytest.approx(-29.0) and lg.hold(Flags.DISCONNECTED).value_um == pytest.approx(-29.0)
+
+
+def test_client_clock_for_servers_that_stamp_on_change_and_a_heartbeat_for_staleness():
+    m = FakeModel()
+    lg = _logic(m, clock="client", stale_after_s=0.5)
+    for i in range(4):  # timestamps never advance (values unchanged), the client's clock does
+        c = lg.cycle({**_r(7.0), "heartbeat": Reading(i, 7.0)}, now_wall_s=float(i), now_epoch_s=1000.0 + i)
+        assert not c.flags & Flags.STALE
+    assert [s[0] for s in m.steps] == [0.0, 1.0, 2.0, 3.0]
+    lg.cycle({**_r(7.0), "heartbeat": Reading(3, 7.0)}, now_wall_s=3.3, now_epoch_s=1003.3)
+    c = lg.cycle({**_r(7.0), "heartbeat": Reading(3, 7.0)}, now_wall_s=4.0, now_epoch_s=1004.0)
+    assert c.flags & Flags.STALE  # the heartbeat stopped for 1 s > stale_after_s
+
+
+def test_a_clock_that_stays_behind_starts_a_new_timeline():
+    m = FakeModel()
+    lg = _logic(m, stale_after_s=0.5)
+    lg.cycle(_r(100.0), 0.0)
+    assert lg.cycle(_r(10.0), 0.1).flags & Flags.CLOCK
+    c = lg.cycle(_r(11.0), 0.7)  # still behind after stale_after_s: the server's clock restarted
+    assert c.flags & Flags.RESTARTED and m.starts == 1 and c.t_s == 0.0
+
+
+@pytest.mark.parametrize("cfg, key", [({"line": {"travel_mm": [0]}}, "line.travel_mm"),
+                                      ({"ranges": {"temperature_C": [1]}}, "ranges.temperature_C"),
+                                      ({"stale_after_s": -1}, "stale_after_s"), ({"clock": "gps"}, "clock"),
+                                      ({"rate_limit_um_s": "fast"}, "rate_limit_um_s")])  # fmt: skip
+def test_bad_numbers_name_their_key(cfg, key):
+    with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+        Settings.from_config(cfg)

@@ -131,7 +131,8 @@ def cmd_precompensate(args) -> int:
 def _quiet_asyncua() -> None:
     import logging
 
-    logging.getLogger("asyncua").setLevel(logging.ERROR)  # its INFO/WARNING chatter (session timeouts, ...)
+    # its chatter (session timeouts, tracebacks of refused connections): our one-line errors say what went wrong
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
 
 
 def _compose(name: str, overrides: list[str], **paths):
@@ -147,12 +148,24 @@ def _compose(name: str, overrides: list[str], **paths):
 
 
 def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[str]) -> int:
-    from .compensator.client import format_summary, run_compensator
+    import asyncio
+
+    from .compensator.client import Compensator, format_summary
 
     _quiet_asyncua()
-    cfg = _compose("compensator", overrides)
-    print(format_summary(run_compensator(Path(model_dir), endpoint, Path(nodes), cfg)))
-    return 0
+    comp = Compensator(Path(model_dir), endpoint, Path(nodes), _compose("compensator", overrides))
+
+    async def run() -> dict:
+        import signal
+
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends the loop after its cycle, with the summary
+            loop.add_signal_handler(sig, comp.stop, "interrupted")
+        return await comp.run()
+
+    summary = asyncio.run(run())
+    print(format_summary(summary))
+    return 130 if summary["ended"] == "interrupted" else 0
 
 
 def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
@@ -164,7 +177,7 @@ def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
     cfg = _compose("sim_cnc", overrides, endpoint=endpoint)
     machine = build_machine(cfg)
     print(f"sim-cnc: run {machine.run}, {len(machine.samples)} samples at {cfg['speed']:g}x real time on {cfg['endpoint']}"
-          + (" (starts when the compensator first writes)" if cfg["start"] == "on_compensator" else ""), flush=True)  # fmt: skip
+          + (" (starts when a client first reads it)" if cfg["start"] == "on_compensator" else ""), flush=True)  # fmt: skip
     print(format_figures(asyncio.run(serve(cfg, machine))))
     return 0
 
@@ -246,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     p_cmp.add_argument("overrides", nargs="*", help="overrides of conf/compensator.yaml, e.g. period_s=0.1 output=line")
     p_sim_cnc = sub.add_parser("sim-cnc", help="a simulated CNC axis behind an OPC UA server (conf/sim_cnc.yaml)")
     p_sim_cnc.add_argument("--endpoint", default=None, help="endpoint to serve (default from conf/sim_cnc.yaml)")
-    p_sim_cnc.add_argument("overrides", nargs="*", help="overrides, e.g. dataset=seed001_vmc_x run=valid1 speed=100")
+    p_sim_cnc.add_argument("overrides", nargs="*", help="overrides, e.g. benchmark=seed001_vmc_x run=valid1 speed=100")
     p_certs = sub.add_parser("certs", help="self-signed OPC UA application certificates (server and client)")
     p_certs.add_argument("out_dir")
     p_certs.add_argument("--days", type=int, default=365)

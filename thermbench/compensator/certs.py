@@ -40,8 +40,7 @@ def make_certificates(out_dir: str | Path, days: int = 365, host: str | None = N
         use = [ExtendedKeyUsageOID.SERVER_AUTH] if role == "server" else [ExtendedKeyUsageOID.CLIENT_AUTH]
         cert = generate_self_signed_app_certificate(key, f"thermbench {role}", {"organizationName": "thermbench"}, sans, use,
                                                     days=days)  # fmt: skip
-        write_bytes_atomic(out / key_name, dump_private_key_as_pem(key))
-        (out / key_name).chmod(0o600)
+        write_bytes_atomic(out / key_name, dump_private_key_as_pem(key), mode=0o600)  # private from the start
         write_bytes_atomic(out / cert_name, cert.public_bytes(Encoding.DER))
         written[f"{role}_certificate"], written[f"{role}_private_key"] = out / cert_name, out / key_name
     return written

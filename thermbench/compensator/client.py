@@ -38,7 +38,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .._atomic import write_text_atomic
-from .control import Cycle, CycleLogic, Flags, Reading, Settings, flag_names
+from .control import Cycle, CycleLogic, Flags, Line, Reading, Settings, _num, flag_names
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
 CLIENT_APP_URI = "urn:thermbench:compensator"
@@ -49,8 +49,14 @@ class CompensatorError(ValueError):
     """A compensator set-up that cannot work (names the config key, file or node)."""
 
 
-class RefusedWrite(PermissionError):
-    """The compensator was asked to write a node that is not one of its configured outputs."""
+class RefusedWrite(Exception):
+    """The compensator was asked to write a node that is not one of its configured outputs
+    (a programming error: never taken for a lost connection)."""
+
+
+# write results that no reconnection will cure: the set-up is wrong
+FATAL_WRITE = ("BadTypeMismatch", "BadUserAccessDenied", "BadNotWritable", "BadOutOfRange", "BadNodeIdUnknown",
+               "BadWriteNotSupported", "BadIndexRangeInvalid")  # fmt: skip
 
 
 def _ua():
@@ -139,6 +145,12 @@ class Security:
                                            "(make a pair with `thermbench certs DIR`)")  # fmt: skip
             if s.server_certificate and not Path(s.server_certificate).is_file():
                 raise CompensatorError(f"config key 'security.server_certificate': {s.server_certificate!r} is not a file")
+        if s.user and not s.policy:
+            raise CompensatorError("config key 'security.user': a password is never sent unencrypted; set "
+                                   "security.policy=Basic256Sha256 with the certificates (thermbench certs DIR)")  # fmt: skip
+        if s.policy and not s.server_certificate:
+            raise CompensatorError("config key 'security.server_certificate': the server's certificate to pin is needed "
+                                   "with security.policy (without it any server could pose as the machine)")  # fmt: skip
         if s.user and not os.environ.get(s.password_env):
             raise CompensatorError(f"config key 'security.user' is set, so the password is read from the environment "
                                    f"variable {s.password_env} (security.password_env), which is not set")  # fmt: skip
@@ -158,7 +170,11 @@ async def connect_client(endpoint: str, sec: Security, timeout_s: float):
     if sec.policy:
         await client.set_security(SecurityPolicyBasic256Sha256, certificate=sec.certificate, private_key=sec.private_key,
                                   server_certificate=sec.server_certificate, mode=getattr(ua.MessageSecurityMode, sec.mode))  # fmt: skip
-    await asyncio.wait_for(client.connect(), timeout_s)
+    try:
+        await asyncio.wait_for(client.connect(), timeout_s)
+    except BaseException:  # a timed-out or refused attempt must not leave its socket open
+        await _quiet_disconnect(client)
+        raise
     return client
 
 
@@ -170,6 +186,7 @@ class Session:
         self.client = None
         self.writer: GuardedWriter | None = None
         self.inputs = nodes.input_ids()
+        self.current: dict[str, Any] = {}  # the output nodes' values when the session opened
 
     async def open(self) -> None:
         ua = _ua()
@@ -177,13 +194,22 @@ class Session:
         try:
             outs = self.nodes.output_ids()
             ids = list(outs.values())
-            access = await client.read_attributes([client.get_node(i) for i in ids], ua.AttributeIds.UserAccessLevel)
-            for name, nid, dv in zip(outs, ids, access):
+            nodes = [client.get_node(i) for i in ids]
+            access = await client.read_attributes(nodes, ua.AttributeIds.UserAccessLevel)
+            types = await client.read_attributes(nodes, ua.AttributeIds.DataType)
+            for name, nid, dv, ty in zip(outs, ids, access, types):
                 if not dv.StatusCode.is_good():
                     raise CompensatorError(f"nodes file: output {name} node {nid!r} does not exist on {self.endpoint} "
                                            f"({dv.StatusCode.name})")  # fmt: skip
                 if not int(dv.Value.Value) & ua.AccessLevel.CurrentWrite.mask:
                     raise CompensatorError(f"nodes file: output {name} node {nid!r} is not writable for this user on {self.endpoint}")
+                want = ua.ObjectIds.Int32 if name == "status" else ua.ObjectIds.Double
+                got = ty.Value.Value
+                if got is None or got.Identifier != want or got.NamespaceIndex != 0:
+                    raise CompensatorError(f"nodes file: output {name} node {nid!r} has data type {got}; the compensator "
+                                           f"writes {'Int32' if name == 'status' else 'Double'}")  # fmt: skip
+            current = await client.read_attributes(nodes)
+            self.current = {name: (dv.Value.Value if dv.Value is not None else None) for name, dv in zip(outs, current)}
             self.input_nodes = [client.get_node(i) for i in self.inputs.values()]
             first = await client.read_attributes(self.input_nodes)
             for (name, nid), dv in zip(self.inputs.items(), first):
@@ -205,7 +231,15 @@ class Session:
         return out
 
     async def write(self, values: Mapping[str, Any]) -> None:
-        await asyncio.wait_for(self.writer.write(values), self.timeout_s)
+        ua = _ua()
+        try:
+            await asyncio.wait_for(self.writer.write(values), self.timeout_s)
+        except ua.UaStatusCodeError as exc:
+            name = type(exc).__name__
+            if name in FATAL_WRITE:
+                raise CompensatorError(f"writing the compensation to {self.endpoint} was refused: {name} "
+                                       f"({', '.join(f'{k}={self.writer.outputs[k]}' for k in values)})") from None  # fmt: skip
+            raise
 
     async def close(self) -> None:
         client, self.client, self.writer = self.client, None, None
@@ -217,6 +251,10 @@ async def _quiet_disconnect(client) -> None:
     try:
         await asyncio.wait_for(client.disconnect(), 2.0)
     except Exception:  # the connection is gone already: nothing to close
+        pass
+    try:
+        client.disconnect_socket()
+    except Exception:  # no socket left
         pass
 
 
@@ -299,9 +337,7 @@ class Compensator:
         from ..export.native import LiveModel
 
         cfg = with_defaults("compensator", cfg)
-        self.period_s = float(cfg.get("period_s", 0.1))
-        if not self.period_s > 0:
-            raise CompensatorError(f"config key 'period_s': must be > 0 s, got {self.period_s}")
+        self.period_s = _num(cfg, "period_s", 0.1)
         self.output = str(cfg.get("output", "value"))
         self.model = LiveModel(model_dir)
         self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output)
@@ -309,27 +345,58 @@ class Compensator:
                                 has_measuring=self.nodes.inputs.measuring is not None)  # fmt: skip
         self.sec = Security.from_config(cfg.get("security"))
         self.endpoint = endpoint
-        self.timeout_s = float(cfg.get("timeout_s", 2.0))
+        self.timeout_s = _num(cfg, "timeout_s", 2.0)
         rc = dict(cfg.get("reconnect") or {})
-        self.backoff0, self.backoff_max = float(rc.get("initial_s", 0.2)), float(rc.get("max_s", 10.0))
-        self.backoff_factor = float(rc.get("factor", 2.0))
-        self.max_cycles = None if cfg.get("max_cycles") is None else int(cfg["max_cycles"])
-        self.duration_s = None if cfg.get("duration_s") is None else float(cfg["duration_s"])
+        self.backoff0 = _num(rc, "initial_s", 0.2)
+        self.backoff_max = _num(rc, "max_s", 10.0)
+        self.backoff_factor = _num(rc, "factor", 2.0)
+        if self.backoff_factor < 1 or self.backoff_max < self.backoff0:
+            raise CompensatorError("config key 'reconnect': expected factor >= 1 and max_s >= initial_s, got "
+                                   f"factor {self.backoff_factor}, initial_s {self.backoff0}, max_s {self.backoff_max}")  # fmt: skip
+        self.max_cycles = None if cfg.get("max_cycles") is None else int(_num(cfg, "max_cycles", 1))
+        self.duration_s = None if cfg.get("duration_s") is None else _num(cfg, "duration_s", 1.0)
         self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
         self.session = Session(endpoint, self.nodes, self.sec, self.timeout_s)
         self.stop_requested = False
+        self.stop_reason = "stopped"
         self.connect_attempts: collections.deque = collections.deque(maxlen=1000)  # loop times of reconnection attempts
+        self.last_error: str | None = None
+        self.summary: dict | None = None
+
+    def _resume_from_controller(self) -> None:
+        """Ramp from what the controller holds (read when the session opened), not from zero."""
+        cur, o = self.session.current, self.nodes.outputs
+
+        def num(key, factor):
+            v = cur.get(key)
+            return float(v) / factor if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
+
+        value = num("value", LENGTH_UNITS[o.value.unit]) if o.value else None
+        line = None
+        if o.line:
+            off, slope = num("offset", LENGTH_UNITS[o.line.offset.unit]), num("slope", SLOPE_UNITS[o.line.slope.unit])
+            ref = num("ref", LENGTH_UNITS[o.line.ref.unit])
+            if None not in (off, slope, ref):
+                line = Line(off, slope, ref / 1e3)
+        self.logic.resume(value, line)
 
     async def run(self) -> dict:
         """Connect (the first connection must succeed: a wrong endpoint or credentials are a
-        set-up error), then cycle until done / max_cycles / duration_s / :meth:`stop`."""
+        set-up error), then cycle until done / max_cycles / duration_s / :meth:`stop`. The
+        summary is written beside the log however the loop ends (also on Ctrl-C)."""
+        try:
+            log = CycleLog(self.log_path, self.logic.names)
+        except OSError as exc:
+            raise CompensatorError(f"config key 'log': cannot write {self.log_path}: {exc.strerror or exc}") from None
         try:
             await self.session.open()
         except CompensatorError:
+            log.close()
             raise
         except Exception as exc:
+            log.close()
             raise CompensatorError(f"cannot connect to {self.endpoint}: {type(exc).__name__}: {exc}") from None
-        log = CycleLog(self.log_path, self.logic.names)
+        self._resume_from_controller()
         loop = asyncio.get_running_loop()
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
         counts = collections.Counter()
@@ -337,8 +404,12 @@ class Compensator:
         backoff, next_try = self.backoff0, 0.0
         t_start = loop.time()
         k = 0
+        ended = None
+        task = asyncio.current_task()
         try:
             while not self.stop_requested:
+                if getattr(task, "cancelling", lambda: 0)():  # a cancellation some library call swallowed
+                    raise asyncio.CancelledError
                 deadline = t_start + k * self.period_s
                 now = loop.time()
                 if now < deadline:
@@ -349,17 +420,15 @@ class Compensator:
                     exc = connecting.exception()
                     connecting = None
                     if exc is None:
-                        backoff = self.backoff0
                         counts["reconnects"] += 1
                         self.logic.reconnected()
                     else:
-                        self.last_error = f"{type(exc).__name__}: {exc}"
+                        self.last_error = f"reconnecting: {type(exc).__name__}: {exc}"
                         next_try = begin + backoff
                         backoff = min(backoff * self.backoff_factor, self.backoff_max)
-                if self.session.client is None:
-                    if connecting is None and begin >= next_try:
-                        connecting = asyncio.ensure_future(self.session.open())
-                        self.connect_attempts.append(begin)
+                if self.session.client is None and connecting is None and begin >= next_try:
+                    connecting = asyncio.ensure_future(self.session.open())
+                    self.connect_attempts.append(begin)
                 if self.session.client is None:
                     c = self.logic.hold(Flags.DISCONNECTED)
                 else:
@@ -369,9 +438,11 @@ class Compensator:
                         c = self.logic.cycle(readings, begin, time.time())
                         await self.session.write(output_variants(c, self.nodes, self.output))
                         done = bool(readings.get("done") and readings["done"].value)
+                        backoff = self.backoff0  # a full cycle worked: the next outage starts the back-off afresh
                     except _connection_errors() as exc:
                         counts["connection_lost"] += 1
                         self.last_error = f"{type(exc).__name__}: {exc}"
+                        self.logic.undo()  # what this cycle computed was not written
                         await self.session.close()
                         next_try = loop.time() + backoff
                         c = self.logic.hold(Flags.DISCONNECTED, c.t_s if c is not None else math.nan)
@@ -391,22 +462,36 @@ class Compensator:
                     if missed > 0:
                         counts["skipped_deadlines"] += missed
                         k += missed
-                if done or (self.max_cycles is not None and len(durations) >= self.max_cycles):
+                if done:
+                    ended = "the machine's program is done"
+                    break
+                if self.max_cycles is not None and len(durations) >= self.max_cycles:
+                    ended = "max_cycles"
                     break
                 if self.duration_s is not None and end - t_start >= self.duration_s:
+                    ended = "duration_s"
                     break
+        except asyncio.CancelledError:
+            ended = "interrupted"
+            raise
+        except BaseException as exc:
+            ended = f"error: {type(exc).__name__}: {exc}"
+            raise
         finally:
             log.close()
             if connecting is not None:
                 connecting.cancel()
             await self.session.close()
-        summary = {"endpoint": self.endpoint, "model": self.model.manifest.get("name"), "period_s": self.period_s,
-                   "output": self.output, "log": str(self.log_path), "flags": dict(counts),
-                   **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip
-        write_text_atomic(self.log_path.with_suffix(".summary.json"), json.dumps(summary, indent=2, default=float) + "\n")
-        return summary
+            self.summary = {"endpoint": self.endpoint, "model": self.model.manifest.get("name"), "period_s": self.period_s,
+                            "output": self.output, "log": str(self.log_path), "ended": ended or self.stop_reason, "flags": dict(counts),
+                            "last_error": self.last_error,
+                            **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip
+            write_text_atomic(self.log_path.with_suffix(".summary.json"), json.dumps(self.summary, indent=2, default=float) + "\n")
+        return self.summary
 
-    def stop(self) -> None:
+    def stop(self, reason: str = "stopped") -> None:
+        """End the loop after the current cycle (the summary says ``reason``)."""
+        self.stop_reason = reason
         self.stop_requested = True
 
 
@@ -425,6 +510,6 @@ def format_summary(s: dict) -> str:
         f"  cycle time p50 {c['p50']:.2f} ms, p90 {c['p90']:.2f} ms, p99 {c['p99']:.2f} ms, max {c['max']:.2f} ms; "
         f"start lateness p50 {lt['p50']:.2f} ms, p99 {lt['p99']:.2f} ms; mean period {s['mean_period_ms']:.3f} ms, "
         f"lateness trend over the run {s['drift_ms']:+.2f} ms",
-        f"  flags: {flags}",
-        f"  log -> {s['log']}",
+        f"  flags: {flags}; ended: {s['ended']}" + (f"; last connection error: {s['last_error']}" if s.get("last_error") else ""),
+        f"  log -> {s['log']} (summary beside it)",
     ])  # fmt: skip

@@ -4,24 +4,31 @@
 reading the machine and writing to it, so every fault rule is testable without a
 network:
 
-* **Machine time** is the source timestamp of the axis position (seconds since the
-  first one). The exported model is stepped on its own sample grid (the dataset's
-  process-log period, manifest ``sample_period_s``): when the machine time passes a grid
+* **Machine time** is the newest source timestamp of the inputs (``clock: source``, for a
+  server that stamps every sample, as sim-cnc does), or the client's clock (``clock:
+  client``, for a server that stamps a value only when it changes), in seconds since the
+  first cycle. The exported model is stepped on its own sample grid (the dataset's
+  process-log period, manifest ``sample_period_s``): when machine time passes a grid
   point, the runtime is stepped at that point with the latest values (zero-order hold),
   as the process log it was trained on was sampled.
 * **Inputs**: a value that is missing, not finite, outside its configured range, or
   whose timestamp lags the axis by more than ``input_max_age_s`` is *held*: the last good
   value goes to the model and the cycle is flagged ``INPUT_HELD``.
-* **Stale data**: no new axis timestamp for ``stale_after_s`` of the client's clock (or
-  a timestamp older than ``max_age_s`` when the server's clock is the wall clock) ->
-  ``STALE``; a timestamp going backwards -> ``CLOCK``. The compensation is then held at
-  its last good value (``HELD``).
+* **Stale data**: machine time (or the optional ``heartbeat`` input's value) not advancing
+  for ``stale_after_s`` of the client's clock, or a timestamp older than ``max_age_s``
+  against the client's clock -> ``STALE``; timestamps going backwards -> ``CLOCK`` (a new
+  timeline, model restarted, if it lasts ``stale_after_s`` or follows a reconnection). The
+  compensation is then held at the value the controller has (``HELD``).
 * **Outage**: longer than the runtime accepts between samples (``TB_MAX_GAP_S``) -> the
   model is restarted (``RESTARTED``) and the compensation held until it predicts again.
-* **Rate limit**: the written compensation never changes faster than
-  ``rate_limit_um_s`` of machine time (the role of SINUMERIK MD32760
-  ``COMP_ADD_VELO_FACTOR``); for the error line, at both ends of the travel.
-
+* **Rate limit**: the compensation never changes in time faster than ``rate_limit_um_s``
+  per second of machine time, counted per cycle and at most one sample period per cycle
+  (so no step after an outage or a freeze either; the role of SINUMERIK MD32760
+  ``COMP_ADD_VELO_FACTOR``). It acts on the change in time at fixed positions: the change
+  along the axis as it moves passes. For the value output the ramp keeps the lag between
+  what is written and the model's value; after a hold it starts from the held value, at
+  start-up from the controller's value (:meth:`CycleLogic.resume`). For the error line it
+  acts at both ends of the travel.
 The compensation is the value added to the axis position set point, ``-predicted
 error`` (the C runtime's ``total_um``: geometric + thermal); ``convention: error`` in
 the config writes the predicted error itself, for controllers that subtract it.
@@ -62,6 +69,27 @@ def flag_names(f: int) -> str:
     return "|".join(m.name for m in Flags if m.value and f & m.value) or "OK"
 
 
+def _num(cfg: Mapping[str, Any], key: str, default: float, positive: bool = True) -> float:
+    v = cfg.get(key, default)
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"config key {key!r}: expected a number, got {v!r}") from None
+    if positive and not v > 0:
+        raise ValueError(f"config key {key!r}: must be > 0, got {v}")
+    return v
+
+
+def _pair(v: Any, key: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"config key {key!r}: expected [low, high], got {v!r}") from None
+    if not hi > lo:
+        raise ValueError(f"config key {key!r}: expected [low, high] with high > low, got [{lo}, {hi}]")
+    return lo, hi
+
+
 @dataclass
 class Settings:
     """The ``conf/compensator.yaml`` keys the cycle logic uses (see there)."""
@@ -70,6 +98,7 @@ class Settings:
     stale_after_s: float = 2.0
     max_age_s: float | None = None
     input_max_age_s: float = 10.0
+    clock: str = "source"
     convention: str = "compensation"
     line_travel_mm: tuple[float, float] | None = None
     line_points: int = 21
@@ -78,26 +107,22 @@ class Settings:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Settings":
-        line = cfg.get("line") or {}
+        line = dict(cfg.get("line") or {})
         travel = line.get("travel_mm")
-        s = cls(rate_limit_um_s=float(cfg.get("rate_limit_um_s", 20.0)), stale_after_s=float(cfg.get("stale_after_s", 2.0)),
-                max_age_s=None if cfg.get("max_age_s") is None else float(cfg["max_age_s"]),
-                input_max_age_s=float(cfg.get("input_max_age_s", 10.0)), convention=str(cfg.get("convention", "compensation")),
-                line_travel_mm=None if travel is None else (float(travel[0]), float(travel[1])),
-                line_points=int(line.get("n_points", 21)),
-                line_ref_mm=None if line.get("ref_mm") is None else float(line["ref_mm"]),
-                ranges={k: (float(v[0]), float(v[1])) for k, v in (cfg.get("ranges") or {}).items()})  # fmt: skip
+        s = cls(rate_limit_um_s=_num(cfg, "rate_limit_um_s", 20.0), stale_after_s=_num(cfg, "stale_after_s", 2.0),
+                max_age_s=None if cfg.get("max_age_s") is None else _num(cfg, "max_age_s", 0.0),
+                input_max_age_s=_num(cfg, "input_max_age_s", 10.0), clock=str(cfg.get("clock", "source")),
+                convention=str(cfg.get("convention", "compensation")),
+                line_travel_mm=None if travel is None else _pair(travel, "line.travel_mm"),
+                line_points=int(_num(line, "n_points", 21)),
+                line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, positive=False),
+                ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()})  # fmt: skip
         if s.convention not in ("compensation", "error"):
             raise ValueError(f"config key 'convention': expected compensation or error, got {s.convention!r}")
-        if not s.rate_limit_um_s > 0:
-            raise ValueError(f"config key 'rate_limit_um_s': must be > 0 µm/s, got {s.rate_limit_um_s}")
-        if s.line_travel_mm is not None and not s.line_travel_mm[1] > s.line_travel_mm[0]:
-            raise ValueError(f"config key 'line.travel_mm': expected [start, end] with end > start, got {list(s.line_travel_mm)}")
+        if s.clock not in ("source", "client"):
+            raise ValueError(f"config key 'clock': expected source or client, got {s.clock!r}")
         if s.line_points < 2:
             raise ValueError(f"config key 'line.n_points': at least 2, got {s.line_points}")
-        for k, (lo, hi) in s.ranges.items():
-            if not hi > lo:
-                raise ValueError(f"config key 'ranges.{k}': expected [min, max] with max > min, got [{lo}, {hi}]")
         return s
 
     def range_of(self, name: str) -> tuple[float, float]:
@@ -160,24 +185,53 @@ class CycleLogic:
                       *[f"{t}_C" for t in model.temperatures]]  # fmt: skip
         self.has_measuring = has_measuring
         self.period_s = float(model.period_s)
-        self.t0_ts: float | None = None
+        self.sign = -1.0 if settings.convention == "compensation" else 1.0
+        self.t0_ts: float | None = None  # machine time origin (a timestamp)
         self.last_ts: float | None = None
         self.last_advance_wall: float | None = None
+        self.heartbeat: Any = None
+        self.back_since_wall: float | None = None
         self.k_last: int | None = None
         self.good: dict[str, float] = {}
-        self.value_um: float | None = None  # last written (rate-limited) compensation
-        self.ends_um: tuple[float, float] | None = None  # last written line at the travel ends
-        self.t_out: float | None = None
         self.resync = False
+        # what the controller holds (written or found there) and the ramp state
+        self.value_um: float | None = None
+        self.ends_um: tuple[float, float] | None = None
+        self.t_prev: float | None = None  # machine time of the previous cycle (held or not)
+        self.fresh_ready: float | None = None  # model time of the previous fresh value (None: the last cycle held)
+        self.lag_um = 0.0  # written value minus the model's, at the current position
+        self._saved: tuple = ()
+
+    # ------------------------------------------------------------- controller ---
+    def resume(self, value_um: float | None = None, line: "Line | None" = None) -> None:
+        """Start from the compensation the controller holds already (read at connection), so
+        the first values written ramp from it instead of stepping from zero."""
+        if value_um is not None and math.isfinite(value_um):
+            self.value_um = float(value_um)
+        if line is not None and self.s.line_travel_mm is not None:
+            a, b = self.s.line_travel_mm
+            ends = (float(line.at(a)), float(line.at(b)))
+            if all(math.isfinite(e) for e in ends):
+                self.ends_um = ends
+
+    def reconnected(self) -> None:
+        """A new session: if the server's clock restarted (timestamps behind the last ones),
+        the next cycle starts a new timeline (model restarted) instead of refusing it."""
+        self.resync = True
+
+    def undo(self) -> None:
+        """The last cycle's values were not written (the write failed): forget them."""
+        if self._saved:
+            self.value_um, self.ends_um, self.t_prev, self.fresh_ready, self.lag_um = self._saved
 
     # ------------------------------------------------------------------ inputs ---
-    def _accept(self, name: str, r: Reading | None, ts_axis: float) -> tuple[float | None, bool]:
+    def _accept(self, name: str, r: Reading | None, ts_now: float) -> tuple[float | None, bool]:
         lo, hi = self.s.range_of(name)
         v = None if r is None else r.value
         ok = r is not None and r.good and isinstance(v, (int, float)) and not isinstance(v, bool)
         ok = ok and math.isfinite(float(v)) and lo <= float(v) <= hi
-        if ok and r.ts_s is not None and name != "axis_mm" and ts_axis - r.ts_s > self.s.input_max_age_s:
-            ok = False  # older than the axis by more than the machine-time limit: stale
+        if ok and self.s.clock == "source" and r.ts_s is not None and ts_now - r.ts_s > self.s.input_max_age_s:
+            ok = False  # older than the newest input by more than the machine-time limit: stale
         if ok:
             self.good[name] = float(v)
             return float(v), False
@@ -185,39 +239,53 @@ class CycleLogic:
 
     # ------------------------------------------------------------------- cycle ---
     def hold(self, flags: int, t_s: float = math.nan) -> Cycle:
-        """A cycle that writes the last good compensation (or nothing before the first)."""
+        """A cycle that writes the value the controller holds (nothing before there is one)."""
         c = Cycle(t_s=t_s, flags=int(flags | Flags.HELD))
         c.value_um = self.value_um
         c.line = self._line_from_ends(self.ends_um) if self.ends_um is not None else None
+        self.fresh_ready = None  # the controller now holds one value at every position
+        if math.isfinite(t_s):
+            self.t_prev = t_s
         return c
 
-    def reconnected(self) -> None:
-        """A new session: if the server's clock restarted (timestamps behind the last ones),
-        the next cycle starts a new timeline (model restarted) instead of refusing it."""
-        self.resync = True
+    def _machine_ts(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None) -> float:
+        now = now_epoch_s if now_epoch_s is not None else now_wall_s
+        if self.s.clock == "client":
+            return now
+        stamps = [r.ts_s for n, r in readings.items() if r is not None and r.ts_s is not None and n != "heartbeat"]
+        return max(stamps) if stamps else now
 
     def cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
-        ax = readings.get("axis_mm")
-        ts = None if ax is None else ax.ts_s
-        if ts is None:
-            ts = now_epoch_s if now_epoch_s is not None else now_wall_s
+        self._saved = (self.value_um, self.ends_um, self.t_prev, self.fresh_ready, self.lag_um)
+        ts = self._machine_ts(readings, now_wall_s, now_epoch_s)
         restarted = False
-        if self.resync and self.last_ts is not None and ts < self.last_ts - 1e-9:
+        back = self.last_ts is not None and ts < self.last_ts - 1e-9
+        if back and self.back_since_wall is None:
+            self.back_since_wall = now_wall_s
+        if not back:
+            self.back_since_wall = None
+        if back and (self.resync or now_wall_s - self.back_since_wall > self.s.stale_after_s):
+            # the server's clock restarted (after a reconnection, or for longer than a glitch): new timeline
             self.model.start()
-            self.t0_ts = self.last_ts = self.k_last = self.t_out = None
-            restarted = True
+            self.t0_ts = self.last_ts = self.k_last = self.t_prev = self.fresh_ready = None
+            self.back_since_wall, back, restarted = None, False, True
         self.resync = False
-        if self.last_ts is not None and ts < self.last_ts - 1e-9:
-            return self.hold(Flags.CLOCK, self._t(self.last_ts))
-        if self.last_ts is None or ts > self.last_ts:
+        if back:
+            return self.hold(Flags.CLOCK)
+        hb = readings.get("heartbeat")
+        advanced = (hb.value != self.heartbeat) if hb is not None else (self.last_ts is None or ts > self.last_ts)
+        if hb is not None:
+            self.heartbeat = hb.value
+        if advanced or self.last_advance_wall is None:
             self.last_advance_wall = now_wall_s
+        if self.last_ts is None or ts > self.last_ts:
             self.last_ts = ts
         if self.t0_ts is None:
             self.t0_ts = ts
-        t = self._t(ts)
+        t = ts - self.t0_ts
         stale = now_wall_s - self.last_advance_wall > self.s.stale_after_s
-        if self.s.max_age_s is not None and now_epoch_s is not None and now_epoch_s - ts > self.s.max_age_s:
-            stale = True
+        if self.s.max_age_s is not None and now_epoch_s is not None and self.s.clock == "source":
+            stale = stale or now_epoch_s - ts > self.s.max_age_s
         if stale:
             return self.hold(Flags.STALE, t)
         c = Cycle(t_s=t, flags=int(Flags.RESTARTED) if restarted else 0)
@@ -230,33 +298,29 @@ class CycleLogic:
         if c.held:
             c.flags |= Flags.INPUT_HELD
         if len(c.inputs) < len(self.names):  # an input never seen good: no sample to give the model
-            out = self.hold(c.flags | Flags.NOT_READY, t)
-            out.inputs, out.held = c.inputs, c.held
-            return out
+            return self._held_from(c, Flags.NOT_READY)
         meas = readings.get("measuring")
         measuring = bool(meas is not None and meas.good and meas.value)
         self._step(c, t, measuring)
         return self._predict(c, t)
 
-    def _t(self, ts: float) -> float:
-        return ts - (self.t0_ts if self.t0_ts is not None else ts)
-
     def _step(self, c: Cycle, t: float, measuring: bool) -> None:
-        k = math.floor(t / self.period_s + 1e-6)
+        k = math.floor(t / self.period_s + 1e-3)  # 0.1 % of a period: timestamps carry float rounding
         if self.k_last is not None and k <= self.k_last:
             return
         if self.k_last is not None and (k - self.k_last) * self.period_s > TB_MAX_GAP_S:
             self.model.start()
             c.flags |= Flags.RESTARTED
+            self.fresh_ready = None  # a new model state: ramp from what the controller holds
         i = c.inputs
         temps = [i[f"{s}_C"] for s in self.model.temperatures]
-        rc = self.model.step(k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps, load_N=i.get("load_N", 0.0),
-                             measuring=measuring)  # fmt: skip
+        args = (k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps)
+        rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
         if rc == TB_E_SAMPLING:
             self.model.start()
             c.flags |= Flags.RESTARTED
-            rc = self.model.step(k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps, load_N=i.get("load_N", 0.0),
-                                 measuring=measuring)  # fmt: skip
+            self.fresh_ready = None
+            rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc
@@ -266,21 +330,17 @@ class CycleLogic:
         ready = self.model.ready_s
         if not ready > -1e299:  # the runtime says -1e300 (or NaN) before its first state
             return self._held_from(c, Flags.NOT_READY)
-        sign = -1.0 if self.s.convention == "compensation" else 1.0
-        rc, _, total, label = self.model.predict(ready, c.inputs["axis_mm"])
+        x = c.inputs["axis_mm"]
+        rc, _, total, label = self.model.predict(ready, x)
         if rc < 0:
             c.rc = rc
             return self._held_from(c, Flags.NOT_READY if rc in (-14, -13) else Flags.RUNTIME)
         c.predicted_um, c.label = total, label
-        dt = 0.0 if self.t_out is None else max(0.0, t - self.t_out)
+        # the rate limit acts on the change in time (at fixed positions), per cycle of machine time
+        # (at most one sample period per cycle: no step after an outage or a freeze)
+        dt = 0.0 if self.t_prev is None else min(max(0.0, t - self.t_prev), self.period_s)
         step = self.s.rate_limit_um_s * dt
-        if self.output in ("value", "both"):
-            want = sign * total
-            prev = 0.0 if self.value_um is None else self.value_um
-            got = prev + float(np.clip(want - prev, -step, step))
-            if abs(got - want) > 1e-12:
-                c.flags |= Flags.RATE_LIMITED
-            self.value_um = c.value_um = got
+        limited = False
         if self.output in ("line", "both"):
             a, b = self.s.line_travel_mm
             xs = np.linspace(a, b, self.s.line_points)
@@ -288,15 +348,29 @@ class CycleLogic:
             if np.any(rcs < 0):
                 c.rc = int(rcs[rcs < 0][0])
                 return self._held_from(c, Flags.RUNTIME)
-            want_line = fit_line(xs, sign * tot, self._ref())
+            want_line = fit_line(xs, self.sign * tot, self._ref())
             want = (float(want_line.at(a)), float(want_line.at(b)))
             prev = self.ends_um or (0.0, 0.0)
             got = tuple(p + float(np.clip(w - p, -step, step)) for p, w in zip(prev, want))
-            if max(abs(g - w) for g, w in zip(got, want)) > 1e-12:
-                c.flags |= Flags.RATE_LIMITED
+            limited = max(abs(g - w) for g, w in zip(got, want)) > 1e-12
             self.ends_um = got
             c.line = self._line_from_ends(got)
-        self.t_out = t
+        if self.output in ("value", "both"):
+            want = self.sign * total
+            base = None
+            if self.fresh_ready is not None:  # what the ramp would give here with the previous model state
+                rc_p, _, tot_p, _ = self.model.predict(self.fresh_ready, x)
+                base = self.sign * tot_p + self.lag_um if rc_p == 0 else None
+            if base is None:  # start-up, or after a hold: the value the controller holds
+                base = 0.0 if self.value_um is None else self.value_um
+            got = base + float(np.clip(want - base, -step, step))
+            limited = limited or abs(got - want) > 1e-12
+            self.lag_um = got - want
+            self.value_um = c.value_um = got
+        if limited:
+            c.flags |= Flags.RATE_LIMITED
+        self.fresh_ready = ready
+        self.t_prev = t
         return c
 
     def _held_from(self, c: Cycle, flag: Flags) -> Cycle:

@@ -12,6 +12,7 @@ address space of ``thermbench sim-cnc``, which can write this file for a model w
       load_N: null                      # only for models that read the axial load
       measuring: "ns=2;s=X.Measuring"   # optional: inside a measuring cycle (banks)
       done: "ns=2;s=Machine.ProgramDone"  # optional: the compensator stops when true
+      heartbeat: null                   # optional: a value that changes every machine cycle (stale if not)
       temperatures:                     # every sensor the model reads, by manifest name
         T_nut: "ns=2;s=X.T_nut_C"
     outputs:
@@ -78,6 +79,7 @@ class Inputs(_Strict):
     load_N: str | None = None
     measuring: str | None = None
     done: str | None = None
+    heartbeat: str | None = None
     temperatures: dict[str, str]
 
 
@@ -95,7 +97,7 @@ class Nodes(_Strict):
         """input name -> node id (temperatures as ``<sensor>_C``), in read order."""
         i = self.inputs
         out = {"axis_mm": i.axis_mm, "feed_mm_min": i.feed_mm_min}
-        for key in ("load_N", "measuring", "done"):
+        for key in ("load_N", "measuring", "done", "heartbeat"):
             if getattr(i, key):
                 out[key] = getattr(i, key)
         out.update({f"{s}_C": n for s, n in i.temperatures.items()})

@@ -3,7 +3,7 @@ compensation loop on one machine.
 
 The machine runs one run of a dataset's protocol:
 
-* ``dataset=<benchmark key>`` (default): the run is simulated by the ball-screw
+* ``benchmark=<benchmark dataset>`` (default ``seed001_vmc_x``): the run is simulated by the ball-screw
   simulator (seed 000 §3, :func:`thermbench.sim.scenario.simulate_dataset` with just
   that run: the same numbers as the benchmark dataset), so the thermal error is known at
   every position and time, not only at the interferometer readings;
@@ -14,7 +14,7 @@ Its clock runs at ``speed`` times real time (1 = real time). At each process-log
 the server publishes the axis position, feed, load, the measuring flag and every
 temperature sensor, each stamped with the machine time as source timestamp (start of
 the clock + sample time: the compensator reads machine time from it). By default the
-program starts when the compensator first writes (``start: on_compensator``), so the
+program starts when a client first reads the machine (``start: on_compensator``), so the
 compensator sees the whole run, as ``thermbench replay`` does.
 
 The compensation written to the server is applied to the simulated axis as a
@@ -38,6 +38,7 @@ import datetime as _dt
 import json
 import math
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -78,7 +79,7 @@ class Machine:
 
 
 def build_machine(cfg: Mapping[str, Any]) -> Machine:
-    """The run sim-cnc plays, from ``dataset`` (simulated) or ``data_dir`` (played back)."""
+    """The run sim-cnc plays, from ``benchmark`` (simulated) or ``data_dir`` (played back)."""
     from ..data.io import Dataset, load_dataset
     from ..data.reference import thermal_errors
     from ..config import with_defaults
@@ -97,9 +98,9 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
         from .. import datasets
         from ..sim.scenario import simulate_dataset
 
-        key = str(cfg.get("dataset") or "")
+        key = str(cfg.get("benchmark") or "")
         if key not in datasets.names():
-            raise SimCncError(f"config key 'dataset': {key!r} is not a benchmark dataset; known: {datasets.names()}")
+            raise SimCncError(f"config key 'benchmark': {key!r} is not a benchmark dataset; known: {datasets.names()}")
         ds, summary = simulate_dataset(datasets.benchmark_config(key), runs_only=[run])
         hist, geo = summary["histories"][run], summary["geometric"]
 
@@ -162,7 +163,7 @@ class _Users:
 
         from asyncua.crypto.permission_rules import User, UserRole
 
-        if username == self.user and password is not None and hmac.compare_digest(str(password), self.password):
+        if username == self.user and password is not None and hmac.compare_digest(str(password).encode(), self.password.encode()):
             return User(role=UserRole.User)
         return None
 
@@ -233,6 +234,7 @@ class SimCnc:
         self.server = None
         self.k = 0
         self.started = asyncio.Event()
+        self.first_read = asyncio.Event()
         self.finished = asyncio.Event()
         self.applied_readings = np.full(len(machine.readings), np.nan)
         self.applied_samples = np.full(len(machine.samples), np.nan)
@@ -242,6 +244,9 @@ class SimCnc:
         from asyncua import Server, ua
 
         sec = dict(self.cfg.get("security") or {})
+        if sec.get("user") and not sec.get("certificate"):
+            raise SimCncError("config key 'security.user': a password is never taken unencrypted; set security.certificate "
+                              "and security.private_key (thermbench certs DIR)")  # fmt: skip
         users = _Users(str(sec["user"]), _password(sec)) if sec.get("user") else None
         server = Server(user_manager=users)
         await server.init()
@@ -293,6 +298,13 @@ class SimCnc:
                      "slope": await var(ax, f"{a}.{COMP_SLOPE[0]}", math.nan, writable=True),
                      "ref": await var(ax, f"{a}.{COMP_REF[0]}", math.nan, writable=True),
                      "status": await var(ax, f"{a}.{COMP_STATUS}", -1, ua.VariantType.Int32, writable=True)}  # fmt: skip
+        from asyncua.common.callback import CallbackType
+
+        def on_read(event, dispatcher) -> None:
+            if event.is_external:
+                self.first_read.set()
+
+        server.subscribe_server_callback(CallbackType.PostRead, on_read)
         try:
             await server.start()
         except OSError as exc:
@@ -324,10 +336,6 @@ class SimCnc:
         if self.apply in ("value", "auto") and value_ok:
             return np.full(x.shape, float(value) / LENGTH_UNITS[COMP_VALUE[1]])
         return np.zeros(x.shape)
-
-    def _written(self) -> bool:
-        return any((v := self._read(k)) is not None and (k == "status" and v != -1 or k != "status" and math.isfinite(float(v)))
-                   for k in self.comp)  # fmt: skip
 
     async def _publish(self, k: int, base: _dt.datetime) -> None:
         from asyncua import ua
@@ -368,8 +376,7 @@ class SimCnc:
         base = _dt.datetime.now(_dt.timezone.utc)
         await self._publish(0, base)
         if self.start_mode == "on_compensator":
-            while not self._written():
-                await asyncio.sleep(0.001)
+            await self.first_read.wait()
         self.started.set()
         t = self.m.samples["t_s"].to_numpy()
         wall0 = loop.time()  # machine time t[k] is published at wall0 + (t[k] - t[0]) / speed, stamped base + t[k] - t[0]
@@ -426,6 +433,12 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     machine = machine or build_machine(cfg)
     sim = SimCnc(machine, cfg)
     cfg = sim.cfg
+    out = Path(str(cfg.get("out_dir") or f"sim_cnc/{machine.run}"))
+    try:  # a results directory that cannot be written fails now, not after the run
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=out.parent).close()
+    except OSError as exc:
+        raise SimCncError(f"config key 'out_dir': cannot write in {out.parent}: {exc.strerror or exc}") from None
     if cfg.get("write_nodes"):
         write_text_atomic(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False))
     await sim.start_server()
@@ -436,7 +449,6 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
         await asyncio.sleep(sim.linger_s)
     finally:
         await sim.stop_server()
-    out = Path(str(cfg.get("out_dir") or f"sim_cnc/{machine.run}"))
     sim.write_results(out)
     return {**sim.results()["figures"], "out_dir": str(out)}
 
