@@ -422,6 +422,7 @@ class Compensator:
                     if exc is None:
                         counts["reconnects"] += 1
                         self.logic.reconnected()
+                        self._resume_from_controller()  # a restarted controller may hold another value
                     else:
                         self.last_error = f"reconnecting: {type(exc).__name__}: {exc}"
                         next_try = begin + backoff
