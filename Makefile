@@ -2,6 +2,7 @@
 #   make demo   create .venv, install thermbench, run the main job (the robustness benchmark)
 #               and export its models for the embedded compensator (exports/, C runtime checked)
 #   make test   create/update .venv with dev extras, run the whole test suite
+#   make notebooks  run every notebook with full settings -> outputs/notebooks/*.ipynb (with outputs)
 #   make fuzz   libFuzzer on the C runtime's model-file loader (needs clang; FUZZ_SECONDS=300)
 # torch is pinned to the CPU build 2.13.0 through constraints.txt, so pip never
 # resolves a multi-GB CUDA build.
@@ -16,7 +17,7 @@ export PIP_DISABLE_PIP_VERSION_CHECK := 1
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: demo test install install-dev bench fuzz clean
+.PHONY: demo test install install-dev bench notebooks fuzz clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -39,13 +40,17 @@ demo: $(VENV)/.installed
 test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q
 
-bench: $(VENV)/.installed
+notebooks: $(VENV)/.installed-dev
+	$(BIN)/python -m thermbench.nbrun
+
+bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/bench_simulator.py
 	$(BIN)/python benchmarks/bench_identification.py
 	$(BIN)/python benchmarks/bench_diagnose.py --runtime
 	$(BIN)/python benchmarks/bench_export.py exports
 	$(BIN)/python benchmarks/bench_lssvm_reduced.py
 	$(BIN)/python benchmarks/bench_compensator.py
+	$(BIN)/python benchmarks/bench_notebooks.py
 
 # the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
 fuzz:

@@ -315,7 +315,15 @@ def test_export_job_and_replay_command(exported, ds, seed001_data_root, tmp_path
         run_export(bad)
 
     rep = tmp_path / "rep"
-    assert main(["replay", str(out), str(ds.path), "--run", "valid3", "--out", str(rep)]) == 0
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")  # as a notebook has its own backend: the replay's figures must leave it alone
+    try:
+        assert main(["replay", str(out), str(ds.path), "--run", "valid3", "--out", str(rep)]) == 0
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
     fig = json.loads((rep / "replay.json").read_text())
     te = thermal_errors(ds)
     te = te[te["run_id"] == "valid3"]
@@ -378,3 +386,28 @@ def test_a_log_off_the_sampling_grid_is_refused_not_mispredicted(exported, ds):
     q = readings_queries(ds, "valid2").assign(t_s=lambda d: d["t_s"] * 1.0009)
     with pytest.raises(runtime.RuntimeFailed, match="error -12"):
         replay_dir(exported["gru"][1], ds, "valid2", q, samples=drift)
+
+
+def test_a_family_of_its_own_is_asked_for_its_encoding_first():
+    """encode() asks a class with export_encoding before the built-in chain, and checks the answer
+    (the positive path, with parity in the C runtime, is docs/extending.md's worked example)."""
+    from thermbench.export import ExportError, encode
+    from thermbench.export.encoding import Encoded
+    from thermbench.export.fileformat import Kind
+
+    class Own:
+        train_runs_ = ["a"]
+
+        def __init__(self, answer):
+            self.answer = answer
+
+        def export_encoding(self, channels, period_s, where):
+            self.asked = (channels, period_s, where)
+            return self.answer
+
+    with pytest.raises(ExportError, match=r"m1: Own.export_encoding returned str, not Encoded"):
+        encode(Own("nope"), where="m1")
+    enc = Encoded(Kind.MLR_CURVE, [1, 1], [1.0] * 8, ["T_nut"])
+    own = Own(enc)
+    assert encode(own, {"T_nut": 0}, 2.0, "m2") is enc
+    assert own.asked == ({"T_nut": 0}, 2.0, "m2")

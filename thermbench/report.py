@@ -181,7 +181,7 @@ def train_test_matrix(results: pd.DataFrame, dataset: str, family: str, metric: 
     """Single-state models of one family on one dataset: rows = training state,
     columns = test state (modelling states only, ``approach == "single"``,
     ``kind == "state"``), values = ``metric``. The diagonal is each model on its
-    own state; the off-diagonal cells are the unseen states (seed 001 §5.1, M1..M5).
+    own state; the off-diagonal cells are the unseen states (seed 001 §5.1 does this for M1 and M5).
     States keep the order in which they appear in ``results``."""
     r = _check_results(results, extra=(metric,))
     sel = r[

@@ -439,10 +439,10 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
         tempfile.TemporaryFile(dir=out.parent).close()
     except OSError as exc:
         raise SimCncError(f"config key 'out_dir': cannot write in {out.parent}: {exc.strerror or exc}") from None
-    if cfg.get("write_nodes"):
-        write_text_atomic(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False))
     await sim.start_server()
     try:
+        if cfg.get("write_nodes"):  # written once the server listens: the file appearing means "connect now"
+            write_text_atomic(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False))
         if ready is not None:
             ready.set()
         await sim.run_clock()

@@ -27,7 +27,7 @@ def _maps(fig, table: pd.DataFrame, title: str, vmax: float) -> None:
     axes[0].set_ylabel("target (mm)")
     fig.suptitle(title, fontsize=10)
     if sc is not None:
-        fig.colorbar(sc, ax=list(axes), label="held-out residual (um)")
+        fig.colorbar(sc, ax=list(axes), label="held-out residual (µm)")
 
 
 def residual_maps(table: pd.DataFrame, title: str, path: Path, vmax: float) -> Path:
@@ -46,7 +46,7 @@ def candidates_figure(scan: dict, floor_um: float, threshold_x: float, path: Pat
     colours = ["tab:green" if x["significant"] else "tab:grey" for x in c]
     ax.barh(names, vals, color=colours)
     ax.axvline(threshold_x * floor_um, color="k", ls="--", lw=1, label=f"{threshold_x:g} x noise floor")
-    ax.set_xlabel("held-out error explained (um)")
+    ax.set_xlabel("held-out error explained (µm)")
     ax.invert_yaxis()
     ax.legend(fontsize=8)
     ax.set_title(f"candidates on core{''.join(' + ' + e for e in scan['effects'])}", fontsize=10)
@@ -66,7 +66,7 @@ def heldout_figure(d: dict, path: Path) -> Path:
     ax.plot(range(len(vals)), vals, "o-")
     ax.axhline(d["noise_floor_um"], color="k", ls="--", lw=1, label="noise floor")
     ax.set_xticks(range(len(vals)), labels, rotation=15, fontsize=8)
-    ax.set_ylabel("held-out RMSE (um)")
+    ax.set_ylabel("held-out RMSE (µm)")
     ax.set_ylim(bottom=0)
     ax.legend(fontsize=8)
     return _save(fig, path)

@@ -9,11 +9,12 @@
 """
 
 from .bundle import ExportOptions, export_model, read_manifest, replay_dir
-from .encoding import ExportError, encode, encode_classifier
+from .encoding import ExportError, encode, encode_classifier, encode_mlr_curve
 from .fileformat import Kind, ModelFileError, pack, unpack
 from .runtime import RuntimeFailed, RuntimeUnavailable
 
 __all__ = [
+    "encode_mlr_curve",
     "ExportError", "ExportOptions", "Kind", "ModelFileError", "RuntimeFailed", "RuntimeUnavailable", "encode",
     "encode_classifier", "export_model", "pack", "read_manifest", "replay_dir", "unpack",
 ]  # fmt: skip

@@ -155,8 +155,11 @@ def _channels_for(sensors: Sequence[str], channels: dict[str, int] | None) -> di
 
 
 # ------------------------------------------------------------------ kinds ---
-def _encode_mlr_curve(m, channels, where) -> Encoded:
-    """seed 002 eq. 6-11 / seed 004. Body: origin, coef[(D+1) x (1+S)] (row i: k_i0, k_i1..)."""
+def encode_mlr_curve(m, channels=None, where: str = "model") -> Encoded:
+    """The ``MLR_CURVE`` kind: seed 002 eq. 6-11 / seed 004. Body: origin, coef[(D+1) x (1+S)]
+    (row i: k_i0, k_i1..). Any fitted model with ``sensors_``, ``preprocess``, ``geometric_``,
+    ``origin_``, ``shape_degree_`` and ``curve_coef_`` of that form can use it from its
+    ``export_encoding`` (docs/extending.md)."""
     S, D = len(m.sensors_), int(m.shape_degree_)
     ch = _channels_for(m.sensors_, channels)
     payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
@@ -340,7 +343,10 @@ def encode_classifier(bank, period_s: float, where: str = "classifier") -> Encod
 
 def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, period_s: float = 1.0,
            where: str = "model", lssvm_reduced: dict | None = None) -> Encoded:  # fmt: skip
-    """The file content of one fitted model of any family but the bank (see :func:`thermbench.export.bundle`)."""
+    """The file content of one fitted model of any family but the bank (see :func:`thermbench.export.bundle`).
+
+    A family of its own exports when its class defines ``export_encoding(channels, period_s,
+    where) -> Encoded`` for a kind the C runtime evaluates, e.g. with :func:`encode_mlr_curve`."""
     from ..models.autoregressive import AutoRegressiveSeed003
     from ..models.lssvm import PSOLSSVM
     from ..models.mlr import MLRSeed001, _CurveRegression
@@ -350,8 +356,12 @@ def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, per
     if not hasattr(model, "train_runs_"):
         raise ExportError(f"{where}: the model is not fitted")
     try:
-        if isinstance(model, _CurveRegression):
-            enc = _encode_mlr_curve(model, channels, where)
+        if callable(getattr(type(model), "export_encoding", None)):  # a family outside this chain
+            enc = model.export_encoding(channels, period_s, where)
+            if not isinstance(enc, Encoded):
+                raise ExportError(f"{where}: {type(model).__name__}.export_encoding returned {type(enc).__name__}, not Encoded")
+        elif isinstance(model, _CurveRegression):
+            enc = encode_mlr_curve(model, channels, where)
         elif isinstance(model, MLRSeed001):
             enc = _encode_mlr001(model, channels, where)
         elif isinstance(model, PSOLSSVM):

@@ -91,11 +91,11 @@ def compensation_figures(readings: pd.DataFrame) -> dict:
 
 
 def write_replay(result: dict, out_dir: Path) -> Path:
-    """Write the replay's files and figures to ``out_dir`` (replaced as a whole)."""
-    import matplotlib
+    """Write the replay's files and figures to ``out_dir`` (replaced as a whole).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    The figures are bare matplotlib ``Figure`` objects (no pyplot), so the caller's backend,
+    e.g. a notebook's inline one, is left alone."""
+    from matplotlib.figure import Figure
 
     f = result["figures"]
     with atomic_dir(out_dir) as tmp:
@@ -103,7 +103,8 @@ def write_replay(result: dict, out_dir: Path) -> Path:
         result["readings"].to_csv(tmp / "readings.csv", index=False)
         result["compensation"].to_csv(tmp / "compensation.csv", index=False)
         rd = result["readings"]
-        fig, ax = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        fig = Figure(figsize=(11, 4))
+        ax = fig.subplots(1, 2, sharey=True)
         for a, col, title in ((ax[0], "thermal_um", "without compensation"), (ax[1], "residual_um", "with compensation (C runtime)")):
             sc = a.scatter(rd["t_s"] / 3600.0, rd[col], c=rd["target_mm"], s=6, cmap="viridis")
             a.set_title(title)
@@ -113,9 +114,9 @@ def write_replay(result: dict, out_dir: Path) -> Path:
         fig.colorbar(sc, ax=ax, label="target, mm")
         fig.suptitle(f"{f['model']} on {f['run']}: max |error| {f['before_max_abs_um']:.1f} → {f['after_max_abs_um']:.1f} µm")
         fig.savefig(tmp / "errors_before_after.png", dpi=110)
-        plt.close(fig)
         cy = result["cycles"]
-        fig, ax = plt.subplots(figsize=(8, 4))
+        fig = Figure(figsize=(8, 4))
+        ax = fig.subplots()
         ax.plot(cy["t_s"] / 3600.0, cy["before_um"], "o-", label="before (max |thermal error|)")
         ax.plot(cy["t_s"] / 3600.0, cy["after_um"], "s-", label="after (max |residual|)")
         comp = result["compensation"]
@@ -131,7 +132,6 @@ def write_replay(result: dict, out_dir: Path) -> Path:
         ax.legend(loc="upper left")
         fig.tight_layout()
         fig.savefig(tmp / "cycles_before_after.png", dpi=110)
-        plt.close(fig)
     return Path(out_dir)
 
 

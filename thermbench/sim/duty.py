@@ -42,14 +42,13 @@ class Phase:
 
 @dataclass(frozen=True)
 class Measuring:
-    """Interferometer measuring-cycle settings."""
+    """Interferometer measuring-cycle settings (one reading per target, taken at mid-dwell)."""
 
     targets_mm: tuple[float, ...]
     every_s: float = 600.0
     dwell_s: float = 4.0
     feed_mm_min: float = 800.0
     reference_repeats: int = 1
-    sample_s: float = 2.0  # the interferometer averages this long at mid-dwell
 
     def __post_init__(self) -> None:
         if len(self.targets_mm) < 2:

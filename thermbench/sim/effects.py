@@ -1,14 +1,21 @@
 """Composable physical effects on top of the core seed 000 ball-screw model.
 
 Each effect is a small class with named, unit-carrying parameters and one job.
-They hook into the model at four points; every hook defaults to "no change",
-so an effect that is not in the model contributes exactly zero:
+They hook into the model through five methods; every hook defaults to "no
+change", so an effect that is not in the model contributes exactly zero:
 
 * ``nut_heat_W(drive)``: extra nut friction power added to QN;
 * ``sources(geom, drive)``: extra heat sources, each (node weights, power per fine sample);
-* ``ambient_C(t_s, measured)``: lets the screw exchange heat with a varying ambient;
-* ``adjust_elongation_um(u, geom)`` and ``offset_um(history)``: change the
-  displacement read off the temperature field.
+* ``ambient_C(t_s, measured_C, ta0_C)``: the varying ambient the screw exchanges
+  heat with; :meth:`ScrewThermalModel.run` calls it only on the effect with id
+  ``ambient_drift``, so it is not a general hook;
+* ``adjust_elongation_um(u, geom)``: changes the growth read off the temperature field;
+* ``offset_um(history)``: adds a position-independent offset.
+
+``heat_gains`` names an effect's heat-input gains: the error is affine in them,
+and the identified physics model solves them by linear least squares. Other
+parameters may be affine too (``origin_drift.beta_um_per_K``) without being
+heat gains; those are searched by SLSQP when named in ``identify``.
 
 The canonical ids (used by configs, the discrepancy workflow and export) are the
 keys of :data:`EFFECTS`.
@@ -146,7 +153,7 @@ class MotorHeat(Effect):
 class OriginDrift(Effect):
     """The fixed-bearing housing grows and shifts the screw's fixed point: a
     position-independent offset beta (T_fixed_bearing_housing(t) - T0)
-    (the intercept term of seed 002 eq. 6, 10)."""
+    (the intercept term of seed 002 eq. 6, regressed in eq. 9)."""
 
     id: ClassVar[str] = "origin_drift"
     description: ClassVar[str] = "fixed-point shift beta*(T_fixed_bearing_housing - T0), position-independent"
