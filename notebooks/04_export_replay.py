@@ -50,7 +50,7 @@ from thermbench.export import export_model, read_manifest
 from thermbench.export.bundle import process_samples
 from thermbench.export.fileformat import read as read_model_file
 from thermbench.export.native import LiveModel
-from thermbench.export.replay import format_replay, replay_run
+from thermbench.export.replay import draw_errors, format_replay, replay_run
 from thermbench.models.bank import ConditionBank
 from thermbench.models.mlr import MLRSeed002
 
@@ -184,17 +184,8 @@ plt.show()
 # what the axis would show with this compensation applied (`thermbench.metrics`).
 
 # %%
-fig, ax = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-panels = (("thermal_um", "without compensation"), ("residual_um", "with the C runtime's compensation"))
-for a, (col, title) in zip(ax, panels):
-    sc = a.scatter(rd["t_s"] / 3600.0, rd[col], c=rd["target_mm"], s=8, cmap="viridis")
-    a.set_title(title)
-    a.set_xlabel("time, h")
-    a.grid(alpha=0.3)
-ax[0].set_ylabel("error at the measuring points, µm")
-fig.colorbar(sc, ax=ax, label="target, mm")
-f = rep["figures"]
-fig.suptitle(f"{REPLAY_RUN}: max |error| {f['before_max_abs_um']:.1f} µm → {f['after_max_abs_um']:.1f} µm")
+fig = plt.figure(figsize=(11, 4))
+draw_errors(fig, rep)  # the figure `thermbench replay` writes (errors_before_after.png)
 plt.show()
 
 # %% [markdown]

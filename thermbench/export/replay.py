@@ -90,6 +90,21 @@ def compensation_figures(readings: pd.DataFrame) -> dict:
     }  # fmt: skip
 
 
+def draw_errors(fig, result: dict) -> None:
+    """Draw the replay's readings into ``fig`` (a matplotlib Figure): the thermal error without
+    compensation and the residual with the C runtime's compensation, coloured by target."""
+    f, rd = result["figures"], result["readings"]
+    ax = fig.subplots(1, 2, sharey=True)
+    for a, col, title in ((ax[0], "thermal_um", "without compensation"), (ax[1], "residual_um", "with compensation (C runtime)")):
+        sc = a.scatter(rd["t_s"] / 3600.0, rd[col], c=rd["target_mm"], s=6, cmap="viridis")
+        a.set_title(title)
+        a.set_xlabel("time, h")
+        a.grid(alpha=0.3)
+    ax[0].set_ylabel("error at the measuring points, µm")
+    fig.colorbar(sc, ax=ax, label="target, mm")
+    fig.suptitle(f"{f['model']} on {f['run']}: max |error| {f['before_max_abs_um']:.1f} → {f['after_max_abs_um']:.1f} µm")
+
+
 def write_replay(result: dict, out_dir: Path) -> Path:
     """Write the replay's files and figures to ``out_dir`` (replaced as a whole).
 
@@ -102,17 +117,8 @@ def write_replay(result: dict, out_dir: Path) -> Path:
         (tmp / "replay.json").write_text(json.dumps(f, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         result["readings"].to_csv(tmp / "readings.csv", index=False)
         result["compensation"].to_csv(tmp / "compensation.csv", index=False)
-        rd = result["readings"]
         fig = Figure(figsize=(11, 4))
-        ax = fig.subplots(1, 2, sharey=True)
-        for a, col, title in ((ax[0], "thermal_um", "without compensation"), (ax[1], "residual_um", "with compensation (C runtime)")):
-            sc = a.scatter(rd["t_s"] / 3600.0, rd[col], c=rd["target_mm"], s=6, cmap="viridis")
-            a.set_title(title)
-            a.set_xlabel("time, h")
-            a.grid(alpha=0.3)
-        ax[0].set_ylabel("error at the measuring points, µm")
-        fig.colorbar(sc, ax=ax, label="target, mm")
-        fig.suptitle(f"{f['model']} on {f['run']}: max |error| {f['before_max_abs_um']:.1f} → {f['after_max_abs_um']:.1f} µm")
+        draw_errors(fig, result)
         fig.savefig(tmp / "errors_before_after.png", dpi=110)
         cy = result["cycles"]
         fig = Figure(figsize=(8, 4))
