@@ -38,8 +38,9 @@ def main(argv=None) -> int:
             params = {"OUT_DIR": str(Path(tmp) / p.stem), "DATA_ROOT": str(root)}
             if not a.full:
                 params["QUICK"] = True
-            nb, _ = nbrun.run_notebook(p, params)  # warm-up
-            times = [nbrun.run_notebook(p, params)[1] for _ in range(a.repeat)]
+            timeout_s = None if a.full else 120.0
+            nb, _ = nbrun.run_notebook(p, params, timeout_s)  # warm-up
+            times = [nbrun.run_notebook(p, params, timeout_s)[1] for _ in range(a.repeat)]
             med = statistics.median(times)
             flag = "" if med < BUDGET_S else "  OVER BUDGET"
             print(f"{p.stem:<28} {med:9.1f} {min(times):7.1f} {max(times):7.1f} {nbrun.images(nb):7d}{flag}", flush=True)

@@ -30,7 +30,7 @@
 # %% tags=["parameters"]
 QUICK = False  # True: small settings (fewer training states, fewer optimiser iterations)
 OUT_DIR = "../outputs/notebooks/01"
-DATA_ROOT = "../data/benchmark"
+DATA_ROOT = "../data/benchmark"  # not used here: this notebook simulates its own dataset into OUT_DIR
 SEED = 0
 
 # %%

@@ -36,6 +36,7 @@ def test_notebook_runs_with_small_settings_and_shows_its_plots(path: Path, tmp_p
     # the kernel inherits the environment: no MLflow store or dataset may land in the repository
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))
+    monkeypatch.setenv("MPLBACKEND", "Agg")  # as many CI machines set it: the figures must still show
     nb, _ = nbrun.run_notebook(
         path, {"QUICK": True, "OUT_DIR": str(tmp_path / "out"), "DATA_ROOT": str(seed001_data_root)}, cell_timeout_s=60
     )
@@ -54,3 +55,19 @@ def test_parameters_must_exist_in_the_parameters_cell(tmp_path):
     p.write_text("# %%\nprint(1)\n")
     with pytest.raises(nbrun.NotebookError, match="tagged 'parameters'"):
         nbrun.with_parameters(nbrun.read_notebook(p), {}, p.name)
+
+
+def test_run_all_keeps_going_after_a_failing_notebook_and_saves_what_ran(tmp_path, capsys):
+    head = '# %% tags=["parameters"]\nQUICK = False\n\n'
+    (tmp_path / "nb").mkdir()
+    (tmp_path / "nb" / "01_bad.py").write_text(head + "# %%\nprint('ran', QUICK)\n\n# %%\nraise ValueError('boom')\n")
+    (tmp_path / "nb" / "02_good.py").write_text(head + "# %%\nprint('fine', QUICK)\n")
+    rc = nbrun.main(["--notebooks", str(tmp_path / "nb"), "--out", str(tmp_path / "out"), "--quick"])
+    assert rc == 1
+    assert "01_bad.py: FAILED (CellExecutionError" in capsys.readouterr().out
+    bad = nbrun.nbformat_read(tmp_path / "out" / "01_bad.ipynb")
+    printed = [o.get("text", "") for c in bad.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert "ran True\n" in printed  # the cells before the failure kept their outputs, with QUICK injected
+    assert any(o.get("ename") == "ValueError" for c in bad.cells for o in c.get("outputs", []))
+    good = nbrun.nbformat_read(tmp_path / "out" / "02_good.ipynb")
+    assert any("fine True" in o.get("text", "") for c in good.cells for o in c.get("outputs", []))

@@ -14,6 +14,7 @@ Needs the ``dev`` (or ``notebooks``) extras: jupytext, nbclient, ipykernel.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -76,25 +77,38 @@ def with_parameters(nb, params: Mapping[str, object], name: str = "notebook"):
     return nb
 
 
-def run_notebook(path: str | Path, params: Mapping[str, object] | None = None, cell_timeout_s: float = 120.0):
+INLINE_BACKEND = "module://matplotlib_inline.backend_inline"
+
+
+def run_notebook(path: str | Path, params: Mapping[str, object] | None = None, cell_timeout_s: float | None = 120.0,
+                 nb=None):  # fmt: skip
     """Execute the notebook at ``path`` (working directory: its folder) with ``params``.
 
-    Returns ``(executed notebook, elapsed_s)``; a failing cell raises nbclient's
-    ``CellExecutionError`` with the cell's traceback.
+    ``cell_timeout_s`` None: no limit per cell. The kernel draws inline whatever ``MPLBACKEND``
+    the caller has set (ipykernel keeps a backend it finds there, and the figures would be lost).
+    ``nb``: execute this already-read notebook instead (it is filled in place, so a caller keeps
+    the cells that ran when one fails). Returns ``(executed notebook, elapsed_s)``; a failing
+    cell raises nbclient's ``CellExecutionError`` with the cell's traceback.
     """
     _, _, NotebookClient = _libs()
     path = Path(path)
-    nb = with_parameters(read_notebook(path), dict(params or {}), path.name)
-    client = NotebookClient(nb, timeout=int(cell_timeout_s), kernel_name="python3",
-                            resources={"metadata": {"path": str(path.parent)}})
+    nb = with_parameters(nb if nb is not None else read_notebook(path), dict(params or {}), path.name)
+    client = NotebookClient(nb, timeout=None if cell_timeout_s is None else int(cell_timeout_s), kernel_name="python3",
+                            resources={"metadata": {"path": str(path.parent)}})  # fmt: skip
     t0 = time.perf_counter()
-    client.execute()
+    client.execute(env={**os.environ, "MPLBACKEND": INLINE_BACKEND})
     return nb, time.perf_counter() - t0
 
 
 def images(nb) -> int:
     """How many PNG figures the executed notebook shows."""
     return sum("image/png" in out.get("data", {}) for c in nb.cells if c.cell_type == "code" for out in c.get("outputs", []))
+
+
+def nbformat_read(path: str | Path):
+    """An executed ``.ipynb`` (as :func:`save_executed` writes it)."""
+    _, nbformat, _ = _libs()
+    return nbformat.read(str(path), as_version=4)
 
 
 def save_executed(nb, out: Path) -> Path:
@@ -108,20 +122,35 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m thermbench.nbrun", description=__doc__.split("\n\n")[0])
     ap.add_argument("names", nargs="*", help="notebook numbers or names (default: all)")
     ap.add_argument("--quick", action="store_true", help="small settings (QUICK=True), as the test suite runs them")
-    ap.add_argument("--out", default="outputs/notebooks", help="where the executed .ipynb go (default: %(default)s)")
+    ap.add_argument("--out", default=None, help="where the executed .ipynb go (default: outputs/notebooks/ beside notebooks/)")
+    ap.add_argument("--timeout", type=float, default=None, help="seconds per cell (default: none)")
+    ap.add_argument("--notebooks", default=None, help="the folder of NN_*.py notebooks (default: the source tree's notebooks/)")
     a = ap.parse_args(argv)
-    paths = notebook_paths()
-    if a.names:
-        paths = [p for p in paths if any(p.stem.startswith(n) or p.stem == n for n in a.names)]
-        if not paths:
-            print(f"no notebook matches {a.names}; have {[p.stem for p in notebook_paths()]}", file=sys.stderr)
-            return 2
-    out = Path(a.out).resolve()
+    folder = Path(a.notebooks) if a.notebooks else notebooks_dir()
+    every = notebook_paths(folder)
+    if not every:
+        print(f"no NN_*.py notebooks in {folder} (thermbench.nbrun needs the source tree: pip install -e .)", file=sys.stderr)
+        return 2
+    wanted = [n.removesuffix(".py") for n in a.names]
+    paths = [p for p in every if not wanted or any(p.stem.startswith(n) for n in wanted)]
+    if not paths:
+        print(f"no notebook matches {a.names}; have {[p.stem for p in every]}", file=sys.stderr)
+        return 2
+    out = Path(a.out).resolve() if a.out else folder.resolve().parent / "outputs" / "notebooks"
+    failed = []
     for p in paths:
-        params = {"QUICK": True} if a.quick else {}
-        nb, dt = run_notebook(p, params)
+        nb = read_notebook(p)
+        try:
+            _, dt = run_notebook(p, {"QUICK": True} if a.quick else {}, a.timeout, nb=nb)
+            status = f"{dt:6.1f} s"
+        except Exception as exc:  # a failing cell (or a timeout): keep what ran, go on with the others
+            failed.append(p.name)
+            status = f"FAILED ({type(exc).__name__}: {str(exc).strip().splitlines()[-1][:200] if str(exc).strip() else ''})"
         saved = save_executed(nb, out / f"{p.stem}.ipynb")
-        print(f"{p.name}: {dt:6.1f} s, {images(nb)} figures -> {saved}")
+        print(f"{p.name}: {status}, {images(nb)} figures -> {saved}", flush=True)
+    if failed:
+        print(f"failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
     return 0
 
 
