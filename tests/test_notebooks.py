@@ -65,9 +65,9 @@ def test_run_all_keeps_going_after_a_failing_notebook_and_saves_what_ran(tmp_pat
     rc = nbrun.main(["--notebooks", str(tmp_path / "nb"), "--out", str(tmp_path / "out"), "--quick"])
     assert rc == 1
     assert "01_bad.py: FAILED (CellExecutionError" in capsys.readouterr().out
-    bad = nbrun.nbformat_read(tmp_path / "out" / "01_bad.ipynb")
+    bad = nbrun.read_notebook(tmp_path / "out" / "01_bad.ipynb")
     printed = [o.get("text", "") for c in bad.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert "ran True\n" in printed  # the cells before the failure kept their outputs, with QUICK injected
     assert any(o.get("ename") == "ValueError" for c in bad.cells for o in c.get("outputs", []))
-    good = nbrun.nbformat_read(tmp_path / "out" / "02_good.ipynb")
+    good = nbrun.read_notebook(tmp_path / "out" / "02_good.ipynb")
     assert any("fine True" in o.get("text", "") for c in good.cells for o in c.get("outputs", []))

@@ -50,7 +50,8 @@ def _libs():
 
 
 def read_notebook(path: str | Path):
-    """The notebook of a jupytext ``.py`` (or ``.ipynb``) file, as an nbformat v4 node."""
+    """The notebook of a jupytext ``.py`` file, or of an executed ``.ipynb`` with its outputs, as an
+    nbformat v4 node."""
     jupytext, _, _ = _libs()
     return jupytext.read(Path(path))
 
@@ -103,12 +104,6 @@ def run_notebook(path: str | Path, params: Mapping[str, object] | None = None, c
 def images(nb) -> int:
     """How many PNG figures the executed notebook shows."""
     return sum("image/png" in out.get("data", {}) for c in nb.cells if c.cell_type == "code" for out in c.get("outputs", []))
-
-
-def nbformat_read(path: str | Path):
-    """An executed ``.ipynb`` (as :func:`save_executed` writes it)."""
-    _, nbformat, _ = _libs()
-    return nbformat.read(str(path), as_version=4)
 
 
 def save_executed(nb, out: Path) -> Path:
