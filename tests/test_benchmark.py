@@ -3,13 +3,16 @@ global and bank models, the chosen model, report/MLflow/export outputs, resume f
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
 from thermbench import benchmark as bm
-from thermbench.config import load_config
+from thermbench.config import ConfigError, load_config
+from thermbench.outputs import RECORD, OutputRefused
 from thermbench.experiment import fit_evaluate, group_option, load_split, model_from_config
 
 STATES = ["state1", "state2", "state3", "state4", "state5"]
@@ -99,7 +102,10 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
 
     from thermbench import tracking
 
+    planted = tmp_path / "lab notes.txt"  # a user's file beside the output directories
+    planted.write_text("calibration of sensor T3 drifted on day 2\n")
     res = bm.benchmark(_cfg(tmp_path))
+    assert planted.read_text() == "calibration of sensor T3 drifted on day 2\n"
     out = capsys.readouterr().out
     assert "mlr_seed001" in out and "report:" in out
     report = (tmp_path / "reports" / "report.md").read_text()
@@ -137,6 +143,24 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert again.mlflow_run_id != res.mlflow_run_id
     assert (tmp_path / "reports" / "report.md").exists()
     assert again.metrics == pytest.approx(res.metrics)
+    # a user's file inside the report directory: the next benchmark refuses before any work
+    (tmp_path / "reports" / "my_review.md").write_text("fig 3 is wrong\n")
+    with pytest.raises(OutputRefused, match=r"reports: holds 1 file\(s\) thermbench did not write there"):
+        bm.benchmark(_cfg(tmp_path))
+    assert (tmp_path / "reports" / "my_review.md").read_text() == "fig 3 is wrong\n"
+
+
+def test_each_benchmark_setting_gets_its_own_output_set():
+    """The shipped settings write reports/benchmark and models/benchmark; other settings (not
+    mere run options) get a name of their own, so they never replace the demo's outputs."""
+    stock = load_config("benchmark")
+    assert bm.output_dirs(stock) == (Path("reports/benchmark"), Path("models/benchmark"))
+    assert bm.output_name(load_config("benchmark", ["n_jobs=1", "progress=false", "seed=0"])) == "benchmark"
+    other = bm.output_name(load_config("benchmark", ["seed=1"]))
+    assert other.startswith("benchmark-") and other != bm.output_name(load_config("benchmark", ["seed=2"]))
+    assert bm.output_dirs(load_config("benchmark", ["name=mine"])) == (Path("reports/mine"), Path("models/mine"))
+    with pytest.raises(ConfigError, match="config key 'name'"):
+        bm.output_name(load_config("benchmark", ["name='../x'"]))
 
 
 def test_save_models_replaces_the_directory(tmp_path, data_env):
@@ -148,7 +172,7 @@ def test_save_models_replaces_the_directory(tmp_path, data_env):
     b = model_from_config("mlr_seed001").fit(ds, ["state2"])
     save_models({"old": a}, tmp_path / "m")
     save_models({"new": b, "other": a}, tmp_path / "m", chosen=["new"])
-    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == ["manifest.yaml", "new.joblib", "other.joblib"]
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [RECORD, "manifest.yaml", "new.joblib", "other.joblib"]
     manifest = yaml.safe_load((tmp_path / "m" / "manifest.yaml").read_text())
     assert manifest["new"]["chosen"] and not manifest["other"]["chosen"]
     assert manifest["new"]["train_runs"] == ["state2"]

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+
+from thermbench.outputs import RECORD
 from matplotlib.figure import Figure
 
 from thermbench import report
@@ -307,7 +309,7 @@ def test_write_report_layout_values_and_figures(results, tmp_path):
     for p in on_disk:
         data = p.read_bytes()
         assert data[:8] == PNG_MAGIC and len(data) > 5000, p
-    assert not [p for p in (tmp_path / "out").rglob(".*")]  # no temporary leftovers
+    assert [p.name for p in (tmp_path / "out").rglob(".*")] == [RECORD]  # no temporary leftovers
 
 
 def test_report_without_curves_says_so(results, tmp_path):
@@ -336,13 +338,13 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
         write_report(results.assign(compensation_rate=0.0), _curves(), out, meta={"command": "second"})
     assert (out / "report.md").read_bytes() == before_text
     assert {p.name: p.read_bytes() for p in figure_paths(out)} == before_figs
-    assert sorted(p.name for p in out.iterdir()) == ["figures", "report.md"]
+    assert sorted(p.name for p in out.iterdir()) == [RECORD, "figures", "report.md"]
 
     fresh = tmp_path / "fresh"
     with pytest.raises(RuntimeError, match="injected"):
         write_report(results, _curves(), fresh)
-    assert not (fresh / "report.md").exists() and not (fresh / "figures").exists()
-    assert list(fresh.iterdir()) == []
+    assert not fresh.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging left behind
 
 
 def test_failed_text_write_leaves_previous_report_intact(results, tmp_path, monkeypatch):
@@ -361,4 +363,4 @@ def test_failed_text_write_leaves_previous_report_intact(results, tmp_path, monk
         write_report(results, None, tmp_path, meta={"command": "second"})
     monkeypatch.undo()
     assert (tmp_path / "report.md").read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["figures", "report.md"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [RECORD, "figures", "report.md"]

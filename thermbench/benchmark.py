@@ -18,6 +18,7 @@ unseen cycles. Tasks run in parallel (joblib), each cached on disk by its argume
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -40,6 +41,7 @@ from .experiment import (
     headline_metrics,
     hydra_runtime,
     load_split,
+    model_flags,
     plain,
     save_models,
 )
@@ -176,12 +178,28 @@ def tasks(cfg: DictConfig) -> list[dict]:
     return out
 
 
+def flagged(results: pd.DataFrame) -> dict[tuple[str, str, str, str], list[str]]:
+    """(dataset, family, approach, train) -> what disqualifies that fitted model
+    (:func:`thermbench.experiment.model_flags`); models with no flag are left out."""
+    out = {}
+    by = [c for c in ("dataset", "family", "approach", "train") if c in results]
+    for key, g in results.groupby(by, sort=False):
+        flags = model_flags(g)
+        if flags:
+            out[tuple(str(k) for k in key) + ("",) * (4 - len(by))] = flags
+    return out
+
+
 def choose(results: pd.DataFrame) -> pd.DataFrame:
     """Per dataset, the (family, approach) to deploy: the best worst-case compensation rate on
     the validation runs (ties: the smaller max residual). Single-state models are not
-    candidates: which state would you train on? Note that the choice is made on the same
-    validation runs the headline reports, so the chosen model's figures are not an
-    independent estimate (the report says so)."""
+    candidates: which state would you train on? Nor is a model with a non-finite score on any
+    run, or one that makes the error worse than no compensation on its own training runs
+    (:func:`flagged`). Note that the choice is made on the same validation runs the headline
+    reports, so the chosen model's figures are not an independent estimate (the report says so)."""
+    bad = {k[:3] for k in flagged(results)}
+    keep = [(d, f, a) not in bad for d, f, a in zip(results["dataset"], results["family"], results["approach"])]
+    results = results[keep]
     v = results[(results["kind"] == "validation") & (results["approach"] != "single")]
     if v.empty:
         return pd.DataFrame(columns=["dataset", "family", "approach"])
@@ -206,6 +224,39 @@ def _overrides() -> list[str]:
     return list(hc.overrides.task) if hc is not None else []
 
 
+#: the keys that do not change what a benchmark computes (left out of its name)
+_NOT_SETTINGS = (*tracking.NON_RESULT_KEYS, "name", "force")
+
+
+def output_name(cfg: DictConfig | Mapping) -> str:
+    """The name of a benchmark's output set: ``cfg.name`` when given, else ``benchmark`` for
+    the settings of ``conf/benchmark.yaml`` as shipped and ``benchmark-<hash>`` of the settings
+    for any other (so a benchmark with other settings never replaces the demo's outputs)."""
+    from .config import ConfigError, load_config
+
+    if cfg.get("name"):
+        name = str(cfg.get("name"))
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
+            raise ConfigError(f"config key 'name': {name!r} is not a usable directory name "
+                              "(letters, digits, '_', '.', '-'; at most 64)")  # fmt: skip
+        return name
+
+    def settings(c) -> str:
+        return tracking.config_hash({k: v for k, v in plain(c).items() if k not in _NOT_SETTINGS})
+
+    mine = settings(cfg)
+    return "benchmark" if mine == settings(load_config("benchmark")) else f"benchmark-{mine[:8]}"
+
+
+def output_dirs(cfg: DictConfig | Mapping) -> tuple[Path, Path]:
+    """The report and model directories of a benchmark: ``report_dir`` / ``export_dir`` when
+    set, else ``reports/<name>`` and ``models/<name>`` (:func:`output_name`)."""
+    name = None if cfg.get("report_dir") and cfg.get("export_dir") else output_name(cfg)
+    report = Path(str(cfg.get("report_dir") or f"reports/{name}"))
+    models = Path(str(cfg.get("export_dir") or f"models/{name}"))
+    return report, models
+
+
 def benchmark(cfg: DictConfig) -> JobResult:
     """Run every task, write ``report.md``, log it all to MLflow, save/register the chosen models.
 
@@ -215,6 +266,12 @@ def benchmark(cfg: DictConfig) -> JobResult:
 
     from .report import terminal_summary, write_report
 
+    from .outputs import check_output_dir
+
+    report_dir, model_dir = output_dirs(cfg)
+    force = bool(cfg.get("force", False))
+    for d, kind in ((report_dir, "report"), (model_dir, "models")):  # refused now, not after the fits
+        check_output_dir(d, kind, force=force, force_option="force=true")
     exp_id = tracking.connect(cfg.tracking)
     conf = plain(cfg)
     todo = tasks(cfg)
@@ -241,6 +298,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     wall_s = time.perf_counter() - t0
     chosen = choose(results)
+    flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
         "datasets": ", ".join(map(str, cfg.datasets)),
@@ -255,11 +313,15 @@ def benchmark(cfg: DictConfig) -> JobResult:
     }
     if errors:
         meta["could not fit"] = "; ".join(errors)
-    report_dir = Path(str(cfg.report_dir))
-    report = write_report(results, curves, report_dir, meta=meta)
+    flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
+    if flag_lines:
+        meta["flagged (never chosen)"] = " | ".join(flag_lines)
+    unchosen = sorted(set(results["dataset"]) - set(chosen["dataset"]))
+    if unchosen:
+        meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
+    report = write_report(results, curves, report_dir, meta=meta, force=force)
     models = {f"{o['dataset']}__{o['family']}__{a}": m for o in done_tasks for a, m in o["models"].items()}
     chosen_keys = [f"{r.dataset}__{r.family}__{r.approach}" for r in chosen.itertuples()]
-    model_dir = Path(str(cfg.export_dir))
     extra = {}
     for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
         cell = headline_metrics(g, list(g.loc[g["kind"] == "validation", "run_id"].unique()))
@@ -268,7 +330,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
         for v in extra.values():
             v["mlflow_run_id"] = run.info.run_id  # the run that holds these models (thermbench export reads it)
-        save_models(models, model_dir, chosen=chosen_keys, extra=extra)
+        save_models(models, model_dir, chosen=chosen_keys, extra=extra, force=force)
         mlflow.set_tags(tracking.standard_tags(";".join(data_hashes), h, "benchmark"))
         tracking.log_config(conf)
         metrics = {}
@@ -299,6 +361,10 @@ def benchmark(cfg: DictConfig) -> JobResult:
             tracking.set_alias(name, "champion", version)
             registered[d] = f"models:/{name}@champion"
     print(terminal_summary(results))
+    for line in flag_lines:
+        print(f"flagged (never chosen): {line}")
+    for d in unchosen:
+        print(f"no model chosen for {d}: every candidate is flagged")
     print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")
     for d, uri in registered.items():
         print(f"registered: {uri}")

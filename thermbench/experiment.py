@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import joblib
+import numpy as np
 import pandas as pd
 import yaml
 from hydra.errors import InstantiationException
@@ -29,7 +31,8 @@ from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
-from ._atomic import atomic_dir, write_text_atomic
+from ._atomic import write_text_atomic
+from .outputs import output_dir
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
 
@@ -231,6 +234,25 @@ def headline_metrics(rows: pd.DataFrame, validation: Sequence[str] = ()) -> dict
     return out
 
 
+def model_flags(rows: pd.DataFrame) -> list[str]:
+    """What disqualifies one fitted model (its metrics rows, ``own`` marking its training runs)
+    from being registered or chosen: a non-finite score on any run, or an error made worse
+    than no compensation (compensation rate < 0) on its own training runs."""
+    flags = []
+    score = rows[[c for c in ("rmse_um", "max_abs_residual_um") if c in rows]].to_numpy(dtype=float)
+    bad = rows.loc[~np.isfinite(score).all(axis=1), "run_id"].tolist()
+    if bad:
+        flags.append(f"non-finite score on run(s) {bad}")
+    if "own" not in rows:
+        return flags
+    own = rows[rows["own"].astype(bool) & (rows["compensation_rate"] < 0)]
+    if not own.empty:
+        worst = own.loc[own["compensation_rate"].idxmin()]
+        flags.append(f"worse than no compensation on its own training run(s) {own['run_id'].tolist()} "
+                     f"(rate {100 * worst['compensation_rate']:.1f} % on {worst['run_id']})")  # fmt: skip
+    return flags
+
+
 def _per_run_metrics(rows: pd.DataFrame) -> dict[str, float]:
     keys = ("rmse_um", "max_abs_residual_um", "compensation_rate", "residual_fraction_of_pv")
     return {f"runs/{r['run_id']}/{k}": float(r[k]) for _, r in rows.iterrows() for k in keys if pd.notna(r[k])}
@@ -304,7 +326,12 @@ def train(cfg: DictConfig) -> JobResult:
         metrics = _log_scores(rows, curves, split, model_name, "+".join(train_runs), run_name)
         info = tracking.log_model(fitted, split.dataset)
     outputs = {"model_uri": info.model_uri}
-    if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
+    flags = model_flags(rows)
+    for flag in flags:
+        print(f"[train] warning: {model_name} on {'+'.join(train_runs)}: {flag}", file=sys.stderr, flush=True)
+    if flags:
+        outputs["registered"] = "no: " + "; ".join(flags)
+    elif cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
         reg = f"thermbench-{split.name}-{model_name}"
         outputs["registered"] = f"models:/{reg}/{tracking.register(info.model_uri, reg)}"
     return _finish(JobResult("train", _table(rows, split), metrics, mlflow_run_id=run.info.run_id, outputs=outputs))
@@ -341,13 +368,15 @@ def export(cfg: DictConfig) -> JobResult:
 
 
 def save_models(models: Mapping[str, Any], out_dir: Path, chosen: Sequence[str] = (), source: Mapping[str, str] | None = None,
-                extra: Mapping[str, Mapping] | None = None) -> dict[str, Path]:  # fmt: skip
+                extra: Mapping[str, Mapping] | None = None, force: bool = False) -> dict[str, Path]:  # fmt: skip
     """Write ``out_dir`` anew: each fitted model as ``<key>.joblib`` plus ``manifest.yaml``
-    marking the chosen ones (``extra[key]`` adds entries, e.g. dataset and metrics). The
-    directory is replaced as a whole (no stale or half-written files)."""
+    marking the chosen ones (``extra[key]`` adds entries, e.g. dataset and metrics). One
+    output of kind ``models`` (:func:`thermbench.outputs.output_dir`): the files of an
+    earlier save there are replaced, those no longer produced removed (no stale or
+    half-written files), and a directory holding anything else is refused."""
     out_dir = Path(out_dir)
     manifest = {}
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "models", force=force) as tmp:
         for key, m in models.items():
             joblib.dump(m, tmp / f"{key}.joblib")
             inp = m.required_inputs()

@@ -63,7 +63,8 @@ def cycle_curves(readings: pd.DataFrame, predicted_um) -> pd.DataFrame:
 
 
 def evaluate(model, dataset, runs: Sequence[str] | None = None, curves: bool = False):
-    """One row of :func:`residual_metrics` per run for a fitted model; with ``curves=True``
+    """One row of :func:`residual_metrics` per run for a fitted model (a run where the model
+    predicts a non-finite value scores NaN, ``nonfinite_predictions`` counts them); with ``curves=True``
     also the per-cycle before/after table of :func:`cycle_curves` (``run_id`` column)."""
     from .data.reference import thermal_errors
 
@@ -71,8 +72,13 @@ def evaluate(model, dataset, runs: Sequence[str] | None = None, curves: bool = F
     rows, parts = [], []
     for run in runs if runs is not None else dataset.run_ids:
         tr = te[te["run_id"] == run]
-        pred = model.predict(dataset, run)
-        rows.append({"run_id": run, **residual_metrics(tr["error_um"], pred, tr["thermal_um"])})
+        pred = np.asarray(model.predict(dataset, run), dtype=float)
+        bad = int(np.sum(~np.isfinite(pred)))
+        if bad:  # a model that predicts NaN/inf on a run scores NaN there (never chosen nor registered)
+            nan = dict.fromkeys(residual_metrics(tr["error_um"], np.zeros_like(pred), tr["thermal_um"]), float("nan"))
+            rows.append({"run_id": run, **nan, "nonfinite_predictions": bad})
+        else:
+            rows.append({"run_id": run, **residual_metrics(tr["error_um"], pred, tr["thermal_um"]), "nonfinite_predictions": 0})
         if curves:
             parts.append(cycle_curves(tr, pred).assign(run_id=run))
     if not curves:

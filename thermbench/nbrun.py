@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-from ._atomic import write_bytes_atomic
+from .outputs import output_file
 
 PARAMETERS_TAG = "parameters"
 
@@ -108,8 +108,8 @@ def images(nb) -> int:
 
 def save_executed(nb, out: Path) -> Path:
     _, nbformat, _ = _libs()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes_atomic(out, nbformat.writes(nb).encode("utf-8"))
+    with output_file(out, "notebook") as tmp:  # never over a notebook thermbench did not write
+        tmp.write_bytes(nbformat.writes(nb).encode("utf-8"))
     return out
 
 

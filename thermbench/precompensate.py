@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ._atomic import write_text_atomic
+from .outputs import check_output_file, write_text
 from .data.io import Dataset
 from .data.schema import FORMAT, Metadata
 from .models.base import ModelError, ThermalErrorModel
@@ -877,7 +877,8 @@ def run_precompensate(
     decimals: int = 4,
 ) -> PrecompResult:
     """``thermbench precompensate``: read the program and the joblib model, write the
-    rewritten program to ``out_path`` (atomically), optionally verify.
+    rewritten program to ``out_path`` (atomically; never over a file thermbench did not
+    write: :func:`thermbench.outputs.output_file`), optionally verify.
 
     ``dataset``: what the model was trained on (:func:`resolve_metadata`); None
     infers it from a benchmark model file name ``<dataset>__<family>__<approach>``.
@@ -889,6 +890,7 @@ def run_precompensate(
     text = _read_program(program_path)
     if out_path.resolve() == program_path.resolve():
         raise PrecompError(f"{out_path}: the output would overwrite the input program; expected another file name")
+    check_output_file(out_path, "part-program")  # an existing file thermbench did not write is refused now
     model = _load_model(model_path)
     if dataset is None:
         from . import datasets
@@ -912,7 +914,7 @@ def run_precompensate(
         start_mm=start_mm, work_offset_mm=work_offset_mm, ambient_C=ambient_C, decimals=decimals,
         source=str(program_path),
     )  # fmt: skip
-    write_text_atomic(out_path, result.text)
+    write_text(out_path, result.text, "part-program")
     result.settings["out_path"] = str(out_path)
     if truth_model is not None:
         result.verification = verify_in_simulator(result, truth_model)

@@ -46,7 +46,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from ._atomic import atomic_dir, write_text_atomic
+from .outputs import output_dir
 
 RESULT_COLUMNS = (
     "dataset",
@@ -635,7 +635,8 @@ def figure_paths(out_dir) -> list[Path]:
     return sorted((Path(out_dir) / FIGURES_DIR).glob("*.png"))
 
 
-def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None) -> Path:
+def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
+                 force: bool = False) -> Path:
     """Write ``out_dir/report.md`` and its figures ``out_dir/figures/*.png``; return the report path.
 
     Layout: header (``meta``), how to read, the terminal summary, the headline
@@ -646,10 +647,11 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     compensation curves of the validation runs (``curves``; None or an empty
     frame means no curves, the report says so).
 
-    Atomic: the figures are rendered into a temporary directory that replaces
-    ``out_dir/figures`` as a whole (the directory belongs to the report), and
-    report.md is written afterwards through a temporary file; any failure leaves
-    the previous report and figures untouched. List the PNGs with :func:`figure_paths`.
+    Written as one output of kind ``report`` (:func:`thermbench.outputs.output_dir`): the
+    figures and report.md are rendered into a staging directory and replace the previous
+    report's files only when all are done, so any failure leaves the previous report
+    untouched; a directory holding anything else is refused (``force``: written beside it).
+    List the PNGs with :func:`figure_paths`.
     """
     r = _check_results(results)
     no_curves = curves is None or (isinstance(curves, pd.DataFrame) and curves.empty)
@@ -681,8 +683,9 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         rows = h.xs(ds, level="dataset", drop_level=False)
         md += [f"### {ds}", "", _headline_md(rows, _runs(r, ds, "validation")), ""]
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_dir(out_dir / FIGURES_DIR) as fig_dir:
+    with output_dir(out_dir, "report", force=force) as stage:
+        fig_dir = stage / FIGURES_DIR
+        fig_dir.mkdir()
         for ds in datasets:
             md += [f"## {ds}", ""]
             runs = _runs(r, ds, "validation")
@@ -733,6 +736,5 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
             else:
                 md += ["_No before/after curves for this dataset's validation runs._", ""]
         text = "\n".join(md).rstrip() + "\n"
-    path = out_dir / REPORT_NAME
-    write_text_atomic(path, text)
-    return path
+        (stage / REPORT_NAME).write_text(text, encoding="utf-8")
+    return out_dir / REPORT_NAME

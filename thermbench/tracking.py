@@ -38,7 +38,7 @@ from . import __version__
 LOG = logging.getLogger(__name__)
 PYFUNC_CODE = Path(__file__).with_name("mlflow_pyfunc.py")
 #: config keys that do not change a job's result (left out of the resume hash)
-NON_RESULT_KEYS = ("tracking", "hydra", "report_dir", "export_dir", "n_jobs", "progress", "cache_dir")
+NON_RESULT_KEYS = ("tracking", "hydra", "report_dir", "export_dir", "n_jobs", "progress", "cache_dir", "force")
 
 
 class TrackingError(RuntimeError):

@@ -12,7 +12,7 @@ import ipaddress
 import socket
 from pathlib import Path
 
-from .._atomic import write_bytes_atomic
+from ..outputs import check_output_file, output_file
 from .client import CLIENT_APP_URI
 from .simcnc import SERVER_APP_URI
 
@@ -30,6 +30,9 @@ def make_certificates(out_dir: str | Path, days: int = 365, host: str | None = N
     taken = [str(out / f) for pair in FILES.values() for f in pair[:2] if (out / f).exists()]
     if taken:
         raise FileExistsError(f"{out}: {taken} exist already; certificates are never overwritten (remove them or pick another directory)")
+    for pair in FILES.values():  # a dataset or another output there is refused before any key is made
+        for f in pair[:2]:
+            check_output_file(out / f, "certificate")
     out.mkdir(parents=True, exist_ok=True)
     host = host or socket.gethostname()
     written = {}
@@ -40,7 +43,9 @@ def make_certificates(out_dir: str | Path, days: int = 365, host: str | None = N
         use = [ExtendedKeyUsageOID.SERVER_AUTH] if role == "server" else [ExtendedKeyUsageOID.CLIENT_AUTH]
         cert = generate_self_signed_app_certificate(key, f"thermbench {role}", {"organizationName": "thermbench"}, sans, use,
                                                     days=days)  # fmt: skip
-        write_bytes_atomic(out / key_name, dump_private_key_as_pem(key), mode=0o600)  # private from the start
-        write_bytes_atomic(out / cert_name, cert.public_bytes(Encoding.DER))
+        with output_file(out / key_name, "private-key", mode=0o600) as tmp:  # private from the start
+            tmp.write_bytes(dump_private_key_as_pem(key))
+        with output_file(out / cert_name, "certificate") as tmp:
+            tmp.write_bytes(cert.public_bytes(Encoding.DER))
         written[f"{role}_certificate"], written[f"{role}_private_key"] = out / cert_name, out / key_name
     return written

@@ -37,7 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .._atomic import write_text_atomic
+from ..outputs import OutputStream, check_output_file, write_text
 from .control import Cycle, CycleLogic, Flags, Line, Reading, Settings, _num, flag_names
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
@@ -263,9 +263,9 @@ class CycleLog:
 
     def __init__(self, path: Path, inputs: list[str]) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.inputs = inputs
-        self.fh = open(self.path, "w", newline="", encoding="utf-8", buffering=1)
+        self.out = OutputStream(self.path, "compensator-log")  # never over a file thermbench did not write
+        self.fh = self.out.fh
         self.w = csv.writer(self.fh)
         self.w.writerow(["wall_s", "cycle", "t_s", "late_ms", "cycle_ms", *inputs, "held", "value_um", "offset_um",
                          "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names"])  # fmt: skip
@@ -278,7 +278,7 @@ class CycleLog:
                          _f(c.predicted_um), c.label, c.rc, c.flags, flag_names(c.flags)])  # fmt: skip
 
     def close(self) -> None:
-        self.fh.close()
+        self.out.close()
 
 
 def _f(v) -> str:
@@ -356,6 +356,8 @@ class Compensator:
         self.max_cycles = None if cfg.get("max_cycles") is None else int(_num(cfg, "max_cycles", 1))
         self.duration_s = None if cfg.get("duration_s") is None else _num(cfg, "duration_s", 1.0)
         self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
+        check_output_file(self.log_path, "compensator-log")  # refused before anything connects
+        check_output_file(self.log_path.with_suffix(".summary.json"), "compensator-summary")
         self.session = Session(endpoint, self.nodes, self.sec, self.timeout_s)
         self.stop_requested = False
         self.stop_reason = "stopped"
@@ -487,7 +489,8 @@ class Compensator:
                             "output": self.output, "log": str(self.log_path), "ended": ended or self.stop_reason, "flags": dict(counts),
                             "last_error": self.last_error,
                             **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip
-            write_text_atomic(self.log_path.with_suffix(".summary.json"), json.dumps(self.summary, indent=2, default=float) + "\n")
+            write_text(self.log_path.with_suffix(".summary.json"), json.dumps(self.summary, indent=2, default=float) + "\n",
+                       "compensator-summary")
         return self.summary
 
     def stop(self, reason: str = "stopped") -> None:

@@ -47,7 +47,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .._atomic import atomic_dir, write_text_atomic
+from ..outputs import check_output_dir, check_output_file, output_dir, write_text
 from .nodes import LENGTH_UNITS, SLOPE_UNITS
 
 NAMESPACE = "urn:thermbench:sim-cnc"
@@ -416,11 +416,11 @@ class SimCnc:
             f["samples_after_rms_um"] = float(np.sqrt(np.mean(sm["residual_um"].to_numpy()[ok] ** 2)))
         return {"figures": f, "readings": rd, "samples": sm}
 
-    def write_results(self, out_dir: Path) -> Path:
+    def write_results(self, out_dir: Path, force: bool = False) -> Path:
         from ..data.io import save_dataset
 
         res = self.results()
-        with atomic_dir(out_dir) as tmp:
+        with output_dir(out_dir, "sim-cnc", force=force, force_option="force=true") as tmp:
             (tmp / "closed_loop.json").write_text(json.dumps(res["figures"], indent=2, default=float) + "\n", encoding="utf-8")
             res["readings"].to_csv(tmp / "readings.csv", index=False)
             res["samples"].to_csv(tmp / "samples.csv", index=False)
@@ -434,6 +434,12 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     sim = SimCnc(machine, cfg)
     cfg = sim.cfg
     out = Path(str(cfg.get("out_dir") or f"sim_cnc/{machine.run}"))
+    force = cfg.get("force", False)
+    if not isinstance(force, bool):
+        raise SimCncError(f"config key 'force': expected true or false, got {force!r}")
+    check_output_dir(out, "sim-cnc", force=force, force_option="force=true")  # refused now, not after the run
+    if cfg.get("write_nodes"):
+        check_output_file(Path(str(cfg["write_nodes"])), "nodes")
     try:  # a results directory that cannot be written fails now, not after the run
         out.parent.mkdir(parents=True, exist_ok=True)
         tempfile.TemporaryFile(dir=out.parent).close()
@@ -442,14 +448,14 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     await sim.start_server()
     try:
         if cfg.get("write_nodes"):  # written once the server listens: the file appearing means "connect now"
-            write_text_atomic(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False))
+            write_text(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False), "nodes")
         if ready is not None:
             ready.set()
         await sim.run_clock()
         await asyncio.sleep(sim.linger_s)
     finally:
         await sim.stop_server()
-    sim.write_results(out)
+    sim.write_results(out, force)
     return {**sim.results()["figures"], "out_dir": str(out)}
 
 

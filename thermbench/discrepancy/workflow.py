@@ -28,7 +28,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from .._atomic import atomic_dir
+from ..outputs import check_output_dir, output_dir
 from ..data.io import Dataset, load_dataset
 from ..sim.effects import EFFECTS
 from . import localise as loc
@@ -266,16 +266,15 @@ def _as_list(v) -> list[str]:
     return [str(x) for x in v]
 
 
-def check_out_dir(out_dir, data_dir) -> Path:
-    """The output directory, refused when replacing it could lose anything: it is (or
-    contains) the dataset, or it holds files that are not a previous diagnosis."""
+def check_out_dir(out_dir, data_dir, force: bool = False) -> Path:
+    """The output directory, refused when writing there could lose anything
+    (:func:`thermbench.outputs.check_output_dir`: it is, contains or lies in a dataset, or
+    holds files that an earlier diagnosis did not write), or when it is not writable."""
     out = Path(out_dir).expanduser().resolve()
     data = Path(data_dir).expanduser().resolve()
-    if out == data or data.is_relative_to(out):
-        raise DiagnoseError(f"--out {out}: is or contains the dataset directory {data}; choose another directory")
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "diagnosis.json").exists())):
-        raise DiagnoseError(f"--out {out}: exists and is not an earlier diagnosis (no diagnosis.json); "
-                            "choose a new or empty directory")  # fmt: skip
+    if out == data or data.is_relative_to(out) or out.is_relative_to(data):
+        raise DiagnoseError(f"--out {out}: is, contains or lies inside the dataset directory {data}; choose another directory")
+    check_output_dir(out, "diagnosis", force=force)
     parent = out.parent
     while not parent.exists():
         parent = parent.parent
@@ -304,7 +303,10 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     noise = dict(conf.get("noise") or {})
     window_s = _number(noise.get("repeat_window_s", 60.0), "noise.repeat_window_s")
     min_groups = _number(noise.get("min_groups", 20), "noise.min_groups", int)
-    out = check_out_dir(conf["out_dir"], conf["data_dir"])
+    force = conf.get("force", False)
+    if not isinstance(force, bool):
+        raise DiagnoseError(f"config key 'force': expected true or false, got {force!r}")
+    out = check_out_dir(conf["out_dir"], conf["data_dir"], force)
     track = bool(conf.get("track", True))
     exp_id = tracking.connect(conf["tracking"]) if track else None  # an unreachable server fails first
     ds = load_dataset(conf["data_dir"])
@@ -312,7 +314,7 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
                       noise_window_s=window_s, noise_min_groups=min_groups)  # fmt: skip
     tables = d.pop("_tables")
     d = _finite(d)
-    with atomic_dir(out) as tmp:
+    with output_dir(out, "diagnosis", force=force) as tmp:
         (tmp / "diagnosis.json").write_text(json.dumps(d, indent=2, allow_nan=False, default=_json_default), encoding="utf-8")
         write_figures(d, tables, tmp, settings.test.explained_x_floor)
         write_markdown(d, tmp)

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from .._atomic import atomic_dir
+from ..outputs import output_dir
 from ..classify import measuring_intervals
 from ..models.bank import ConditionBank
 from ..models.base import ThermalErrorModel
@@ -230,7 +230,7 @@ def _file_entry(path: Path, enc: Encoded) -> dict:
 
 
 def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, heldout: Sequence[str] = (),
-                 source: dict | None = None, options: ExportOptions | None = None) -> dict:  # fmt: skip
+                 source: dict | None = None, options: ExportOptions | None = None, force: bool = False) -> dict:  # fmt: skip
     """Write the export directory of one fitted model (see the module docstring); returns the manifest."""
     from ..models.lssvm import PSOLSSVM
     from ..models.neural import GRUModel, MLPModel
@@ -249,7 +249,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
     man: dict[str, Any] = {"format": FORMAT, "name": name, "family": f"{type(model).__module__}.{type(model).__name__}",
                            "thermbench_version": __version__,
                            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "model-export", force=force) as tmp:
         encs: dict[str, Encoded] = {}
         models_py: dict[str, ThermalErrorModel] = {}
         if isinstance(model, ConditionBank):

@@ -4,11 +4,16 @@ Sources, in order of precedence: ``export.model_uri`` / ``export.name`` (an MLfl
 model: its run id and metrics go into the manifest), else ``export.source``: a
 directory written by ``thermbench benchmark`` (``manifest.yaml``; ``export.select``
 picks ``all``, the ``chosen`` ones or a list of keys) or one fitted model file
-(``.joblib``). Each model is exported to ``export.out_dir/<key>``.
+(``.joblib``). Each model is exported to ``<out_dir>/<key>``, where ``out_dir`` is
+``export.out_dir`` or ``exports/<name of the source>`` (``exports/benchmark`` for the demo's
+``models/benchmark``). The whole ``out_dir`` is one output (:func:`thermbench.outputs.output_dir`):
+an export replaces the folders of the previous export there and removes those it no longer
+makes, so no stale folder looks current; a directory holding anything else is refused.
 """
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -20,11 +25,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import datasets
 from ..config import ConfigError
+from ..outputs import check_output_dir, output_dir
 from .bundle import ExportOptions, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "out_dir", "lssvm_reduced_size", "onnx", "verify",
-        "parity_tol_um", "seed"}  # fmt: skip
+        "parity_tol_um", "seed", "force"}  # fmt: skip
 
 
 def _options(e: dict) -> ExportOptions:
@@ -106,17 +112,37 @@ def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
 
 
 def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
-    from ..experiment import group_option, load_split
-
     e = OmegaConf.to_container(cfg.export, resolve=True) if isinstance(cfg.export, DictConfig) else dict(cfg.export)
     unknown = sorted(set(e) - KEYS)
     if unknown:
         raise ConfigError(f"config key(s) {['export.' + k for k in unknown]} unknown; known: {sorted(KEYS)}")
     opts = _options(e)
-    out_root = Path(str(e.get("out_dir") or "exports"))
+    force = e.get("force", False)
+    if not isinstance(force, bool):
+        raise ConfigError(f"config key 'export.force': expected true or false, got {force!r}")
+    out_root = Path(str(e.get("out_dir") or f"exports/{_source_name(e)}"))
+    check_output_dir(out_root, "exports", force=force, force_option="export.force=true")  # before any model is read
+    items = _items(e, cfg)
+    with output_dir(out_root, "exports", force=force, force_option="export.force=true") as stage:
+        rows = _export_all(items, e, opts, stage, out_root)
+    return pd.DataFrame(rows), {"dir": str(out_root)}
+
+
+def _source_name(e: dict) -> str:
+    """The default export folder's name: the registered model or URI, else the source's name."""
+    if e.get("model_uri") or e.get("name"):
+        raw = str(e.get("name") or e.get("model_uri")).replace("models:/", "").replace("runs:/", "")
+    else:
+        raw = Path(str(e.get("source") or "model")).stem
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", raw).strip("._") or "model"
+
+
+def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path) -> list[dict]:
+    from ..experiment import group_option, load_split
+
     rows = []
     splits: dict[str, Any] = {}
-    for key, model, info in _items(e, cfg):
+    for key, model, info in items:
         dname = e.get("dataset") or info.pop("dataset_name", None) or datasets.of_key(key)
         info.pop("dataset_name", None)
         ds, heldout = None, []
@@ -133,7 +159,7 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
                 f"{_dataset_names()}) or export.verify=false"
             )
         source = {**info, "training": {"dataset_name": dname}} if dname else info
-        man = export_model(model, out_root / key, key, ds, heldout, source=source, options=opts)
+        man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
         files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
                  else list(man["files"].values()))  # fmt: skip
         par = man.get("parity", {}).get("model", {})
@@ -147,4 +173,4 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
                   f"{', '.join(man['footprint']['over_budget'])}", file=sys.stderr)  # fmt: skip
     if not rows:
         raise ExportError("nothing to export: export.select matched no model")
-    return pd.DataFrame(rows), {"dir": str(out_root)}
+    return rows

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .._atomic import atomic_dir
+from ..outputs import output_dir
 from ..data.io import load_dataset
 from ..data.reference import thermal_errors
 from ..metrics import cycle_curves, residual_metrics
@@ -105,15 +105,17 @@ def draw_errors(fig, result: dict) -> None:
     fig.suptitle(f"{f['model']} on {f['run']}: max |error| {f['before_max_abs_um']:.1f} → {f['after_max_abs_um']:.1f} µm")
 
 
-def write_replay(result: dict, out_dir: Path) -> Path:
-    """Write the replay's files and figures to ``out_dir`` (replaced as a whole).
+def write_replay(result: dict, out_dir: Path, force: bool = False) -> Path:
+    """Write the replay's files and figures to ``out_dir``, one output of kind ``replay``
+    (:func:`thermbench.outputs.output_dir`: an earlier replay there is replaced, anything
+    else refused; ``force``: written beside other files, never over them).
 
     The figures are bare matplotlib ``Figure`` objects (no pyplot), so the caller's backend,
     e.g. a notebook's inline one, is left alone."""
     from matplotlib.figure import Figure
 
     f = result["figures"]
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "replay", force=force) as tmp:
         (tmp / "replay.json").write_text(json.dumps(f, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         result["readings"].to_csv(tmp / "readings.csv", index=False)
         result["compensation"].to_csv(tmp / "compensation.csv", index=False)
