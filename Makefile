@@ -1,6 +1,6 @@
 # Two commands do all set-up on a fresh machine:
 #   make demo   create .venv, install thermbench, run the main job (the robustness benchmark)
-#               and export its models for the embedded compensator (exports/, C runtime checked)
+#               and export its models for the embedded compensator (exports/benchmark/, C runtime checked)
 #   make test   create/update .venv with dev extras, run the whole test suite
 #   make notebooks  run every notebook with full settings -> outputs/notebooks/*.ipynb (with outputs)
 #   make fuzz   libFuzzer on the C runtime's model-file loader (needs clang; FUZZ_SECONDS=300)
@@ -47,7 +47,7 @@ bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/bench_simulator.py
 	$(BIN)/python benchmarks/bench_identification.py
 	$(BIN)/python benchmarks/bench_diagnose.py --runtime
-	$(BIN)/python benchmarks/bench_export.py exports
+	$(BIN)/python benchmarks/bench_export.py exports/benchmark
 	$(BIN)/python benchmarks/bench_lssvm_reduced.py
 	$(BIN)/python benchmarks/bench_compensator.py
 	$(BIN)/python benchmarks/bench_notebooks.py

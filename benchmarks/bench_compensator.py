@@ -9,7 +9,7 @@ process's resident memory sampled every 0.5 s with its trend per 1000 cycles (gr
 
     python benchmarks/bench_compensator.py [MODEL_DIR] [--blocks 3] [--period 0.01]
 
-MODEL_DIR defaults to exports/seed001_vmc_x__mlr_seed002__global (``make demo`` or
+MODEL_DIR defaults to exports/benchmark/seed001_vmc_x__mlr_seed002__global (``make demo`` or
 ``thermbench export`` writes it).
 """
 
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-DEFAULT_MODEL = Path("exports/seed001_vmc_x__mlr_seed002__global")
+DEFAULT_MODEL = Path("exports/benchmark/seed001_vmc_x__mlr_seed002__global")
 
 
 def rss_kb() -> int:

@@ -1,6 +1,6 @@
 """Footprint of exported models in the C runtime, against seed 002's STM32F407 budget.
 
-For every export directory under EXPORTS (default ``exports/``, written by
+For every export directory under EXPORTS (default ``exports/benchmark/``, written by
 ``thermbench export``): file bytes, RAM for the running state (the arena the
 runtime asks for, plus the ``tb_model`` handle per file) and instructions per
 control cycle / per prediction / per physics update, counted by
@@ -108,7 +108,7 @@ def one(model_dir: Path, seconds: float, exe: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("exports", nargs="?", default="exports")
+    ap.add_argument("exports", nargs="?", default="exports/benchmark")
     ap.add_argument("--seconds", type=float, default=1800.0, help="length of the replayed stream")
     args = ap.parse_args(argv)
     if shutil.which("valgrind") is None:

@@ -37,7 +37,10 @@ def _strict(name):
 
 
 def run_cli(data, out, *args, coarse: bool = True) -> dict:
+    note = out.parent / "user notes.txt"  # a user's file beside the output: never touched
+    note.write_text("T3 replaced on day 2\n") if not note.exists() else None
     assert main(["diagnose", str(data), "--out", str(out), *args, "track=false", *(COARSE if coarse else ())]) == 0
+    assert note.read_text() == "T3 replaced on day 2\n"
     return json.loads((out / "diagnosis.json").read_text(), parse_constant=_strict)
 
 

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-from .outputs import output_file
+from .outputs import OutputRefused, check_output_file, output_file
 
 PARAMETERS_TAG = "parameters"
 
@@ -132,6 +132,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no notebook matches {a.names}; have {[p.stem for p in every]}", file=sys.stderr)
         return 2
     out = Path(a.out).resolve() if a.out else folder.resolve().parent / "outputs" / "notebooks"
+    try:  # a notebook file thermbench did not write is refused before any notebook runs
+        for p in paths:
+            check_output_file(out / f"{p.stem}.ipynb", "notebook")
+    except OutputRefused as exc:
+        print(f"python -m thermbench.nbrun: error: {exc}", file=sys.stderr)
+        return 2
     failed = []
     for p in paths:
         nb = read_notebook(p)

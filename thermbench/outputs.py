@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -345,3 +346,22 @@ class OutputStream:
         if entry is not None:
             entry["files"] = {self.path.name: sha256_file(self.path)}
             rec.write()
+
+
+#: what Hydra and a thermbench job leave in a run or sweep directory
+_HYDRA_FILES = re.compile(r"(\.hydra/.+|[^/]+\.log|result\.json|sweep_size\.txt|multirun\.yaml|\d+/.+)")
+
+
+def check_hydra_dir(path: str | os.PathLike, key: str = "hydra.run.dir") -> None:
+    """Refuse a Hydra run or sweep directory that is, contains or lies inside a dataset, or
+    that holds files other than an earlier Hydra job's (Hydra writes ``.hydra/`` and its log there)."""
+    path = Path(path)
+    try:
+        _dataset_guard(path, set(), "")
+    except OutputRefused as exc:
+        raise OutputRefused(f"config key '{key}': {exc}") from None
+    if path.is_dir():
+        foreign = [rel for rel in _files_below(path) if rel != RECORD and not _HYDRA_FILES.fullmatch(rel)]
+        if foreign:
+            raise _refuse(path, f"holds {len(foreign)} file(s) that are not an earlier Hydra job's (e.g. {foreign[0]!r})",
+                          f"choose another {key}")  # fmt: skip
