@@ -1,5 +1,7 @@
 """Dataset contract: lossless round trip, and a clear error for each bad input."""
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -130,14 +132,93 @@ def test_atomic_writes_get_the_usual_file_mode(tmp_path):
     """mkstemp/mkdtemp create private files (0600/0700); written files must not stay private."""
     import os
 
-    from thermbench._atomic import atomic_dir, write_text_atomic
+    from thermbench._atomic import write_text_atomic
+    from thermbench.outputs import output_dir
 
     mask = os.umask(0o022)
     try:
         write_text_atomic(tmp_path / "a.txt", "x")
-        with atomic_dir(tmp_path / "d") as d:
+        with output_dir(tmp_path / "d", "test") as d:
             (d / "f").write_text("y")
     finally:
         os.umask(mask)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "d").stat().st_mode & 0o777 == 0o755
+
+
+# ---------------------------------------------------------------- hostile input ---
+# (the adversarial set is tests/adversarial.py, run by tests/test_adversarial.py)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_a_table_over_the_cell_cap_is_refused_before_it_is_read(written, monkeypatch, fmt):
+    from thermbench.data import limits
+
+    ds, path = written
+    if fmt == "parquet":
+        for name in ("process", "errors"):
+            pd.read_csv(path / f"{name}.csv", dtype={"run_id": str}).to_parquet(path / f"{name}.parquet", index=False)
+    rows, cols = ds.process.shape
+    monkeypatch.setattr(limits, "TABLE_MAX_CELLS", rows * cols - 1)
+    with pytest.raises(DatasetError, match=rf"process.{fmt}: {rows * cols} cells \({rows} rows x {cols} columns\)"):
+        load_dataset(path)
+    monkeypatch.setattr(limits, "TABLE_MAX_CELLS", rows * cols)
+    load_dataset(path)
+
+
+def test_messages_are_one_line_even_for_a_path_with_a_line_break(written, tmp_path):
+    _, path = written
+    odd = tmp_path / "two\nlines"
+    path.rename(odd)
+    (odd / "metadata.yaml").write_text("format: thermbench-dataset/1\nruns: {a: 1, a: 2}\n")
+    with pytest.raises(DatasetError) as err:
+        load_dataset(odd)
+    msg = str(err.value)
+    assert "\n" not in msg and "two\\nlines" in msg and "line 2" in msg and "duplicate key 'a'" in msg
+
+
+def test_strict_yaml_loader():
+    from thermbench.data.safe_yaml import YAMLInputError, load_yaml
+
+    data, lines = load_yaml("a: 1e-5\nb:\n  when: 2024-03-04\n  n: [1, 2]\n")
+    assert data == {"a": 1e-5, "b": {"when": "2024-03-04", "n": [1, 2]}}  # YAML 1.2 float; dates stay text
+    assert lines == {("a",): 1, ("b",): 2, ("b", "when"): 3, ("b", "n"): 4}
+    for text, needle in [("a: &x 1\nb: *x\n", "line 1: anchor &x"), ("a: *x\n", "line 1: alias *x"),
+                         ("a: 1\na: 2\n", "line 2: duplicate key 'a' (first at line 1)"),
+                         ("a: !!python/name:os.system\n", "'!!python/name:os.system'"),
+                         ("a: " + "[" * 40 + "]" * 40, "nested deeper than 32"),
+                         ("a: [" + "1," * 100_001 + "1]", "more than 100000 values")]:  # fmt: skip
+        with pytest.raises(YAMLInputError, match=re.escape(needle)):
+            load_yaml(text)
+
+
+def test_parquet_time_as_duration_or_datetime_becomes_seconds(written, tmp_path):
+    ds, path = written
+    p = pd.read_csv(path / "process.csv", dtype={"run_id": str})
+    e = pd.read_csv(path / "errors.csv", dtype={"run_id": str})
+    (path / "process.csv").unlink()
+    (path / "errors.csv").unlink()
+    t0 = pd.Timestamp("2024-03-04 07:00:00", tz="Europe/Berlin")
+    p.assign(t_s=t0 + pd.to_timedelta(p["t_s"] + 5.0, unit="s")).to_parquet(path / "process.parquet")
+    e.assign(t_s=t0 + pd.to_timedelta(e["t_s"] + 5.0, unit="s")).to_parquet(path / "errors.parquet")
+    back = load_dataset(path)  # date-times: seconds since the earliest process time, in both files
+    np.testing.assert_allclose(back.process["t_s"], p["t_s"] - p["t_s"].min(), atol=1e-6)
+    np.testing.assert_allclose(back.errors["t_s"], e["t_s"] - p["t_s"].min(), atol=1e-6)
+    p.assign(t_s=pd.to_timedelta(p["t_s"], unit="s")).to_parquet(path / "process.parquet")
+    e.assign(t_s=pd.to_timedelta(e["t_s"], unit="s")).to_parquet(path / "errors.parquet")
+    back = load_dataset(path)  # durations: their seconds
+    np.testing.assert_allclose(back.process["t_s"], p["t_s"], atol=1e-6)
+
+
+def test_metadata_ranges_apply_to_programmatic_metadata_too():
+    from pydantic import ValidationError
+
+    from thermbench.data.schema import MaterialMeta, ScrewMeta
+
+    with pytest.raises(ValidationError, match=r"11.7 looks like µm/\(m·K\).*write 1.17e-05"):
+        MaterialMeta(alpha_per_K=11.7, density_kg_m3=7800, heat_capacity_J_kgK=460)
+    with pytest.raises(ValidationError, match="finite"):
+        ScrewMeta(length_m=float("inf"), diameter_m=0.04, nut_length_m=0.1, fixed_bearing_length_m=0.0,
+                  mounting="fixed_free")  # fmt: skip
+    with pytest.raises(ValidationError, match="shorter than the screw"):
+        ScrewMeta(length_m=1.0, diameter_m=0.04, nut_length_m=1.0, fixed_bearing_length_m=0.0, mounting="fixed_free")

@@ -167,7 +167,8 @@ def test_bad_input_is_one_line_exit_2(clean_data, tmp_path, capsys):
     other.mkdir()
     (other / "mine.txt").write_text("keep")
     assert main(["diagnose", str(clean_data), "--out", str(other), "track=false"]) == 2
-    assert "not an earlier diagnosis" in capsys.readouterr().err and (other / "mine.txt").exists()
+    assert "1 file(s) thermbench did not write there (e.g. 'mine.txt')" in capsys.readouterr().err
+    assert (other / "mine.txt").read_text() == "keep"
 
 
 # ------------------------------------------------------------------- parts ---

@@ -38,8 +38,9 @@ def campaign(tmp_path, seed001_data_root):
     src = seed001_data_root / "seed001_vmc_x"
     dst = tmp_path / "campaign" / "vmc_x"
     dst.mkdir(parents=True)
-    for f in ("metadata.yaml", "process.csv", "errors.csv"):
-        shutil.copy(src / f, dst / f)
+    for f in src.iterdir():
+        if not f.name.startswith("."):  # the data, not thermbench's record: a user's own dataset
+            shutil.copy(f, dst / f.name)
     _plant(tmp_path / "campaign" / "README.txt")
     return dst
 
