@@ -76,6 +76,27 @@ def test_choose_takes_best_worst_case_validation_rate():
     assert chosen[["family", "approach"]].values.tolist() == [["b", "bank"]]
 
 
+def test_choose_never_picks_a_flagged_model():
+    """Best on validation but worse than no compensation on its own training run (a), or NaN on
+    one run (b): neither is chosen; c, worse on validation but sound, is. Hand-made rows."""
+    rows = []
+    for fam, own_rate, v_rates in [("a", -0.2, [0.95, 0.95]), ("b", 0.9, [0.9, float("nan")]), ("c", 0.8, [0.6, 0.5])]:
+        rows.append(dict(dataset="d", family=fam, approach="global", train="all", run_id="s1", kind="state", own=True,
+                         compensation_rate=own_rate, rmse_um=1.0, max_abs_residual_um=1.0))
+        for run, r in zip(["v1", "v2"], v_rates):
+            rows.append(dict(dataset="d", family=fam, approach="global", train="all", run_id=run, kind="validation",
+                             own=False, compensation_rate=r, rmse_um=r, max_abs_residual_um=10 * (1 - r)))
+    res = pd.DataFrame(rows)
+    assert bm.choose(res)[["family"]].values.ravel().tolist() == ["c"]
+    flags = bm.flagged(res)
+    assert flags[("d", "a", "global", "all")] == ["worse than no compensation on its own training run(s) ['s1'] "
+                                                  "(rate -20.0 % on s1)"]
+    assert flags[("d", "b", "global", "all")] == ["non-finite score on run(s) ['v2']"]
+    assert ("d", "c", "global", "all") not in flags
+    # nothing sound left: no model is chosen for the dataset
+    assert bm.choose(res[res["family"] != "c"]).empty
+
+
 def _cfg(tmp_path, *extra):
     return load_config(
         "benchmark",

@@ -517,3 +517,24 @@ def test_relative_store_paths_are_taken_from_the_start_directory(tmp_path):
     assert tracking.resolve_uri("http://h:5000", tmp_path) == "http://h:5000"
     with pytest.raises(TrackingError, match="tracking.uri"):
         tracking.connect({"uri": ""})
+
+
+# --------------------------------------------------- never publish a broken model ---
+def test_a_model_with_a_non_finite_score_is_never_registered(workdir, monkeypatch, capsys):
+    """A model that predicts NaN on one run (here: on valid2 only) is logged, flagged, and not
+    registered: no version of it exists in the registry."""
+    import numpy as np
+
+    from thermbench.models.mlr import MLRSeed001
+
+    real = MLRSeed001.predict
+
+    def nan_on_valid2(self, dataset, run_id, *a, **k):
+        out = np.asarray(real(self, dataset, run_id, *a, **k), dtype=float)
+        return np.full_like(out, np.nan) if run_id == "valid2" else out
+
+    monkeypatch.setattr(MLRSeed001, "predict", nan_on_valid2)
+    res = experiment.train(compose("train", workdir, f"model={MODEL}", "train=state1", FEW))
+    assert res.outputs["registered"] == "no: non-finite score on run(s) ['valid2']"
+    assert "non-finite score on run(s) ['valid2']" in capsys.readouterr().err
+    assert store_client(workdir).search_registered_models() == []
