@@ -240,12 +240,12 @@ def test_cluster_launcher_config():
 # ----------------------------------------------------------- user mistakes ---
 def test_unknown_model_option(tmp_path, env):
     proc = cli(["train", "model=nope", *store_overrides(tmp_path)], tmp_path, env, timeout=120)
-    assert proc.returncode != 0
+    assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
-    first = next(ln for ln in proc.stderr.splitlines() if ln.strip())
-    assert "model/nope" in first, proc.stderr  # Hydra: "Could not find 'model/nope'", then the options
-    assert "mlr_seed001" in proc.stderr
-    assert not finished_runs(tmp_path)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]  # one line, with the known options
+    assert len(lines) == 1 and lines[0].startswith("thermbench train: error: unknown option 'nope' for config group 'model'")
+    assert "mlr_seed001" in lines[0]
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "run").exists()  # checked before anything started
 
 
 def test_unknown_training_run(tmp_path, env):

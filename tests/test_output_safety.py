@@ -223,3 +223,31 @@ def test_save_dataset_refuses_a_users_dataset_and_replaces_its_own(campaign, tmp
     assert sorted(p.name for p in (tmp_path / "sim2").iterdir()) == [RECORD, "errors.parquet", "metadata.yaml",
                                                                       "process.parquet"]  # fmt: skip
     assert mine.read_text() == NOTE and _digest(tmp_path / "campaign") == before
+
+
+# ---------------------------------------------------------------- simulate ---
+def test_simulate_refuses_before_simulating(campaign, tmp_path, capsys, monkeypatch):
+    from thermbench.sim import scenario
+
+    before = _digest(tmp_path / "campaign")
+    monkeypatch.setattr(scenario, "simulate_dataset", lambda *a, **k: pytest.fail("simulated before refusing"))
+    mine = _plant(tmp_path / "sims" / "plan.txt")
+    for ov in (f"out_dir={campaign}", f"out_dir={campaign.parent}", f"out_dir={campaign}/sim", f"out_dir={mine.parent}",
+               f"out_dir={campaign.parent}", "force=true"):  # fmt: skip
+        assert main(["simulate", ov] if ov != "force=true" else ["simulate", f"out_dir={campaign}", ov]) == 2
+        line = _one_error_line(capsys)
+        assert "dataset" in line or "plan.txt" in line
+    assert mine.read_text() == NOTE and _digest(tmp_path / "campaign") == before
+
+
+# ------------------------------------------------------------- Hydra jobs ---
+@pytest.mark.parametrize("job", ["train", "evaluate", "benchmark", "export"])
+def test_hydra_jobs_refuse_a_dataset_or_a_users_folder_as_their_run_dir(job, campaign, tmp_path, capsys):
+    before = _digest(tmp_path / "campaign")
+    mine = _plant(tmp_path / "runs" / "draft.docx")
+    for d in (campaign, campaign / "out", campaign.parent, mine.parent):
+        assert main([job, f"hydra.run.dir={d}"]) == 2
+        line = _one_error_line(capsys)
+        assert "hydra.run.dir" in line or "draft.docx" in line
+    assert mine.read_text() == NOTE and _digest(tmp_path / "campaign") == before
+    assert not (campaign / ".hydra").exists()

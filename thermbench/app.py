@@ -14,20 +14,35 @@ import json
 import math
 import signal
 import sys
+import traceback
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import hydra
-import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from ._atomic import write_text_atomic
-from .config import ConfigError, config_dir
-from .experiment import HEADLINE, hydra_runtime
+from .config import ConfigError, compose_checked, config_dir
+from .errors import one_line, report, stdout_closed, user_errors  # user_errors: the CLI's and the jobs' one definition
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+# pandas, scikit-learn, MLflow (thermbench.experiment) are imported when a job runs: a
+# mistake on the command line is reported before any of that is loaded.
+
+
+def hydra_runtime():
+    """The running Hydra job's config (:func:`thermbench.experiment.hydra_runtime`)."""
+    from .experiment import hydra_runtime
+
+    return hydra_runtime()
 
 #: set when a multirun ended with failed jobs (the command then exits with 2)
 _FAILED_JOBS: list[str] = []
+#: ... and those that failed on an unexpected exception, a bug (exit code 1)
+_CRASHED_JOBS: list[str] = []
 
 
 def _jobs() -> dict[str, Callable]:
@@ -37,20 +52,12 @@ def _jobs() -> dict[str, Callable]:
             "export": experiment.export}
 
 
-def user_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions that are user mistakes: reported in one line, no traceback."""
-    from .data.io import DatasetError
-    from .experiment import ExperimentError
-    from .export import ExportError, ModelFileError, RuntimeFailed, RuntimeUnavailable
-    from .models.base import ModelError
-    from .tracking import TrackingError
-
-    return (ConfigError, DatasetError, ExperimentError, ModelError, TrackingError, FileNotFoundError, ExportError,
-            ModelFileError, RuntimeUnavailable, RuntimeFailed)  # fmt: skip
-
-
 def print_result(res) -> None:
     """The terminal summary of one job."""
+    import pandas as pd
+
+    from .experiment import HEADLINE
+
     with pd.option_context("display.width", 120, "display.max_columns", 20, "display.float_format", "{:.3f}".format):
         if res.job != "benchmark":  # the benchmark prints its own one-screen summary
             print(res.table.to_string(index=False))
@@ -63,24 +70,106 @@ def print_result(res) -> None:
         print(f"  {k}: {v}")
 
 
+def check_command_line(job: str, argv: list[str]) -> None:
+    """The overrides of ``thermbench <job> argv`` composed and checked before Hydra starts
+    anything, every job of a ``-m`` sweep included: a mistake is one :class:`ConfigError`
+    line (with a did-you-mean). ``--help``, ``--info``, ``--shell-completion``, another
+    config directory or a malformed command line are left to Hydra; ``--cfg`` shows a
+    config with its ``???`` values."""
+    import contextlib
+    import io
+
+    from hydra._internal.utils import get_args_parser
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            args = get_args_parser().parse_args(argv)
+    except SystemExit as exc:  # --version (Hydra prints it), or a malformed command line
+        usage = [ln for ln in err.getvalue().splitlines() if ": error: " in ln]
+        if exc.code and usage:
+            raise ConfigError(f"{usage[-1].split(': error: ', 1)[1]} (see thermbench {job} --help)") from None
+        return
+    # Hydra's own usage rules, which it reports with a traceback
+    if args.resolve and args.cfg is None and not args.help:
+        raise ConfigError("--resolve goes with --cfg (e.g. --cfg job --resolve)")
+    modes = [m for m, on in (("--run", args.run), ("-m/--multirun", args.multirun), ("--cfg", args.cfg is not None),
+                             ("--info", args.info is not None), ("--shell-completion", args.shell_completion)) if on]  # fmt: skip
+    if len(modes) > 1 and not args.help and not args.hydra_help:
+        raise ConfigError(f"{' and '.join(modes)} cannot be combined: give one of them")
+    if (args.help or args.hydra_help or args.shell_completion or args.info is not None or args.config_path
+            or args.config_dir or args.experimental_rerun):  # fmt: skip
+        return
+    compose_checked(args.config_name or job, args.overrides, multirun=bool(args.multirun),
+                    require_values=args.cfg is None)  # fmt: skip
+    if args.cfg is None:
+        _check_hydra_dirs(args.config_name or job, args.overrides, bool(args.multirun))
+
+
+def _check_hydra_dirs(name: str, overrides: list[str], multirun: bool) -> None:
+    """Hydra's run (or sweep) directory must not be, contain or lie in a dataset, nor hold
+    files other than an earlier Hydra job's (:func:`thermbench.outputs.check_hydra_dir`)."""
+    from .config import load_config
+    from .outputs import OutputRefused, check_hydra_dir
+
+    mine = [o for o in overrides if o.lstrip("+~").startswith("hydra.") and "," not in o]
+    cfg = load_config(name, mine, return_hydra_config=True)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    try:
+        check_hydra_dir(Path(str(OmegaConf.select(cfg, key))), key)
+    except OutputRefused as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _job_failed(job: str, exc: BaseException, unexpected: bool) -> None:
+    """Record a failed job of a sweep in its ``result.json``: the summary lists it as failed."""
+    hc = hydra_runtime()
+    message = f"unexpected {type(exc).__name__}: {one_line(exc)} (a bug: traceback above)" if unexpected else one_line(exc)
+    failed = {"job": job, "error": message, "unexpected": unexpected, "skipped": False, "metrics": {}}
+    write_text_atomic(Path(hc.runtime.output_dir) / "result.json", json.dumps(failed))
+
+
+def _in_sweep() -> bool:
+    hc = hydra_runtime()
+    return hc is not None and str(hc.mode) == "RunMode.MULTIRUN"
+
+
 def run(job: str, argv: list[str]) -> int:
-    """Run Hydra job ``job`` with command-line arguments ``argv`` (overrides, ``-m``, ...)."""
-    fn = _jobs()[job]
-    errors = user_errors()
+    """Run Hydra job ``job`` with command-line arguments ``argv`` (overrides, ``-m``, ...).
+
+    Exit codes: 0 done; 2 a user mistake (one line on stderr), or a sweep with failed jobs;
+    1 an unexpected exception (a bug: its traceback is printed; in a sweep the other jobs
+    still run); 130 interrupted."""
+    # Hydra's parser takes the overrides in one run: `key=a -m key2=b` would be refused
+    flags = ("-m", "--multirun", "-r", "--run", "--resolve")
+    argv = [a for a in argv if a in flags] + [a for a in argv if a not in flags]
+    try:
+        check_command_line(job, argv)
+    except ConfigError as exc:
+        return report(f"thermbench {job}", exc)
 
     def task(cfg: DictConfig) -> Any:
         try:
-            res = fn(cfg)
-        except errors as exc:
-            print(f"thermbench {job}: error: {exc}", file=sys.stderr, flush=True)
-            hc = hydra_runtime()
-            if hc is None or str(hc.mode) != "RunMode.MULTIRUN":
-                sys.exit(2)
+            res = _jobs()[job](cfg)
+            print_result(res)
+        except BrokenPipeError:  # the reader of stdout went away (| head)
+            raise stdout_closed() from None
+        except user_errors() as exc:
+            if not _in_sweep():
+                sys.exit(report(f"thermbench {job}", exc))
             # in a sweep the other jobs go on; the summary lists this one as failed
-            failed = {"job": job, "error": str(exc), "skipped": False, "metrics": {}}
-            write_text_atomic(Path(hc.runtime.output_dir) / "result.json", json.dumps(failed))
+            report(f"thermbench {job}", exc)
+            _job_failed(job, exc, unexpected=False)
             return None
-        print_result(res)
+        except Exception as exc:
+            if not _in_sweep():
+                raise  # a bug: Hydra prints its traceback, exit code 1
+            # a bug in one job of a sweep: its traceback now, the other jobs still run,
+            # the summary marks it and the command ends with exit code 1
+            traceback.print_exc()
+            sys.stderr.flush()
+            _job_failed(job, exc, unexpected=True)
+            return None
         return res.metrics
 
     main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=job)(task)
@@ -91,6 +180,7 @@ def run(job: str, argv: list[str]) -> int:
         signal.default_int_handler(signum, frame)
 
     _FAILED_JOBS.clear()
+    _CRASHED_JOBS.clear()
     saved, saved_handler = sys.argv, signal.getsignal(signal.SIGINT)
     sys.argv = [f"thermbench-{job}", *argv]
     try:
@@ -114,6 +204,8 @@ def run(job: str, argv: list[str]) -> int:
         resume = " (run the same command again to resume: finished runs are skipped)" if job in ("train", "benchmark") else ""
         print(f"thermbench {job}: interrupted{resume}", file=sys.stderr, flush=True)
         return 130
+    if code == 0 and _CRASHED_JOBS:
+        return 1
     if code == 0 and _FAILED_JOBS:
         return 2
     return code
@@ -173,7 +265,10 @@ class SweepProgress(Callback):
         print(f"[sweep] job #{hc.job.num} {state} ({overrides}); {done}/{n if n is not None else '?'} finished", flush=True)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        table = sweep_table(Path(str(config.hydra.sweep.dir)))
+        import pandas as pd
+
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        table = sweep_table(sweep_dir)
         if table.empty:
             return
         with pd.option_context("display.width", 160, "display.max_columns", 30, "display.float_format", "{:.3f}".format):
@@ -181,6 +276,8 @@ class SweepProgress(Callback):
         if "error" in table:
             failed = table.loc[table["error"].notna(), "job"].tolist()
             _FAILED_JOBS.extend(failed)
+            _CRASHED_JOBS.extend(p.parent.name for p in _results(sweep_dir)
+                                 if json.loads(p.read_text(encoding="utf-8")).get("unexpected"))  # fmt: skip
             if failed:
                 print(f"[sweep] {len(failed)} job(s) failed: {', '.join(failed)} (see the error column)", flush=True)
 
@@ -196,6 +293,10 @@ def _results(sweep_dir: Path) -> list[Path]:
 def sweep_table(sweep_dir: Path) -> pd.DataFrame:
     """One row per finished job of a sweep directory (of its latest multirun): its overrides
     and headline metrics."""
+    import pandas as pd
+
+    from .experiment import HEADLINE
+
     rows = []
     for res_path in sorted(_results(sweep_dir), key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0):
         res = json.loads(res_path.read_text(encoding="utf-8"))

@@ -6,7 +6,7 @@
                                                seed 002 §2.4 condition classifier: the chosen condition
     thermbench diagnose DATA_DIR --out OUT_DIR [--base EFFECT,...] [--max-effects K] [overrides...]
                                                discrepancy workflow: name the effect the physics model misses
-    thermbench replay MODEL_DIR DATA_DIR --run ID [--out OUT_DIR]
+    thermbench replay MODEL_DIR DATA_DIR --run ID [--out OUT_DIR] [--force]
                                                an exported model in the C runtime over a run's log: before/after
     thermbench precompensate PROGRAM.nc --model MODEL.joblib --out OUT.nc [--verify] [...]
                                                seed 003: rewrite a part program against the predicted error
@@ -22,6 +22,8 @@
 from __future__ import annotations
 
 import argparse
+import difflib
+import math
 import sys
 from pathlib import Path
 
@@ -35,13 +37,14 @@ def _print_summary(title: str, path: Path, table) -> None:
 
 
 def cmd_simulate(overrides: list[str]) -> int:
+    from .config import ConfigError, compose_checked
+
+    cfg = compose_checked("simulate", overrides)  # first: a mistake is reported before the simulator loads
     from . import datasets
-    from .config import load_config
     from .data.io import load_dataset, save_dataset
     from .data.reference import run_summary
     from .sim.scenario import simulate_dataset
 
-    cfg = load_config("simulate", overrides)
     if cfg.get("suite") == "benchmark":
         root = Path(str(cfg.benchmark_root))
         for name in datasets.names():
@@ -51,9 +54,20 @@ def cmd_simulate(overrides: list[str]) -> int:
             _print_summary(f"[{name}] {state}", path.resolve(), run_summary(ds))
         return 0
     if cfg.get("suite") is not None:
-        raise ValueError(f"config key 'suite': expected null or 'benchmark', got {cfg.suite!r}")
+        raise ConfigError(f"config key 'suite': expected null or 'benchmark', got {cfg.suite!r}")
+    # checked here, before the simulation runs (minutes), not when its result is saved
+    if cfg.file_format not in ("csv", "parquet"):
+        raise ConfigError(f"config key 'file_format': expected csv or parquet, got {cfg.file_format!r}")
+    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
+        raise ConfigError(f"config key 'seed': expected an integer >= 0, got {cfg.seed!r}")
+    from .outputs import check_output_dir
+
+    force = cfg.get("force", False)
+    if not isinstance(force, bool):
+        raise ConfigError(f"config key 'force': expected true or false, got {force!r}")
+    check_output_dir(Path(str(cfg.out_dir)), "dataset", force=force, force_option="force=true")  # before simulating
     ds, _ = simulate_dataset(cfg)
-    path = save_dataset(ds, Path(str(cfg.out_dir)), file_format=str(cfg.file_format))
+    path = save_dataset(ds, Path(str(cfg.out_dir)), file_format=str(cfg.file_format), force=force)
     _print_summary(f"[{cfg.machine.name} / {cfg.protocol.name}] simulated", path.resolve(), run_summary(load_dataset(path)))
     return 0
 
@@ -70,16 +84,15 @@ def cmd_validate(path: str) -> int:
 
 
 def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: float, classifier: str) -> int:
-    from .classify import classify_motion, format_classification
-    from .experiment import group_option
-
     from hydra.utils import instantiate
 
-    from .classify import ProximityNaiveBayes
+    from .classify import ProximityNaiveBayes, classify_motion, format_classification
+    from .config import ConfigError
+    from .experiment import group_option
 
     clf = instantiate(group_option("classifier", classifier), _convert_="all")
     if not (isinstance(clf, ProximityNaiveBayes) and clf.conditions):
-        raise ValueError(
+        raise ConfigError(
             f"--classifier {classifier}: needs a proximity classifier with preset conditions "
             "(conf/classifier/seed002.yaml); the others learn their conditions from training runs"
         )
@@ -88,30 +101,34 @@ def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: 
     return 0
 
 
-def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int | None, overrides: list[str]) -> int:
+def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int | None, overrides: list[str],
+                 force: bool = False) -> int:  # fmt: skip
     from omegaconf import OmegaConf
 
-    from .config import load_config
+    from .config import compose_checked
+
+    # paths and lists go in after composition: no Hydra quoting of arbitrary paths
+    cfg = compose_checked("diagnose", overrides, fill={"data_dir": data_dir, "out_dir": out_dir})
     from .discrepancy import diagnose
 
-    cfg = load_config("diagnose", overrides)
-    # paths and lists go in after composition: no Hydra quoting of arbitrary paths
-    OmegaConf.update(cfg, "data_dir", data_dir)
-    OmegaConf.update(cfg, "out_dir", out_dir)
     if base is not None:
         OmegaConf.update(cfg, "base", [b.strip() for b in base.split(",") if b.strip()])
     if max_effects is not None:
         OmegaConf.update(cfg, "max_effects", max_effects)
+    if force:
+        OmegaConf.update(cfg, "force", True)
     diagnose(cfg)
     return 0
 
 
-def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None) -> int:
+def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: bool = False) -> int:
     from .export.replay import format_replay, replay_run, write_replay
+    from .outputs import check_output_dir
 
-    res = replay_run(Path(model_dir), Path(data_dir), run)
     out_dir = Path(out) if out else Path("replays") / f"{Path(model_dir).name}__{run}"
-    write_replay(res, out_dir)
+    check_output_dir(out_dir, "replay", force=force)  # refused before the replay runs
+    res = replay_run(Path(model_dir), Path(data_dir), run)
+    write_replay(res, out_dir, force=force)
     print(format_replay(res["figures"]))
     print(f"  -> {out_dir.resolve()}")
     return 0
@@ -138,22 +155,21 @@ def _quiet_asyncua() -> None:
 def _compose(name: str, overrides: list[str], **paths):
     from omegaconf import OmegaConf
 
-    from .config import load_config
+    from .config import compose_checked
 
-    cfg = load_config(name, overrides)
-    for key, value in paths.items():  # paths and URLs go in after composition: no Hydra quoting
-        if value is not None:
-            OmegaConf.update(cfg, key, value)
+    # paths and URLs go in after composition: no Hydra quoting
+    cfg = compose_checked(name, overrides, fill={k: v for k, v in paths.items() if v is not None})
     return OmegaConf.to_container(cfg, resolve=True)
 
 
 def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[str]) -> int:
     import asyncio
 
+    cfg = _compose("compensator", overrides)  # first: a mistake is reported before asyncua loads
     from .compensator.client import Compensator, format_summary
 
     _quiet_asyncua()
-    comp = Compensator(Path(model_dir), endpoint, Path(nodes), _compose("compensator", overrides))
+    comp = Compensator(Path(model_dir), endpoint, Path(nodes), cfg)
 
     async def run() -> dict:
         import signal
@@ -171,10 +187,10 @@ def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[s
 def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
     import asyncio
 
+    cfg = _compose("sim_cnc", overrides, endpoint=endpoint)  # first: a mistake is reported before asyncua loads
     from .compensator.simcnc import build_machine, format_figures, serve
 
     _quiet_asyncua()
-    cfg = _compose("sim_cnc", overrides, endpoint=endpoint)
     machine = build_machine(cfg)
     print(f"sim-cnc: run {machine.run}, {len(machine.samples)} samples at {cfg['speed']:g}x real time on {cfg['endpoint']}"
           + (" (starts when a client first reads it)" if cfg["start"] == "on_compensator" else ""), flush=True)  # fmt: skip
@@ -193,12 +209,52 @@ def cmd_certs(out_dir: str, days: int, host: str | None) -> int:
 HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage mistake in one line (the usage is one --help away)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(lowest: float | None = None, integer: bool = False):
+    """An argparse type: a finite number (an integer), >= ``lowest`` if given."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if integer else 'a number'}, got {text!r}") from None
+        if not math.isfinite(value) or (lowest is not None and value < lowest):
+            bound = f" >= {lowest:g}" if lowest is not None else ""
+            raise argparse.ArgumentTypeError(f"expected a finite {'integer' if integer else 'number'}{bound}, got {text!r}")
+        return value
+
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
-    from .config import ConfigError
-    from .data.io import DatasetError
-    from .export import RuntimeFailed, RuntimeUnavailable
-    from .models.base import ModelError
-    from .tracking import TrackingError
+    """``thermbench ...``: the exit code. 2: a user mistake, reported in one line on stderr
+    (:func:`thermbench.errors.user_errors`); any other exception is a bug and keeps its
+    traceback. 141: the reader of stdout went away (``thermbench ... | head``), quietly."""
+    from .errors import BROKEN_PIPE_EXIT, GuardedStdout, StdoutClosed, stdout_closed
+
+    stdout = sys.stdout
+    sys.stdout = GuardedStdout(stdout)
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # now, while a closed pipe is still ours to handle
+        return code
+    except StdoutClosed:
+        return BROKEN_PIPE_EXIT
+    except BrokenPipeError:  # written around the guard (a stream kept from before)
+        stdout_closed(stdout)
+        return BROKEN_PIPE_EXIT
+    finally:
+        sys.stdout = stdout
+
+
+def _main(argv: list[str] | None) -> int:
+    from .errors import report, user_errors
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in HYDRA_JOBS:
@@ -206,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return run(argv[0], argv[1:])
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="thermbench",
         description="Ball-screw thermal error modelling and compensation.",
         epilog="Hydra jobs: thermbench {train,evaluate,benchmark,export} [overrides] [-m] [--help]",
@@ -218,15 +274,17 @@ def main(argv: list[str] | None = None) -> int:
     p_val = sub.add_parser("validate", help="validate a dataset directory against the contract")
     p_val.add_argument("data_dir")
     p_cls = sub.add_parser("classify", help="seed 002 naive-Bayes motion-condition classifier (eq. 15-19)")
-    p_cls.add_argument("--stroke", type=float, required=True, help="working stroke A, mm")
-    p_cls.add_argument("--start", type=float, required=True, help="stroke start P_start, mm")
-    p_cls.add_argument("--end", type=float, required=True, help="stroke end P_end, mm")
-    p_cls.add_argument("--feed", type=float, required=True, help="feed C, mm/min")
+    p_cls.add_argument("--stroke", type=_number(0), required=True, help="working stroke A, mm")
+    p_cls.add_argument("--start", type=_number(), required=True, help="stroke start P_start, mm")
+    p_cls.add_argument("--end", type=_number(), required=True, help="stroke end P_end, mm")
+    p_cls.add_argument("--feed", type=_number(0), required=True, help="feed C, mm/min")
     p_cls.add_argument("--classifier", default="seed002", help="conf/classifier option (default: seed002, Table 5)")
     p_dia = sub.add_parser("diagnose", help="discrepancy workflow: where the physics model and the data disagree, "
                            "which canonical effect is missing (conf/diagnose.yaml)")  # fmt: skip
     p_dia.add_argument("data_dir", help="dataset directory in the contract format")
     p_dia.add_argument("--out", required=True, help="output directory (diagnosis.json, report.md, figures)")
+    p_dia.add_argument("--force", action="store_true", help="also write into a directory holding other files "
+                       "(never over them; never into a dataset)")  # fmt: skip
     p_dia.add_argument("--base", default=None, help="canonical effects already in the model, comma-separated")
     p_dia.add_argument("--max-effects", type=int, default=None, help="add at most K effects (default 3)")
     p_dia.add_argument("overrides", nargs="*", help="Hydra overrides of conf/diagnose.yaml, e.g. track=false")
@@ -236,6 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     p_rep.add_argument("data_dir", help="dataset directory in the contract format")
     p_rep.add_argument("--run", required=True, help="run id to replay")
     p_rep.add_argument("--out", default=None, help="output directory (default replays/<model>__<run>)")
+    p_rep.add_argument("--force", action="store_true", help="also write into a directory holding other files "
+                       "(never over them; never into a dataset)")  # fmt: skip
     p_pre = sub.add_parser("precompensate", help="seed 003: revise a part program before machining (no sensors)")
     p_pre.add_argument("program", help="G-code program (mm, G21)")
     p_pre.add_argument("--model", required=True, help="fitted physics or AR model (.joblib), e.g. "
@@ -262,15 +322,20 @@ def main(argv: list[str] | None = None) -> int:
     p_sim_cnc.add_argument("overrides", nargs="*", help="overrides, e.g. benchmark=seed001_vmc_x run=valid1 speed=100")
     p_certs = sub.add_parser("certs", help="self-signed OPC UA application certificates (server and client)")
     p_certs.add_argument("out_dir")
-    p_certs.add_argument("--days", type=int, default=365)
+    p_certs.add_argument("--days", type=_number(1, integer=True), default=365, help="validity, days (>= 1)")
     p_certs.add_argument("--host", default=None, help="host name in the certificates (default: this host's)")
+    commands = [*sub.choices, *HYDRA_JOBS]
+    if argv and not argv[0].startswith("-") and argv[0] not in commands:
+        guess = difflib.get_close_matches(argv[0], commands, n=1)
+        hint = f"; did you mean '{guess[0]}'?" if guess else ";"
+        parser.error(f"unknown command '{argv[0]}'{hint} the commands: {', '.join(commands)}")
     # overrides may follow the options (argparse matches positionals in one chunk)
     args, extra = parser.parse_known_args(argv)
     if extra and (args.command not in ("diagnose", "compensator", "sim-cnc") or any(e.startswith("-") for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         if args.command == "diagnose":
-            return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra])
+            return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra], args.force)
         if args.command == "compensator":
             return cmd_compensator(args.model_dir, args.endpoint, args.nodes, [*args.overrides, *extra])
         if args.command == "sim-cnc":
@@ -280,16 +345,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "replay":
-            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out)
+            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force)
         if args.command == "precompensate":
             return cmd_precompensate(args)
         if args.command == "classify":
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)
-    except (DatasetError, ConfigError, ModelError, TrackingError, ValueError, KeyError, FileNotFoundError,
-            RuntimeUnavailable, RuntimeFailed, FileExistsError) as exc:  # user mistakes, and the C runtime's refusals  # fmt: skip
-        print(f"thermbench: error: {exc}", file=sys.stderr)
-        return 2
+    except user_errors() as exc:  # user mistakes, and the C runtime's refusals; anything else is a bug: traceback
+        return report("thermbench", exc)
     except KeyboardInterrupt:
         print(f"thermbench {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -1,0 +1,144 @@
+"""Which exceptions are the user's mistakes, and how the command line reports them.
+
+A *user error* is a validated input mistake (a config key, a dataset, a file, a model
+directory, the machine's endpoint...): the command prints one line, ``thermbench: error:
+...``, and exits with code 2. Every other exception is a programming error and keeps its
+traceback (a ``KeyError`` or ``ValueError`` raised inside model code is a bug to report,
+not something to hide behind a one-line message).
+
+New user-input errors derive from :class:`UserError`; the older per-module classes are
+listed in ``_MODULE_ERRORS`` (they could later derive from :class:`UserError` instead).
+:func:`user_errors` is the one tuple both :mod:`thermbench.cli` and :mod:`thermbench.app`
+catch. A ``ValueError`` raised for a user's input anywhere else is reported as a bug, with
+its traceback: raise one of these instead.
+
+Exit codes: 2 a user mistake, 1 a bug (traceback), 130 interrupted, 141 stdout closed by
+its reader (``thermbench ... | head``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+#: exit code of a user mistake (argparse uses 2 for its own usage errors too)
+USER_ERROR_EXIT = 2
+#: exit code when the reader of stdout went away (``thermbench ... | head``): 128 + SIGPIPE,
+#: what a shell reports for a tool stopped by a closed pipe
+BROKEN_PIPE_EXIT = 141
+
+
+class UserError(ValueError):
+    """A validated user-input mistake: reported in one line (exit 2), no traceback.
+
+    The message names what is wrong (file, column, config key, run id...) and, where it
+    can, what to do instead."""
+
+
+class StdoutClosed(SystemExit):
+    """Standard output was closed by its reader (``thermbench ... | head``).
+
+    A ``SystemExit`` (code 141), so nothing that catches ``Exception`` (Hydra's job runner,
+    logging handlers, a sweep's per-job error handling) swallows it, and the process ends
+    quietly if nobody catches it."""
+
+    def __init__(self) -> None:
+        super().__init__(BROKEN_PIPE_EXIT)
+
+
+#: the user-input error classes of the older modules: (module under thermbench, class name)
+_MODULE_ERRORS = (
+    ("config", "ConfigError"),
+    ("data.io", "DatasetError"),
+    ("data.errors", "DatasetError"),
+    ("experiment", "ExperimentError"),
+    ("models.base", "ModelError"),
+    ("preprocess.filters", "PreprocessError"),  # a filter parameter or input series, named
+    ("tracking", "TrackingError"),
+    ("export.encoding", "ExportError"),
+    ("export.fileformat", "ModelFileError"),
+    ("export.runtime", "RuntimeUnavailable"),
+    ("export.runtime", "RuntimeFailed"),
+    ("discrepancy.workflow", "DiagnoseError"),
+    ("precompensate", "PrecompError"),
+    ("compensator.client", "CompensatorError"),
+    ("compensator.nodes", "NodesError"),
+    ("compensator.simcnc", "SimCncError"),
+)
+
+#: the user's files and folders: a path that is missing, in the way, not a directory, not ours
+_OS_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions that are user mistakes: reported in one line, no traceback.
+
+    :class:`UserError` and its subclasses, the per-module classes listed in
+    ``_MODULE_ERRORS``, and the OS errors about the user's paths. Nothing else: a plain
+    ``ValueError``/``KeyError`` is a bug. Only modules already imported are looked at (an
+    exception of a class whose module was never imported cannot have been raised), so
+    catching these costs no import of pandas, MLflow or asyncua."""
+    found: list[type[BaseException]] = [UserError]
+    for module, name in _MODULE_ERRORS:
+        cls = getattr(sys.modules.get(f"{__package__}.{module}"), name, None)
+        if isinstance(cls, type) and issubclass(cls, BaseException) and cls not in found:
+            found.append(cls)
+    return (*found, *_OS_ERRORS)
+
+
+def one_line(message: object) -> str:
+    """``message`` on one line: its non-empty lines joined with '; '."""
+    lines = [ln.strip() for ln in str(message).splitlines() if ln.strip()]
+    return "; ".join(lines) if lines else type(message).__name__
+
+
+def report(prefix: str, exc: BaseException) -> int:
+    """Print a user error as ``<prefix>: error: <message>`` (one line on stderr); return 2."""
+    print(f"{prefix}: error: {one_line(exc)}", file=sys.stderr, flush=True)
+    return USER_ERROR_EXIT
+
+
+class GuardedStdout:
+    """``sys.stdout`` whose writes raise :class:`StdoutClosed` once the reader is gone.
+
+    The standard recipe (Python docs, "Note on SIGPIPE"): on ``BrokenPipeError`` point the
+    stdout file descriptor at ``/dev/null`` (so the interpreter's final flush cannot fail
+    again) and exit quietly."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def write(self, s: str) -> int:
+        try:
+            return self._stream.write(s)
+        except BrokenPipeError:
+            raise stdout_closed(self._stream) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise stdout_closed(self._stream) from None
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def stdout_closed(stream=None) -> StdoutClosed:
+    """Silence ``stream`` (default ``sys.stdout``) for good: ``/dev/null`` on its file
+    descriptor; return the exit to raise."""
+    stream = sys.stdout if stream is None else stream
+    try:
+        fd = stream.fileno()
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, fd)
+        finally:
+            os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no real stdout (captured in tests): nothing to redirect
+        pass
+    return StdoutClosed()
