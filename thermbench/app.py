@@ -112,7 +112,7 @@ def _check_hydra_dirs(name: str, overrides: list[str], multirun: bool) -> None:
     from .config import load_config
     from .outputs import OutputRefused, check_hydra_dir
 
-    mine = [o for o in overrides if o.lstrip("+~").startswith("hydra.") and "," not in o]
+    mine = [o for o in overrides if o.lstrip("+~").startswith(("hydra.", "hydra/")) and "," not in o]
     cfg = load_config(name, mine, return_hydra_config=True)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     try:
