@@ -49,8 +49,12 @@ import numpy as np
 import pandas as pd
 from sklearn.base import BaseEstimator, ClassifierMixin
 
+from .config import ConfigError
+from .errors import UserError
+
 __all__ = [
     "FEATURES",
+    "ClassifierError",
     "ProximityNaiveBayes",
     "classify_motion",
     "format_classification",
@@ -63,6 +67,17 @@ FEATURES = ("stroke_mm", "start_mm", "end_mm", "feed_mm_min")
 FACTORS = ("stroke", "position", "feed")  # A, B = P_start + P_end, C of seed 002 eq. 15
 _FACTOR_KEYS = {"stroke": "stroke_mm", "position": "position_mm", "feed": "feed_mm_min"}
 _PARAM = {"stroke": "stroke_levels_mm", "position": "position_levels_mm", "feed": "feed_levels_mm_min"}
+
+
+class ClassifierError(UserError):
+    """A motion to classify that cannot be right (``thermbench classify --stroke ...``, a
+    motion feature out of range): reported in one line, naming the value."""
+
+
+def _config_error(param: str, message: str) -> ConfigError:
+    """A classifier parameter of ``conf/classifier/*.yaml`` that cannot be right: the
+    message names the config key ``classifier.<param>``."""
+    return ConfigError(f"config key 'classifier.{param}': {message}")
 
 
 # ---------------------------------------------------------------- features ---
@@ -97,11 +112,11 @@ def motion_factors(X) -> np.ndarray:
     for c, v in cols.items():
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
-            raise ValueError(f"motion features: column {c!r} has a missing/non-numeric value at row {bad[0]}")
+            raise ClassifierError(f"motion features: column {c!r} has a missing/non-numeric value at row {bad[0]}")
     for c in ("stroke_mm", "feed_mm_min"):
         bad = np.flatnonzero(cols[c] < 0)
         if bad.size:
-            raise ValueError(f"motion features: {c} must be >= 0, got {cols[c][bad[0]]} at row {bad[0]}")
+            raise ClassifierError(f"motion features: {c} must be >= 0, got {cols[c][bad[0]]} at row {bad[0]}")
     pos = cols["start_mm"] + cols["end_mm"] if pos_cols == ["start_mm", "end_mm"] else 2.0 * cols["centre_mm"]
     return np.column_stack([cols["stroke_mm"], pos, cols["feed_mm_min"]])
 
@@ -121,11 +136,11 @@ def _check_levels(name: str, value) -> np.ndarray | None:
     try:
         arr = np.asarray(list(value), dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a list of numbers or None, got {value!r}") from None
+        raise _config_error(name, f"{name} must be a list of numbers or None, got {value!r}") from None
     if arr.size == 0 or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be a non-empty list of finite numbers or None, got {value!r}")
+        raise _config_error(name, f"{name} must be a non-empty list of finite numbers or None, got {value!r}")
     if np.unique(arr).size != arr.size:
-        raise ValueError(f"{name} has repeated levels: {arr.tolist()}")
+        raise _config_error(name, f"{name} has repeated levels: {arr.tolist()}")
     return np.sort(arr)
 
 
@@ -198,31 +213,30 @@ class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
     # --- fitting ------------------------------------------------------------
     def _given_conditions(self) -> pd.DataFrame:
         if not isinstance(self.conditions, Mapping) or not self.conditions:
-            raise ValueError(
+            raise _config_error(
+                "conditions",
                 f"conditions must be a non-empty mapping label -> {{stroke_mm, position_mm, feed_mm_min}}, "
-                f"got {self.conditions!r}"
+                f"got {self.conditions!r}",
             )
         rows = {}
         for label, c in self.conditions.items():
+            where = f"conditions[{label!r}]"
             if not isinstance(c, Mapping):
-                raise ValueError(f"conditions[{label!r}] must be a mapping with stroke_mm, position_mm, feed_mm_min")
-            if "position_mm" in c:
-                pos = c["position_mm"]
-            elif "start_mm" in c and "end_mm" in c:
-                pos = float(c["start_mm"]) + float(c["end_mm"])
-            else:
-                raise ValueError(f"conditions[{label!r}]: missing position_mm (P_start + P_end) or start_mm + end_mm")
+                raise _config_error("conditions", f"{where} must be a mapping with stroke_mm, position_mm, feed_mm_min")
+            if "position_mm" not in c and not ("start_mm" in c and "end_mm" in c):
+                raise _config_error("conditions", f"{where}: missing position_mm (P_start + P_end) or start_mm + end_mm")
             missing = [k for k in ("stroke_mm", "feed_mm_min") if k not in c]
             if missing:
-                raise ValueError(f"conditions[{label!r}]: missing {missing}; got keys {sorted(c)}")
+                raise _config_error("conditions", f"{where}: missing {missing}; got keys {sorted(c)}")
             try:
-                rows[str(label)] = [float(c["stroke_mm"]), float(pos), float(c["feed_mm_min"])]
+                pos = float(c["position_mm"]) if "position_mm" in c else float(c["start_mm"]) + float(c["end_mm"])
+                rows[str(label)] = [float(c["stroke_mm"]), pos, float(c["feed_mm_min"])]
             except (TypeError, ValueError):
-                raise ValueError(f"conditions[{label!r}]: values must be numbers, got {dict(c)}") from None
+                raise _config_error("conditions", f"{where}: values must be numbers, got {dict(c)}") from None
             if not np.all(np.isfinite(rows[str(label)])):
-                raise ValueError(f"conditions[{label!r}]: values must be finite, got {dict(c)}")
+                raise _config_error("conditions", f"{where}: values must be finite, got {dict(c)}")
             if rows[str(label)][0] < 0 or rows[str(label)][2] < 0:
-                raise ValueError(f"conditions[{label!r}]: stroke_mm and feed_mm_min must be >= 0, got {dict(c)}")
+                raise _config_error("conditions", f"{where}: stroke_mm and feed_mm_min must be >= 0, got {dict(c)}")
         return pd.DataFrame.from_dict(rows, orient="index", columns=list(_FACTOR_KEYS.values()))
 
     def fit(self, X=None, y=None):
@@ -233,15 +247,18 @@ class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
         for a in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:
             delattr(self, a)
         if not isinstance(self.level_tolerance, Real) or not 0 <= self.level_tolerance < 1:
-            raise ValueError(f"level_tolerance must be a number in [0, 1), got {self.level_tolerance!r}")
+            raise _config_error(
+                "level_tolerance", f"level_tolerance must be a number in [0, 1), got {self.level_tolerance!r}"
+            )
         given = {f: _check_levels(_PARAM[f], getattr(self, _PARAM[f])) for f in FACTORS}
         if self.conditions is not None:
             cond = self._given_conditions()
         else:
             if X is None or y is None:
-                raise ValueError(
+                raise _config_error(
+                    "conditions",
                     "ProximityNaiveBayes has no conditions: set `conditions` (e.g. conf/classifier/seed002.yaml) "
-                    "or fit(X, y) on motion features with condition labels"
+                    "or fit(X, y) on motion features with condition labels",
                 )
             F = motion_factors(X)
             y = np.asarray(y).astype(str).ravel()
@@ -266,15 +283,27 @@ class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
             same = [cond.index[m] for m in range(len(keys)) if keys[m] == keys[k]]
             if len(same) > 1:
                 desc = ", ".join(f"{f} {levels[f][i]:g}" for f, i in zip(FACTORS, keys[k]))
-                raise ValueError(
+                raise _config_error(
+                    self._culprit(cond.loc[same], given),
                     f"conditions {same} map to the same levels ({desc}): the classifier cannot tell them apart; "
-                    f"levels: " + "; ".join(f"{_PARAM[f]}={levels[f].tolist()}" for f in FACTORS)
+                    f"levels: " + "; ".join(f"{_PARAM[f]}={levels[f].tolist()}" for f in FACTORS),
                 )
         self.classes_ = np.asarray(cond.index.to_numpy(), dtype=object)
         self.conditions_ = cond
         self.levels_ = levels
         self.condition_levels_ = idx
         return self
+
+    def _culprit(self, same: pd.DataFrame, given: dict) -> str:
+        """The parameter to change when the conditions ``same`` share their levels: a preset
+        condition (``conditions``), else the factor's levels (``*_levels_mm``) or, for levels
+        taken from the data, ``level_tolerance``."""
+        if self.conditions is not None:
+            return "conditions"
+        for f in FACTORS:
+            if same[_FACTOR_KEYS[f]].nunique() > 1:  # different values on one level of this factor
+                return _PARAM[f] if given[f] is not None else "level_tolerance"
+        return "conditions"
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "classes_"):
@@ -332,13 +361,13 @@ def classify_motion(stroke_mm, start_mm, end_mm, feed_mm_min, classifier=None) -
     vals = {"stroke_mm": stroke_mm, "start_mm": start_mm, "end_mm": end_mm, "feed_mm_min": feed_mm_min}
     for k, v in vals.items():
         if isinstance(v, bool) or not isinstance(v, Real) or not np.isfinite(v):
-            raise ValueError(f"{k} must be a finite number, got {v!r}")
+            raise ClassifierError(f"{k} must be a finite number, got {v!r}")
     if feed_mm_min < 0:
-        raise ValueError(f"feed_mm_min must be >= 0, got {feed_mm_min}")
+        raise ClassifierError(f"feed_mm_min must be >= 0, got {feed_mm_min}")
     if stroke_mm < 0:
-        raise ValueError(f"stroke_mm must be >= 0, got {stroke_mm}")
+        raise ClassifierError(f"stroke_mm must be >= 0, got {stroke_mm}")
     if abs(stroke_mm - abs(end_mm - start_mm)) > 1.0:
-        raise ValueError(
+        raise ClassifierError(
             f"stroke_mm {stroke_mm:g} must equal |end_mm - start_mm| = {abs(end_mm - start_mm):g} within 1 mm"
         )
     clf = classifier if classifier is not None else _seed002_classifier()

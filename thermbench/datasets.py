@@ -21,7 +21,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from . import __version__
-from .config import config_dir, load_config
+from .config import ConfigError, config_dir, load_config
 from .data.io import Dataset, load_dataset, save_dataset
 from .sim.scenario import simulate_dataset
 
@@ -53,14 +53,14 @@ def default_root() -> Path:
 def benchmark_config(name: str, extra_overrides: tuple[str, ...] = ()):
     reg = _registry()
     if name not in reg:
-        raise KeyError(f"unknown benchmark dataset {name!r}; known: {sorted(reg)}")
+        raise ConfigError(f"config key 'dataset.source.name': unknown benchmark dataset {name!r}; known: {sorted(reg)}")
     ov = ["truth=benchmark", "file_format=parquet", *reg[name]["overrides"], *extra_overrides]
     return load_config("simulate", ov)
 
 
 def config_hash(cfg) -> str:
     plain = OmegaConf.to_container(cfg, resolve=True)
-    for key in ("out_dir", "suite", "benchmark_root"):
+    for key in ("out_dir", "suite", "benchmark_root", "force"):
         plain.pop(key, None)
     blob = json.dumps({"cfg": plain, "rev": SIM_REVISION, "version": __version__}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]

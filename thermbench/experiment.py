@@ -49,7 +49,9 @@ def hydra_runtime():
     try:
         from hydra.core.hydra_config import HydraConfig
 
-        return HydraConfig.get()
+        hc = HydraConfig.get()
+        hc.runtime.output_dir  # noqa: B018 -- a config left behind by an earlier in-process Hydra call has none
+        return hc
     except Exception:
         return None
 
@@ -124,10 +126,63 @@ def plain(cfg: DictConfig | Mapping) -> dict:
     return {k: v for k, v in dict(cfg).items() if k != "hydra"}
 
 
-def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = None):
+def _parameters(target) -> list[str] | None:
+    """The keyword parameters ``target`` (a class or function) takes; None when it takes any
+    (``**kwargs``) or its signature cannot be read."""
+    import inspect
+
+    try:
+        sig = inspect.signature(target)
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
+        return None
+    return [n for n, p in sig.parameters.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+
+
+def check_targets(node, key: str) -> None:
+    """Every ``_target_`` in the config ``node`` (at config key ``key``) can be imported and
+    takes the keys given with it, checked before anything is instantiated: a typo such as
+    ``+model.bogus=1`` is an :class:`ExperimentError` naming the key and the parameters
+    there are, not Hydra's ``TypeError`` traceback from inside the constructor."""
+    import difflib
+
+    from hydra._internal.utils import _locate  # what instantiate() uses, without its error log
+
+    if isinstance(node, Mapping):
+        target = node.get("_target_")
+        if target is not None:
+            try:
+                obj = _locate(str(target))
+            except Exception as exc:
+                why = exc.__cause__ or exc
+                raise ExperimentError(f"config key '{key}._target_': cannot import {target!r}: {why}") from None
+            names = _parameters(obj)
+            given = [str(k) for k in node if not (str(k).startswith("_") and str(k).endswith("_"))]
+            bad = [k for k in given if names is not None and k not in names]
+            if bad:
+                owner = getattr(obj, "__name__", str(target))
+                near = difflib.get_close_matches(bad[0], names, n=1)
+                hint = f" (did you mean {near[0]!r}?)" if near else ""
+                raise ExperimentError(f"config key '{key}.{bad[0]}': {owner} has no parameter {bad[0]!r}{hint}; "
+                                      f"its parameters: {', '.join(names)}")  # fmt: skip
+        for k, v in node.items():
+            if not str(k).startswith("_"):
+                check_targets(v, f"{key}.{k}")
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            check_targets(v, f"{key}[{i}]")
+
+
+def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = None, key: str = "model"):
     """Instantiate a model config; ``preprocess_steps`` (a list of filter configs) replaces
-    the model's own preprocessing when not None; ``seed`` goes to models that take one."""
-    model = instantiate(dict(model_cfg), _convert_="all")
+    the model's own preprocessing when not None; ``seed`` goes to models that take one.
+    ``key``: where the model config sits in the job's config (named in a mistake's message)."""
+    model_cfg = OmegaConf.to_container(model_cfg, resolve=True) if OmegaConf.is_config(model_cfg) else dict(model_cfg)
+    check_targets(model_cfg, key)
+    if preprocess_steps is not None:
+        check_targets(list(preprocess_steps), "preprocess.steps")
+    model = instantiate(model_cfg, _convert_="all")
     params = model.get_params(deep=True)  # deep: the models inside a bank get them too
 
     def keys(name: str) -> list[str]:
@@ -159,13 +214,20 @@ def load_split(dcfg: Mapping) -> Split:
     dcfg = dict(dcfg)
     if "source" not in dcfg:
         raise ExperimentError("config key 'dataset.source': expected a loader with _target_")
+    source = OmegaConf.to_container(dcfg["source"], resolve=True) if OmegaConf.is_config(dcfg["source"]) else dcfg["source"]
+    if not (isinstance(source, Mapping) and source.get("_target_")):
+        raise ExperimentError(f"config key 'dataset.source': expected a loader with _target_, got {source!r}")
+    check_targets(source, "dataset.source")
     try:
-        ds = instantiate(dcfg["source"], _convert_="all")
+        ds = instantiate(source, _convert_="all")
     except InstantiationException as exc:  # hydra wraps the loader's own (clear) error
+        from .errors import user_errors
+
         cause = exc.__cause__
-        if isinstance(cause, (ValueError, FileNotFoundError)):
-            raise ExperimentError(f"config key 'dataset.source': {cause}") from None
-        raise ExperimentError(f"config key 'dataset.source': {exc}") from None
+        if not isinstance(cause, user_errors()):  # a bug in the loader: its traceback
+            raise
+        msg = str(cause)  # a dataset, file or config mistake: one line naming it
+        raise ExperimentError(msg if msg.startswith("config key") else f"config key 'dataset.source': {msg}") from None
     runs = list(ds.run_ids)
     validation = list(dcfg.get("validation") or [])
     states = list(dcfg.get("states") or [r for r in runs if r not in validation])

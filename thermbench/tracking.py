@@ -81,6 +81,33 @@ def check_server(uri: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
+#: what MLflow 3 stores runs in, when its own list cannot be read
+_SCHEMES = ("databricks", "databricks-uc", "file", "http", "https", "mssql", "mysql", "postgresql", "sqlite", "uc")
+
+
+def check_uri_scheme(uri: str, shown: str | None = None) -> None:
+    """Raise :class:`TrackingError` (naming ``tracking.uri``) unless MLflow has a tracking
+    store for the scheme of ``uri`` (checked before MLflow is pointed at it, which would
+    otherwise fail later with MLflow's own traceback). ``shown``: the URI as the user wrote it."""
+    try:
+        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
+
+        schemes = sorted(k for k in _tracking_store_registry._registry if k)  # plugins included
+    except Exception:  # a private name of MLflow's: fall back to the documented schemes
+        schemes = list(_SCHEMES)
+    try:
+        from mlflow.utils.uri import get_uri_scheme
+
+        scheme = uri if uri in ("databricks", "databricks-uc", "uc") else get_uri_scheme(uri)
+    except Exception:  # MLflow refuses the URI itself, e.g. an unknown database dialect (mysqlx://)
+        scheme = uri.split("://", 1)[0] if "://" in uri else None
+    if scheme and scheme not in schemes:
+        raise TrackingError(
+            f"config key 'tracking.uri': {shown or uri}: unsupported URI scheme {scheme!r}; MLflow takes "
+            f"{', '.join(schemes)} (e.g. sqlite:///mlflow.db, or http://host:port for a server)"
+        )
+
+
 def connect(tcfg: Mapping[str, Any], base_dir: str | Path | None = None) -> str:
     """Point MLflow at ``tcfg.uri`` (checking a server first); return the experiment id."""
     _quiet_mlflow()
@@ -90,14 +117,15 @@ def connect(tcfg: Mapping[str, Any], base_dir: str | Path | None = None) -> str:
     uri = str(tcfg.get("uri") or "")
     if not uri:
         raise TrackingError("config key 'tracking.uri': expected a URI (sqlite:///mlflow.db or http://host:port)")
-    uri = resolve_uri(uri, base_dir)
+    given, uri = uri, resolve_uri(uri, base_dir)
+    check_uri_scheme(uri, given)
     if uri.startswith(("http://", "https://")):
         check_server(uri, float(tcfg.get("timeout_s", 5.0)))
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     name = str(tcfg.get("experiment") or "thermbench")
-    client = MlflowClient()
     try:
+        client = MlflowClient()
         exp = client.get_experiment_by_name(name)
         if exp is not None:
             return exp.experiment_id

@@ -347,13 +347,16 @@ class Compensator:
         self.endpoint = endpoint
         self.timeout_s = _num(cfg, "timeout_s", 2.0)
         rc = dict(cfg.get("reconnect") or {})
-        self.backoff0 = _num(rc, "initial_s", 0.2)
-        self.backoff_max = _num(rc, "max_s", 10.0)
-        self.backoff_factor = _num(rc, "factor", 2.0)
+        self.backoff0 = _num(rc, "initial_s", 0.2, name="reconnect.initial_s")
+        self.backoff_max = _num(rc, "max_s", 10.0, name="reconnect.max_s")
+        self.backoff_factor = _num(rc, "factor", 2.0, name="reconnect.factor")
         if self.backoff_factor < 1 or self.backoff_max < self.backoff0:
             raise CompensatorError("config key 'reconnect': expected factor >= 1 and max_s >= initial_s, got "
                                    f"factor {self.backoff_factor}, initial_s {self.backoff0}, max_s {self.backoff_max}")  # fmt: skip
-        self.max_cycles = None if cfg.get("max_cycles") is None else int(_num(cfg, "max_cycles", 1))
+        max_cycles = None if cfg.get("max_cycles") is None else _num(cfg, "max_cycles", 1)
+        if max_cycles is not None and (not math.isfinite(max_cycles) or max_cycles != int(max_cycles)):
+            raise CompensatorError(f"config key 'max_cycles': expected null or a whole number > 0, got {max_cycles}")
+        self.max_cycles = None if max_cycles is None else int(max_cycles)
         self.duration_s = None if cfg.get("duration_s") is None else _num(cfg, "duration_s", 1.0)
         self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
         check_output_file(self.log_path, "compensator-log")  # refused before anything connects

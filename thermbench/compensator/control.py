@@ -69,14 +69,31 @@ def flag_names(f: int) -> str:
     return "|".join(m.name for m in Flags if m.value and f & m.value) or "OK"
 
 
-def _num(cfg: Mapping[str, Any], key: str, default: float, positive: bool = True) -> float:
+def config_error(message: str) -> Exception:
+    """A mistake in ``conf/compensator.yaml`` or its overrides: a
+    :class:`thermbench.compensator.client.CompensatorError` (one line, exit 2). The class
+    lives in :mod:`.client`, which imports this module: it is imported here when needed."""
+    from .client import CompensatorError
+
+    return CompensatorError(message)
+
+
+def _num(cfg: Mapping[str, Any], key: str, default: float, positive: bool = True, name: str | None = None) -> float:
+    """``cfg[key]`` (else ``default``) as a number (> 0 when ``positive``); a mistake names
+    the config key ``name`` (default ``key``; give the full key for a sub-mapping, e.g.
+    ``_num(cfg["line"], "n_points", 21, name="line.n_points")``)."""
+    name = key if name is None else name
     v = cfg.get(key, default)
     try:
+        if isinstance(v, bool):
+            raise TypeError
         v = float(v)
     except (TypeError, ValueError):
-        raise ValueError(f"config key {key!r}: expected a number, got {v!r}") from None
+        raise config_error(f"config key {name!r}: expected a number, got {v!r}") from None
+    if math.isnan(v) or (not positive and math.isinf(v)):
+        raise config_error(f"config key {name!r}: expected a finite number, got {v}")
     if positive and not v > 0:
-        raise ValueError(f"config key {key!r}: must be > 0, got {v}")
+        raise config_error(f"config key {name!r}: must be > 0, got {v}")
     return v
 
 
@@ -84,10 +101,18 @@ def _pair(v: Any, key: str) -> tuple[float, float]:
     try:
         lo, hi = (float(x) for x in v)
     except (TypeError, ValueError):
-        raise ValueError(f"config key {key!r}: expected [low, high], got {v!r}") from None
+        raise config_error(f"config key {key!r}: expected [low, high], got {v!r}") from None
     if not hi > lo:
-        raise ValueError(f"config key {key!r}: expected [low, high] with high > low, got [{lo}, {hi}]")
+        raise config_error(f"config key {key!r}: expected [low, high] with high > low, got [{lo}, {hi}]")
     return lo, hi
+
+
+def _count(cfg: Mapping[str, Any], key: str, default: int, name: str) -> int:
+    """``cfg[key]`` as a whole number (``21``, ``21.0``), naming the config key ``name``."""
+    v = _num(cfg, key, default, positive=False, name=name)
+    if v != int(v):
+        raise config_error(f"config key {name!r}: expected a whole number, got {cfg.get(key, default)!r}")
+    return int(v)
 
 
 @dataclass
@@ -114,15 +139,15 @@ class Settings:
                 input_max_age_s=_num(cfg, "input_max_age_s", 10.0), clock=str(cfg.get("clock", "source")),
                 convention=str(cfg.get("convention", "compensation")),
                 line_travel_mm=None if travel is None else _pair(travel, "line.travel_mm"),
-                line_points=int(_num(line, "n_points", 21)),
-                line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, positive=False),
+                line_points=_count(line, "n_points", 21, "line.n_points"),
+                line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, False, "line.ref_mm"),
                 ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()})  # fmt: skip
         if s.convention not in ("compensation", "error"):
-            raise ValueError(f"config key 'convention': expected compensation or error, got {s.convention!r}")
+            raise config_error(f"config key 'convention': expected compensation or error, got {s.convention!r}")
         if s.clock not in ("source", "client"):
-            raise ValueError(f"config key 'clock': expected source or client, got {s.clock!r}")
+            raise config_error(f"config key 'clock': expected source or client, got {s.clock!r}")
         if s.line_points < 2:
-            raise ValueError(f"config key 'line.n_points': at least 2, got {s.line_points}")
+            raise config_error(f"config key 'line.n_points': at least 2, got {s.line_points}")
         return s
 
     def range_of(self, name: str) -> tuple[float, float]:
@@ -180,7 +205,7 @@ class CycleLogic:
         self.s = settings
         self.output = output
         if output in ("line", "both") and settings.line_travel_mm is None:
-            raise ValueError("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] in mm")
+            raise config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] in mm")
         self.names = ["axis_mm", "feed_mm_min", *(["load_N"] if has_load else []),
                       *[f"{t}_C" for t in model.temperatures]]  # fmt: skip
         self.has_measuring = has_measuring

@@ -30,7 +30,7 @@ from yaml.constructor import ConstructorError
 from yaml.events import AliasEvent, CollectionStartEvent, NodeEvent
 from yaml.nodes import MappingNode
 
-from .errors import one_line, short_repr
+from .errors import DatasetError, one_line, short_repr
 from .limits import YAML_MAX_DEPTH, YAML_MAX_NODES
 
 _BASE = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: about 4x faster
@@ -39,8 +39,10 @@ ALLOWED_TAGS = frozenset(_CORE + t for t in ("str", "int", "float", "bool", "nul
 _MERGE = _CORE + "merge"
 
 
-class YAMLInputError(ValueError):
-    """A YAML file breaks a rule of :class:`StrictLoader` or is not YAML; ``line`` is 1-based (or None)."""
+class YAMLInputError(DatasetError):
+    """A YAML file breaks a rule of :class:`StrictLoader` or is not YAML; ``line`` is 1-based (or None).
+
+    A :class:`~thermbench.data.errors.DatasetError` (a user's file, reported in one line)."""
 
     def __init__(self, problem: str, line: int | None = None):
         self.problem = one_line(problem)

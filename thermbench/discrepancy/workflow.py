@@ -214,9 +214,35 @@ def _number(value, key: str, kind=float):
     try:
         if isinstance(value, bool):
             raise ValueError
-        return kind(value)
-    except (TypeError, ValueError):
+        out = kind(value)
+    except (TypeError, ValueError, OverflowError):
         raise DiagnoseError(f"config key {key!r}: expected {'an integer' if kind is int else 'a number'}, got {value!r}") from None
+    if not np.isfinite(out):
+        raise DiagnoseError(f"config key {key!r}: expected a finite number, got {value!r}")
+    return out
+
+
+#: lowest allowed value of the numeric physics keys: (bound, strict: value > bound, else >=)
+_PHYSICS_LOWEST = {"dx_m": (0, True), "dt_s": (0, True), "macro_dt_s": (0, True), "max_iter": (1, False),
+                   "ftol": (0, True), "geometric_degree": (0, False)}  # fmt: skip
+
+
+def _check_physics(physics: dict) -> None:
+    """The identification model's numbers (``physics.*``) in range, before any data is read:
+    steps and tolerances > 0, at least one iteration, ``macro_dt_s`` a whole multiple of
+    ``dt_s`` (what :class:`thermbench.sim.parts.Numerics` requires)."""
+    from ..sim.parts import Numerics
+
+    for k, (lowest, strict) in _PHYSICS_LOWEST.items():
+        if k in physics and (physics[k] <= lowest if strict else physics[k] < lowest):
+            raise DiagnoseError(f"config key 'physics.{k}': must be {'>' if strict else '>='} {lowest}, got {physics[k]!r}")
+    steps = {k: physics[k] for k in ("dx_m", "dt_s", "macro_dt_s") if k in physics}
+    try:
+        Numerics(**steps)
+    except ValueError:
+        dt_s, macro_dt_s = steps.get("dt_s", Numerics.dt_s), steps.get("macro_dt_s", Numerics.macro_dt_s)
+        raise DiagnoseError(f"config key 'physics.macro_dt_s': must be a whole multiple of physics.dt_s "
+                            f"(got macro_dt_s={macro_dt_s!r}, dt_s={dt_s!r})") from None  # fmt: skip
 
 
 #: PhysicsModel options the diagnose config may set (the rest are the workflow's to choose)
@@ -239,6 +265,7 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
     if bad := sorted(set(physics) - set(PHYSICS_KEYS)):
         raise DiagnoseError(f"config key 'physics': unknown or reserved key(s) {bad}; allowed: {sorted(PHYSICS_KEYS)}")
     physics = {k: (_number(v, f"physics.{k}", PHYSICS_KEYS[k]) if PHYSICS_KEYS[k] else v) for k, v in physics.items()}
+    _check_physics(physics)
     starts = {}
     for eid, params in dict(cfg.get("starts") or {}).items():
         if eid not in OWN_PARAMS or not isinstance(params, dict):

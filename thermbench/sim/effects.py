@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields
-from typing import TYPE_CHECKING, ClassVar
+from numbers import Real
+from typing import TYPE_CHECKING, ClassVar, Mapping
 
 import numpy as np
 from scipy.signal import lfilter
@@ -223,29 +224,53 @@ EFFECTS: dict[str, type[Effect]] = {
 }
 
 
+def _config_error(message: str):
+    """A :class:`thermbench.config.ConfigError` (a user's mistake, one line); imported here,
+    not at the top, so the physics loads without Hydra."""
+    from ..config import ConfigError
+
+    return ConfigError(message)
+
+
 def make_effect(effect_id: str, **params) -> Effect:
-    """Build a canonical effect by id; unknown ids or parameters give a clear error."""
+    """Build a canonical effect by id; unknown ids or parameters give a clear error
+    (a :class:`~thermbench.config.ConfigError`: effect ids and parameters come from configs)."""
     if effect_id not in EFFECTS:
-        raise ValueError(f"unknown effect {effect_id!r}; the canonical effects are {sorted(EFFECTS)}")
+        raise _config_error(f"unknown effect {effect_id!r}; the canonical effects are {sorted(EFFECTS)}")
     cls = EFFECTS[effect_id]
     known = {f.name for f in fields(cls)}
     bad = set(params) - known
     if bad:
-        raise ValueError(f"effect {effect_id!r} has no parameter(s) {sorted(bad)}; it takes {sorted(known)}")
+        raise _config_error(f"effect {effect_id!r} has no parameter(s) {sorted(bad)}; it takes {sorted(known)}")
     return cls(**params)
 
 
-def effects_from_config(cfg) -> list[Effect]:
+def effects_from_config(cfg, key: str = "effects") -> list[Effect]:
     """``{effect_id: {enabled: bool, param: value, ...}}`` -> list of enabled effects.
 
-    A bare ``effect_id: true/false`` also works.
+    A bare ``effect_id: true/false`` also works. A mistake (an unknown effect or parameter,
+    a value that is not a finite number) is a :class:`~thermbench.config.ConfigError`
+    naming the config key ``<key>.<effect>[.<param>]``.
     """
     out: list[Effect] = []
     for effect_id, spec in dict(cfg or {}).items():
+        where = f"{key}.{effect_id}"
         if isinstance(spec, bool):
             spec = {"enabled": spec}
+        if spec is not None and not isinstance(spec, Mapping):
+            raise _config_error(f"config key {where!r}: expected true/false or {{param: value}}, got {spec!r}")
         spec = dict(spec or {})
         if not spec.pop("enabled", True):
             continue
+        if effect_id not in EFFECTS:
+            raise _config_error(f"config key {where!r}: unknown effect {effect_id!r}; "
+                                f"the canonical effects are {sorted(EFFECTS)}")  # fmt: skip
+        known = sorted(f.name for f in fields(EFFECTS[effect_id]))
+        for param, value in spec.items():
+            if param not in known:
+                raise _config_error(f"config key '{where}.{param}': effect {effect_id!r} has no parameter(s) "
+                                    f"{[param]}; it takes {known}")  # fmt: skip
+            if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
+                raise _config_error(f"config key '{where}.{param}': expected a finite number, got {value!r}")
         out.append(make_effect(str(effect_id), **spec))
     return out

@@ -23,7 +23,7 @@ class Screw:
 
     def __post_init__(self) -> None:
         for name in ("length_m", "diameter_m", "nut_length_m"):
-            if not getattr(self, name) > 0:
+            if not 0 < getattr(self, name) < math.inf:
                 raise ValueError(f"screw.{name} must be > 0, got {getattr(self, name)!r}")
         if self.fixed_bearing_length_m < 0:
             raise ValueError(f"screw.fixed_bearing_length_m must be >= 0, got {self.fixed_bearing_length_m!r}")
@@ -77,10 +77,12 @@ class Numerics:
     def __post_init__(self) -> None:
         if self.method not in ("macro", "explicit"):
             raise ValueError(f"numerics.method must be 'macro' or 'explicit', got {self.method!r}")
-        ratio = self.macro_dt_s / self.dt_s
-        if self.dt_s <= 0 or self.dx_m <= 0 or abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        steps = (self.dx_m, self.dt_s, self.macro_dt_s)
+        ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in steps)
+        ratio = self.macro_dt_s / self.dt_s if ok else math.nan
+        if not ok or abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
             raise ValueError(
-                f"numerics: dt_s and dx_m must be > 0 and macro_dt_s a whole multiple of dt_s "
+                f"numerics: dx_m, dt_s and macro_dt_s must be finite and > 0, macro_dt_s a whole multiple of dt_s "
                 f"(got dx_m={self.dx_m}, dt_s={self.dt_s}, macro_dt_s={self.macro_dt_s})"
             )
 

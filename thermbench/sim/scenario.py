@@ -7,6 +7,7 @@ machine + protocol + instruments (+ effects, numerics, seed) -> :class:`Dataset`
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import asdict, replace
 from typing import Any, Sequence
 
@@ -15,6 +16,7 @@ import pandas as pd
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from ..config import ConfigError
 from ..data.io import Dataset
 from ..data.schema import FORMAT, Metadata
 from .duty import Measuring, Phase, Trajectory, build_run, random_phases
@@ -44,7 +46,8 @@ def _build(spec: Any, cls: type, key: str) -> Any:
             return instantiate(spec, _convert_="all")
         return cls(**dict(spec or {}))
     except Exception as exc:
-        raise ValueError(f"config key {key!r}: {exc}") from None
+        why = exc.__cause__ if exc.__cause__ is not None else exc  # Hydra wraps the class's own message
+        raise ConfigError(f"config key {key!r}: {why}") from None
 
 
 def build_model(cfg: Any) -> ScrewThermalModel:
@@ -72,12 +75,14 @@ def _run_phases(run_id: str, run: dict) -> list[Phase]:
     phases = []
     for i, ph in enumerate(run.get("phases") or []):
         spec = {**base, **ph}
-        if spec.get("kind") == "stop":
-            spec = {"kind": "stop", "duration_s": spec["duration_s"]}
         try:
+            if spec.get("kind") == "stop":
+                spec = {"kind": "stop", "duration_s": spec["duration_s"]}
             phases.append(Phase(**spec))
+        except KeyError as exc:
+            raise ConfigError(f"config key 'protocol.runs.{run_id}.phases[{i}]': a stop needs {exc}") from None
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"config key 'protocol.runs.{run_id}.phases[{i}]': {exc}") from None
+            raise ConfigError(f"config key 'protocol.runs.{run_id}.phases[{i}]': {exc}") from None
     return phases
 
 
@@ -128,7 +133,7 @@ def protocol_runs(cfg: Any, rng: np.random.Generator) -> dict[str, dict]:
             "notes": "random duty sequence (condition = its longest move phase)",
         }
     if not runs:
-        raise ValueError("config key 'protocol.runs': the protocol defines no runs")
+        raise ConfigError("config key 'protocol.runs': the protocol defines no runs")
     return runs
 
 
@@ -147,7 +152,10 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[
     (what ``thermbench sim-cnc`` needs for the error at any position and time)."""
     c = _plain(cfg)
     clean = bool(c.get("clean", False))
-    seed = int(c.get("seed", 0))
+    seed = c.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:  # numpy's rngs take seeds >= 0
+        raise ConfigError(f"config key 'seed': expected an integer >= 0, got {seed!r}")
+    seed = int(seed)
     m = c["machine"]
     model = build_model(c)
     inst = c.get("instruments") or {}
@@ -156,13 +164,18 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[
     ifm_spec = dict(inst.get("interferometer") or {})
     ifm_spec.pop("_target_", None)
     ifm = Interferometer(noise_um=0.0 if clean else float(ifm_spec.get("noise_um", 0.2)), geometric=geometric)
-    rate_hz = float(inst.get("process_rate_hz", 1.0))
-    if rate_hz < 1.0:
-        raise ValueError(f"config key 'instruments.process_rate_hz': must be >= 1 (contract), got {rate_hz}")
+    rate_hz = inst.get("process_rate_hz", 1.0)
+    if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float)) or not 1.0 <= rate_hz < math.inf:
+        raise ConfigError(f"config key 'instruments.process_rate_hz': must be >= 1 (contract), got {rate_hz!r}")
+    rate_hz = float(rate_hz)
     meas_cfg = dict(c["protocol"]["measuring"])
     meas_cfg["targets_mm"] = _targets(meas_cfg["targets_mm"])
     meas = _build(meas_cfg, Measuring, "protocol.measuring")
     sensors: dict[str, str] = dict(m.get("sensors") or {})
+    known_locations = sorted({*model.housings, "ambient"})  # what ThermalHistory.housing_C will hold
+    for name, loc in sensors.items():  # checked before any run is simulated
+        if loc not in known_locations:
+            raise ConfigError(f"config key 'machine.sensors.{name}': unknown location {loc!r}; known: {known_locations}")
     ambient0 = float(m.get("ambient_C", 20.0))
 
     root_rng = np.random.default_rng(seed)
@@ -170,7 +183,8 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[
     if runs_only is not None:
         unknown = sorted(set(runs_only) - set(runs))
         if unknown:
-            raise ValueError(f"run(s) {unknown} are not in protocol {c['protocol'].get('name')!r}; its runs: {list(runs)}")
+            raise ConfigError(f"config key 'run': run(s) {unknown} are not in protocol {c['protocol'].get('name')!r}; "
+                              f"its runs: {list(runs)}")  # fmt: skip
     uses_load = any(p.load_N for r in runs.values() for p in r["phases"]) or model.effect("load_dependent_heat")
     process_frames, error_frames, summary_runs, histories = [], [], {}, {}
     for index, (run_id, run) in enumerate(runs.items()):
@@ -184,11 +198,6 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[
         mot = traj.sample(tp)
         pdf = {"run_id": run_id, "t_s": tp, "axis_mm": mot.axis_mm, "feed_mm_min": mot.feed_mm_min}
         for name, loc in sensors.items():
-            if loc not in hist.housing_C:
-                raise ValueError(
-                    f"config key 'machine.sensors.{name}': unknown location {loc!r}; "
-                    f"known: {sorted(hist.housing_C)}"
-                )
             true_C = np.interp(tp, hist.t_s, hist.housing_C[loc])
             pdf[f"{name}_C"] = sensor.read(true_C, tp, rng)
         if uses_load:
