@@ -107,7 +107,11 @@ def test_sim_cnc_runs_the_benchmark_run_the_model_was_checked_on(machine, ds):
 
 
 def test_closed_loop_reduces_the_error_as_replay_predicts(machine, seed001_exports, nodes_file, tmp_path):
+    note = tmp_path / "shift log.txt"  # a user's file beside sim-cnc's out_dir and the compensator's log
+    note.write_text("operator: spindle warm-up skipped\n")
+    nodes_before = nodes_file.read_bytes()
     f, s, log = asyncio.run(_closed_loop(machine, seed001_exports / "mlr", nodes_file, tmp_path))
+    assert note.read_text() == "operator: spindle warm-up skipped\n" and nodes_file.read_bytes() == nodes_before
     rep = replay_run(seed001_exports / "mlr", tmp_path / "sim" / "dataset", RUN)["figures"]
     assert f["before_max_abs_um"] == rep["before_max_abs_um"] > 15.0
     assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]  # the loop compensates ...

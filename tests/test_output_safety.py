@@ -186,15 +186,32 @@ def test_sim_cnc_and_compensator_refuse_before_serving(campaign, tmp_path, seed0
 
 
 # --------------------------------------------------------- notebooks, certs ---
-def test_notebook_runner_refuses_a_users_notebook_before_running(tmp_path, capsys):
+def test_notebook_runner_refuses_a_users_notebook_before_running(campaign, tmp_path, capsys):
     from thermbench import nbrun
 
+    before = _digest(tmp_path / "campaign")
     (tmp_path / "nb").mkdir()
     (tmp_path / "nb" / "01_x.py").write_text('# %% tags=["parameters"]\nQUICK = False\n\n# %%\nraise SystemExit("ran")\n')
     mine = _plant(tmp_path / "out" / "01_x.ipynb")
     assert nbrun.main(["--notebooks", str(tmp_path / "nb"), "--out", str(mine.parent)]) == 2
     assert "01_x.ipynb: exists and thermbench did not write it" in _one_error_line(capsys)
-    assert mine.read_text() == NOTE
+    assert nbrun.main(["--notebooks", str(tmp_path / "nb"), "--out", str(campaign)]) == 2
+    assert "lies inside the dataset" in _one_error_line(capsys)
+    assert mine.read_text() == NOTE and _digest(tmp_path / "campaign") == before
+
+
+def test_benchmark_refuses_a_dataset_as_its_report_or_model_directory_before_any_fit(campaign, tmp_path, monkeypatch):
+    from thermbench import benchmark as bm
+    from thermbench.config import load_config
+
+    before = _digest(tmp_path / "campaign")
+    monkeypatch.setattr(bm, "tasks", lambda *a, **k: pytest.fail("worked before refusing"))
+    for key in ("report_dir", "export_dir"):
+        for d in (campaign, campaign.parent, campaign / "sub"):
+            cfg = load_config("benchmark", [f"{key}={d}", "force=true", f"tracking.uri=sqlite:///{tmp_path}/m.db"])
+            with pytest.raises(OutputRefused, match="dataset"):
+                bm.benchmark(cfg)
+    assert _digest(tmp_path / "campaign") == before
 
 
 def test_certs_refuse_a_dataset_and_keep_other_files(campaign, tmp_path, capsys):
