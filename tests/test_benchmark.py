@@ -141,7 +141,9 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     chosen = [k for k, v in manifest.items() if v["chosen"]]
     assert len(chosen) == 1 and chosen[0].startswith("seed001_vmc_x__")
     tracking.connect({"uri": f"sqlite:///{tmp_path}/mlflow.db", "experiment": "thermbench"})
-    champion = tracking.load_model("models:/thermbench-seed001_vmc_x@champion")
+    # these are not the shipped settings: registered under their own alias, the demo's 'champion' is left alone
+    assert res.outputs["seed001_vmc_x"] == f"models:/thermbench-seed001_vmc_x@{bm.output_name(_cfg(tmp_path))}"
+    champion = tracking.load_model(res.outputs["seed001_vmc_x"])
     saved = __import__("joblib").load(tmp_path / "models" / manifest[chosen[0]]["file"])
     ds = load_split(group_option("dataset", "seed001_vmc_x")).dataset
     np.testing.assert_allclose(champion.predict(ds, "valid1"), saved.predict(ds, "valid1"))

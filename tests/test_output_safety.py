@@ -268,3 +268,42 @@ def test_hydra_jobs_refuse_a_dataset_or_a_users_folder_as_their_run_dir(job, cam
         assert "hydra.run.dir" in line or "draft.docx" in line
     assert mine.read_text() == NOTE and _digest(tmp_path / "campaign") == before
     assert not (campaign / ".hydra").exists()
+
+
+def test_hydra_subdirectories_cannot_escape_the_run_directory(campaign, tmp_path, capsys):
+    before = _digest(tmp_path / "campaign")
+    for ov in (f"hydra.output_subdir={campaign}", "hydra.output_subdir=../x"):
+        assert main(["train", f"hydra.run.dir={tmp_path}/r", ov]) == 2
+        assert "config key 'hydra.output_subdir'" in _one_error_line(capsys)
+    assert main(["train", "-m", f"hydra.sweep.dir={tmp_path}/s", "hydra.sweep.subdir=../../campaign", "train=state1,state2"]) == 2
+    assert "config key 'hydra.sweep.subdir'" in _one_error_line(capsys)
+    assert main(["train", r"hydra.run.dir=${oc.env:THERMBENCH_NO_SUCH_VARIABLE}"]) == 2
+    assert "config key 'hydra.run.dir'" in _one_error_line(capsys)
+    assert _digest(tmp_path / "campaign") == before
+
+
+def test_sigterm_while_writing_leaves_no_staging_directory(tmp_path, seed001_exports, campaign):
+    """kill -TERM during a write: the command unwinds, the staging directory is removed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "rp"
+    code = ("import os, signal, time, thermbench.export.replay as r\n"
+            "real = r.draw_errors\n"
+            "def slow(*a, **k):\n"
+            "    open(os.environ['MARK'], 'w').close(); time.sleep(60)\n"
+            "r.draw_errors = slow\n"
+            "from thermbench.cli import main\n"
+            f"raise SystemExit(main(['replay', {str(seed001_exports / 'mlr')!r}, {str(campaign)!r}, '--run', 'valid1', '--out', {str(out)!r}]))\n")  # fmt: skip
+    mark = tmp_path / "writing"
+    p = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "MARK": str(mark)})
+    t0 = time.monotonic()
+    while not mark.exists() and time.monotonic() - t0 < 60 and p.poll() is None:
+        time.sleep(0.1)
+    assert mark.exists(), "the replay never reached its figures"
+    p.send_signal(signal.SIGTERM)
+    assert p.wait(timeout=30) == 128 + signal.SIGTERM
+    assert not out.exists() and [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []

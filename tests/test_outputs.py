@@ -23,7 +23,10 @@ def _tree(root):
     return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def _plant(path, text="my notes, do not lose\n"):
+NOTE = "my notes, do not lose\n"
+
+
+def _plant(path, text=NOTE):
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return path.read_bytes()
@@ -202,3 +205,53 @@ def test_a_stream_replaces_only_its_own_log_and_survives_a_crash(tmp_path):
     s2.close()
     rec = json.loads((tmp_path / RECORD).read_text())
     assert rec["sets"]["ours.csv"]["files"]["ours.csv"] == hashlib.sha256(b"cycle\n").hexdigest()
+
+
+def test_a_copied_record_does_not_make_the_copy_thermbenchs(tmp_path):
+    """cp -r of an output carries its record; in the copy the files are the user's."""
+    import shutil
+
+    with output_dir(tmp_path / "sim", "dataset") as stage:
+        _write(stage, {"metadata.yaml": "m", "process.csv": "p"})
+    with output_dir(tmp_path / "rep", "report") as stage:
+        _write(stage, {"report.md": "r"})
+    for src, dst, kind, why in [("sim", "myrun", "dataset", "is a dataset"),
+                                ("rep", "myreport", "report", "its thermbench record was copied from another directory")]:
+        shutil.copytree(tmp_path / src, tmp_path / dst)
+        before = _tree(tmp_path / dst)
+        with pytest.raises(OutputRefused, match=why):
+            with output_dir(tmp_path / dst, kind) as stage:
+                _write(stage, {"metadata.yaml": "other machine"})
+        assert _tree(tmp_path / dst) == before
+    (tmp_path / "sim").rename(tmp_path / "moved")  # a rename keeps the directory: still thermbench's
+    with output_dir(tmp_path / "moved", "dataset") as stage:
+        _write(stage, {"metadata.yaml": "again"})
+    assert (tmp_path / "moved" / "metadata.yaml").read_text() == "again"
+
+
+def test_a_path_through_a_file_or_a_link_is_judged_where_it_really_goes(tmp_path):
+    note = _plant(tmp_path / "notes.txt")
+    with pytest.raises(OutputRefused, match="notes.txt is a file, not a directory"):
+        outputs.check_output_dir(tmp_path / "notes.txt" / "x", "replay")
+    ds = tmp_path / "lab" / "run7"
+    _plant(ds / "metadata.yaml", "format: x\n")
+    (ds / "photos").mkdir()
+    (tmp_path / "photolink").symlink_to(ds / "photos")
+    with pytest.raises(OutputRefused, match="lies inside the dataset"):  # photolink/.. is run7 itself
+        with output_dir(tmp_path / "photolink" / ".." / "evil", "dataset") as stage:
+            _write(stage, {"metadata.yaml": "x"})
+    assert sorted(p.name for p in ds.iterdir()) == ["metadata.yaml", "photos"] and (tmp_path / "notes.txt").read_bytes() == note
+
+
+def test_hydra_directories_must_prove_they_are_hydras(tmp_path):
+    users = tmp_path / "mine"
+    _plant(users / "result.json", "{my results}")
+    with pytest.raises(OutputRefused, match="is not an earlier Hydra job's directory"):
+        outputs.check_hydra_dir(users)
+    run = tmp_path / "run"
+    for rel in (".hydra/hydra.yaml", ".hydra/config.yaml", "train.log", "result.json"):
+        _plant(run / rel, "x")
+    outputs.check_hydra_dir(run)  # an earlier run: fine
+    _plant(run / "analysis.ipynb", "{}")
+    with pytest.raises(OutputRefused, match="analysis.ipynb"):
+        outputs.check_hydra_dir(run)

@@ -112,11 +112,21 @@ def _check_hydra_dirs(name: str, overrides: list[str], multirun: bool) -> None:
     from .config import load_config
     from .outputs import OutputRefused, check_hydra_dir
 
-    mine = [o for o in overrides if o.lstrip("+~").startswith(("hydra.", "hydra/")) and "," not in o]
+    mine = [o for o in overrides if o.lstrip("+~").startswith(("hydra.", "hydra/"))]
     cfg = load_config(name, mine, return_hydra_config=True)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    for sub in ("hydra.output_subdir", "hydra.sweep.subdir"):  # where Hydra writes inside that directory
+        value = OmegaConf.select(cfg, sub, throw_on_resolution_failure=False)
+        if sub == "hydra.sweep.subdir" and not any(o.lstrip("+~").startswith(sub) for o in mine):
+            continue  # the default, ${hydra.job.num}: resolved by Hydra per job
+        if value is not None and (Path(str(value)).is_absolute() or ".." in Path(str(value)).parts):
+            raise ConfigError(f"config key '{sub}': {value!r} must be a relative path inside {key} (no '..')")
     try:
-        check_hydra_dir(Path(str(OmegaConf.select(cfg, key))), key)
+        where = OmegaConf.select(cfg, key)
+    except Exception as exc:  # an interpolation that cannot be resolved, e.g. an unset ${oc.env:...}
+        raise ConfigError(f"config key '{key}': {one_line(exc)}") from None
+    try:
+        check_hydra_dir(Path(str(where)), key)
     except OutputRefused as exc:
         raise ConfigError(str(exc)) from None
 

@@ -18,6 +18,7 @@ unseen cycles. Tasks run in parallel (joblib), each cached on disk by its argume
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from pathlib import Path
@@ -146,12 +147,18 @@ def tasks(cfg: DictConfig) -> list[dict]:
     Each dataset is loaded (built on first use) here, once, before any task runs, so
     parallel workers never build the same dataset at the same time; its content hash
     and the code version join the task's cache key."""
-    approaches = [str(a) for a in cfg.approaches]
+    approaches = _names(cfg, "approaches", ["single", "global", "bank"])
     bad = sorted(set(approaches) - {"single", "global", "bank"})
     if bad or not approaches:
         raise ExperimentError(f"config key 'approaches': {bad or approaches} not among single, global, bank")
-    families = [str(f) for f in cfg.families]
-    bank_families = [str(f) for f in (cfg.get("bank_families") or [])]
+    families = _names(cfg, "families", _options("model"))
+    bank_families = _names(cfg, "bank_families", families, required=False)
+    _names(cfg, "datasets", _options("dataset"))
+    for key, lo in (("seed", 0), ("n_jobs", -1)):
+        v = cfg.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo or (key == "n_jobs" and v == 0):
+            raise ExperimentError(f"config key '{key}': expected an integer >= {lo}{' other than 0' if key == 'n_jobs' else ''}"
+                                  f", got {v!r}")  # fmt: skip
     stray = sorted(set(bank_families) - set(families))
     if stray:
         raise ExperimentError(f"config key 'bank_families': {stray} are not in 'families' {families}")
@@ -188,6 +195,30 @@ def flagged(results: pd.DataFrame) -> dict[tuple[str, str, str, str], list[str]]
         if flags:
             out[tuple(str(k) for k in key) + ("",) * (4 - len(by))] = flags
     return out
+
+
+def _options(group: str) -> list[str]:
+    from .config import config_dir
+
+    return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+
+
+def _names(cfg, key: str, known: Sequence[str], required: bool = True) -> list[str]:
+    """``cfg[key]`` as a list of names, each one of ``known`` (a mistake names the key, with a did-you-mean)."""
+    import difflib
+
+    value = cfg.get(key)
+    if value is None and not required:
+        return []
+    if isinstance(value, str) or not OmegaConf.is_list(value) and not isinstance(value, (list, tuple)):
+        raise ExperimentError(f"config key '{key}': expected a list, e.g. {key}=[{value}], got {value!r}")
+    names = [str(v) for v in value]
+    for n in names:
+        if n not in known:
+            close = difflib.get_close_matches(n, known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ExperimentError(f"config key '{key}': unknown {n!r}; {hint}known: {', '.join(known)}")
+    return names
 
 
 def choose(results: pd.DataFrame) -> pd.DataFrame:
@@ -266,12 +297,18 @@ def benchmark(cfg: DictConfig) -> JobResult:
 
     from .report import terminal_summary, write_report
 
-    from .outputs import check_output_dir
+    from .outputs import check_library_dir, check_output_dir
 
     report_dir, model_dir = output_dirs(cfg)
     force = bool(cfg.get("force", False))
+    r, m = Path(os.path.realpath(report_dir)), Path(os.path.realpath(model_dir))
+    if r == m or r.is_relative_to(m) or m.is_relative_to(r):
+        raise ExperimentError(f"config keys 'report_dir' and 'export_dir': {report_dir} and {model_dir} must be separate directories")
     for d, kind in ((report_dir, "report"), (model_dir, "models")):  # refused now, not after the fits
         check_output_dir(d, kind, force=force, force_option="force=true")
+    if cfg.get("cache_dir"):  # joblib.Memory writes joblib/ (and a .gitignore) there
+        check_library_dir(Path(str(cfg.cache_dir)), {"joblib", ".gitignore"}, "cache_dir")
+    alias = "champion" if output_name(cfg) == "benchmark" else re.sub(r"[^A-Za-z0-9_-]", "_", output_name(cfg))
     exp_id = tracking.connect(cfg.tracking)
     conf = plain(cfg)
     todo = tasks(cfg)
@@ -358,8 +395,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         for d, info in logged.items():
             name = f"thermbench-{d}"
             version = tracking.register(info.model_uri, name)
-            tracking.set_alias(name, "champion", version)
-            registered[d] = f"models:/{name}@champion"
+            tracking.set_alias(name, alias, version)  # 'champion' only for the shipped settings
+            registered[d] = f"models:/{name}@{alias}"
     print(terminal_summary(results))
     for line in flag_lines:
         print(f"flagged (never chosen): {line}")

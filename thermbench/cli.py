@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -46,7 +47,11 @@ def cmd_simulate(overrides: list[str]) -> int:
     from .sim.scenario import simulate_dataset
 
     if cfg.get("suite") == "benchmark":
+        from .outputs import check_output_dir
+
         root = Path(str(cfg.benchmark_root))
+        for name in datasets.names():  # every target checked before the first simulation
+            check_output_dir(root / name, "dataset", force_option="")
         for name in datasets.names():
             path, built = datasets.build(name, root)
             ds = load_dataset(path)
@@ -240,6 +245,10 @@ def main(argv: list[str] | None = None) -> int:
 
     stdout = sys.stdout
     sys.stdout = GuardedStdout(stdout)
+    try:  # SIGTERM unwinds like Ctrl-C: staging directories and temporary files are removed
+        saved_term = signal.signal(signal.SIGTERM, _terminated)
+    except ValueError:  # not the main thread
+        saved_term = None
     try:
         code = _main(argv)
         sys.stdout.flush()  # now, while a closed pipe is still ours to handle
@@ -251,6 +260,12 @@ def main(argv: list[str] | None = None) -> int:
         return BROKEN_PIPE_EXIT
     finally:
         sys.stdout = stdout
+        if saved_term is not None:
+            signal.signal(signal.SIGTERM, saved_term)
+
+
+def _terminated(signum, frame) -> None:
+    raise SystemExit(128 + signum)
 
 
 def _main(argv: list[str] | None) -> int:

@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 
 from . import __version__
 from .config import ConfigError, config_dir, load_config
+from .outputs import check_output_dir
 from .data.io import Dataset, load_dataset, save_dataset
 from .sim.scenario import simulate_dataset
 
@@ -81,7 +82,7 @@ def _locked(path: Path):
     """An exclusive lock on ``path`` (a sibling lock file), so parallel jobs of a sweep
     never build the same dataset at the same time."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.parent / f".{path.name}.lock", "w") as fh:
+    with open(path.parent / f".{path.name}.lock", "a") as fh:  # "a": an existing file is never truncated
         fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
@@ -94,6 +95,7 @@ def _build_cached(cfg, path: Path, force: bool, **tags) -> tuple[Path, dict | No
     h = config_hash(cfg)
     if not force and _cached_hash(path) == h:
         return path, None
+    check_output_dir(path, "dataset", force_option="")  # before the lock file and the simulation
     with _locked(path):
         if not force and _cached_hash(path) == h:  # built by another job while we waited
             return path, None
@@ -106,7 +108,7 @@ def _build(cfg, path: Path, h: str, tags: dict) -> tuple[Path, dict]:
     sim["config_hash"] = h
     sim.update(tags)
     ds.metadata.simulation = sim
-    save_dataset(ds, path, file_format=str(cfg.file_format))
+    save_dataset(ds, path, file_format=str(cfg.file_format), force_option="")
     return path, summary
 
 

@@ -81,6 +81,7 @@ class _Record:
 
     path: Path
     sets: dict[str, dict] = field(default_factory=dict)
+    copied: bool = False  # the record was copied here with the files (cp -r): they are not thermbench's here
 
     @classmethod
     def read(cls, directory: Path) -> "_Record":
@@ -94,6 +95,8 @@ class _Record:
                 raise ValueError("no sets")
         except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError):
             raise OutputRefused(f"{path}: not a record thermbench wrote (unreadable); choose a new directory") from None
+        if raw.get("dir") != _dir_id(directory):  # a record is valid only in the directory it was written in
+            return cls(path, {}, copied=True)
         return cls(path, sets)
 
     def owner(self, rel: str) -> str | None:
@@ -115,7 +118,7 @@ class _Record:
         return want == STREAMING or sha256_file(p) in (want if isinstance(want, list) else [want])
 
     def write(self) -> None:
-        body = {"format": RECORD_FORMAT, "sets": self.sets}
+        body = {"format": RECORD_FORMAT, "dir": _dir_id(self.path.parent), "sets": self.sets}
         if not self.sets:
             self.path.unlink(missing_ok=True)
             return
@@ -124,6 +127,24 @@ class _Record:
             json.dump(body, fh, indent=1, sort_keys=True)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, self.path)
+
+
+def _dir_id(directory: Path) -> str:
+    """The directory's identity (device and inode): kept by a rename, new for a copy."""
+    st = os.stat(directory)
+    return f"{st.st_dev}:{st.st_ino}"
+
+
+def _real(target: str | os.PathLike) -> Path:
+    """``target`` with symbolic links resolved (``link/..`` is where the file system goes), and
+    refused when an existing part of its path is a file, not a directory."""
+    path = Path(os.path.realpath(target))
+    for anc in path.parents:
+        if anc.exists():
+            if not anc.is_dir():
+                raise _refuse(Path(target), f"{anc} is a file, not a directory", "choose a new directory")
+            break
+    return path
 
 
 def _is_dataset(d: Path) -> bool:
@@ -158,7 +179,7 @@ def check_output_dir(target: str | os.PathLike, kind: str, force: bool = False, 
 
     Call it before any long work, so that a refusal costs nothing; :func:`output_dir` checks
     again when it writes."""
-    _check_dir(Path(target), kind, force, force_option)
+    _check_dir(_real(target), kind, force, force_option)
 
 
 def _check_dir(target: Path, kind: str, force: bool, force_option: str) -> _Record:
@@ -167,16 +188,17 @@ def _check_dir(target: Path, kind: str, force: bool, force_option: str) -> _Reco
             raise _refuse(target, "exists and is not a directory", "choose a new directory")
         rec = _Record.read(target)
         mine = rec.sets.get(_WHOLE)
-        if rec.sets and (mine is None or mine.get("kind") != kind):
-            other = mine.get("kind") if mine else "other thermbench output"
-            raise _refuse(target, f"holds {other!s} output, not {kind}", "choose a new directory")
         ours = {rel for rel in (mine or {}).get("files", {}) if rec.unchanged(target, rel)}
         _dataset_guard(target, ours, force_option if force else "")
-        foreign = [rel for rel in _files_below(target) if rel != RECORD and rel not in ours]
+        if rec.sets and (mine is None or mine.get("kind") != kind):
+            other = f"{mine.get('kind')} output" if mine else "other thermbench output"
+            raise _refuse(target, f"holds {other}, not {kind} output", "choose a new directory")
+        foreign = [rel for rel in _files_below(target) if (rel != RECORD or rec.copied) and rel not in ours]
         if foreign and not force:
             changed = [rel for rel in foreign if rec.owner(rel)]
             why = (f"holds {len(foreign)} file(s) thermbench did not write there (e.g. {foreign[0]!r}"
-                   + (f"; {changed[0]!r} was changed since thermbench wrote it" if changed else "") + ")")
+                   + (f"; {changed[0]!r} was changed since thermbench wrote it" if changed else "")
+                   + ("; its thermbench record was copied from another directory" if rec.copied else "") + ")")
             raise _refuse(target, why, _force_hint(force_option))
         return rec
     _dataset_guard(target, set(), force_option if force else "")
@@ -199,7 +221,7 @@ def _stage_hashes(stage: Path) -> dict[str, str]:
 def output_dir(target: str | os.PathLike, kind: str, force: bool = False, force_option: str = "--force") -> Iterator[Path]:
     """Yield an empty staging directory; fill it; on success its files become ``target``'s
     output of ``kind`` under the rules of this module. On an exception nothing changes."""
-    target = Path(target)
+    target = _real(target)
     _check_dir(target, kind, force, force_option)
     target.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
@@ -260,7 +282,7 @@ def _as_list(v) -> list[str]:
 
 def check_output_file(target: str | os.PathLike, kind: str) -> None:
     """Raise :class:`OutputRefused` unless :func:`output_file` may write ``target``."""
-    _check_file(Path(target), kind)
+    _check_file(_real(target), kind)
 
 
 def _check_file(target: Path, kind: str) -> _Record:
@@ -289,7 +311,7 @@ def output_file(target: str | os.PathLike, kind: str, mode: int | None = None) -
     among others of its directory; the directory's record lists it). ``target`` may exist only
     as an unchanged earlier output of the same kind. ``mode``: the file's permissions from the
     start (e.g. 0o600 for a private key)."""
-    target = Path(target)
+    target = _real(target)
     _check_file(target, kind)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
@@ -327,9 +349,9 @@ class OutputStream:
     stores its final SHA-256 (a log cut short by a crash still counts as thermbench's)."""
 
     def __init__(self, target: str | os.PathLike, kind: str) -> None:
-        self.path = Path(target)
+        self.path = _real(target)
         self.kind = kind
-        rec = _check_file(self.path, kind)
+        _check_file(self.path, kind)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         rec = _Record.read(self.path.parent)
         rec.sets[self.path.name] = {"kind": kind, "command": _command(), "files": {self.path.name: STREAMING},
@@ -348,20 +370,44 @@ class OutputStream:
             rec.write()
 
 
-#: what Hydra and a thermbench job leave in a run or sweep directory
-_HYDRA_FILES = re.compile(r"(\.hydra/.+|[^/]+\.log|result\.json|sweep_size\.txt|multirun\.yaml|\d+/.+)")
+#: what Hydra and a thermbench job leave in a run directory, and in a sweep directory
+_HYDRA_RUN = r"\.hydra/(?:config|hydra|overrides)\.yaml|[A-Za-z0-9_.-]+\.log|result\.json"
+_HYDRA_FILES = {"hydra.run.dir": re.compile(_HYDRA_RUN),
+                "hydra.sweep.dir": re.compile(rf"multirun\.yaml|sweep_size\.txt|\d+/(?:{_HYDRA_RUN})")}  # fmt: skip
+_HYDRA_PROOF = {"hydra.run.dir": ".hydra/hydra.yaml", "hydra.sweep.dir": "multirun.yaml"}
 
 
 def check_hydra_dir(path: str | os.PathLike, key: str = "hydra.run.dir") -> None:
-    """Refuse a Hydra run or sweep directory that is, contains or lies inside a dataset, or
-    that holds files other than an earlier Hydra job's (Hydra writes ``.hydra/`` and its log there)."""
-    path = Path(path)
+    """Refuse a Hydra run (``key='hydra.run.dir'``) or sweep (``'hydra.sweep.dir'``) directory
+    that is, contains or lies inside a dataset, or that already holds files unless it is an
+    earlier Hydra job's directory (it has Hydra's own ``.hydra/hydra.yaml``, resp.
+    ``multirun.yaml``) holding only what Hydra and thermbench write there."""
     try:
-        _dataset_guard(path, set(), "")
+        real = _real(path)
+        _dataset_guard(real, set(), "")
     except OutputRefused as exc:
         raise OutputRefused(f"config key '{key}': {exc}") from None
-    if path.is_dir():
-        foreign = [rel for rel in _files_below(path) if rel != RECORD and not _HYDRA_FILES.fullmatch(rel)]
+    if real.is_dir():
+        files = [rel for rel in _files_below(real) if rel != RECORD]
+        if files and not (real / _HYDRA_PROOF[key]).is_file():
+            raise _refuse(Path(path), f"holds {len(files)} file(s) and is not an earlier Hydra job's directory "
+                          f"(e.g. {files[0]!r})", f"choose another {key}")  # fmt: skip
+        foreign = [rel for rel in files if not _HYDRA_FILES[key].fullmatch(rel)]
         if foreign:
-            raise _refuse(path, f"holds {len(foreign)} file(s) that are not an earlier Hydra job's (e.g. {foreign[0]!r})",
+            raise _refuse(Path(path), f"holds {len(foreign)} file(s) that are not an earlier Hydra job's "
+                          f"(e.g. {foreign[0]!r})", f"choose another {key}")  # fmt: skip
+
+
+def check_library_dir(path: str | os.PathLike, names: set[str], key: str) -> None:
+    """A directory another library writes into (e.g. joblib's cache, under config key ``key``):
+    refused when it is, contains or lies inside a dataset, or holds entries other than ``names``."""
+    try:
+        real = _real(path)
+        _dataset_guard(real, set(), "")
+    except OutputRefused as exc:
+        raise OutputRefused(f"config key '{key}': {exc}") from None
+    if real.is_dir():
+        other = sorted(p.name for p in real.iterdir() if p.name not in names)
+        if other:
+            raise _refuse(Path(path), f"holds {other[:3]}, not only what it is for ({', '.join(sorted(names))})",
                           f"choose another {key}")  # fmt: skip
