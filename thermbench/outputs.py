@@ -377,16 +377,23 @@ _HYDRA_FILES = {"hydra.run.dir": re.compile(_HYDRA_RUN),
 _HYDRA_PROOF = {"hydra.run.dir": ".hydra/hydra.yaml", "hydra.sweep.dir": "multirun.yaml"}
 
 
-def check_hydra_dir(path: str | os.PathLike, key: str = "hydra.run.dir") -> None:
-    """Refuse a Hydra run (``key='hydra.run.dir'``) or sweep (``'hydra.sweep.dir'``) directory
-    that is, contains or lies inside a dataset, or that already holds files unless it is an
-    earlier Hydra job's directory (it has Hydra's own ``.hydra/hydra.yaml``, resp.
-    ``multirun.yaml``) holding only what Hydra and thermbench write there."""
+def _foreign_dir(path: str | os.PathLike, key: str) -> Path:
+    """The real path of a directory another program writes into (config key ``key``), refused
+    when it is, contains or lies inside a dataset."""
     try:
         real = _real(path)
         _dataset_guard(real, set(), "")
     except OutputRefused as exc:
         raise OutputRefused(f"config key '{key}': {exc}") from None
+    return real
+
+
+def check_hydra_dir(path: str | os.PathLike, key: str = "hydra.run.dir") -> None:
+    """Refuse a Hydra run (``key='hydra.run.dir'``) or sweep (``'hydra.sweep.dir'``) directory
+    that is, contains or lies inside a dataset, or that already holds files unless it is an
+    earlier Hydra job's directory (it has Hydra's own ``.hydra/hydra.yaml``, resp.
+    ``multirun.yaml``) holding only what Hydra and thermbench write there."""
+    real = _foreign_dir(path, key)
     if real.is_dir():
         files = [rel for rel in _files_below(real) if rel != RECORD]
         if files and not (real / _HYDRA_PROOF[key]).is_file():
@@ -401,11 +408,7 @@ def check_hydra_dir(path: str | os.PathLike, key: str = "hydra.run.dir") -> None
 def check_library_dir(path: str | os.PathLike, names: set[str], key: str) -> None:
     """A directory another library writes into (e.g. joblib's cache, under config key ``key``):
     refused when it is, contains or lies inside a dataset, or holds entries other than ``names``."""
-    try:
-        real = _real(path)
-        _dataset_guard(real, set(), "")
-    except OutputRefused as exc:
-        raise OutputRefused(f"config key '{key}': {exc}") from None
+    real = _foreign_dir(path, key)
     if real.is_dir():
         other = sorted(p.name for p in real.iterdir() if p.name not in names)
         if other:
