@@ -89,6 +89,7 @@ def test_multirun_basic_launcher(tmp_path, env):
     (stale / ".hydra").mkdir(parents=True)
     (stale / ".hydra" / "overrides.yaml").write_text("- model=mlr_seed004\n- train=state5\n")
     (stale / "result.json").write_text(json.dumps({"job": "train", "skipped": False, "metrics": {"fit_s": 1.0}}))
+    (sweep / "multirun.yaml").write_text("hydra: {}\n")  # Hydra writes it into every sweep directory
     os.utime(stale / "result.json", (time.time() - 3600, time.time() - 3600))
 
     proc = cli(["train", *SWEEP_2X2, *store_overrides(tmp_path)], tmp_path, env)

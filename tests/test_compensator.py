@@ -28,6 +28,8 @@ from thermbench.compensator.simcnc import SimCnc, SimCncError, build_machine, no
 from thermbench.datasets import load_benchmark
 from thermbench.export.replay import replay_run
 
+pytestmark = pytest.mark.timing  # real-time closed loops: run alone (see the Makefile)
+
 RUN = "valid1"
 HELD, STALE, INPUT_HELD = int(Flags.HELD), int(Flags.STALE), int(Flags.INPUT_HELD)
 DISCONNECTED, RESTARTED = int(Flags.DISCONNECTED), int(Flags.RESTARTED)
