@@ -292,7 +292,6 @@ def test_sigterm_while_writing_leaves_no_staging_directory(tmp_path, seed001_exp
 
     out = tmp_path / "rp"
     code = ("import os, signal, time, thermbench.export.replay as r\n"
-            "real = r.draw_errors\n"
             "def slow(*a, **k):\n"
             "    open(os.environ['MARK'], 'w').close(); time.sleep(60)\n"
             "r.draw_errors = slow\n"

@@ -308,7 +308,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         check_output_dir(d, kind, force=force, force_option="force=true")
     if cfg.get("cache_dir"):  # joblib.Memory writes joblib/ (and a .gitignore) there
         check_library_dir(Path(str(cfg.cache_dir)), {"joblib", ".gitignore"}, "cache_dir")
-    alias = "champion" if output_name(cfg) == "benchmark" else re.sub(r"[^A-Za-z0-9_-]", "_", output_name(cfg))
+    name = output_name(cfg)
+    alias = "champion" if name == "benchmark" else re.sub(r"[^A-Za-z0-9_-]", "_", name)
     exp_id = tracking.connect(cfg.tracking)
     conf = plain(cfg)
     todo = tasks(cfg)
