@@ -2,6 +2,10 @@
 
     thermbench simulate [hydra overrides...]   write a dataset (or suite=benchmark: all standard ones)
     thermbench validate DATA_DIR               check a dataset against the contract and summarise it
+    thermbench import MAPPING.yaml --out DIR [--format csv|parquet] [--force]
+                                               a lab's own files (CSV, Excel, Parquet) -> a dataset (docs/import.md)
+    thermbench iso230 DATA_DIR --out DIR [--force]
+                                               ISO 230-2 / 230-3 figures of a thermal test (docs/iso230.md)
     thermbench classify --stroke S --start A --end B --feed F
                                                seed 002 §2.4 condition classifier: the chosen condition
     thermbench diagnose DATA_DIR --out OUT_DIR [--base EFFECT,...] [--max-effects K] [overrides...]
@@ -82,9 +86,67 @@ def cmd_validate(path: str) -> int:
     from .data.reference import run_summary
 
     ds = load_dataset(path)
-    print(f"{path}: valid {ds.metadata.format} dataset, machine {ds.metadata.machine.name} axis {ds.metadata.machine.axis}")
-    print(f"  {len(ds.process)} process rows, {len(ds.errors)} error readings, sensors: {', '.join(ds.sensor_columns)}")
-    _print_summary("runs", Path(path).resolve(), run_summary(ds))
+    meta = ds.metadata
+    if meta.version == 1:
+        print(f"{path}: valid {meta.format} dataset, machine {meta.machine.name} axis {meta.machine.axis}")
+        print(f"  {len(ds.process)} process rows, {len(ds.errors)} error readings, sensors: {', '.join(ds.sensor_columns)}")
+        _print_summary("runs", Path(path).resolve(), run_summary(ds))
+        return 0
+    _print_v2(path, ds, run_summary(ds))
+    return 0
+
+
+def _print_v2(path, ds, table) -> None:
+    """The ``validate`` summary of a format 2 dataset: parts, channels, inputs, segments."""
+    from .data.views import split_segments
+
+    meta = ds.metadata
+    print(f"{path}: valid {meta.format} dataset, machine {meta.machine.name}, parts: {', '.join(meta.parts or [])}")
+    print(f"  {len(ds.process)} process rows, {len(ds.errors)} error readings; operating inputs: "
+          f"{', '.join(meta.operating_inputs()) or 'none'}; sensors: {', '.join(ds.sensor_columns) or 'none'}")  # fmt: skip
+    for name, ch in meta.error_channels().items():
+        print(f"  channel {name}: {ch.kind}, {ch.direction}, at {ch.location} ({'µrad' if ch.unit == 'urad' else 'µm'})")
+    print(f"  thermal error counted from: {meta.reference_mode().mode}"
+          + (f" at {meta.reference_mode().t_s:g} s" if meta.reference_mode().t_s is not None else ""))  # fmt: skip
+    if "direction" in ds.errors.columns:
+        print("  bidirectional readings: thermal error per direction; the reversal value: thermbench iso230")
+    print(f"\nruns  ->  {Path(path).resolve()}")
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    if any(r.condition is None for r in meta.runs.values()):
+        seg = split_segments(ds)
+        derived = [r for r in seg.metadata.runs if r not in meta.runs]
+        if derived:
+            print("\nderived segments (data/segments.py; usable as run ids in train=, dataset.states, ...):")
+            for r in derived:
+                print(f"  {r}: {seg.metadata.runs[r].notes}")
+
+
+def cmd_import(mapping: str, out: str, file_format: str, force: bool) -> int:
+    import time
+
+    from .data.importer import import_dataset
+    from .data.reference import run_summary
+
+    t0 = time.perf_counter()
+    ds = import_dataset(mapping, out, file_format=file_format, force=force)
+    print(f"imported {mapping} -> {Path(out).resolve()} in {time.perf_counter() - t0:.1f} s")
+    _print_v2(out, ds, run_summary(ds))
+    return 0
+
+
+def cmd_iso230(data_dir: str, out: str, force: bool) -> int:
+    from .iso230_report import iso230_report
+
+    figs = iso230_report(data_dir, out, force=force)
+    for run, res in figs["runs"].items():
+        for ch, e in res["channels"].items():
+            if e["kind"] == "fixed_point":
+                a = next(r for r in e["drift"] if r["block"] == "all")
+                print(f"  {run} {ch}: max drift {a['max_drift_from_start_um']} µm at {a['t_max_drift_from_start_s']} s")
+            else:
+                extra = f", reversal B {e['iso230_2_run']['B_um']} µm" if "iso230_2_run" in e else ""
+                print(f"  {run} {ch}: max |thermal error| {e['max_thermal_um']} µm{extra}")
+    print(f"  -> {Path(out).resolve() / 'report.md'}")
     return 0
 
 
@@ -288,6 +350,19 @@ def _main(argv: list[str] | None) -> int:
     p_sim.add_argument("overrides", nargs="*", help="Hydra overrides key=value")
     p_val = sub.add_parser("validate", help="validate a dataset directory against the contract")
     p_val.add_argument("data_dir")
+    p_imp = sub.add_parser("import", help="bring a lab's files (CSV, Excel, Parquet) in as a dataset, "
+                           "described by one YAML mapping file (docs/import.md)")
+    p_imp.add_argument("mapping", help="the mapping file (format: thermbench-import/1)")
+    p_imp.add_argument("--out", required=True, help="the dataset directory to write")
+    p_imp.add_argument("--format", dest="file_format", choices=("csv", "parquet"), default="parquet",
+                       help="table files of the dataset (default parquet)")
+    p_imp.add_argument("--force", action="store_true", help="also write into a directory holding other files "
+                       "(never over them)")
+    p_iso = sub.add_parser("iso230", help="ISO 230-2 positioning and ISO 230-3 thermal figures of a dataset")
+    p_iso.add_argument("data_dir", help="dataset directory")
+    p_iso.add_argument("--out", required=True, help="output directory (report.md, figures.json, figures)")
+    p_iso.add_argument("--force", action="store_true", help="also write into a directory holding other files "
+                       "(never over them)")
     p_cls = sub.add_parser("classify", help="seed 002 naive-Bayes motion-condition classifier (eq. 15-19)")
     p_cls.add_argument("--stroke", type=_number(0), required=True, help="working stroke A, mm")
     p_cls.add_argument("--start", type=_number(), required=True, help="stroke start P_start, mm")
@@ -363,6 +438,10 @@ def _main(argv: list[str] | None) -> int:
             return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force)
         if args.command == "precompensate":
             return cmd_precompensate(args)
+        if args.command == "iso230":
+            return cmd_iso230(args.data_dir, args.out, args.force)
+        if args.command == "import":
+            return cmd_import(args.mapping, args.out, args.file_format, args.force)
         if args.command == "classify":
             return cmd_classify(args.stroke, args.start, args.end, args.feed, args.classifier)
         return cmd_validate(args.data_dir)

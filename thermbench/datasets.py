@@ -29,15 +29,25 @@ from .sim.scenario import simulate_dataset
 SIM_REVISION = 1  # bump when the simulator's numbers change for the same config
 
 
+# measured datasets shipped in the package: name -> import mapping (docs/import.md)
+REAL = {"fl_thermal": "realdata/fl_thermal/mapping.yaml"}
+
+
 def names() -> list[str]:
+    """The simulated benchmark datasets (``thermbench simulate suite=benchmark``)."""
     return list(_registry())
+
+
+def real_names() -> list[str]:
+    """The measured datasets shipped with thermbench (imported on first use, no network)."""
+    return list(REAL)
 
 
 def of_key(key: str) -> str | None:
     """The benchmark dataset a model key names: ``<dataset>__<family>__<approach>`` (benchmark
     model files), ``<dataset>-...`` (logged model names) or ``thermbench-<dataset>[-...]``
     (registered names); None when it names none."""
-    for name in sorted(names(), key=len, reverse=True):
+    for name in sorted(names() + real_names(), key=len, reverse=True):
         if key.startswith((f"{name}__", f"{name}-", f"thermbench-{name}-")) or key == f"thermbench-{name}":
             return name
     return None
@@ -121,9 +131,43 @@ def build(name: str, root: str | Path | None = None, force: bool = False) -> tup
 
 
 def load_benchmark(name: str, root: str | Path | None = None) -> Dataset:
-    """The validated benchmark dataset ``name`` (built on first use)."""
+    """The validated benchmark dataset ``name`` (built on first use): simulated, or measured
+    (:data:`REAL`, imported from the files shipped in the package)."""
+    if name in REAL:
+        return load_dataset(import_real(name, root))
     path, _ = build(name, root)
     return load_dataset(path)
+
+
+def import_real(name: str, root: str | Path | None = None) -> Path:
+    """Import the shipped measurement ``name`` with its mapping into ``root/name``, unless
+    the dataset there was imported from the same mapping and files (their SHA-256)."""
+    from .data.importer import import_dataset
+
+    mapping = Path(__file__).parent / REAL[name]
+    h = hashlib.sha256()
+    for f in sorted(mapping.parent.iterdir()):
+        if f.is_file():
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    digest = h.hexdigest()[:16]
+    path = Path(root or default_root()) / name
+    if _cached_import(path) == digest:
+        return path
+    check_output_dir(path, "dataset", force_option="")
+    with _locked(path):
+        if _cached_import(path) != digest:
+            import_dataset(mapping, path, extra={"imported": {"mapping": f"thermbench/{REAL[name]}", "sha256": digest}})
+    return path
+
+
+def _cached_import(path: Path) -> str | None:
+    meta = path / "metadata.yaml"
+    if not meta.exists():
+        return None
+    try:
+        return ((yaml.safe_load(meta.read_text()) or {}).get("imported") or {}).get("sha256")
+    except Exception:
+        return None
 
 
 def simulated(

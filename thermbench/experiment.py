@@ -12,11 +12,13 @@ Each takes the composed config (a ``DictConfig``) and returns a :class:`JobResul
 
 from __future__ import annotations
 
+import difflib
 import json
 import logging
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -31,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
+from .models.base import FallbackWarning
 from ._atomic import write_text_atomic
 from .outputs import output_dir
 from .config import config_dir
@@ -204,6 +207,18 @@ class Split:
     dataset: Any
     states: list[str]
     validation: list[str]
+    own: bool = False  # loaded from a directory (dataset=path), not a shipped benchmark dataset
+
+    def registry_name(self, model_name: str) -> str:
+        """The registered-model name of ``model_name`` fitted on this dataset: never shared by
+        models of different datasets (an own dataset's content hash is part of it) or of
+        different error channels."""
+        parts = ["thermbench", self.name]
+        if self.dataset.channel is not None:  # a format 2 channel view
+            parts.append(self.dataset.channel)
+        if self.own:
+            parts.append(self.dataset.content_hash()[:8])
+        return "-".join([*parts, model_name])
 
     def kind(self, run: str) -> str:
         return "validation" if run in self.validation else "state"
@@ -228,6 +243,7 @@ def load_split(dcfg: Mapping) -> Split:
             raise
         msg = str(cause)  # a dataset, file or config mistake: one line naming it
         raise ExperimentError(msg if msg.startswith("config key") else f"config key 'dataset.source': {msg}") from None
+    ds = dataset_view(ds, dcfg.get("channel"), dcfg.get("segments", True))
     runs = list(ds.run_ids)
     validation = list(dcfg.get("validation") or [])
     states = list(dcfg.get("states") or [r for r in runs if r not in validation])
@@ -238,7 +254,38 @@ def load_split(dcfg: Mapping) -> Split:
     both = sorted(set(states) & set(validation))
     if both:
         raise ExperimentError(f"config keys 'dataset.states' and 'dataset.validation' share runs {both}")
-    return Split(str(dcfg.get("name") or "dataset"), ds, states, validation)
+    own = str(source.get("_target_")) == "thermbench.data.io.load_dataset"
+    return Split(str(dcfg.get("name") or ds.metadata.machine.name), ds, states, validation, own=own)
+
+
+def dataset_view(ds, channel, segments=True):
+    """What the models see of a format 2 dataset (:mod:`thermbench.data.views`): its runs
+    split into derived segments (``dataset.segments``) and one error channel
+    (``dataset.channel``; null: the only one). A format 1 dataset is used as it is."""
+    from .data.views import channel_view, split_segments
+
+    meta = ds.metadata
+    if meta.version == 1:
+        if channel is not None and channel not in meta.error_channels():
+            raise ExperimentError(f"config key 'dataset.channel': a format 1 dataset has one channel "
+                                  f"({next(iter(meta.error_channels()))!r}); leave it null")  # fmt: skip
+        return ds
+    if not isinstance(segments, bool):
+        raise ExperimentError(f"config key 'dataset.segments': expected true or false, got {segments!r}")
+    channels = sorted(meta.error_channels())
+    if channel is None:
+        if len(channels) != 1:
+            listed = ",".join(channels) if channels else "(none)"
+            raise ExperimentError(f"config key 'dataset.channel': the dataset has {len(channels)} error channels "
+                                  f"({listed}); name one, or sweep them: -m dataset.channel={listed}")  # fmt: skip
+        channel = channels[0]
+    if channel not in channels:
+        near = difflib.get_close_matches(str(channel), channels, n=1)
+        hint = f"; did you mean {near[0]!r}?" if near else ""
+        raise ExperimentError(f"config key 'dataset.channel': no channel {channel!r}; channels: {channels}{hint}")
+    if segments:
+        ds = split_segments(ds)
+    return channel_view(ds, channel)
 
 
 def resolve_runs(spec, split: Split, key: str) -> list[str]:
@@ -258,6 +305,18 @@ def resolve_runs(spec, split: Split, key: str) -> list[str]:
 
 
 # ------------------------------------------------------- fit and evaluate ---
+def describe_inputs(inp) -> str:
+    """One line: the sensors, operating inputs and motion a fitted model reads."""
+    parts = [f"sensors {', '.join(inp.sensors)}" if inp.sensors else "no temperature sensors"]
+    if inp.operating:
+        parts.append(f"operating inputs {', '.join(inp.operating)}")
+    if inp.motion:
+        parts.append("the motion log (axis position, feed)")
+    if inp.ambient:
+        parts.append("an ambient sensor")
+    return "; ".join(parts)
+
+
 def fit_evaluate(model, dataset, train_runs: Sequence[str], eval_runs: Sequence[str] | None = None, curves: bool = False):
     """Fit ``clone(model)`` on ``train_runs``; return the fitted model, one metrics row per
     evaluated run (``own`` marks training runs, ``fit_s`` the fitting time) and, with
@@ -384,7 +443,12 @@ def train(cfg: DictConfig) -> JobResult:
     with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as run:
         mlflow.set_tags(tracking.standard_tags(data_hash, h, "train") | {"model": model_name, "dataset": split.name})
         tracking.log_config(conf)
-        fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", FallbackWarning)
+            fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
+        for w in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, FallbackWarning)):
+            print(f"[train] warning: {model_name}: {w}", file=sys.stderr, flush=True)
+        print(f"[train] {model_name} uses {describe_inputs(fitted.required_inputs())}", file=sys.stderr, flush=True)
         metrics = _log_scores(rows, curves, split, model_name, "+".join(train_runs), run_name)
         info = tracking.log_model(fitted, split.dataset)
     outputs = {"model_uri": info.model_uri}
@@ -394,7 +458,7 @@ def train(cfg: DictConfig) -> JobResult:
     if flags:
         outputs["registered"] = "no: " + "; ".join(flags)
     elif cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
-        reg = f"thermbench-{split.name}-{model_name}"
+        reg = split.registry_name(model_name)
         outputs["registered"] = f"models:/{reg}/{tracking.register(info.model_uri, reg)}"
     return _finish(JobResult("train", _table(rows, split), metrics, mlflow_run_id=run.info.run_id, outputs=outputs))
 

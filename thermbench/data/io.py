@@ -31,12 +31,14 @@ from . import limits
 from .errors import DatasetError, one_line, short_repr
 from .files import find_case_variant, open_regular_file, read_capped
 from .safe_yaml import YAMLInputError, load_yaml
-from .schema import FORMAT, Metadata
+from .schema import FORMATS, Metadata, MetadataV1
 
 PROCESS_REQUIRED = ("run_id", "t_s", "axis_mm", "feed_mm_min")
 PROCESS_OPTIONAL_NUMERIC = ("load_N", "spindle_rpm")
 ERRORS_REQUIRED = ("run_id", "t_s", "target_mm", "error_um")
-MAX_SAMPLE_GAP_S = 1.0  # the contract: >= 1 sample per second
+MAX_SAMPLE_GAP_S = 1.0  # format 1: >= 1 sample per second
+GAP_FACTOR = 5.0  # format 2 without sampling.max_gap_s: a step over 5 median steps is a gap
+TEXT_COLUMNS = ("run_id", "channel")  # only the empty cell is missing here
 TRAVEL_TOL_MM = 0.5
 # what pandas reads as a missing value by default; run_id takes only the empty cell
 # (a run may be called "NA" or "null")
@@ -58,6 +60,7 @@ class Dataset:
     process: pd.DataFrame
     errors: pd.DataFrame
     path: Path | None = None
+    channel: str | None = None  # a view of one error channel (thermbench.data.views.channel_view)
 
     @property
     def run_ids(self) -> list[str]:
@@ -72,6 +75,12 @@ class Dataset:
 
     def errors_run(self, run_id: str) -> pd.DataFrame:
         return self.errors[self.errors["run_id"] == run_id].reset_index(drop=True)
+
+    def channel_view(self, channel: str) -> "Dataset":
+        """One error channel in the shape the model families use (:mod:`thermbench.data.views`)."""
+        from .views import channel_view
+
+        return channel_view(self, channel)
 
     def content_hash(self) -> str:
         """SHA-256 over the metadata and both tables (what tracking records)."""
@@ -147,25 +156,37 @@ def load_metadata(root: Path) -> Metadata:
         raise DatasetError(f"{path}: is empty; expected the keys format, machine, screw, material, sensors, runs")
     if not isinstance(raw, dict):
         raise DatasetError(f"{path}: expected a mapping (key: value) at the top level, got a {type(raw).__name__}")
-    if raw.get("format") != FORMAT:
+    if raw.get("format") not in FORMATS:
+        expected = " or ".join(repr(f) for f in FORMATS)
         raise DatasetError(
-            f"{path}: key 'format': expected {FORMAT!r}, got {short_repr(raw.get('format'))}{_line_of(lines, ('format',))}"
+            f"{path}: key 'format': expected {expected}, got {short_repr(raw.get('format'))}{_line_of(lines, ('format',))}"
         )
     if isinstance(raw.get("runs"), dict):
         _check_run_ids(raw["runs"], path, lines)
     try:
+        if raw["format"] == FORMATS[0]:
+            MetadataV1.model_validate(raw)  # every format 1 key required, each message naming it
         return Metadata.model_validate(raw)
     except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = tuple(p for p in e["loc"] if p != "[key]")
-        where = f"{path}: key {short_repr(_key_text(loc))}"
-        at = _line_of(lines, loc)
-        if e["type"] == "missing":
-            raise DatasetError(f"{where}: missing (required){at}") from None
-        if e["type"] == "value_error":  # our own checks: the message names the value and unit
-            msg = str(e["msg"]).removeprefix("Value error, ")
-            raise DatasetError(f"{where}: {msg}{at}") from None
-        raise DatasetError(f"{where}: {e['msg']} (got {short_repr(e.get('input'))}){at}") from None
+        raise DatasetError(_validation_message(exc, path, lines)) from None
+
+
+def _validation_message(exc: ValidationError, path: Path, lines: dict) -> str:
+    """One line for the first pydantic error: the key (and its line), what was wrong."""
+    e = exc.errors()[0]
+    loc = tuple(p for p in e["loc"] if p != "[key]")
+    msg = str(e["msg"]).removeprefix("Value error, ")
+    if e["type"] == "value_error" and not loc:  # a whole-file rule: the message starts with its key
+        m = re.match(r"([A-Za-z0-9_.\-]+): (.*)$", msg)
+        if m:
+            loc, msg = tuple(m[1].split(".")), m[2]
+    where = f"{path}: key {short_repr(_key_text(loc))}"
+    at = _line_of(lines, loc)
+    if e["type"] == "missing":
+        return f"{where}: missing (required){at}"
+    if e["type"] == "value_error":  # our own checks: the message names the value and unit
+        return f"{where}: {msg}{at}"
+    return f"{where}: {e['msg']} (got {short_repr(e.get('input'))}){at}"
 
 
 # ---------------------------------------------------------------- tables ---
@@ -321,13 +342,13 @@ def _read_csv(path: Path, contract: tuple[str, ...]) -> pd.DataFrame:
             )
         fh.seek(0)
         # run_id: only the empty cell is missing; elsewhere pandas' usual missing-value words
-        na = {i: ([""] if n == "run_id" else CSV_NA_VALUES) for i, n in enumerate(names)}
+        na = {i: ([""] if n in TEXT_COLUMNS else CSV_NA_VALUES) for i, n in enumerate(names)}
         try:
             # index_col=False: a row longer than the header never shifts the columns onto an
             # index; pandas then drops the extra field with a warning, turned into a check here
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", pd.errors.ParserWarning)
-                df = pd.read_csv(fh, dtype={"run_id": str}, keep_default_na=False, na_values=na,
+                df = pd.read_csv(fh, dtype=dict.fromkeys(TEXT_COLUMNS, str), keep_default_na=False, na_values=na,
                                  encoding="utf-8-sig", compression=None, engine="c", index_col=False)  # fmt: skip
             if any(issubclass(w.category, pd.errors.ParserWarning) for w in caught):
                 fh.seek(0)
@@ -639,6 +660,11 @@ def _load_dataset(root: Path) -> Dataset:
         what = "does not exist" if not os.path.lexists(root) else "is not a directory"
         raise DatasetError(f"{root}: not a dataset directory ({what})")
     meta = load_metadata(root)
+    if meta.version == 2:
+        from .v2 import load_tables_v2
+
+        process, errors = load_tables_v2(root, meta)
+        return Dataset(meta, process, errors, root)
     ppath = _find_table(root, "process")
     epath = _find_table(root, "errors")
     sensor_cols = [meta.sensor_column(s) for s in meta.sensors]

@@ -128,3 +128,10 @@ FEED_MM_MIN = Quantity("mm/min", 0.0, 200_000.0, hint=(200_000.0, 2e11, "µm/min
 # removes like its 85 °C power-on reading; nothing a machine tool reaches lies below
 TEMPERATURE_C = Quantity("°C", -130.0, 200.0, hint=(250.0, 400.0, "kelvin (°C = K - 273.15)", None))
 ERROR_UM = Quantity("µm", -5_000.0, 5_000.0, hint=(5_000.0, 5e9, "nm", 1e-3))  # 5 mm: no thermal or pitch error
+
+# contract v2 (docs/dataset-format.md, "Version 2")
+SPINDLE_RPM = Quantity("1/min", 0.0, 500_000.0)  # the fastest spindles turn at some 200 000 rpm
+LOAD_N = Quantity("N", -10_000_000.0, 10_000_000.0, hint=(1e7, 1e10, "mN", 1e-3))
+MAX_GAP_S = Quantity("s", 0.0, 86_400.0, lo_inclusive=False, hint=(86_400.0, 8.64e7, "ms", 1e-3))
+TILT_URAD = Quantity("µrad", -50_000.0, 50_000.0, hint=(50_000.0, 5e10, "nrad", 1e-3))
+TIME_S = Quantity("s", -1e9, 1e9)  # 30 years either side of a run's clock zero

@@ -11,23 +11,26 @@ import pandas as pd
 from .io import Dataset
 
 
-def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:
     """Cycle index of each reading of one run: a new cycle starts when a target
-    repeats within the current cycle or after a pause longer than 2.5 times
-    the median gap between readings."""
+    (with ``direction``: a target in the same direction of approach, so that a forward
+    and a backward pass make one cycle) repeats within the current cycle or after a
+    pause longer than 2.5 times the median gap between readings."""
     t = np.asarray(t_s, dtype=float)
-    x = np.asarray(target_mm, dtype=float)
+    x = np.asarray(target_mm, dtype=float).tolist()
+    d = [0.0] * len(x) if direction is None else np.asarray(direction, dtype=float).tolist()
     out = np.zeros(len(t), dtype=int)
     if len(t) < 2:
         return out
     typical = np.median(np.diff(t))
-    seen: set[float] = {float(x[0])}
+    seen: set[tuple[float, float]] = {(x[0], d[0])}
     c = 0
     for k in range(1, len(t)):
-        if float(x[k]) in seen or t[k] - t[k - 1] > 2.5 * typical:
+        key = (x[k], d[k])
+        if key in seen or t[k] - t[k - 1] > 2.5 * typical:
             c += 1
             seen = set()
-        seen.add(float(x[k]))
+        seen.add(key)
         out[k] = c
     return out
 
@@ -40,7 +43,15 @@ def cold_reference(errors_run: pd.DataFrame) -> pd.Series:
 
 
 def thermal_errors(ds: Dataset) -> pd.DataFrame:
-    """The errors table with ``thermal_um`` = error - cold reference at the same target."""
+    """The errors table with ``thermal_um`` = error - cold reference at the same target.
+
+    Format 2 (:func:`thermal_errors_v2`): per channel, target and direction, with the
+    dataset's reference rule. A channel view (:meth:`Dataset.channel_view`) carries its
+    ``thermal_um`` already."""
+    if "thermal_um" in ds.errors.columns:
+        return ds.errors.copy()
+    if ds.metadata.version == 2:
+        return thermal_errors_v2(ds)
     parts = []
     for run_id in ds.run_ids:
         er = ds.errors_run(run_id)
@@ -51,7 +62,10 @@ def thermal_errors(ds: Dataset) -> pd.DataFrame:
 
 
 def run_summary(ds: Dataset) -> pd.DataFrame:
-    """One row per run: duration, condition, max |thermal error| measured."""
+    """One row per run: duration, condition, max |thermal error| measured (format 2:
+    :func:`run_summary_v2`)."""
+    if ds.metadata.version == 2:
+        return run_summary_v2(ds)
     te = thermal_errors(ds)
     rows = []
     for run_id, run in ds.metadata.runs.items():
@@ -70,4 +84,79 @@ def run_summary(ds: Dataset) -> pd.DataFrame:
                 "max_thermal_error_um": float(tr["thermal_um"].abs().max()),
             }
         )
+    return pd.DataFrame(rows)
+
+
+def _group_keys(er: pd.DataFrame) -> pd.Series:
+    """A reading's reference group: its target (fixed point: one group) and direction."""
+    target = er["target_mm"] if "target_mm" in er.columns else pd.Series(0.0, index=er.index)
+    key = target.fillna(0.0).astype(float).map(repr)
+    if "direction" in er.columns:
+        key = key + "/" + er["direction"].fillna(0.0).astype(float).map(repr)
+    return key
+
+
+def reference_values(er: pd.DataFrame, mode: str, t_ref_s: float | None, along_axis: bool) -> pd.Series:
+    """The reference of each reading of one run and channel (format 2, docs/dataset-format.md
+    "Reference"): per target and direction, the mean of the first measuring cycle
+    (``cold_cycle``; a fixed-point channel's cycle is one reading), the first reading
+    (``first_reading``) or the readings interpolated at ``t_ref_s`` (``time``; before
+    the first reading its value, after the last the last)."""
+    keys = _group_keys(er)
+    ref = pd.Series(np.nan, index=er.index)
+    if mode == "cold_cycle" and along_axis:
+        direction = er["direction"].fillna(0.0).to_numpy() if "direction" in er.columns else None
+        cyc = measuring_cycles(er["t_s"].to_numpy(), er["target_mm"].to_numpy(dtype=float), direction)
+        first = er[cyc == 0].groupby(keys[cyc == 0])["error_um"].mean()
+        return keys.map(first)
+    for _, idx in er.groupby(keys, sort=False).groups.items():
+        g = er.loc[idx]
+        if mode == "time":
+            value = float(np.interp(t_ref_s, g["t_s"].to_numpy(), g["error_um"].to_numpy()))
+        else:
+            value = float(g["error_um"].iloc[0])
+        ref.loc[idx] = value
+    return ref
+
+
+def thermal_errors_v2(ds: Dataset) -> pd.DataFrame:
+    """Format 2: ``thermal_um`` = reading - reference (:func:`reference_values`) per run,
+    channel, target and direction; ``reference_um`` is the reference itself. With a
+    ``direction`` column each direction has its own reference, so the reversal value
+    never enters the thermal error (it is reported by ``thermbench iso230``)."""
+    er = ds.errors
+    if er.empty:
+        return er.assign(thermal_um=pd.Series(dtype=float), reference_um=pd.Series(dtype=float))
+    ref_meta = ds.metadata.reference_mode()
+    channels = ds.metadata.error_channels()
+    ref = pd.Series(np.nan, index=er.index)
+    for (_, ch), g in er.groupby(["run_id", "channel"], sort=False):
+        ref.loc[g.index] = reference_values(g, ref_meta.mode, ref_meta.t_s, channels[ch].kind == "along_axis")
+    ref = ref.fillna(er["error_um"] * 0.0)  # a target missing from the cold cycle: the raw reading (format 1's rule)
+    return er.assign(thermal_um=er["error_um"] - ref, reference_um=ref)
+
+
+def run_summary_v2(ds: Dataset) -> pd.DataFrame:
+    """Format 2: one row per run: duration, samples, median sample step, condition (or
+    ``derived``), readings, and the max |thermal error| of each channel."""
+    te = thermal_errors(ds)
+    channels = ds.metadata.error_channels()
+    rows = []
+    for run_id, run in ds.metadata.runs.items():
+        pr = ds.process_run(run_id)
+        t = pr["t_s"].to_numpy()
+        cond = run.condition.levels() if run.condition is not None else None
+        row = {
+            "run_id": run_id,
+            "duration_h": float(t[-1] - t[0]) / 3600.0,
+            "samples": len(t),
+            "step_s": float(np.median(np.diff(t))) if len(t) > 1 else float("nan"),
+            "condition": ", ".join(f"{k} {v:g}" for k, v in cond.items()) if cond else "derived",
+            "readings": int((te["run_id"] == run_id).sum()) if len(te) else 0,
+        }
+        for ch, meta in channels.items():
+            tr = te[(te["run_id"] == run_id) & (te["channel"] == ch)] if len(te) else te
+            unit = "urad" if meta.unit == "urad" else "um"
+            row[f"max_{ch}_{unit}"] = float(tr["thermal_um"].abs().max()) if len(tr) else float("nan")
+        rows.append(row)
     return pd.DataFrame(rows)

@@ -13,6 +13,8 @@ makes, so no stale folder looks current; a directory holding anything else is re
 
 from __future__ import annotations
 
+import json
+
 import re
 import sys
 from pathlib import Path
@@ -29,8 +31,8 @@ from ..outputs import check_output_dir, output_dir
 from .bundle import ExportOptions, export_model
 from .encoding import ExportError
 
-KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "out_dir", "lssvm_reduced_size", "onnx", "verify",
-        "parity_tol_um", "seed", "force"}  # fmt: skip
+KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",
+        "verify", "parity_tol_um", "seed", "force"}  # fmt: skip
 
 
 def _options(e: dict) -> ExportOptions:
@@ -69,10 +71,11 @@ def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
         run = mlflow.get_run(run_id) if run_id else None
         metrics = dict(run.data.metrics) if run else {}
         params = dict(run.data.params) if run else {}
-        key = e.get("name") or uri.split("/")[-1]
-        key = str(key).replace("@", "_").replace("/", "_")
+        key = e.get("name") or str(uri).removeprefix("models:/").removeprefix("runs:/")
+        key = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(key)).strip("._") or "model"  # models:/name/1 -> name_1
         return [(key, model, {"uri": uri, "mlflow_run_id": run_id, "metrics": metrics,
-                              "dataset_name": params.get("dataset.name") or params.get("dataset")})]  # fmt: skip
+                              "dataset_name": params.get("dataset.name") or params.get("dataset"),
+                              "dataset_config": _run_dataset_config(run_id)})]  # fmt: skip
     src = Path(str(e.get("source") or ""))
     if src.is_file():
         if src.suffix != ".joblib":
@@ -128,6 +131,69 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
     return pd.DataFrame(rows), {"dir": str(out_root)}
 
 
+def _run_dataset_config(run_id: str | None) -> dict | None:
+    """The ``dataset`` section of the config an MLflow run logged (``config.yaml``): how the
+    model's training dataset was loaded, own data included."""
+    if not run_id:
+        return None
+    import mlflow
+
+    try:
+        text = mlflow.artifacts.load_text(f"runs:/{run_id}/config.yaml")
+    except Exception:  # a run logged by something else: no config, the other ways apply
+        return None
+    cfg = yaml.safe_load(text) or {}
+    d = cfg.get("dataset") if isinstance(cfg, dict) else None
+    return d if isinstance(d, dict) and isinstance(d.get("source"), dict) else None
+
+
+def _load_split_cached(cfg: dict, cache: dict):
+    from ..experiment import load_split
+
+    k = json.dumps(cfg, sort_keys=True, default=str)
+    if k not in cache:
+        cache[k] = load_split(cfg)
+    return cache[k]
+
+
+def _dataset_split(e: dict, info: dict, key: str, cache: dict):
+    """(name, Split) of the dataset the model was trained on, or (None, None): ``export.dataset``
+    (a conf/dataset option or a dataset directory), else the MLflow run's logged dataset config,
+    else the benchmark dataset the key names."""
+    from ..experiment import group_option
+
+    given = e.get("dataset")
+    logged = info.pop("dataset_config", None)
+    name = info.pop("dataset_name", None)
+    if given:
+        path = Path(str(given))
+        if str(given) not in _dataset_names() and (path.is_dir() or "/" in str(given) or path.suffix):
+            if not (path / "metadata.yaml").is_file():
+                raise ConfigError(f"config key 'export.dataset': {given} is neither a conf/dataset option "
+                                  f"({_dataset_names()}) nor a dataset directory (no metadata.yaml)")  # fmt: skip
+            cfg = {"name": None, "source": {"_target_": "thermbench.data.io.load_dataset", "path": str(path)},
+                   "channel": e.get("channel")}  # fmt: skip
+            sp = _load_split_cached(cfg, cache)
+            return sp.name, sp
+        cfg = dict(group_option("dataset", str(given)))
+        if e.get("channel") is not None:
+            cfg["channel"] = e.get("channel")
+        return str(given), _load_split_cached(cfg, cache)
+    if logged is not None:
+        src = logged["source"]
+        if src.get("_target_") == "thermbench.data.io.load_dataset" and not Path(str(src.get("path"))).is_dir():
+            raise ConfigError(f"{key}: its training dataset {src.get('path')!r} (from the MLflow run) is not a "
+                              "directory here; set export.dataset to the dataset's path")  # fmt: skip
+        if e.get("channel") is not None:
+            logged = {**logged, "channel": e.get("channel")}
+        sp = _load_split_cached(logged, cache)
+        return sp.name, sp
+    name = name or datasets.of_key(key)
+    if name:
+        return str(name), _load_split_cached(dict(group_option("dataset", str(name))), cache)
+    return None, None
+
+
 def _source_name(e: dict) -> str:
     """The default export folder's name: the registered model or URI, else the source's name."""
     if e.get("model_uri") or e.get("name"):
@@ -138,25 +204,19 @@ def _source_name(e: dict) -> str:
 
 
 def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path) -> list[dict]:
-    from ..experiment import group_option, load_split
-
     rows = []
-    splits: dict[str, Any] = {}
+    cache: dict = {}
     for key, model, info in items:
-        dname = e.get("dataset") or info.pop("dataset_name", None) or datasets.of_key(key)
-        info.pop("dataset_name", None)
+        dname, sp = _dataset_split(e, info, key, cache)
         ds, heldout = None, []
-        if dname:
-            if dname not in splits:
-                splits[dname] = load_split(group_option("dataset", str(dname)))
-            sp = splits[dname]
+        if sp is not None:
             ds = sp.dataset
             train = set(getattr(model, "train_runs_", []))
             heldout = [r for r in sp.validation if r not in train] or [r for r in ds.run_ids if r not in train]
         elif opts.verify:
             raise ConfigError(
                 f"{key}: cannot tell which dataset it was trained on; set export.dataset (a conf/dataset option: "
-                f"{_dataset_names()}) or export.verify=false"
+                f"{_dataset_names()}, or a dataset directory) or export.verify=false"
             )
         source = {**info, "training": {"dataset_name": dname}} if dname else info
         man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)

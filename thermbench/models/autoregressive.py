@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.io import Dataset
-from .base import Inputs, ModelError, ThermalErrorModel, readings, require
+from .base import Inputs, ModelError, curve_degree, ThermalErrorModel, readings, require
 from .mlr import check_degree_or_none, check_int, check_real, lstsq_fit
 from .separation import curve_at, cycle_curves, geometric_from_residuals, shape_degree
 
@@ -114,7 +114,7 @@ class AutoRegressiveSeed003(ThermalErrorModel):
         na=2,
         nb=2,
         sample_s=600.0,
-        operating=("feed_mm_min",),
+        operating=None,
         mounting=None,
         geometric_degree=None,
         origin_mm=0.0,
@@ -129,7 +129,8 @@ class AutoRegressiveSeed003(ThermalErrorModel):
 
     def _model_inputs(self) -> Inputs:
         """The operating columns and the motion log; no temperature sensors (seed 003)."""
-        cols = tuple(dict.fromkeys(c for c, _ in parse_operating(self.operating)))
+        ops = getattr(self, "operating_", None) or parse_operating(self.operating or ("feed_mm_min",))
+        cols = tuple(dict.fromkeys(c for c, _ in ops))
         return Inputs(operating=cols, motion=True)
 
     # --- inputs -----------------------------------------------------------
@@ -185,8 +186,9 @@ class AutoRegressiveSeed003(ThermalErrorModel):
         self.sample_ = check_real("sample_s", self.sample_s, positive=True)
         origin = check_real("origin_mm", self.origin_mm)
         gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
-        self.operating_ = parse_operating(self.operating)
-        degree = shape_degree(self.mounting if self.mounting is not None else ds.metadata.screw.mounting)
+        # None: the dataset's operating inputs (feed on an axis, spindle speed on a spindle)
+        self.operating_ = parse_operating(self.operating if self.operating is not None else ds.metadata.operating_inputs())
+        degree = curve_degree(ds, self.mounting)
         self.origin_ = origin
         names_c = [f"c{i}" for i in range(degree + 1)]
 

@@ -33,6 +33,18 @@ class ModelError(ValueError):
     """A model cannot do what was asked (bad input, unfitted model, ...); the message says why."""
 
 
+class FallbackWarning(UserWarning):
+    """A model took a default because the dataset lacks what it prefers (no sensor at
+    ``ambient``: a constant ambient); ``thermbench train`` prints each one."""
+
+
+def fallback(message: str) -> None:
+    """Warn that a model fell back to a default (:class:`FallbackWarning`)."""
+    import warnings
+
+    warnings.warn(message, FallbackWarning, stacklevel=3)
+
+
 def _pairs(t_s, axis_mm) -> tuple[np.ndarray, np.ndarray]:
     """(t, x) broadcast against each other, as flat float arrays."""
     t, x = np.broadcast_arrays(np.atleast_1d(np.asarray(t_s, dtype=float)), np.asarray(axis_mm, dtype=float))
@@ -128,6 +140,9 @@ def sensors_at(ds: Dataset, sensor: str, locations: Sequence[str]) -> str:
     """The dataset's sensor at the first of ``locations`` it has (e.g. 'nut_housing')."""
     found = sensors_by_location(ds, locations)
     if found:
+        where = ds.metadata.sensors[found[0]]
+        if where != locations[0]:
+            fallback(f"{sensor}: no sensor at {locations[0]!r}; using {found[0]!r} at {where!r}")
         return found[0]
     raise ModelError(
         f"{sensor}: the dataset {_name(ds)} has no sensor at {list(locations)}; "
@@ -185,11 +200,67 @@ def temperatures_at(
     return out
 
 
+NEEDS = {
+    "screw": "a screw block (metadata 'screw': the ball screw's geometry)",
+    "along_axis": "readings along a linear axis at target positions (an along_axis error channel)",
+}
+
+
+def is_fixed_point(ds: Dataset) -> bool:
+    """True for a view of a fixed-point channel (a spindle's drift at the test mandrel):
+    every reading is at the one position 0.0 (:func:`thermbench.data.views.channel_view`)."""
+    if ds.channel is None:
+        return False
+    return ds.metadata.error_channels()[ds.channel].kind == "fixed_point"
+
+
+def missing_needs(cls, ds: Dataset) -> list[str]:
+    """What model class ``cls`` needs (its ``needs``) that dataset ``ds`` lacks."""
+    out = []
+    for need in getattr(cls, "needs", ()):
+        if need == "screw" and ds.metadata.screw is None:
+            out.append(need)
+        elif need == "along_axis" and (is_fixed_point(ds) or not ds.metadata.has_axis):
+            out.append(need)
+    return out
+
+
+def check_needs(model, ds: Dataset) -> None:
+    """One line naming what ``model`` needs and ``ds`` lacks (e.g. the screw physics model
+    on a spindle test); nothing when it has everything."""
+    missing = missing_needs(type(model), ds)
+    if missing:
+        parts = ", ".join(ds.metadata.parts or []) or "a linear axis"
+        what = "; and ".join(NEEDS[m] for m in missing)
+        where = f", channel {ds.channel!r}" if ds.channel else ""
+        raise ModelError(f"{type(model).__name__} needs {what}; dataset {_name(ds)}{where} (a test of: {parts}) "
+                         "has none")  # fmt: skip
+
+
+def curve_degree(ds: Dataset, mounting: str | None = None) -> int:
+    """Degree of the thermal error curve over the measuring points: 0 at a fixed point
+    (the drift itself), else the shape the screw mounting implies (seed 004), a straight
+    line (seed 002) when the dataset has no screw block."""
+    from .separation import shape_degree
+
+    if is_fixed_point(ds):
+        return 0
+    if mounting is not None:
+        return shape_degree(mounting)
+    return shape_degree(ds.metadata.screw.mounting) if ds.metadata.screw is not None else 1
+
+
 class ThermalErrorModel(BaseEstimator, ABC):
-    """Base class of all model families (see module docstring)."""
+    """Base class of all model families (see module docstring).
+
+    ``needs``: what a dataset must have for the family (keys of :data:`NEEDS`); fitting
+    on one that lacks it is one line naming what is missing (:func:`check_needs`)."""
+
+    needs: tuple[str, ...] = ()
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
         runs = check_runs(dataset, runs)
+        check_needs(self, dataset)
         # a refit starts from nothing: a fit that fails half-way leaves an unfitted model
         for attr in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:
             delattr(self, attr)
@@ -314,10 +385,11 @@ def choose_sensors(
     opts = dict(selection or {})
     n_clusters = opts.pop("n_clusters", 2)
     rd = readings(ds, runs)
-    curves, _ = cycle_curves(rd, 1)
+    fixed = is_fixed_point(ds)  # at a fixed point the drift itself, along an axis the slope of the error line
+    curves, _ = cycle_curves(rd, 0 if fixed else 1)
     temps = np.vstack([temperatures_at(ds, r, cand, g["t_s"], preprocess) for r, g in curves.groupby("run_id", sort=False)])
     require(len(curves), 3, "measuring cycles for sensor selection")
-    slope = curves["c1"].to_numpy()
+    slope = curves["c0" if fixed else "c1"].to_numpy()
     # the slope falls as the screw heats when the fixed end is on the positive side (Pf > 0):
     # orient it to rise with temperature, since grey relational grades compare shapes, not |r|
     if np.corrcoef(slope, temps.mean(axis=1))[0, 1] < 0:

@@ -33,6 +33,9 @@ import pandas as pd
 
 from ..data.io import Dataset
 from .base import (
+    curve_degree,
+    fallback,
+    is_fixed_point,
     ModelError,
     ThermalErrorModel,
     check_sensors,
@@ -157,6 +160,8 @@ class MLRSeed001(ThermalErrorModel):
     µm/mm), ``nut_sensor_``, ``bed_sensor_``, ``sensors_``, ``geometric_``.
     """
 
+    needs = ("along_axis",)  # eq. 12: the thermal error is a slope times (Px - origin)
+
     def __init__(self, degree=4, nut_sensor=None, bed_sensor=None, origin_mm=None, preprocess="default"):
         self.degree = degree
         self.nut_sensor = nut_sensor
@@ -173,7 +178,7 @@ class MLRSeed001(ThermalErrorModel):
         degree = check_int("degree", self.degree, 1, 4)
         origin = self.origin_mm
         if origin is None:  # Px from the fixed end, where seed 001 §4 integrates the elongation from
-            origin = ds.metadata.screw.fixed_end_axis_mm or 0.0
+            origin = (ds.metadata.screw.fixed_end_axis_mm if ds.metadata.screw is not None else None) or 0.0
         origin = check_real("origin_mm", origin)
         nut = str(self.nut_sensor) if self.nut_sensor is not None else sensors_at(ds, "nut_sensor", ["nut_housing"])
         bed = self.bed_sensor
@@ -281,7 +286,7 @@ class MLRSeed002(_CurveRegression):
         self.geometric_degree = geometric_degree
 
     def _curve_degree(self, ds: Dataset) -> int:
-        return 1  # eq. 6: one line per measuring cycle
+        return 0 if is_fixed_point(ds) else 1  # eq. 6: one line per measuring cycle; a fixed point: its drift
 
     def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
         sel = dict(self.selection) if self.selection is not None else None
@@ -289,8 +294,8 @@ class MLRSeed002(_CurveRegression):
 
     @property
     def slope_coef_(self) -> np.ndarray:
-        """eq. 8, RegressX: ``[const, one per sensor]`` (µm/mm, per °C)."""
-        return self.curve_coef_[1]
+        """eq. 8, RegressX: ``[const, one per sensor]`` (µm/mm, per °C); zeros at a fixed point."""
+        return self.curve_coef_[1] if len(self.curve_coef_) > 1 else np.zeros_like(self.curve_coef_[0])
 
     @property
     def intercept_coef_(self) -> np.ndarray:
@@ -334,12 +339,15 @@ class MLRSeed004(_CurveRegression):
         self.origin_mm = origin_mm
 
     def _curve_degree(self, ds: Dataset) -> int:
-        return shape_degree(self.mounting if self.mounting is not None else ds.metadata.screw.mounting)
+        return curve_degree(ds, self.mounting)
 
     def _pick_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
         sensors = sensor_list("sensors", self.sensors)
         if sensors is None:
             sensors = sensors_by_location(ds, SEED004_LOCATIONS)
+            absent = [loc for loc in SEED004_LOCATIONS if loc not in ds.metadata.sensors.values()]
+            if sensors and absent:
+                fallback(f"sensors: no sensor at {absent}; the regression uses {sensors} only")
             if not sensors:
                 raise ModelError(
                     f"sensors: the dataset has no sensor at {list(SEED004_LOCATIONS)} "

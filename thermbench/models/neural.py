@@ -64,7 +64,7 @@ import torch
 from torch import nn
 
 from ..data.io import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
+from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .separation import line_separated_geometric, shape_degree
 
 __all__ = ["GRUModel", "MLPModel"]
@@ -461,7 +461,7 @@ class GRUModel(_NeuralModel):
         window = _real(owner, "window_s", self.window_s, 0.0, False)
         self.n_lags_ = int(math.floor(window / step + 1e-9))
         if self.position_degree is None:
-            self.position_degree_ = shape_degree(ds.metadata.screw.mounting)
+            self.position_degree_ = curve_degree(ds)
         else:
             self.position_degree_ = _int(owner, "position_degree", self.position_degree, 0)
         return {}

@@ -37,7 +37,7 @@ from ..data.io import Dataset
 from ..sim.effects import AmbientDrift, FixedFixedConstraint, make_effect
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
 from ..sim.parts import CoreParams, Material, Numerics, Screw
-from .base import Inputs, ModelError, ThermalErrorModel, readings, require, sensor_series
+from .base import Inputs, ModelError, ThermalErrorModel, fallback, readings, require, sensor_series
 from .separation import cold_reference_geometric
 
 CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
@@ -86,6 +86,8 @@ class PhysicsModel(ThermalErrorModel):
     max_iter, ftol : SLSQP options.
     """
 
+    needs = ("screw", "along_axis")  # the seed 000 finite-difference screw
+
     def __init__(
         self,
         effects: dict | None = None,
@@ -119,7 +121,11 @@ class PhysicsModel(ThermalErrorModel):
         if self.ambient_sensor is None:
             return None
         if self.ambient_sensor == "auto":
-            return next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
+            name = next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
+            if name is None:
+                fallback("ambient_sensor auto: the dataset has no sensor at location 'ambient', so the ambient "
+                         "is taken as constant (20 °C)")  # fmt: skip
+            return name
         if self.ambient_sensor not in ds.metadata.sensors:
             raise ModelError(
                 f"ambient_sensor: {self.ambient_sensor!r} is not a sensor of the dataset; "

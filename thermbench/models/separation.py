@@ -47,12 +47,13 @@ def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple
     Returns one row per cycle (``run_id``, ``cycle``, ``t_s`` = mean reading time,
     ``c0`` .. ``c<degree>`` ascending coefficients) and the residual of every reading.
     Cycles with fewer than degree + 2 distinct targets are dropped (residual NaN).
+    Degree 0 (a fixed measuring point: the curve is the reading itself) keeps every cycle.
     """
     rows = []
     resid = np.full(len(rd), np.nan)
     for (run, cyc), g in rd.groupby(["run_id", "cycle"], sort=False):
         p = g["target_mm"].to_numpy() - origin_mm
-        if np.unique(p).size < degree + 2:
+        if degree > 0 and np.unique(p).size < degree + 2:
             continue
         coef = np.polynomial.polynomial.polyfit(p, g["error_um"].to_numpy(), degree)
         resid[g.index.to_numpy()] = g["error_um"].to_numpy() - np.polynomial.polynomial.polyval(p, coef)
@@ -64,8 +65,9 @@ def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple
 
 def line_separated_geometric(rd: pd.DataFrame, degree: int | None = 3, origin_mm: float = 0.0):
     """Seed 002 eq. 6-7 in one call: a line per measuring cycle, then the mean
-    residual per measuring point fitted by a polynomial of ``degree``."""
-    _, resid = cycle_curves(rd, 1, origin_mm)
+    residual per measuring point fitted by a polynomial of ``degree`` (one measuring
+    point: its curve is the reading, the geometric error 0)."""
+    _, resid = cycle_curves(rd, 0 if rd["target_mm"].nunique() == 1 else 1, origin_mm)
     return geometric_from_residuals(rd, resid, degree)
 
 
@@ -86,6 +88,8 @@ def geometric_from_residuals(rd: pd.DataFrame, resid: np.ndarray, degree: int | 
     per-target means as a :class:`TargetTable` (piecewise linear)."""
     ok = ~np.isnan(resid)
     means = pd.Series(resid[ok]).groupby(rd["target_mm"].to_numpy()[ok]).mean()
+    if means.size == 1:  # one measuring point (a fixed-point channel): a constant
+        return Polynomial([float(means.iloc[0])])
     if degree is None:
         return TargetTable(means.index.to_numpy(), means.to_numpy())
     return polynomial_fit(means.index.to_numpy(), means.to_numpy(), degree, "the geometric error")

@@ -1,0 +1,213 @@
+"""Dataset format 2 (docs/dataset-format.md "Format 2"), on small hand-written datasets:
+what it admits that format 1 refused, each mistake as one line, and what models see."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench.data import DatasetError, load_dataset
+from thermbench.data.reference import thermal_errors
+from thermbench.data.views import channel_view, split_segments
+from thermbench.models.base import ModelError
+
+SPINDLE_META = {
+    "format": "thermbench-dataset/2",
+    "machine": {"name": "vmc_spindle"},
+    "parts": ["spindle"],
+    "sensors": {"T_front": "spindle_front_bearing", "T_amb": "ambient"},
+    "channels": {
+        "Z": {"kind": "fixed_point", "direction": "Z", "location": "test_mandrel"},
+        "X1": {"kind": "fixed_point", "direction": "X", "location": "test_mandrel", "position_mm": 0},
+        "X2": {"kind": "fixed_point", "direction": "X", "location": "test_mandrel", "position_mm": 100},
+    },
+    "reference": {"mode": "first_reading"},
+    "runs": {"r1": {}},
+}
+
+
+def spindle_tables(step_s: float = 15.0, n: int = 200):
+    t = np.arange(n) * step_s
+    rpm = np.where((t >= 60) & (t < 1560), 3000.0, 0.0)  # 25 min on, 24 min off
+    process = pd.DataFrame({"run_id": "r1", "t_s": t, "spindle_rpm": rpm, "T_front_C": 20 + 0.01 * t,
+                            "T_amb_C": 20.0})  # fmt: skip
+    rows = []
+    for ch, k in (("Z", 0.05), ("X1", 0.01), ("X2", 0.02)):
+        rows += [{"run_id": "r1", "t_s": ti, "channel": ch, "error_um": 1.0 + k * ti} for ti in t]
+    return process, pd.DataFrame(rows)
+
+
+def write(root: Path, meta: dict, process: pd.DataFrame, errors: pd.DataFrame | None) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "metadata.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
+    process.to_csv(root / "process.csv", index=False)
+    if errors is not None:
+        errors.to_csv(root / "errors.csv", index=False)
+    return root
+
+
+def refused(root: Path) -> str:
+    with pytest.raises(DatasetError) as exc:
+        load_dataset(root)
+    msg = str(exc.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_spindle_test_without_axis_feed_or_screw(tmp_path):
+    p, e = spindle_tables()
+    ds = load_dataset(write(tmp_path / "d", SPINDLE_META, p, e))
+    assert ds.metadata.has_spindle and not ds.metadata.has_axis and ds.metadata.screw is None
+    te = thermal_errors(ds)
+    z = te[te["channel"] == "Z"]
+    # first_reading: reading minus the first one, 0.05 µm/s by construction
+    np.testing.assert_allclose(z["thermal_um"], 0.05 * z["t_s"], atol=1e-12)
+    view = channel_view(ds, "Z")
+    assert (view.errors["target_mm"] == 0).all() and (view.process["axis_mm"] == 0).all()
+    np.testing.assert_allclose(view.errors["thermal_um"], 0.05 * view.errors["t_s"], atol=1e-12)
+
+
+def test_slow_logger_gap_rule_inferred_and_declared(tmp_path):
+    p, e = spindle_tables(step_s=15.0)
+    load_dataset(write(tmp_path / "ok", SPINDLE_META, p, e))  # 15 s steps: no 1 Hz rule any more
+    p2 = p.drop(index=range(10, 16)).reset_index(drop=True)  # a 105 s hole, 7 x the 15 s median step
+    e2 = e[~e["t_s"].isin(p.loc[10:15, "t_s"])]
+    msg = refused(write(tmp_path / "gap", SPINDLE_META, p2, e2))
+    assert "column 't_s', row 11 (line 12): gap of 105 s in run 'r1', more than 75 s" in msg
+    assert "declare sampling.max_gap_s" in msg
+    meta = {**SPINDLE_META, "sampling": {"max_gap_s": 120}}
+    load_dataset(write(tmp_path / "declared", meta, p2, e2))
+
+
+def test_runs_without_readings_are_valid(tmp_path):
+    p, _ = spindle_tables()
+    ds = load_dataset(write(tmp_path / "d", SPINDLE_META, p, None))
+    assert ds.errors.empty and len(ds.process) == len(p)
+
+
+def test_fixed_point_reading_with_a_target_is_refused(tmp_path):
+    p, e = spindle_tables()
+    e["target_mm"] = np.nan
+    e.loc[3, "target_mm"] = 10.0
+    msg = refused(write(tmp_path / "d", SPINDLE_META, p, e))
+    assert "errors.csv: column 'target_mm', row 4 (line 5): channel 'Z' is a fixed_point channel" in msg
+
+
+def test_unknown_channel_and_missing_channel_column(tmp_path):
+    p, e = spindle_tables()
+    e.loc[5, "channel"] = "Y1"
+    assert "column 'channel', row 6 (line 7): unknown channel 'Y1'" in refused(write(tmp_path / "a", SPINDLE_META, p, e))
+    p, e = spindle_tables()
+    msg = refused(write(tmp_path / "b", SPINDLE_META, p, e.drop(columns="channel")))
+    assert "missing column 'channel'; metadata.yaml declares 3 channels" in msg
+
+
+def test_v2_keys_need_format_2_and_v1_keys_stay_required(tmp_path):
+    p, e = spindle_tables()
+    meta = {**SPINDLE_META, "format": "thermbench-dataset/1"}
+    msg = refused(write(tmp_path / "a", meta, p, e))
+    assert "metadata.yaml: key 'machine.axis': missing (required)" in msg
+    meta = {**SPINDLE_META}
+    del meta["parts"]
+    assert "key 'parts': missing; list what the dataset is a test of" in refused(write(tmp_path / "b", meta, p, e))
+    meta = {**SPINDLE_META, "channels": {"Z": {"kind": "along_axis", "direction": "Z", "location": "t"}}}
+    assert "key 'channels.Z': kind along_axis measures along a linear axis" in refused(write(tmp_path / "c", meta, p, e))
+
+
+def test_tilt_channel_unit(tmp_path):
+    p, e = spindle_tables()
+    meta = {**SPINDLE_META, "channels": {**SPINDLE_META["channels"], "B": {"kind": "fixed_point", "direction": "B",
+                                                                           "location": "spindle", "unit": "um"}}}  # fmt: skip
+    assert "direction B is measured in urad, not um" in refused(write(tmp_path / "a", meta, p, e))
+
+
+AXIS_META = {
+    "format": "thermbench-dataset/2",
+    "machine": {"name": "lab", "axis": "X"},
+    "parts": ["axis"],
+    "sensors": {"T_nut": "nut_housing"},
+    "channels": {"X": {"kind": "along_axis", "direction": "X", "location": "table"}},
+    "runs": {"r1": {"condition": {"feed_mm_min": 600}}},
+}
+
+
+def axis_tables():
+    t = np.arange(0.0, 400.0, 0.5)
+    x = 50.0 * (1 - np.cos(2 * np.pi * t / 200.0))  # 0..100 mm, smooth
+    process = pd.DataFrame({"run_id": "r1", "t_s": t, "axis_mm": x, "T_nut_C": 20.0 + 0.01 * t})
+    rows = []
+    for c, t0 in enumerate((10.0, 300.0)):
+        for k, (tg, d) in enumerate([(0, 1), (50, 1), (100, 1), (100, -1), (50, -1), (0, -1)]):
+            # geometric 0.02 x, reversal 3 µm (+1.5 / -1.5), thermal 0.001 x t (c = 1 only)
+            rows.append({"run_id": "r1", "t_s": t0 + k, "target_mm": tg, "direction": d,
+                         "error_um": 0.02 * tg + 1.5 * d + (0.001 * tg * t0 if c else 0.0)})  # fmt: skip
+    return process, pd.DataFrame(rows)
+
+
+def test_feed_derived_from_axis_position(tmp_path):
+    p, e = axis_tables()
+    ds = load_dataset(write(tmp_path / "d", AXIS_META, p, e))
+    t = p["t_s"].to_numpy()
+    exact = np.abs(50.0 * 2 * np.pi / 200.0 * np.sin(2 * np.pi * t / 200.0)) * 60.0  # |dx/dt| * 60, by hand
+    inner = slice(1, -1)  # central differences inside the run
+    np.testing.assert_allclose(ds.process["feed_mm_min"].to_numpy()[inner], exact[inner], rtol=0, atol=0.2)
+
+
+def test_direction_keeps_the_reversal_out_of_the_thermal_error(tmp_path):
+    p, e = axis_tables()
+    ds = load_dataset(write(tmp_path / "d", AXIS_META, p, e))
+    te = thermal_errors(ds)
+    want = np.where(te["t_s"] >= 300, 0.001 * te["target_mm"] * 300.0, 0.0)
+    np.testing.assert_allclose(te["thermal_um"], want, atol=1e-12)
+    bad = e.copy()
+    bad.loc[2, "direction"] = 0
+    msg = refused(write(tmp_path / "bad", AXIS_META, p, bad))
+    assert "column 'direction', row 3 (line 4): must be 1 (approach in the positive direction) or -1" in msg
+
+
+def test_along_axis_reading_needs_a_target(tmp_path):
+    p, e = axis_tables()
+    e.loc[1, "target_mm"] = np.nan
+    msg = refused(write(tmp_path / "d", AXIS_META, p, e))
+    assert "column 'target_mm', row 2 (line 3): missing value; a reading of along_axis channel 'X' needs its target" in msg
+
+
+def test_segment_names_must_match_what_is_derived(tmp_path):
+    p, e = spindle_tables()
+    meta = {**SPINDLE_META, "runs": {"r1": {"segments": ["a", "b"]}}}
+    ds = load_dataset(write(tmp_path / "d", meta, p, e))
+    with pytest.raises(DatasetError, match=r"key 'runs.r1.segments': names 2 segments, but 1 were derived from spindle_rpm"):
+        split_segments(ds)
+    meta = {**SPINDLE_META, "runs": {"r1": {"segments": ["heat3000"]}}}
+    seg = split_segments(load_dataset(write(tmp_path / "e", meta, p, e)))
+    assert list(seg.metadata.runs) == ["heat3000"]
+    assert seg.metadata.runs["heat3000"].condition.levels() == {"spindle_rpm": 3000.0}
+    assert seg.process_run("heat3000")["t_s"].iloc[0] == 60.0  # the operation starts at 60 s
+
+
+def test_screw_physics_model_on_a_spindle_test_is_one_line(tmp_path):
+    from thermbench.models.physics import PhysicsModel
+
+    p, e = spindle_tables()
+    view = channel_view(load_dataset(write(tmp_path / "d", SPINDLE_META, p, e)), "Z")
+    with pytest.raises(ModelError, match=r"PhysicsModel needs a screw block .* \(a test of: spindle\) has none"):
+        PhysicsModel().fit(view)
+
+
+def test_own_datasets_never_share_a_registered_name(tmp_path):
+    from thermbench.experiment import load_split
+
+    p, e = axis_tables()
+    a = write(tmp_path / "a", AXIS_META, p, e)
+    e2 = e.assign(error_um=e["error_um"] + 0.5)
+    b = write(tmp_path / "b", AXIS_META, p, e2)
+    src = {"_target_": "thermbench.data.io.load_dataset"}
+    sa = load_split({"name": None, "source": {**src, "path": str(a)}})
+    sb = load_split({"name": None, "source": {**src, "path": str(b)}})
+    assert sa.name == sb.name == "lab"  # the machine's name
+    assert sa.registry_name("mlr_seed002") != sb.registry_name("mlr_seed002")
+    assert sa.registry_name("mlr_seed002").startswith("thermbench-lab-X-")

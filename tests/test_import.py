@@ -1,0 +1,236 @@
+"""``thermbench import`` and dataset format 2 on data thermbench did not make: the measured
+spindle test shipped in the package (checked against the workbook read cell by cell with
+openpyxl and against the test plan in its SOURCE.md) and a lab's three files
+(tests/labfiles.py, checked against the closed-form truth they were written from)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import openpyxl
+import pandas as pd
+import pytest
+
+from tests import labfiles
+from thermbench.cli import main
+from thermbench.data import load_dataset
+from thermbench.data.importer import MappingError, import_dataset
+from thermbench.data.reference import thermal_errors
+from thermbench.data.views import split_segments
+
+REALDATA = Path(__file__).resolve().parents[1] / "thermbench" / "realdata" / "fl_thermal"
+MAPPING = REALDATA / "mapping.yaml"
+
+
+@pytest.fixture(scope="module")
+def workbook() -> pd.DataFrame:
+    """The workbook's cells as openpyxl reads them (not through pandas or thermbench)."""
+    wb = openpyxl.load_workbook(REALDATA / "data.xlsx", read_only=True, data_only=True)
+    rows = list(wb.worksheets[0].iter_rows(values_only=True))
+    wb.close()
+    return pd.DataFrame(rows[1:], columns=[str(c) for c in rows[0]])
+
+
+@pytest.fixture(scope="module")
+def fl(tmp_path_factory):
+    return import_dataset(MAPPING, tmp_path_factory.mktemp("fl") / "fl_thermal")
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    root = tmp_path_factory.mktemp("lab")
+    mapping = labfiles.write_lab_files(root / "files")
+    return import_dataset(mapping, root / "dataset", file_format="csv")
+
+
+# ------------------------------------------------------------ the spindle test ---
+def test_spindle_test_imports_every_cell(fl, workbook):
+    ds = load_dataset(fl.path)  # what was written loads again
+    assert ds.metadata.format == "thermbench-dataset/2" and ds.metadata.parts == ["spindle"]
+    assert len(ds.process) == len(workbook) == 11115
+    np.testing.assert_array_equal(ds.process["t_s"], workbook.iloc[:, 0].astype(float))
+    np.testing.assert_array_equal(ds.process["spindle_rpm"], workbook["spindle(RPM)"].astype(float))
+    for i in (1, 9, 16):
+        np.testing.assert_array_equal(ds.process[f"t{i}_C"], workbook[f"t{i}(°C)"].astype(float))
+    te = thermal_errors(ds)
+    for ch in ("ch1", "ch3", "ch5"):
+        raw = workbook[f"{ch}(um)"].astype(float).to_numpy()
+        got = te[te["channel"] == ch].sort_values("t_s")
+        np.testing.assert_allclose(got["error_um"], raw)
+        # reference: first_reading -> the drift from the first sample
+        np.testing.assert_allclose(got["thermal_um"], raw - raw[0], atol=1e-12)
+    # the README's ranges: ch3 from -71 to 18 µm
+    ch3 = te[te["channel"] == "ch3"]["error_um"]
+    assert round(ch3.min()) == -71 and round(ch3.max()) == 18
+
+
+def test_spindle_test_segments_are_its_test_plan(fl):
+    seg = split_segments(fl)
+    plan = {"rpm1250": (465, 1250), "rpm2500": (29265, 2500), "rpm3750": (58065, 3750), "rpm5000": (86865, 5000),
+            "rpm3500": (115665, 3500)}  # fmt: skip  (SOURCE.md)
+    assert list(seg.metadata.runs) == [*plan, "stepped"]
+    for name, (start, rpm) in plan.items():
+        pr = seg.process_run(name)
+        assert pr["t_s"].iloc[0] == start
+        assert seg.metadata.runs[name].condition.levels() == {"spindle_rpm": rpm}
+        # the 4 h heating and the 4 h stop after it
+        assert pr["t_s"].iloc[-1] == start + 28800 - 15
+    assert seg.metadata.runs["stepped"].condition is None  # a duty cycle, not one level
+    assert seg.process_run("stepped")["t_s"].iloc[0] == 144465
+    # every segment keeps the readings of its time span
+    assert set(seg.errors["run_id"]) == set(seg.metadata.runs)
+
+
+def test_shipped_dataset_loads_by_name_and_is_cached(tmp_path):
+    from thermbench import datasets
+
+    ds = datasets.load_benchmark("fl_thermal", root=tmp_path)
+    assert ds.metadata.machine.name == "fl_thermal" and len(ds.process) == 11115
+    meta = tmp_path / "fl_thermal" / "metadata.yaml"
+    before = meta.stat().st_mtime_ns
+    datasets.load_benchmark("fl_thermal", root=tmp_path)
+    assert meta.stat().st_mtime_ns == before  # from the cache, not imported again
+
+
+# ------------------------------------------------------------- the lab's files ---
+def test_lab_files_temperatures_interpolated_on_the_cnc_clock(lab):
+    pr = lab.process
+    assert len(pr) == 28801  # the 4 Hz CNC trace is the process clock (align.base: cnc)
+    t = pr["t_s"].to_numpy()
+    assert np.allclose(np.diff(t), 0.25)
+    # the logger's 10 s readings (3 decimals) interpolated linearly onto the CNC times
+    assert np.max(np.abs(pr["T_nut_C"] - labfiles.t_nut_C(t))) < 0.01
+    assert np.max(np.abs(pr["T_amb_C"] - labfiles.t_ambient_C(t))) < 0.01
+
+
+def test_lab_files_feed_from_signed_velocity(lab):
+    pr = lab.process
+    _, v = labfiles.axis_at(pr["t_s"].to_numpy())
+    np.testing.assert_allclose(pr["feed_mm_min"], np.abs(v) * 60.0, atol=1e-6)
+    assert (pr["feed_mm_min"] >= 0).all() and pr["feed_mm_min"].max() == pytest.approx(labfiles.FEED_MM_MIN)
+
+
+def test_lab_files_clock_offsets_put_readings_at_their_true_times(lab):
+    truth = labfiles.readings_truth()
+    er = lab.errors.sort_values("t_s").reset_index(drop=True)
+    np.testing.assert_allclose(er["t_s"], truth["t_s"], atol=1e-6)
+    np.testing.assert_allclose(er["target_mm"], truth["target_mm"])
+    np.testing.assert_array_equal(er["direction"], truth["direction"])
+    np.testing.assert_allclose(er["error_um"], truth["error_um"], atol=1e-3)  # mm with 7 decimals -> 0.1 nm
+
+
+def test_bidirectional_thermal_error_excludes_the_reversal(lab):
+    te = thermal_errors(lab).sort_values("t_s").reset_index(drop=True)
+    truth = labfiles.readings_truth()
+    # each direction is referenced to its own cold pass: the thermal part alone remains
+    np.testing.assert_allclose(te["thermal_um"], truth["thermal_um"], atol=1e-3)
+    view = lab.channel_view("X")
+    assert np.abs(view.errors["thermal_um"]).max() == pytest.approx(truth["thermal_um"].abs().max(), abs=1e-3)
+
+
+def test_iso230_on_the_lab_files(lab, tmp_path):
+    from thermbench.iso230_report import iso230_report
+
+    figs = iso230_report(lab.path, tmp_path / "iso")
+    e = figs["runs"]["warmup_6000"]["channels"]["X"]
+    assert e["iso230_2_run"]["B_um"] == pytest.approx(labfiles.REVERSAL_UM, abs=1e-3)
+    cold = e["iso230_2_per_cycle"][0]
+    # by hand, cold cycle: deviations 3 sin(2 pi x / 400) +/- 2 over x = 0..400 step 50:
+    # E = (3 + 2) - (-3 - 2) = 10, M = 3 - (-3) = 6
+    assert cold["E_um"] == pytest.approx(10.0, abs=2e-3) and cold["M_um"] == pytest.approx(6.0, abs=2e-3)
+    last = e["error_lines"][-1]
+    assert last["slope_um_per_m"] == pytest.approx(float(labfiles.slope_um_per_m(last["t_s"])), rel=0.01)
+    assert (tmp_path / "iso" / "report.md").is_file() and (tmp_path / "iso" / "drift_warmup_6000.png").is_file()
+
+
+def test_iso230_on_the_spindle_test(fl, workbook, tmp_path, capsys):
+    assert main(["iso230", str(fl.path), "--out", str(tmp_path / "iso")]) == 0
+    import json
+
+    figs = json.loads((tmp_path / "iso" / "figures.json").read_text(encoding="utf-8"))
+    ch3 = workbook["ch3(um)"].astype(float).to_numpy()
+    drift = next(r for r in figs["runs"]["test"]["channels"]["ch3"]["drift"] if r["block"] == "all")
+    assert drift["max_drift_from_start_um"] == pytest.approx(np.max(np.abs(ch3 - ch3[0])), abs=1e-3)
+    blocks = [r["block"] for r in figs["runs"]["test"]["channels"]["ch3"]["drift"]]
+    assert blocks == ["rpm1250", "rpm2500", "rpm3750", "rpm5000", "rpm3500", "stepped", "all"]
+
+
+# ---------------------------------------------------------- mapping mistakes ---
+def _lab_copy(tmp_path: Path) -> Path:
+    return labfiles.write_lab_files(tmp_path / "files")
+
+
+@pytest.mark.parametrize(
+    "edit, expected",
+    [
+        (("files:", "filez:"), "key 'filez': unknown key; did you mean 'files'?"),
+        (("offset_s: -2.5", "ofset_s: -2.5"), "key 'files.cnc.ofset_s': unknown key; did you mean 'offset_s'?"),
+        (("Temp. Bett [°C]\": T_bed_C", "Temp. Bet [°C]\": T_bed_C"), "column 'Temp. Bet [°C]' is not in logger.csv"),
+        (('read: {sep: ";", decimal: ",", encoding: cp1252, skip_rows: 1}', 'read: {sep: ";", encoding: cp1252, skip_rows: 1}'),
+         "it has a decimal comma: add read: {decimal: ','}"),
+        (('encoding: cp1252, ', ''), "key files.logger.read.encoding: logger.csv is not utf-8 text"),
+        (("unit: mm/s", "unit: mm/h"), "key files.cnc.columns.'X_vel'.unit: cannot convert 'mm/h' to mm/min"),
+        (('"Umgebung [°C]": T_amb_C', '"Umgebung [°C]": T_room_C'), "'T_room_C' is a temperature column, but dataset.sensors declares no sensor 'T_room'"),
+        (("offset_s: 1.2", "offset_s: -30"), "outside the process log of run 'warmup_6000'"),
+        (("align: {base: cnc}", "align: {base: plc}"), "key 'align.base': 'plc' is not one of files"),
+        (("channel: X\n", "channel: Y\n"), "key files.laser.channel: name the error channel"),
+        (("{fwd: 1, bwd: -1}", "{fwd: 1}"), "value 'bwd' (data row 10 of interferometer.txt) is not mapped"),
+        (("kind: along_axis", "kind: alongaxis"), "key 'dataset.channels.X.kind'"),
+    ],
+)
+def test_mapping_mistake_is_one_line_naming_the_key(tmp_path, capsys, edit, expected):
+    mapping = _lab_copy(tmp_path)
+    text = mapping.read_text(encoding="utf-8")
+    assert edit[0] in text
+    mapping.write_text(text.replace(edit[0], edit[1], 1), encoding="utf-8")
+    assert main(["import", str(mapping), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("thermbench: error: ") and str(mapping) in err, err
+    assert expected in err, err
+    assert not (tmp_path / "ds").exists()  # nothing half-written
+
+
+def test_a_long_logger_gap_is_not_filled_in(tmp_path, capsys):
+    mapping = _lab_copy(tmp_path)
+    log = mapping.parent / "logger.csv"
+    lines = log.read_bytes().split(b"\r\n")
+    del lines[200:215]  # 150 s of the 10 s logger missing (its default max_gap_s: 5 x 10 s)
+    log.write_bytes(b"\r\n".join(lines))
+    assert main(["import", str(mapping), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "key files.logger: no T_nut_C reading between" in err and "not filled in over a long gap" in err, err
+
+
+def test_import_never_overwrites_a_users_directory(tmp_path, capsys):
+    mapping = _lab_copy(tmp_path)
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["import", str(mapping), "--out", str(out)]) == 2
+    assert (out / "notes.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert main(["import", str(mapping), "--out", str(out), "--force"]) == 0  # beside, never over
+    assert (out / "notes.txt").read_text() == "mine" and (out / "metadata.yaml").is_file()
+    capsys.readouterr()
+
+
+def test_excel_and_parquet_sources(tmp_path):
+    """The same logger as an Excel workbook and as Parquet gives the same dataset."""
+    mapping = _lab_copy(tmp_path)
+    files = mapping.parent
+    raw = pd.read_csv(files / "logger.csv", sep=";", decimal=",", encoding="cp1252", skiprows=1)
+    raw.to_excel(files / "logger.xlsx", index=False, sheet_name="Daten")
+    raw.to_parquet(files / "logger.parquet", index=False)
+    text = mapping.read_text(encoding="utf-8")
+    old = 'path: logger.csv\n    read: {sep: ";", decimal: ",", encoding: cp1252, skip_rows: 1}'
+    assert old in text
+    base = import_dataset(mapping, tmp_path / "csv")
+    for name, read in (("logger.xlsx", "read: {sheet: Daten}"), ("logger.parquet", "read: {}")):
+        mapping.write_text(text.replace(old, f"path: {name}\n    {read}"), encoding="utf-8")
+        ds = import_dataset(mapping, tmp_path / name)
+        pd.testing.assert_frame_equal(ds.process, base.process)
+    mapping.write_text(text.replace(old, "path: logger.xlsx\n    read: {sheet: Data}"), encoding="utf-8")
+    with pytest.raises(MappingError, match=r"files.logger.read.sheet: .*Data"):
+        import_dataset(mapping, tmp_path / "bad")
+    shutil.rmtree(tmp_path / "csv")

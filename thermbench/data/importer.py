@@ -1,0 +1,593 @@
+"""``thermbench import MAPPING.yaml --out DIR``: a lab's own files to a format 2 dataset
+(docs/import.md).
+
+One YAML mapping file describes the user's files (CSV, Excel, Parquet), how to read
+them (separator, decimal comma, encoding, preamble lines, sheet), their clocks (seconds
+or timestamps, a clock offset each), and what each column is in the dataset contract,
+with unit conversions. Nothing is written but the dataset, and only after it validates.
+
+Alignment (the documented rule): the process table takes the clock of one file (``align.base``,
+default: the first file with process columns). Every other file's process columns are
+brought onto those times:
+- temperatures (``<sensor>_C``) by linear interpolation between the two neighbouring
+  readings, and only where both lie within the file's ``max_gap_s`` of each other:
+  never forward-filled over a long gap;
+- every other column (operating inputs, positions) by the last reading at or before the
+  time (``pandas.merge_asof``, direction backward, tolerance ``max_gap_s``): a CNC signal
+  holds its value until it changes.
+Process times outside the span that every process file covers are dropped (each file
+must then overlap). Readings (errors) keep their own times, shifted by their file's offset.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import Any, Literal, Optional, Union
+
+import numpy as np
+import pandas as pd
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from ..errors import UserError
+from . import limits
+from .errors import DatasetError, short_repr
+from .files import check_regular_file, open_regular_file
+from .safe_yaml import YAMLInputError, load_yaml
+from .schema import FORMAT_V2, Metadata
+
+MAPPING_FORMAT = "thermbench-import/1"
+MAPPING_MAX_BYTES = limits.METADATA_MAX_BYTES
+
+
+class MappingError(UserError):
+    """A mistake in an import mapping or in the files it names: one line naming the key."""
+
+
+# ------------------------------------------------------------------ units ---
+# target suffix -> {source unit: (factor, offset)}: value_in_target = value * factor + offset
+UNITS: dict[str, dict[str, tuple[float, float]]] = {
+    "mm": {"mm": (1.0, 0.0), "m": (1e3, 0.0), "um": (1e-3, 0.0), "µm": (1e-3, 0.0), "in": (25.4, 0.0)},
+    "um": {"um": (1.0, 0.0), "µm": (1.0, 0.0), "mm": (1e3, 0.0), "m": (1e6, 0.0), "nm": (1e-3, 0.0),
+           "in": (25400.0, 0.0)},  # fmt: skip
+    "mm_min": {"mm/min": (1.0, 0.0), "mm/s": (60.0, 0.0), "m/min": (1e3, 0.0), "m/s": (6e4, 0.0),
+               "in/min": (25.4, 0.0)},  # fmt: skip
+    "C": {"C": (1.0, 0.0), "°C": (1.0, 0.0), "K": (1.0, -273.15), "F": (5.0 / 9.0, -32.0 * 5.0 / 9.0),
+          "°F": (5.0 / 9.0, -32.0 * 5.0 / 9.0)},  # fmt: skip
+    "rpm": {"rpm": (1.0, 0.0), "1/min": (1.0, 0.0), "1/s": (60.0, 0.0), "Hz": (60.0, 0.0)},
+    "N": {"N": (1.0, 0.0), "kN": (1e3, 0.0)},
+    "s": {"s": (1.0, 0.0), "ms": (1e-3, 0.0), "min": (60.0, 0.0), "h": (3600.0, 0.0)},
+    "urad": {"urad": (1.0, 0.0), "µrad": (1.0, 0.0), "mrad": (1e3, 0.0), "rad": (1e6, 0.0),
+             "arcsec": (math.pi / 180 / 3600 * 1e6, 0.0), "um/m": (1.0, 0.0)},  # fmt: skip
+}
+ERROR_TARGETS = ("error_um", "target_mm", "direction")
+
+
+def unit_of(name: str) -> str | None:
+    """The unit a contract column's name carries (``feed_mm_min`` -> ``mm_min``)."""
+    if name == "spindle_rpm":
+        return "rpm"
+    for suffix in sorted(UNITS, key=len, reverse=True):
+        if name.endswith("_" + suffix):
+            return suffix
+    return None
+
+
+# ---------------------------------------------------------------- mapping ---
+class _M(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ColumnMap(_M):
+    """What one source column becomes."""
+
+    to: Optional[str] = None  # a contract column: t1_C, spindle_rpm, axis_mm, error_um, ...
+    channel: Optional[str] = None  # a wide error column: its readings belong to this channel
+    unit: Optional[str] = None  # the source unit, converted to the unit of `to`'s name
+    scale: float = 1.0  # then value * scale + offset (a sensor gain, a sign)
+    offset: float = 0.0
+    abs: bool = False  # signed velocity -> feed magnitude
+    map: Optional[dict[Union[str, int, float], float]] = None  # text codes -> numbers (direction: fwd -> 1)
+
+
+class TimeMap(_M):
+    column: str
+    unit: Optional[str] = None  # numbers: s (default), ms, min, h
+    format: Optional[str] = None  # timestamps: a strftime format, or "iso"
+    dayfirst: bool = False
+
+
+class ReadOptions(_M):
+    sheet: Optional[Union[str, int]] = None  # Excel: the sheet name or 0-based index (default the first)
+    sep: Optional[str] = None  # CSV: the separator (default ",")
+    decimal: str = "."
+    thousands: Optional[str] = None
+    encoding: str = "utf-8"
+    skip_rows: int = Field(0, ge=0)  # preamble lines before the header
+
+
+class FileMap(_M):
+    path: str
+    format: Optional[Literal["csv", "excel", "parquet"]] = None  # default: from the suffix
+    read: ReadOptions = ReadOptions()
+    time: TimeMap
+    offset_s: float = 0.0  # added to this file's clock: what makes it agree with the others
+    max_gap_s: Optional[float] = Field(None, gt=0)  # default: 5 x the file's median step
+    channel: Optional[str] = None  # a long errors file (error_um, target_mm): its channel
+    columns: dict[str, Union[str, ColumnMap]]
+
+    @field_validator("columns")
+    @classmethod
+    def _nonempty(cls, v):
+        if not v:
+            raise ValueError("maps no column")
+        return v
+
+
+class AlignMap(_M):
+    base: Optional[str] = None
+
+
+class Mapping(_M):
+    format: str
+    dataset: dict[str, Any]
+    run: Optional[str] = None
+    files: dict[str, FileMap]
+    align: AlignMap = AlignMap()
+
+
+def _key(loc) -> str:
+    return ".".join(str(p) for p in loc if p != "[key]")
+
+
+def read_mapping(path: Path) -> tuple[Mapping, dict]:
+    """The mapping file, validated; :class:`MappingError` naming the key on any mistake."""
+    try:
+        check_regular_file(path, MAPPING_MAX_BYTES, "a mapping file")
+        with open_regular_file(path, MAPPING_MAX_BYTES, "a mapping file") as fh:
+            text = fh.read().decode("utf-8-sig")
+        raw, lines = load_yaml(text)
+    except (DatasetError, YAMLInputError) as exc:
+        raise MappingError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
+    except UnicodeDecodeError:
+        raise MappingError(f"{path}: not UTF-8 text; save the mapping file as UTF-8") from None
+    if not isinstance(raw, dict):
+        raise MappingError(f"{path}: expected a mapping with keys format, dataset, files")
+    if raw.get("format") != MAPPING_FORMAT:
+        raise MappingError(f"{path}: key 'format': expected {MAPPING_FORMAT!r}, got {short_repr(raw.get('format'))}")
+    try:
+        m = Mapping.model_validate(raw)
+    except ValidationError as exc:
+        errs = exc.errors()
+        # a misspelt key is also a missing one: name the misspelling (with its suggestion)
+        e = next((x for x in errs if x["type"] == "extra_forbidden"), errs[0])
+        loc = tuple(p for p in e["loc"] if p != "[key]")
+        # a union's error location names the branch tried (str, ColumnMap): drop it
+        loc = tuple(p for p in loc if p not in ("str", "ColumnMap", "function-after[_nonempty(), dict[str,union[str,ColumnMap]]]"))
+        at = _line(lines, loc)
+        msg = str(e["msg"]).removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            known = _known_keys(loc[:-1])
+            near = difflib.get_close_matches(str(loc[-1]), known, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else (f"; known keys: {', '.join(known)}" if known else "")
+            raise MappingError(f"{path}: key {_key(loc)!r}: unknown key{hint}{at}") from None
+        if e["type"] == "missing":
+            raise MappingError(f"{path}: key {_key(loc)!r}: missing (required){at}") from None
+        raise MappingError(f"{path}: key {_key(loc)!r}: {msg} (got {short_repr(e.get('input'))}){at}") from None
+    return m, lines
+
+
+def _known_keys(loc: tuple) -> list[str]:
+    models = {"": Mapping, "files": None, "read": ReadOptions, "time": TimeMap, "align": AlignMap}
+    if not loc:
+        return list(Mapping.model_fields)
+    if loc[0] == "files" and len(loc) == 2:
+        return list(FileMap.model_fields)
+    if loc[0] == "files" and len(loc) >= 3 and loc[2] in ("read", "time"):
+        return list(models[loc[2]].model_fields)
+    if loc[0] == "files" and len(loc) >= 4 and loc[2] == "columns":
+        return list(ColumnMap.model_fields)
+    if loc[0] == "align":
+        return list(AlignMap.model_fields)
+    return []
+
+
+def _line(lines: dict, loc: tuple) -> str:
+    for k in range(len(loc), 0, -1):
+        if tuple(loc[:k]) in lines:
+            return f" (line {lines[tuple(loc[:k])]})"
+    return ""
+
+
+# ------------------------------------------------------------------ files ---
+def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
+    fmt = f.format or {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".xlsx": "excel", ".xlsm": "excel",
+                       ".xls": "excel", ".parquet": "parquet"}.get(path.suffix.lower())  # fmt: skip
+    if fmt is None:
+        raise MappingError(f"{where}.path: cannot tell the format of {path.name!r} from its suffix; "
+                           "add format: csv, excel or parquet")  # fmt: skip
+    try:
+        check_regular_file(path, limits.TABLE_MAX_BYTES, "a table")
+    except DatasetError as exc:
+        raise MappingError(f"{where}.path: {exc}") from None
+    r = f.read
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            if fmt == "csv":
+                if r.sheet is not None:
+                    raise MappingError(f"{where}.read.sheet: a CSV file has no sheets")
+                with open_regular_file(path, limits.TABLE_MAX_BYTES, "a table") as fh:
+                    df = pd.read_csv(fh, sep=r.sep or ",", decimal=r.decimal, thousands=r.thousands,
+                                     encoding=r.encoding, skiprows=r.skip_rows, engine="python" if r.sep and len(r.sep) > 1 else "c")  # fmt: skip
+            elif fmt == "excel":
+                df = pd.read_excel(path, sheet_name=r.sheet if r.sheet is not None else 0, skiprows=r.skip_rows,
+                                   engine="openpyxl")  # fmt: skip
+            else:
+                df = pd.read_parquet(path)
+        except MappingError:
+            raise
+        except UnicodeDecodeError as exc:
+            raise MappingError(f"{where}.read.encoding: {path.name} is not {r.encoding} text "
+                               f"(byte 0x{exc.object[exc.start]:02x}); set the file's encoding, e.g. cp1252") from None  # fmt: skip
+        except LookupError:
+            raise MappingError(f"{where}.read.encoding: unknown encoding {r.encoding!r}") from None
+        except ValueError as exc:
+            if "Worksheet" in str(exc) or "sheet" in str(exc).lower():
+                raise MappingError(f"{where}.read.sheet: {str(exc).strip()}") from None
+            raise MappingError(f"{where}.path: cannot read {path.name} as {fmt}: {short_repr(str(exc), 200)}") from None
+        except Exception as exc:  # a corrupt file: the user's
+            raise MappingError(f"{where}.path: cannot read {path.name} as {fmt} ({type(exc).__name__}: "
+                               f"{short_repr(str(exc), 200)})") from None  # fmt: skip
+    if df.shape[0] * max(df.shape[1], 1) > limits.TABLE_MAX_CELLS:
+        raise MappingError(f"{where}.path: {path.name} holds more than {limits.TABLE_MAX_CELLS} cells")
+    df.columns = [str(c) for c in df.columns]
+    if df.empty:
+        raise MappingError(f"{where}.path: {path.name} has no data rows")
+    if len(df.columns) == 1 and r.sep is None:
+        for sep, name in ((";", "semicolon"), ("\t", "tab")):
+            if sep in df.columns[0]:
+                raise MappingError(f"{where}.read.sep: {path.name} looks {name}-separated; add sep: {sep!r}")
+    return df
+
+
+def _column(df: pd.DataFrame, name: str, where: str, path: Path) -> pd.Series:
+    if name in df.columns:
+        return df[name]
+    near = difflib.get_close_matches(name, list(df.columns), n=1, cutoff=0.6)
+    hint = f"; did you mean {near[0]!r}?" if near else ""
+    shown = ", ".join(repr(c) for c in list(df.columns)[:12]) + (", ..." if len(df.columns) > 12 else "")
+    raise MappingError(f"{where}: column {name!r} is not in {path.name} (columns: {shown}){hint}")
+
+
+def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None) -> np.ndarray:
+    if codes is not None:
+        mapped = s.map(lambda v: codes.get(v, codes.get(str(v).strip(), np.nan)) if pd.notna(v) else np.nan)
+        bad = mapped.isna() & s.notna()
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            raise MappingError(f"{where}.map: value {short_repr(s.iloc[i])} (data row {i + 1} of {path.name}) is not "
+                               f"mapped; map has {sorted(map(str, codes))}")  # fmt: skip
+        return mapped.to_numpy(dtype=float)
+    if pd.api.types.is_bool_dtype(s.dtype):
+        raise MappingError(f"{where}: column holds true/false values in {path.name}; expected numbers")
+    conv = pd.to_numeric(s, errors="coerce")
+    bad = conv.isna() & s.notna()
+    if bad.any():
+        i = int(np.flatnonzero(bad.to_numpy())[0])
+        hint = ""
+        if isinstance(s.iloc[i], str) and re.fullmatch(r"\s*-?\d+,\d+\s*", s.iloc[i]):
+            hint = "; it has a decimal comma: add read: {decimal: ','}"
+        raise MappingError(f"{where}: data row {i + 1} of {path.name} holds {short_repr(s.iloc[i])}, not a number{hint}")
+    return conv.to_numpy(dtype=float)
+
+
+def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.ndarray, bool]:
+    """The file's time column as (seconds or datetime64[ns] as int ns, is_timestamp)."""
+    s = _column(df, f.time.column, f"{where}.time.column", path)
+    if f.time.format is not None or pd.api.types.is_datetime64_any_dtype(s.dtype):
+        if f.time.unit is not None:
+            raise MappingError(f"{where}.time.unit: timestamps have no unit; give either unit (numbers) or format")
+        if pd.api.types.is_datetime64_any_dtype(s.dtype):
+            ts = s
+        else:
+            fmt = None if f.time.format in (None, "iso") else f.time.format
+            ts = pd.to_datetime(s, format=fmt if fmt else "ISO8601", errors="coerce", dayfirst=f.time.dayfirst)
+            bad = ts.isna() & s.notna()
+            if bad.any():
+                i = int(np.flatnonzero(bad.to_numpy())[0])
+                raise MappingError(f"{where}.time.format: data row {i + 1} of {path.name}, {short_repr(s.iloc[i])}, "
+                                   f"does not match {f.time.format!r}")  # fmt: skip
+        if getattr(ts.dt, "tz", None) is not None:
+            ts = ts.dt.tz_convert("UTC").dt.tz_localize(None)
+        ns = ts.to_numpy(dtype="datetime64[ns]").astype(np.int64).astype(float)
+        if np.isnan(ts.to_numpy(dtype="datetime64[ns]").astype(float)).any() or ts.isna().any():
+            i = int(np.flatnonzero(ts.isna().to_numpy())[0])
+            raise MappingError(f"{where}.time.column: data row {i + 1} of {path.name} has no time")
+        return ns / 1e9 + f.offset_s, True
+    factor, _ = UNITS["s"].get(f.time.unit or "s", (None, None))
+    if factor is None:
+        raise MappingError(f"{where}.time.unit: unknown unit {f.time.unit!r}; known: {', '.join(UNITS['s'])}")
+    t = _numbers(s, f"{where}.time.column", path)
+    if np.isnan(t).any():
+        i = int(np.flatnonzero(np.isnan(t))[0])
+        raise MappingError(f"{where}.time.column: data row {i + 1} of {path.name} has no time")
+    return t * factor + f.offset_s, False
+
+
+def _convert(values: np.ndarray, cm: ColumnMap, target: str, where: str) -> np.ndarray:
+    if cm.unit is not None:
+        unit = unit_of(target)
+        if unit is None:
+            raise MappingError(f"{where}.unit: {target!r} carries no unit to convert to; use scale/offset")
+        table = UNITS[unit]
+        if cm.unit not in table:
+            raise MappingError(f"{where}.unit: cannot convert {cm.unit!r} to {unit.replace('_', '/')}; "
+                               f"known: {', '.join(table)}")  # fmt: skip
+        factor, off = table[cm.unit]
+        values = values * factor + off
+    values = values * cm.scale + cm.offset
+    return np.abs(values) if cm.abs else values
+
+
+def _target_ok(target: str, meta: Metadata, where: str) -> None:
+    sensors = {meta.sensor_column(s) for s in meta.sensors}
+    known = {"axis_mm", "run_id", *ERROR_TARGETS, *meta.operating_inputs(), "feed_mm_min", "spindle_rpm", "load_N"}
+    if target in sensors or target in known:
+        return
+    if target.endswith("_C"):
+        raise MappingError(f"{where}: {target!r} is a temperature column, but dataset.sensors declares no sensor "
+                           f"{target[:-2]!r} (declared: {sorted(meta.sensors)})")  # fmt: skip
+    near = difflib.get_close_matches(target, sorted(known | sensors), n=1)
+    hint = f"; did you mean {near[0]!r}?" if near else ""
+    raise MappingError(f"{where}: {target!r} is not a dataset column (a sensor <name>_C, an operating input of "
+                       f"dataset.operating, axis_mm, error_um, target_mm, direction, run_id){hint}")  # fmt: skip
+
+
+# ----------------------------------------------------------------- import ---
+def _metadata(m: Mapping, path: Path, lines: dict) -> Metadata:
+    from .io import _validation_message
+
+    raw = {"format": FORMAT_V2, **m.dataset}
+    if "format" in m.dataset:
+        raise MappingError(f"{path}: key 'dataset.format': leave it out; import writes {FORMAT_V2}")
+    sub = {tuple(k[1:]): v for k, v in lines.items() if k and k[0] == "dataset"}
+    try:
+        meta = Metadata.model_validate(raw)
+    except ValidationError as exc:
+        msg = _validation_message(exc, path, sub)
+        raise MappingError(msg.replace(f"{path}: key '", f"{path}: key 'dataset.", 1)) from None
+    if m.run is not None and m.run not in meta.runs:
+        raise MappingError(f"{path}: key 'run': {m.run!r} is not a run of dataset.runs ({sorted(meta.runs)})")
+    return meta
+
+
+def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.DataFrame]:
+    """Read the mapping and its files; return the dataset's metadata and tables (not yet
+    written). :class:`MappingError` names the mapping key of any mistake."""
+    path = Path(mapping_path)
+    m, lines = read_mapping(path)
+    meta = _metadata(m, path, lines)
+    base_dir = path.parent
+    frames: dict[str, dict] = {}
+    channels = meta.error_channels()
+    kinds = set()
+    for name, f in m.files.items():
+        where = f"{path}: key files.{name}"
+        src = Path(os.path.expanduser(f.path))
+        src = src if src.is_absolute() else base_dir / src
+        df = _read_source(f, src, f"{where}")
+        t, is_ts = _times(df, f, where, src)
+        kinds.add(is_ts)
+        proc: dict[str, np.ndarray] = {}
+        wide: dict[str, np.ndarray] = {}
+        long: dict[str, np.ndarray] = {}
+        run_col = None
+        for col, spec in f.columns.items():
+            cw = f"{where}.columns.{col!r}"
+            cm = ColumnMap(to=spec) if isinstance(spec, str) else spec
+            if (cm.to is None) == (cm.channel is None):
+                raise MappingError(f"{cw}: give either to: <dataset column> or channel: <error channel>")
+            s = _column(df, col, cw, src)
+            if cm.to == "run_id":
+                run_col = s.astype(str).str.strip().to_numpy()
+                continue
+            values = _numbers(s, cw, src, None if cm.map is None else {k: float(v) for k, v in cm.map.items()})
+            if cm.channel is not None:
+                if cm.channel not in channels:
+                    raise MappingError(f"{cw}: channel {cm.channel!r} is not declared in dataset.channels "
+                                       f"({sorted(channels)})")  # fmt: skip
+                if channels[cm.channel].kind != "fixed_point":
+                    raise MappingError(f"{cw}: channel {cm.channel!r} is along_axis: its readings need target_mm; "
+                                       "map error_um, target_mm (and direction) columns and name the channel "
+                                       f"with files.{name}.channel")  # fmt: skip
+                unit = "urad" if channels[cm.channel].unit == "urad" else "um"
+                wide[cm.channel] = _convert(values, cm, f"error_{unit}", cw)
+                continue
+            _target_ok(cm.to, meta, cw)
+            v = _convert(values, cm, cm.to, cw)
+            (long if cm.to in ERROR_TARGETS else proc)[cm.to] = v
+        if long and "error_um" not in long:
+            raise MappingError(f"{where}.columns: maps {sorted(long)} but no column to error_um")
+        if long:
+            ch = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
+            if ch is None or ch not in channels:
+                raise MappingError(f"{where}.channel: name the error channel of this file's readings "
+                                   f"(one of {sorted(channels)})")  # fmt: skip
+            if channels[ch].kind == "along_axis" and "target_mm" not in long:
+                raise MappingError(f"{where}.columns: channel {ch!r} is along_axis: map a column to target_mm")
+        elif f.channel is not None:
+            raise MappingError(f"{where}.channel: this file maps no error_um column")
+        if run_col is None:
+            if m.run is None and len(meta.runs) > 1:
+                raise MappingError(f"{where}.columns: map a column to run_id, or give the mapping key 'run'")
+            run_col = np.full(len(df), m.run or next(iter(meta.runs)), dtype=object)
+        frames[name] = {"t": t, "run": run_col, "proc": proc, "wide": wide, "long": long, "channel": f.channel,
+                        "where": where, "max_gap_s": f.max_gap_s, "path": src}  # fmt: skip
+    if len(kinds) > 1:
+        raise MappingError(f"{path}: key 'files': some files have timestamps and some seconds; a common clock needs "
+                           "the same kind in every file (give each file's time the same way)")  # fmt: skip
+    if kinds == {True}:  # timestamps: seconds since the earliest one of the process files
+        zero = min(float(np.min(fr["t"])) for fr in frames.values() if fr["proc"] or fr["wide"]) if any(
+            fr["proc"] or fr["wide"] for fr in frames.values()) else min(float(np.min(fr["t"])) for fr in frames.values())
+        for fr in frames.values():
+            fr["t"] = fr["t"] - zero
+    process = _align_process(m, frames, meta, path)
+    errors = _errors(frames, channels)
+    _check_reading_times(frames, process)
+    return meta, process, errors
+
+
+def _check_reading_times(frames: dict, process: pd.DataFrame) -> None:
+    """Every reading within its run's process log: else one line naming the file's key
+    (the usual cause is a clock offset)."""
+    span = process.groupby("run_id")["t_s"].agg(["min", "max"])
+    for fr in frames.values():
+        if not (fr["wide"] or fr["long"]):
+            continue
+        for run in pd.unique(fr["run"]):
+            if run not in span.index:
+                raise MappingError(f"{fr['where']}: has readings of run {run!r}, which no process file has")
+            sel = np.flatnonzero(fr["run"] == run)
+            t = fr["t"][sel]
+            lo, hi = span.loc[run, "min"], span.loc[run, "max"]
+            out = (t < lo - 1e-9) | (t > hi + 1e-9)
+            if out.any():
+                i = int(np.flatnonzero(out)[0])
+                raise MappingError(f"{fr['where']}: the reading of data row {sel[i] + 1} of {fr['path'].name} is at "
+                                   f"{t[i]:g} s, outside the process log of run {run!r} ({lo:g}..{hi:g} s); check the "
+                                   "files' offset_s and time columns")  # fmt: skip
+
+
+def _file_gap(fr: dict) -> float:
+    if fr["max_gap_s"] is not None:
+        return float(fr["max_gap_s"])
+    steps = np.diff(np.sort(fr["t"]))
+    steps = steps[steps > 0]
+    return 5.0 * float(np.median(steps)) if steps.size else np.inf
+
+
+def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.DataFrame:
+    with_proc = [n for n, fr in frames.items() if fr["proc"]]
+    if not with_proc:
+        raise MappingError(f"{path}: key 'files': no file maps a process column (temperatures, operating inputs, axis_mm)")
+    base = m.align.base or with_proc[0]
+    if base not in frames:
+        raise MappingError(f"{path}: key 'align.base': {base!r} is not one of files ({sorted(frames)})")
+    if base not in with_proc:
+        raise MappingError(f"{path}: key 'align.base': file {base!r} maps no process column")
+    seen: dict[str, str] = {}
+    for n in with_proc:
+        for col in frames[n]["proc"]:
+            if col in seen:
+                raise MappingError(f"{frames[n]['where']}.columns': {col!r} is mapped by files {seen[col]!r} and {n!r}")
+            seen[col] = n
+    parts = []
+    b = frames[base]
+    for run in pd.unique(b["run"]):
+        sel = b["run"] == run
+        t = b["t"][sel]
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        if np.any(np.diff(t) <= 0):
+            i = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise MappingError(f"{b['where']}.time.column: time {t[i]:g} s appears twice in run {run!r}")
+        out = {"run_id": np.full(t.size, run, dtype=object), "t_s": t}
+        keep = np.ones(t.size, dtype=bool)
+        for col, v in b["proc"].items():
+            out[col] = v[sel][order]
+        for n in with_proc:
+            if n == base:
+                continue
+            fr = frames[n]
+            s = fr["run"] == run
+            if not s.any():
+                raise MappingError(f"{fr['where']}: has no rows of run {run!r}, which {base!r} has")
+            ft = fr["t"][s]
+            o = np.argsort(ft, kind="stable")
+            ft = ft[o]
+            gap = _file_gap(fr)
+            keep &= (t >= ft[0]) & (t <= ft[-1])
+            j = np.clip(np.searchsorted(ft, t, side="right"), 1, ft.size - 1) if ft.size > 1 else np.zeros(t.size, int)
+            for col, v in fr["proc"].items():
+                v = v[s][o]
+                if col.endswith("_C") and ft.size > 1:
+                    vals = np.interp(t, ft, v)
+                    span = ft[j] - ft[j - 1]
+                    near = (np.abs(t - ft[j - 1]) <= 1e-9) | (np.abs(t - ft[j]) <= 1e-9)
+                    holes = keep & (span > gap * 1.01) & ~near
+                    if holes.any():
+                        i = int(np.flatnonzero(holes)[0])
+                        raise MappingError(f"{fr['where']}: no {col} reading between {ft[j[i] - 1]:g} and "
+                                           f"{ft[j[i]]:g} s of run {run!r} ({span[i]:g} s apart, more than its max_gap_s "
+                                           f"{gap:g} s): it is not filled in over a long gap")  # fmt: skip
+                else:
+                    left = pd.DataFrame({"t_s": t})
+                    right = pd.DataFrame({"t_s": ft, "v": v})
+                    vals = pd.merge_asof(left, right, on="t_s", direction="backward", tolerance=gap)["v"].to_numpy()
+                    miss = keep & np.isnan(vals)
+                    if miss.any():
+                        i = int(np.flatnonzero(miss)[0])
+                        raise MappingError(f"{fr['where']}: no {col} reading within its max_gap_s {gap:g} s before "
+                                           f"{t[i]:g} s of run {run!r}")  # fmt: skip
+                out[col] = vals
+        if not keep.any():
+            raise MappingError(f"{path}: key 'files': the process files of run {run!r} do not overlap in time "
+                               "(check each file's offset_s and time column)")  # fmt: skip
+        parts.append(pd.DataFrame(out)[keep])
+    process = pd.concat(parts, ignore_index=True)
+    if process.shape[0] and process["t_s"].min() < 0:
+        pass  # a negative clock is allowed: the contract counts from any zero
+    return process
+
+
+def _errors(frames: dict, channels: dict) -> pd.DataFrame:
+    parts = []
+    for fr in frames.values():
+        for ch, v in fr["wide"].items():
+            ok = ~np.isnan(v)  # an empty cell: no reading at that time
+            parts.append(pd.DataFrame({"run_id": fr["run"][ok], "t_s": fr["t"][ok], "channel": ch, "error_um": v[ok]}))
+        if fr["long"]:
+            ch = fr["channel"] or next(iter(channels))
+            d = {"run_id": fr["run"], "t_s": fr["t"], "channel": ch, **{k: v for k, v in fr["long"].items()}}
+            parts.append(pd.DataFrame(d))
+    if not parts:
+        return pd.DataFrame()
+    errors = pd.concat(parts, ignore_index=True)
+    errors = errors.sort_values(["run_id", "channel", "t_s"], kind="stable").reset_index(drop=True)
+    return errors
+
+
+def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str = "parquet", force: bool = False,
+                   extra: dict | None = None):
+    """Build the dataset the mapping describes and write it to ``out`` (one output of kind
+    ``dataset``, :mod:`thermbench.outputs`), validated before it is moved into place."""
+    from ..outputs import check_output_dir, output_dir
+    from .io import load_dataset
+
+    if file_format not in ("csv", "parquet"):
+        raise MappingError(f"--format: expected csv or parquet, got {file_format!r}")
+    out = Path(out)
+    check_output_dir(out, "dataset", force=force)
+    meta, process, errors = build_tables(mapping_path)
+    with output_dir(out, "dataset", force=force) as tmp:
+        doc = meta.model_dump(mode="json", exclude_none=True) | dict(extra or {})
+        (tmp / "metadata.yaml").write_text(yaml.safe_dump(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
+        tables = [("process", process)] + ([("errors", errors)] if len(errors) else [])
+        for name, df in tables:
+            if file_format == "parquet":
+                df.to_parquet(tmp / f"{name}.parquet", index=False)
+            else:
+                df.to_csv(tmp / f"{name}.csv", index=False)
+        try:
+            ds = load_dataset(tmp)
+        except DatasetError as exc:
+            raise MappingError(f"{mapping_path}: the imported dataset is not valid: "
+                               f"{str(exc).replace(str(tmp), str(out))}") from None  # fmt: skip
+    ds.path = out
+    return ds

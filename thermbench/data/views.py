@@ -1,0 +1,105 @@
+"""Views of a format 2 dataset that the model families work on (docs/dataset-format.md,
+"Format 2: what the models see").
+
+- :func:`channel_view`: one error channel as a dataset of the format 1 shape: readings at
+  ``target_mm`` (a fixed-point channel: the one position 0.0), ``thermal_um`` computed
+  with the dataset's reference rule and per direction of approach, and ``error_um`` =
+  ``thermal_um`` + the reference averaged over the directions, so a bidirectional run's
+  reversal value is in neither. A process log without ``axis_mm`` / ``feed_mm_min`` (a
+  spindle test) gets them as zeros: the spindle does not move an axis.
+- :func:`split_segments`: every run without a declared condition becomes one run per
+  segment derived from its operating signal (:mod:`thermbench.data.segments`), named
+  by ``runs.<id>.segments`` or ``s01_1250rpm``, ...; a constant segment's condition is its
+  level. The thermal error keeps the whole run's reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .errors import DatasetError
+from .io import Dataset
+from .schema import Condition, RunMeta
+
+__all__ = ["channel_view", "split_segments"]
+
+UNIT_NAMES = {"spindle_rpm": "rpm", "feed_mm_min": "mm_min", "load_N": "N"}
+
+
+def channel_view(ds: Dataset, channel: str) -> Dataset:
+    """The dataset as seen through one error channel (module docstring)."""
+    from .reference import thermal_errors
+
+    channels = ds.metadata.error_channels()
+    if channel not in channels:
+        raise DatasetError(f"{ds.path or ds.metadata.machine.name}: no error channel {channel!r}; "
+                           f"channels: {sorted(channels)}")  # fmt: skip
+    if ds.metadata.version == 1:
+        return ds
+    te = thermal_errors(ds)
+    er = te[te["channel"] == channel].copy() if len(te) else te.copy()
+    if channels[channel].kind == "fixed_point" or "target_mm" not in er.columns:
+        er["target_mm"] = 0.0
+    base = er.groupby("target_mm")["reference_um"].mean()
+    er["error_um"] = er["thermal_um"] + er["target_mm"].map(base).to_numpy()
+    er = er[["run_id", "t_s", "target_mm", "error_um", "thermal_um", "channel"]].reset_index(drop=True)
+    process = ds.process.copy()
+    for col in ("axis_mm", "feed_mm_min"):
+        if col not in process.columns:
+            process[col] = 0.0
+    meta = ds.metadata.model_copy(update={"channels": {channel: channels[channel]}})
+    return Dataset(meta, process, er, ds.path, channel=channel)
+
+
+def split_segments(ds: Dataset) -> Dataset:
+    """Each format 2 run without a condition split into its derived segments (module
+    docstring); runs with a condition, and format 1 datasets, are kept as they are."""
+    from .segments import derive_segments, segment_name
+
+    meta = ds.metadata
+    if meta.version == 1 or all(r.condition is not None for r in meta.runs.values()):
+        return ds
+    inputs = meta.operating_inputs()
+    if not inputs:
+        raise DatasetError(f"{ds.path}: runs without a condition are segmented by an operating input; "
+                           "metadata.yaml declares none (key 'operating')")  # fmt: skip
+    op = inputs[0]
+    runs: dict[str, RunMeta] = {}
+    p_parts, e_parts = [], []
+    for run_id, run in meta.runs.items():
+        pr = ds.process_run(run_id)
+        er = ds.errors_run(run_id)
+        if run.condition is not None:
+            runs[run_id] = run
+            p_parts.append(pr)
+            e_parts.append(er)
+            continue
+        t = pr["t_s"].to_numpy()
+        segs = derive_segments(t, pr[op].to_numpy())
+        names = run.segments or [segment_name(s, UNIT_NAMES.get(op, op)) for s in segs]
+        if len(names) != len(segs):
+            found = ", ".join(f"{s.start_s:g} s ({s.kind}{'' if s.level is None else f' {s.level:g}'})" for s in segs)
+            raise DatasetError(f"{ds.path}/metadata.yaml: key 'runs.{run_id}.segments': names {len(names)} segments, "
+                               f"but {len(segs)} were derived from {op} (starting at {found or 'none'})")  # fmt: skip
+        for k, (seg, name) in enumerate(zip(segs, names)):
+            if name in meta.runs and name != run_id or name in runs:
+                raise DatasetError(f"{ds.path}/metadata.yaml: key 'runs.{run_id}.segments': {name!r} is already a run id")
+            last = k == len(segs) - 1
+            pm = (t >= seg.start_s) & ((t <= seg.end_s) if last else (t < seg.end_s))
+            et = er["t_s"].to_numpy()
+            em = (et >= seg.start_s) & ((et <= seg.end_s) if last else (et < seg.end_s))
+            cond = Condition(**{op: float(seg.level)}) if seg.kind == "constant" else None
+            levels = ", ".join(f"{v:g}" for v in seg.levels)
+            note = f"segment {k + 1} of run {run_id}: {op} {levels} from {seg.start_s:g} s to {seg.end_s:g} s"
+            runs[name] = RunMeta(condition=cond, notes=note)
+            p_parts.append(pr[pm].assign(run_id=name))
+            e_parts.append(er[em].assign(run_id=name))
+    new_meta = meta.model_copy(update={"runs": runs})
+    process = pd.concat(p_parts, ignore_index=True)
+    errors = pd.concat(e_parts, ignore_index=True) if e_parts else ds.errors.iloc[:0]
+    return Dataset(new_meta, process, errors, ds.path, channel=ds.channel)
+
+
+def has_readings(ds: Dataset, run: str) -> bool:
+    return bool(np.any(ds.errors["run_id"].to_numpy() == run)) if len(ds.errors) else False

@@ -1,0 +1,244 @@
+"""``thermbench iso230 DATA_DIR --out DIR``: what a machine-tool metrologist takes from a
+thermal test, computed from any dataset (docs/iso230.md). The statistics are in
+:mod:`thermbench.iso230`; this module picks them for each channel of a dataset and writes
+``report.md``, ``figures.json`` and the figures.
+
+- Every channel: the thermal drift (reading minus the dataset's reference,
+  :func:`thermbench.data.reference.thermal_errors`) over time, its maximum, per
+  heating/cooling block (the derived segments of a run without a declared condition,
+  else whole runs): ISO 230-3 clause 6 style for a fixed point.
+- Two fixed-point channels of one direction that declare ``position_mm``: their tilt.
+- Along an axis: the error line (offset, slope) of every measuring cycle and its change
+  with time (ISO 230-3 clause 7 style), and with a ``direction`` column the ISO 230-2
+  figures (A, E, R, M, B) of every measuring cycle and of the whole run.
+- A sensor at location ``ambient``: the environmental variation figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import iso230
+from .data.io import Dataset, load_dataset
+from .data.reference import measuring_cycles, thermal_errors
+from .outputs import check_output_dir, output_dir
+
+
+def _blocks(ds: Dataset, run: str) -> list[tuple[str, float, float]]:
+    """The heating/cooling blocks of a run: its derived segments (format 2, no condition)."""
+    from .data.views import split_segments
+
+    meta = ds.metadata
+    if meta.version == 1 or meta.runs[run].condition is not None:
+        return []
+    seg = split_segments(ds)
+    out = []
+    for name, r in seg.metadata.runs.items():
+        if name in meta.runs:
+            continue
+        pr = seg.process_run(name)
+        if pr.empty or not r.notes or f"of run {run}:" not in r.notes:
+            continue
+        out.append((name, float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])))
+    return out
+
+
+def _clean(v):
+    if isinstance(v, dict):
+        return {str(k): _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if isinstance(v, (np.floating, float)):
+        return None if not math.isfinite(float(v)) else round(float(v), 4)
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def _table_md(df: pd.DataFrame, cols: list[str]) -> str:
+    show = df[cols]
+    head = "| " + " | ".join(cols) + " |\n| " + " | ".join("---" for _ in cols) + " |\n"
+    rows = []
+    for r in show.to_dict(orient="records"):  # per row: an int column stays int
+        cells = []
+        for c in cols:
+            v = r[c]
+            if c == "cycle" and isinstance(v, (float, np.floating)) and math.isfinite(v):
+                v = int(v)
+            cells.append(f"{v:.2f}" if isinstance(v, (float, np.floating)) and math.isfinite(v) else
+                         ("–" if isinstance(v, (float, np.floating)) else str(v)))  # fmt: skip
+        rows.append("| " + " | ".join(cells) + " |")
+    return head + "\n".join(rows) + "\n"
+
+
+def compute(ds: Dataset) -> dict:
+    """All figures of the dataset, as plain data (what ``figures.json`` holds)."""
+    te = thermal_errors(ds)
+    meta = ds.metadata
+    channels = meta.error_channels()
+    ambient = next((s for s, loc in meta.sensors.items() if loc == "ambient"), None)
+    out: dict = {"dataset": str(ds.path), "machine": meta.machine.name, "format": meta.format,
+                 "reference": meta.reference_mode().mode if meta.version == 2 else "cold_cycle", "runs": {}}  # fmt: skip
+    if te.empty:
+        out["note"] = "the dataset has no readings: nothing to evaluate"
+        return out
+    if "channel" not in te.columns:
+        te = te.assign(channel=next(iter(channels)))
+    for run in ds.run_ids:
+        tr = te[te["run_id"] == run]
+        if tr.empty:
+            continue
+        blocks = _blocks(ds, run)
+        res: dict = {"blocks": [b[0] for b in blocks], "channels": {}}
+        pr = ds.process_run(run)
+        for ch, cm in channels.items():
+            g = tr[tr["channel"] == ch].sort_values("t_s", kind="stable")
+            if g.empty:
+                continue
+            unit = "urad" if cm.unit == "urad" else "um"
+            entry: dict = {"kind": cm.kind, "direction": cm.direction, "unit": unit}
+            if cm.kind == "fixed_point":
+                t = g["t_s"].to_numpy()
+                keep = np.r_[True, np.diff(t) > 0]
+                d = iso230.drift_summary(t[keep], g["thermal_um"].to_numpy()[keep],
+                                         [b for b in blocks if ((t >= b[1]) & (t <= b[2])).sum() >= 1])  # fmt: skip
+                entry["drift"] = d.to_dict(orient="records")
+                if ambient is not None:
+                    amb = np.interp(t[keep], pr["t_s"].to_numpy(), pr[meta.sensor_column(ambient)].to_numpy())
+                    entry["environmental"] = iso230.environmental_variation_error(t[keep], g["thermal_um"].to_numpy()[keep], amb)
+            else:
+                direction = g["direction"].to_numpy() if "direction" in g.columns else None
+                cyc = measuring_cycles(g["t_s"].to_numpy(), g["target_mm"].to_numpy(), direction)
+                rd = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "cycle": cyc, "t_s": g["t_s"].to_numpy(),
+                                   "deviation_um": g["thermal_um"].to_numpy()})  # fmt: skip
+                lines = iso230.error_lines(rd)
+                entry["error_lines"] = lines.to_dict(orient="records")
+                entry["max_thermal_um"] = float(np.abs(g["thermal_um"]).max())
+                if direction is not None and np.unique(direction).size == 2:
+                    pos = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "direction": direction.astype(int),
+                                        "cycle": cyc, "deviation_um": g["error_um"].to_numpy()})  # fmt: skip
+                    entry["iso230_2_run"] = iso230.positioning_statistics(pos)["axis"]
+                    per = iso230.positioning_statistics_by(pos, "cycle")
+                    t_mean = pd.Series(g["t_s"].to_numpy()).groupby(cyc).mean()
+                    per.insert(1, "t_s", per["cycle"].map(t_mean))
+                    entry["iso230_2_per_cycle"] = per.to_dict(orient="records")
+            res["channels"][ch] = entry
+        # tilt of two fixed-point channels of one direction with declared positions
+        tilts = {}
+        fixed = [(c, m) for c, m in channels.items() if m.kind == "fixed_point" and m.position_mm is not None]
+        for i, (a, ma) in enumerate(fixed):
+            for b, mb in fixed[i + 1:]:
+                if ma.direction != mb.direction or ma.position_mm == mb.position_mm:
+                    continue
+                ga = tr[tr["channel"] == a].set_index("t_s")["thermal_um"]
+                gb = tr[tr["channel"] == b].set_index("t_s")["thermal_um"]
+                both = ga.index.intersection(gb.index)
+                if len(both) == 0:
+                    continue
+                tl = iso230.tilt(ga.loc[both].to_numpy(), gb.loc[both].to_numpy(), abs(mb.position_mm - ma.position_mm))
+                k = int(np.argmax(np.abs(tl)))
+                tilts[f"{a}-{b}"] = {"max_abs_urad": float(abs(tl[k])), "signed_urad": float(tl[k]),
+                                     "t_s": float(both[k]), "spacing_mm": abs(mb.position_mm - ma.position_mm)}  # fmt: skip
+        if tilts:
+            res["tilt"] = tilts
+        out["runs"][run] = res
+    return _clean(out)
+
+
+def _figures(ds: Dataset, figs: dict, out: Path) -> list[str]:
+    from .report import _new_figure, _save
+
+    te = thermal_errors(ds)
+    if te.empty:
+        return []
+    if "channel" not in te.columns:
+        te = te.assign(channel=next(iter(ds.metadata.error_channels())))
+    names = []
+    for run in figs["runs"]:
+        tr = te[te["run_id"] == run]
+        pr = ds.process_run(run)
+        fig = _new_figure(9.0, 5.0)
+        ax, ax2 = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
+        for ch, g in tr.groupby("channel", sort=False):
+            if "direction" in g.columns and g["direction"].notna().any():
+                for dval, gd in g.groupby("direction"):
+                    ax.plot(gd["t_s"] / 3600.0, gd["thermal_um"], ".", ms=3, label=f"{ch} {'↑' if dval > 0 else '↓'}")
+            else:
+                ax.plot(g["t_s"] / 3600.0, g["thermal_um"], lw=1.0, label=str(ch))
+        ax.set_ylabel("thermal drift, µm")
+        ax.legend(fontsize=7, ncols=3)
+        ax.set_title(f"{ds.metadata.machine.name} · run {run}")
+        ops = [c for c in ds.metadata.operating_inputs() if c in pr.columns]
+        for c in ops:
+            ax2.plot(pr["t_s"] / 3600.0, pr[c], lw=0.8, label=c)
+        if ops:
+            ax2.legend(fontsize=7)
+        ax2.set_xlabel("time, h")
+        name = f"drift_{run}.png"
+        _save(fig, out / name)
+        names.append(name)
+    return names
+
+
+def _report_md(figs: dict, images: list[str]) -> str:
+    lines = [f"# ISO 230 evaluation: {figs['machine']}", "",
+             f"Dataset `{figs['dataset']}` ({figs['format']}); thermal error counted from: {figs['reference']}. "
+             "Definitions and where they differ from the standards: docs/iso230.md.", ""]  # fmt: skip
+    if "note" in figs:
+        lines.append(figs["note"])
+    for run, res in figs["runs"].items():
+        lines += [f"## Run {run}", ""]
+        for ch, e in res["channels"].items():
+            u = "µrad" if e["unit"] == "urad" else "µm"
+            if e["kind"] == "fixed_point":
+                d = pd.DataFrame(e["drift"])
+                lines += [f"### {ch}: fixed point, {e['direction']} ({u})", "",
+                          "Drift from the reference (`max_drift_from_start_um`) and within each block "
+                          "(`max_drift_um`, from the block's first sample):", "",
+                          _table_md(d, ["block", "start_s", "end_s", "max_drift_from_start_um",
+                                        "max_drift_from_start_signed_um", "t_max_drift_from_start_s",
+                                        "max_drift_um", "range_um"])]  # fmt: skip
+                if "environmental" in e:
+                    ev = e["environmental"]
+                    lines += [f"Environmental variation: {ev['etve_um']} µm over an ambient range of "
+                              f"{ev['ambient_range_C']} °C ({ev['etve_um_per_C']} µm/°C).", ""]  # fmt: skip
+            else:
+                el = pd.DataFrame(e["error_lines"])
+                lines += [f"### {ch}: along the axis, {e['direction']} ({u})", "",
+                          f"Max |thermal error| {e['max_thermal_um']} µm. Error line of each measuring cycle:", "",
+                          _table_md(el, ["cycle", "t_s", "offset_um", "slope_um_per_m", "offset_change_um",
+                                         "slope_change_um_per_m"])]  # fmt: skip
+                if "iso230_2_run" in e:
+                    a = e["iso230_2_run"]
+                    lines += ["ISO 230-2 figures over the whole run (every cycle a repetition; thermal drift "
+                              "between cycles inflates R and A):", "",
+                              "| A | E | R | M | B | B mean |", "| --- | --- | --- | --- | --- | --- |",
+                              f"| {a['A_um']} | {a['E_um']} | {a['R_um']} | {a['M_um']} | {a['B_um']} | {a['B_mean_um']} |",
+                              "", "Per measuring cycle (one repetition: s, R and A undefined):", "",
+                              _table_md(pd.DataFrame(e["iso230_2_per_cycle"]), ["cycle", "t_s", "E_um", "M_um", "B_um",
+                                                                                "B_mean_um"])]  # fmt: skip
+        for pair, tl in res.get("tilt", {}).items():
+            lines.append(f"Tilt {pair}: max |{tl['max_abs_urad']}| µrad at {tl['t_s']} s "
+                         f"(sensors {tl['spacing_mm']} mm apart).")  # fmt: skip
+        lines.append("")
+    lines += [f"![{img}]({img})" for img in images]
+    return "\n".join(lines) + "\n"
+
+
+def iso230_report(data_dir: str | Path, out_dir: str | Path, force: bool = False) -> dict:
+    """Evaluate ``data_dir`` and write ``out_dir`` (``report.md``, ``figures.json``, one
+    figure per run): one output of kind ``iso230`` (:mod:`thermbench.outputs`)."""
+    out = Path(out_dir)
+    check_output_dir(out, "iso230", force=force)
+    ds = load_dataset(data_dir)
+    figs = compute(ds)
+    with output_dir(out, "iso230", force=force) as tmp:
+        images = _figures(ds, figs, tmp)
+        (tmp / "figures.json").write_text(json.dumps(figs, indent=1, ensure_ascii=False), encoding="utf-8")
+        (tmp / "report.md").write_text(_report_md(figs, images), encoding="utf-8")
+    return figs
