@@ -211,3 +211,17 @@ def test_own_datasets_never_share_a_registered_name(tmp_path):
     assert sa.name == sb.name == "lab"  # the machine's name
     assert sa.registry_name("mlr_seed002") != sb.registry_name("mlr_seed002")
     assert sa.registry_name("mlr_seed002").startswith("thermbench-lab-X-")
+
+
+def test_benchmark_skips_families_a_dataset_cannot_serve(tmp_path):
+    from thermbench.benchmark import family_lacks
+
+    p, e = spindle_tables()
+    view = channel_view(load_dataset(write(tmp_path / "d", SPINDLE_META, p, e)), "Z")
+    assert "a screw block" in family_lacks("physics", view)
+    assert "along a linear axis" in family_lacks("mlr_seed001", view)
+    assert family_lacks("mlr_seed002", view) is None and family_lacks("bank_mlr_seed002", view) is None
+    pa, ea = axis_tables()
+    axis_view = channel_view(load_dataset(write(tmp_path / "a", AXIS_META, pa, ea)), "X")
+    assert family_lacks("mlr_seed001", axis_view) is None
+    assert family_lacks("physics", axis_view) == "needs a screw block (metadata 'screw': the ball screw's geometry)"

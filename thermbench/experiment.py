@@ -246,7 +246,8 @@ def load_split(dcfg: Mapping) -> Split:
     ds = dataset_view(ds, dcfg.get("channel"), dcfg.get("segments", True))
     runs = list(ds.run_ids)
     validation = list(dcfg.get("validation") or [])
-    states = list(dcfg.get("states") or [r for r in runs if r not in validation])
+    scored = set(ds.errors["run_id"]) if len(ds.errors) else set()  # runs without readings: prediction only
+    states = list(dcfg.get("states") or [r for r in runs if r not in validation and r in scored])
     for key, lst in (("states", states), ("validation", validation)):
         unknown = [r for r in lst if r not in runs]
         if unknown:
@@ -289,9 +290,14 @@ def dataset_view(ds, channel, segments=True):
 
 
 def resolve_runs(spec, split: Split, key: str) -> list[str]:
-    """``all`` = every loading state; ``a+b`` or a list = those runs; null = every run."""
+    """``all`` = every loading state; ``a+b`` or a list = those runs; null = every run with
+    readings (a format 2 run without readings is for prediction and replay only)."""
+    with_readings = set(split.dataset.errors["run_id"]) if len(split.dataset.errors) else set()
     if spec is None:
-        return list(split.dataset.run_ids)
+        runs = [r for r in split.dataset.run_ids if r in with_readings]
+        if not runs:
+            raise ExperimentError(f"config key '{key}': no run of dataset {split.name!r} has readings to score")
+        return runs
     if isinstance(spec, str):
         spec = split.states if spec == "all" else [s for s in spec.split("+") if s]
     runs = [str(r) for r in spec]
@@ -301,6 +307,10 @@ def resolve_runs(spec, split: Split, key: str) -> list[str]:
             f"config key '{key}': runs {unknown or runs} not in dataset {split.name!r}; "
             f"its loading states: {split.states}, validation runs: {split.validation}, or 'all'"
         )
+    bare = [r for r in runs if r not in with_readings]
+    if bare:
+        raise ExperimentError(f"config key '{key}': runs {bare} of dataset {split.name!r} have no readings "
+                              "(prediction and replay only): nothing to fit or score there")  # fmt: skip
     return runs
 
 

@@ -138,7 +138,16 @@ def load_metadata(root: Path) -> Metadata:
     path = root / "metadata.yaml"
     if not os.path.lexists(path):
         found = find_case_variant(root, "metadata.yaml")
-        raise DatasetError(f"{root}: missing metadata.yaml" + (f" (found {found!r}: rename it)" if found else ""))
+        if found:
+            raise DatasetError(f"{root}: missing metadata.yaml (found {found!r}: rename it)")
+        try:
+            raw = sorted(p.name for p in root.iterdir() if p.suffix.lower() in (".xlsx", ".xls", ".xlsm", ".csv", ".txt", ".tsv")
+                         and p.stem not in ("process", "errors"))
+        except OSError:
+            raw = []
+        hint = (f" (it holds {_some(raw, 3)}: lab files come in through an import mapping, "
+                "thermbench import MAPPING.yaml --out DIR; docs/import.md)") if raw else ""  # fmt: skip
+        raise DatasetError(f"{root}: missing metadata.yaml{hint}")
     data = read_capped(path, limits.METADATA_MAX_BYTES, "metadata.yaml")
     try:
         text = data.decode("utf-8-sig")
