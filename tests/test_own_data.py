@@ -55,3 +55,20 @@ def test_export_reads_the_training_dataset_from_the_run_and_checks_parity(lab_st
     assert np.isfinite(row["parity_max_abs_diff_nm"]) and row["parity_max_abs_diff_nm"] < 10.0
     assert np.isfinite(row["heldout_rmse_um"])
 
+
+
+def test_train_prints_the_inputs_used_and_every_fallback(lab_store, capsys):
+    tmp, ds, _ = lab_store
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp)
+        # seed 004 regresses on the fixed-bearing, nut and free-bearing housings; the lab has only the nut
+        cfg = compose("train", tmp, "dataset=path", f"dataset.source.path={tmp / 'lab_x'}", "train=warmup_6000",
+                      "model=mlr_seed004", "tracking.register=false")  # fmt: skip
+        try:
+            experiment.train(cfg)
+        finally:
+            _end_active_runs()
+    err = capsys.readouterr().err
+    assert ("[train] warning: mlr_seed004: sensors: no sensor at ['fixed_bearing_housing', 'free_bearing_housing']; "
+            "the regression uses ['T_nut'] only") in err  # fmt: skip
+    assert "[train] mlr_seed004 uses sensors T_nut" in err

@@ -48,6 +48,22 @@ def _blocks(ds: Dataset, run: str) -> list[tuple[str, float, float]]:
     return out
 
 
+def _cycle_temperatures(ds: Dataset, pr: pd.DataFrame, t_s: np.ndarray, cyc: np.ndarray) -> pd.DataFrame:
+    """Per measuring cycle, the mean of each sensor over the cycle's time span (``<sensor>_C``):
+    how the figures drift with temperature."""
+    t = pr["t_s"].to_numpy()
+    rows = []
+    for c in np.unique(cyc):
+        a, b = t_s[cyc == c].min(), t_s[cyc == c].max()
+        m = (t >= a) & (t <= b)
+        row = {"cycle": int(c)}
+        for col in ds.sensor_columns:
+            v = pr[col].to_numpy()
+            row[col] = float(v[m].mean()) if m.any() else float(np.interp(a, t, v))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _clean(v):
     if isinstance(v, dict):
         return {str(k): _clean(x) for k, x in v.items()}
@@ -68,7 +84,7 @@ def _table_md(df: pd.DataFrame, cols: list[str]) -> str:
         cells = []
         for c in cols:
             v = r[c]
-            if c == "cycle" and isinstance(v, (float, np.floating)) and math.isfinite(v):
+            if c in ("cycle", "direction") and isinstance(v, (float, np.floating)) and math.isfinite(v):
                 v = int(v)
             cells.append(f"{v:.2f}" if isinstance(v, (float, np.floating)) and math.isfinite(v) else
                          ("–" if isinstance(v, (float, np.floating)) else str(v)))  # fmt: skip
@@ -117,8 +133,17 @@ def compute(ds: Dataset) -> dict:
                 rd = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "cycle": cyc, "t_s": g["t_s"].to_numpy(),
                                    "deviation_um": g["thermal_um"].to_numpy()})  # fmt: skip
                 lines = iso230.error_lines(rd)
-                entry["error_lines"] = lines.to_dict(orient="records")
+                temps = _cycle_temperatures(ds, pr, g["t_s"].to_numpy(), cyc)
+                entry["error_lines"] = lines.merge(temps, on="cycle", how="left").to_dict(orient="records")
                 entry["max_thermal_um"] = float(np.abs(g["thermal_um"]).max())
+                last = cyc == cyc.max()
+                per = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(),
+                                    "direction": direction if direction is not None else np.ones(len(g)),
+                                    "abs_um": np.abs(g["thermal_um"].to_numpy()), "thermal_um": g["thermal_um"].to_numpy(),
+                                    "last": last})  # fmt: skip
+                tab = per.groupby(["target_mm", "direction"]).agg(max_abs_thermal_um=("abs_um", "max")).reset_index()
+                fin = per[per["last"]].groupby(["target_mm", "direction"])["thermal_um"].mean().rename("last_cycle_thermal_um")
+                entry["per_target"] = tab.merge(fin.reset_index(), on=["target_mm", "direction"], how="left").to_dict(orient="records")
                 if direction is not None and np.unique(direction).size == 2:
                     pos = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "direction": direction.astype(int),
                                         "cycle": cyc, "deviation_um": g["error_um"].to_numpy()})  # fmt: skip
@@ -126,7 +151,7 @@ def compute(ds: Dataset) -> dict:
                     per = iso230.positioning_statistics_by(pos, "cycle")
                     t_mean = pd.Series(g["t_s"].to_numpy()).groupby(cyc).mean()
                     per.insert(1, "t_s", per["cycle"].map(t_mean))
-                    entry["iso230_2_per_cycle"] = per.to_dict(orient="records")
+                    entry["iso230_2_per_cycle"] = per.merge(temps, on="cycle", how="left").to_dict(orient="records")
             res["channels"][ch] = entry
         # tilt of two fixed-point channels of one direction with declared positions
         tilts = {}
@@ -185,6 +210,13 @@ def _figures(ds: Dataset, figs: dict, out: Path) -> list[str]:
     return names
 
 
+def _hottest(df: pd.DataFrame, n: int = 2) -> list[str]:
+    """The ``n`` temperature columns that rise most over the cycles (what the table shows)."""
+    cols = [c for c in df.columns if c.endswith("_C")]
+    rise = {c: float(df[c].max() - df[c].min()) for c in cols if df[c].notna().any()}
+    return sorted(rise, key=rise.get, reverse=True)[:n]
+
+
 def _report_md(figs: dict, images: list[str]) -> str:
     lines = [f"# ISO 230 evaluation: {figs['machine']}", "",
              f"Dataset `{figs['dataset']}` ({figs['format']}); thermal error counted from: {figs['reference']}. "
@@ -209,10 +241,15 @@ def _report_md(figs: dict, images: list[str]) -> str:
                               f"{ev['ambient_range_C']} °C ({ev['etve_um_per_C']} µm/°C).", ""]  # fmt: skip
             else:
                 el = pd.DataFrame(e["error_lines"])
+                tcols = _hottest(el)
                 lines += [f"### {ch}: along the axis, {e['direction']} ({u})", "",
-                          f"Max |thermal error| {e['max_thermal_um']} µm. Error line of each measuring cycle:", "",
+                          f"Max |thermal error| {e['max_thermal_um']} µm. Error line of each measuring cycle "
+                          "(least squares over the targets; offset at 0 mm):", "",
                           _table_md(el, ["cycle", "t_s", "offset_um", "slope_um_per_m", "offset_change_um",
-                                         "slope_change_um_per_m"])]  # fmt: skip
+                                         "slope_change_um_per_m", *tcols]),
+                          "The thermal error at each target (direction 1: approached in the positive direction):", "",
+                          _table_md(pd.DataFrame(e["per_target"]), ["target_mm", "direction", "max_abs_thermal_um",
+                                                                     "last_cycle_thermal_um"])]  # fmt: skip
                 if "iso230_2_run" in e:
                     a = e["iso230_2_run"]
                     lines += ["ISO 230-2 figures over the whole run (every cycle a repetition; thermal drift "
@@ -221,7 +258,7 @@ def _report_md(figs: dict, images: list[str]) -> str:
                               f"| {a['A_um']} | {a['E_um']} | {a['R_um']} | {a['M_um']} | {a['B_um']} | {a['B_mean_um']} |",
                               "", "Per measuring cycle (one repetition: s, R and A undefined):", "",
                               _table_md(pd.DataFrame(e["iso230_2_per_cycle"]), ["cycle", "t_s", "E_um", "M_um", "B_um",
-                                                                                "B_mean_um"])]  # fmt: skip
+                                                                                "B_mean_um", *tcols])]  # fmt: skip
         for pair, tl in res.get("tilt", {}).items():
             lines.append(f"Tilt {pair}: max |{tl['max_abs_urad']}| µrad at {tl['t_s']} s "
                          f"(sensors {tl['spacing_mm']} mm apart).")  # fmt: skip
