@@ -4,6 +4,8 @@ dataset name anywhere: the export finds the training dataset in the MLflow run."
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import mlflow
 import numpy as np
 import pytest
@@ -39,22 +41,29 @@ def test_train_names_the_registered_model_after_dataset_channel_and_content(lab_
     assert res.metrics["own_mean_rmse_um"] < 1.0
 
 
-def test_export_reads_the_training_dataset_from_the_run_and_checks_parity(lab_store, monkeypatch):
+@pytest.fixture(scope="module")
+def lab_export(lab_store):
+    """``thermbench export`` of the registered model, no dataset named: it comes from the run."""
     tmp, ds, res = lab_store
-    monkeypatch.chdir(tmp)
     uri = res.outputs["registered"]
-    cfg = compose("export", tmp, f"export.model_uri={uri}", f"export.out_dir={tmp / 'exports'}")
-    mlflow.set_tracking_uri(f"sqlite:///{tmp}/mlflow.db")
-    try:
-        table, out = run_export(cfg)
-    finally:
-        _end_active_runs()
-    row = table.iloc[0]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp)
+        cfg = compose("export", tmp, f"export.model_uri={uri}", f"export.out_dir={tmp / 'exports'}")
+        mlflow.set_tracking_uri(f"sqlite:///{tmp}/mlflow.db")
+        try:
+            table, _ = run_export(cfg)
+        finally:
+            _end_active_runs()
+    return table
+
+
+def test_export_reads_the_training_dataset_from_the_run_and_checks_parity(lab_store, lab_export):
+    uri = lab_store[2].outputs["registered"]
+    row = lab_export.iloc[0]
     assert row["model"] == uri.removeprefix("models:/").replace("/", "_")
     # the parity check ran on the dataset the run logged: a finite difference, in nm
     assert np.isfinite(row["parity_max_abs_diff_nm"]) and row["parity_max_abs_diff_nm"] < 10.0
     assert np.isfinite(row["heldout_rmse_um"])
-
 
 
 def test_train_prints_the_inputs_used_and_every_fallback(lab_store, capsys):
@@ -72,3 +81,27 @@ def test_train_prints_the_inputs_used_and_every_fallback(lab_store, capsys):
     assert ("[train] warning: mlr_seed004: sensors: no sensor at ['fixed_bearing_housing', 'free_bearing_housing']; "
             "the regression uses ['T_nut'] only") in err  # fmt: skip
     assert "[train] mlr_seed004 uses sensors T_nut" in err
+
+
+def test_replay_of_the_export_on_the_lab_data_and_on_a_log_without_readings(lab_store, lab_export, tmp_path):
+    import shutil
+
+    from thermbench.export.replay import format_replay, replay_run, write_replay
+
+    tmp, ds, res = lab_store
+    exported = [Path(lab_export.iloc[0]["dir"])]
+    out = replay_run(exported[0], tmp / "lab_x", "warmup_6000")
+    assert out["figures"]["channel"] == "X" and out["figures"]["n_readings"] == len(ds.errors)
+    # the C runtime's residual RMS equals the Python model's (train scored it)
+    assert out["figures"]["after_rmse_um"] == pytest.approx(res.metrics["own_mean_rmse_um"], abs=0.01)
+    # the same process log without readings: valid, and the replay gives the compensation alone
+    log = tmp_path / "log_only"
+    log.mkdir()
+    for f in ("metadata.yaml", "process.parquet"):
+        shutil.copy(tmp / "lab_x" / f, log / f)
+    bare = replay_run(exported[0], log, "warmup_6000")
+    assert bare["figures"]["n_readings"] == 0 and len(bare["compensation"]) == len(ds.process)
+    np.testing.assert_allclose(bare["compensation"]["compensation_um"], out["compensation"]["compensation_um"])
+    assert "no readings" in format_replay(bare["figures"])
+    write_replay(bare, tmp_path / "replay")
+    assert (tmp_path / "replay" / "compensation.png").is_file()

@@ -188,13 +188,14 @@ def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int
     return 0
 
 
-def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: bool = False) -> int:
+def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: bool = False,
+               channel: str | None = None) -> int:
     from .export.replay import format_replay, replay_run, write_replay
     from .outputs import check_output_dir
 
     out_dir = Path(out) if out else Path("replays") / f"{Path(model_dir).name}__{run}"
     check_output_dir(out_dir, "replay", force=force)  # refused before the replay runs
-    res = replay_run(Path(model_dir), Path(data_dir), run)
+    res = replay_run(Path(model_dir), Path(data_dir), run, channel=channel)
     write_replay(res, out_dir, force=force)
     print(format_replay(res["figures"]))
     print(f"  -> {out_dir.resolve()}")
@@ -382,7 +383,9 @@ def _main(argv: list[str] | None) -> int:
                            "error before/after compensation")  # fmt: skip
     p_rep.add_argument("model_dir", help="a directory written by thermbench export (manifest.json)")
     p_rep.add_argument("data_dir", help="dataset directory in the contract format")
-    p_rep.add_argument("--run", required=True, help="run id to replay")
+    p_rep.add_argument("--run", required=True, help="run id to replay (or a derived segment of a format 2 run)")
+    p_rep.add_argument("--channel", default=None, help="format 2: the error channel the model predicts "
+                       "(default: the one it was trained on, from its manifest)")
     p_rep.add_argument("--out", default=None, help="output directory (default replays/<model>__<run>)")
     p_rep.add_argument("--force", action="store_true", help="also write into a directory holding other files "
                        "(never over them; never into a dataset)")  # fmt: skip
@@ -435,7 +438,7 @@ def _main(argv: list[str] | None) -> int:
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "replay":
-            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force)
+            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force, args.channel)
         if args.command == "precompensate":
             return cmd_precompensate(args)
         if args.command == "iso230":

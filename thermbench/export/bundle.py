@@ -311,7 +311,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["outputs"] = {"thermal_um": "thermal part of the positioning error", "total_um":
                           "geometric + thermal positioning error (measured - commanded); compensation = -total_um"}  # fmt: skip
         man["training"] = {"runs": list(model.train_runs_), **({"dataset": str(ds.path), "dataset_hash": ds.content_hash()}
-                           if ds is not None else {}), **source.pop("training", {})}  # fmt: skip
+                           if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
+                           **source.pop("training", {})}  # fmt: skip
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source

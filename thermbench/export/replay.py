@@ -32,14 +32,45 @@ from .bundle import read_manifest, replay_dir
 from .encoding import ExportError
 
 
-def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False) -> dict:
-    """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``."""
+def _replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
+    """A format 2 dataset as the model saw it: the error channel it was trained on (``--channel``,
+    else the one in its manifest, else the only one) and, when ``run`` names a derived
+    segment, the run split into its segments."""
+    from ..data.views import channel_view, split_segments
+
+    channels = sorted(ds.metadata.error_channels())
+    channel = channel or man.get("training", {}).get("channel")
+    if channel is None:
+        if len(channels) > 1:
+            raise ExportError(f"--channel: {data_dir} has {len(channels)} error channels {channels}; name the one "
+                              "the model predicts")  # fmt: skip
+        channel = channels[0] if channels else None
+    if channel is not None and channel not in channels:
+        raise ExportError(f"--channel {channel!r}: not a channel of {data_dir}; its channels: {channels}")
+    if run not in ds.run_ids:
+        seg = split_segments(ds)
+        if run in seg.run_ids:
+            ds = seg
+    if channel is None:  # no readings and no channel declared: a log to predict on
+        return ds
+    return channel_view(ds, channel)
+
+
+def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None) -> dict:
+    """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``
+    (a format 2 dataset: the error ``channel`` the model predicts, see :func:`_replay_view`)."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
+    if ds.metadata.version == 2:
+        ds = _replay_view(ds, man, run, channel, data_dir)
+    elif channel is not None and channel not in ds.metadata.error_channels():
+        raise ExportError(f"--channel {channel!r}: {data_dir} is a format 1 dataset with one channel; leave it out")
     if run not in ds.run_ids:
         raise ExportError(f"--run {run!r}: not a run of {data_dir}; its runs: {ds.run_ids}")
     te = thermal_errors(ds)
+    if "target_mm" not in te.columns:  # a format 2 log without readings
+        te = te.assign(target_mm=pd.Series(dtype=float))
     te = te[te["run_id"] == run].reset_index(drop=True)
     pr = ds.process_run(run)
     q_read = pd.DataFrame({"t_s": te["t_s"].to_numpy(), "axis_mm": te["target_mm"].to_numpy()})
@@ -64,15 +95,18 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     if labels is not None:
         comp["condition"] = labels
     figures = {"model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
-               "n_readings": len(readings), "n_control_cycles": len(comp), **compensation_figures(readings)}  # fmt: skip
+               "n_readings": len(readings), "n_control_cycles": len(comp),
+               **(compensation_figures(readings) if len(readings) else {})}  # fmt: skip
+    if ds.channel is not None:
+        figures["channel"] = ds.channel
     if labels is not None:
         switches = int(sum(1 for a, b in zip(labels[:-1], labels[1:]) if a != b and a is not None and b is not None))
         first = next((i for i, lab in enumerate(labels) if lab is not None), None)
         figures["condition_switches"] = switches  # between conditions, after the first classification
         figures["first_condition_at_s"] = None if first is None else float(comp["t_s"].iloc[first] - comp["t_s"].iloc[0])
         figures["conditions_used"] = sorted({lab for lab in labels if lab is not None})
-    return {"figures": figures, "readings": readings, "compensation": comp,
-            "cycles": cycle_curves(te, readings["predicted_um"].to_numpy())}  # fmt: skip
+    cycles = cycle_curves(te, readings["predicted_um"].to_numpy()) if len(readings) else None
+    return {"figures": figures, "readings": readings, "compensation": comp, "cycles": cycles}
 
 
 def compensation_figures(readings: pd.DataFrame) -> dict:
@@ -119,6 +153,17 @@ def write_replay(result: dict, out_dir: Path, force: bool = False) -> Path:
         (tmp / "replay.json").write_text(json.dumps(f, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         result["readings"].to_csv(tmp / "readings.csv", index=False)
         result["compensation"].to_csv(tmp / "compensation.csv", index=False)
+        if result["cycles"] is None:  # a log without readings: the compensation the runtime sends
+            comp = result["compensation"]
+            fig = Figure(figsize=(8, 4))
+            ax = fig.subplots()
+            ax.plot(comp["t_s"] / 3600.0, comp["compensation_um"], lw=0.8)
+            ax.set_xlabel("time, h")
+            ax.set_ylabel("compensation sent, µm")
+            ax.set_title(f"{f['model']} on {f['run']} (no readings to compare with)")
+            ax.grid(alpha=0.3)
+            fig.savefig(tmp / "compensation.png", dpi=110)
+            return Path(out_dir)
         fig = Figure(figsize=(11, 4))
         draw_errors(fig, result)
         fig.savefig(tmp / "errors_before_after.png", dpi=110)
@@ -144,6 +189,9 @@ def write_replay(result: dict, out_dir: Path, force: bool = False) -> Path:
 
 
 def format_replay(f: dict) -> str:
+    if not f["n_readings"]:
+        return (f"replay {f['model']} ({f['kind']}) on run {f['run']}: {f['n_control_cycles']} control cycles, "
+                "no readings (a log to predict on): the compensation sent is in compensation.csv")  # fmt: skip
     lines = [
         f"replay {f['model']} ({f['kind']}) on run {f['run']}: {f['n_control_cycles']} control cycles, {f['n_readings']} readings",
         f"  before: max |error| {f['before_max_abs_um']:.2f} µm, interval [{f['before_interval_um'][0]:.2f}, {f['before_interval_um'][1]:.2f}] µm",
