@@ -399,10 +399,10 @@ for name in MISTAKES:
 # Each message says where to look. The fixes: spell the key as the message suggests; copy column
 # names from the file's header (`°C`, spaces and brackets included); declare `sep`, `decimal`,
 # `encoding` and `skip_rows` as the file is written; write the timestamp format as the file's
-# (day first here); give each instrument's clock its `offset_s`; leave a logger dropout as it is
-# and import the run in two parts or leave it out (a long hole is never filled in); map a signed
-# velocity with `abs: true`; give the unit the file has; declare every run under `dataset.runs`;
-# spell the mounting as listed.
+# (day first here); give each instrument's clock its `offset_s`; for a logger dropout, raise that
+# file's `max_gap_s` if interpolating the temperatures over the hole is acceptable, or leave the run
+# out (a hole longer than `max_gap_s` is never filled in); map a signed velocity with `abs: true`;
+# give the unit the file has; declare every run under `dataset.runs`; spell the mounting as listed.
 #
 # What no check can catch: a plausible number in the wrong unit (a velocity in mm/s mapped as
 # mm/min gives a feed 60 times too small; deviations in mm mapped without `unit: mm`, temperatures
@@ -415,7 +415,8 @@ for name in MISTAKES:
 res = thermbench_cli("import", mistake_mapping("interferometer clock offset forgotten"), "--out",
                      out / "import_mistakes" / "cli_dataset")  # fmt: skip
 assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-assert len(res.stderr.strip().splitlines()) == 1 and "files.laser" in res.stderr and "offset_s" in res.stderr, res.stderr
+line = res.stderr.strip()
+assert "\n" not in line and "files.laser" in line and "offset_s" in line, res.stderr
 assert not (out / "import_mistakes" / "cli_dataset").exists()  # nothing written
 
 # %% [markdown]

@@ -234,3 +234,71 @@ def test_excel_and_parquet_sources(tmp_path):
     with pytest.raises(MappingError, match=r"files.logger.read.sheet: .*Data"):
         import_dataset(mapping, tmp_path / "bad")
     shutil.rmtree(tmp_path / "csv")
+
+
+def test_several_runs_in_one_file_by_a_run_column(tmp_path):
+    """A logger file holding two tests, told apart by a column mapped to run_id; times in ms."""
+    t = np.arange(0, 600_000, 15_000)  # ms
+    rows = []
+    for run, rpm, k in (("A", 1000.0, 0.01), ("B", 3000.0, 0.03)):
+        rows += [{"Test": run, "Time [ms]": ti, "Speed": rpm, "T front": 20 + k * ti / 1000, "Z [mm]": k * ti / 1e6}
+                 for ti in t]  # fmt: skip
+    pd.DataFrame(rows).to_csv(tmp_path / "log.csv", index=False)
+    (tmp_path / "mapping.yaml").write_text(
+        """format: thermbench-import/1
+dataset:
+  machine: {name: two_tests}
+  parts: [spindle]
+  sensors: {T_front: spindle_front_bearing}
+  channels: {Z: {kind: fixed_point, direction: Z, location: spindle_nose}}
+  reference: {mode: first_reading}
+  runs:
+    A: {condition: {spindle_rpm: 1000}}
+    B: {condition: {spindle_rpm: 3000}}
+files:
+  log:
+    path: log.csv
+    time: {column: "Time [ms]", unit: ms}
+    columns:
+      Test: run_id
+      Speed: spindle_rpm
+      T front: T_front_C
+      "Z [mm]": {channel: Z, unit: mm}
+""", encoding="utf-8")
+    ds = import_dataset(tmp_path / "mapping.yaml", tmp_path / "ds")
+    assert ds.run_ids == ["A", "B"]
+    for run, k in (("A", 0.01), ("B", 0.03)):
+        pr = ds.process_run(run)
+        np.testing.assert_allclose(pr["t_s"], t / 1000.0)
+        np.testing.assert_allclose(pr["T_front_C"], 20 + k * t / 1000.0)
+        er = thermal_errors(ds)
+        er = er[er["run_id"] == run]
+        np.testing.assert_allclose(er["thermal_um"], k * t / 1000.0, atol=1e-9)  # mm -> µm: k t/1e6 mm = k t/1e3 µm
+
+
+def test_time_zone_aware_timestamps_are_one_clock(tmp_path):
+    """A logger writing UTC and a CNC writing local time (+01:00) give one clock."""
+    base = pd.Timestamp("2026-03-04 07:00:00", tz="UTC")
+    t = np.arange(0, 3600, 10.0)
+    utc = [(base + pd.Timedelta(seconds=s)).isoformat() for s in t]
+    local = [(base + pd.Timedelta(seconds=s)).tz_convert("Europe/Berlin").isoformat() for s in t]
+    pd.DataFrame({"when": utc, "T": 20 + t / 3600}).to_csv(tmp_path / "logger.csv", index=False)
+    pd.DataFrame({"when": local, "rpm": np.where(t > 600, 2000.0, 0.0), "dz": t / 1000.0}).to_csv(tmp_path / "cnc.csv", index=False)
+    (tmp_path / "mapping.yaml").write_text(
+        """format: thermbench-import/1
+dataset:
+  machine: {name: tz}
+  parts: [spindle]
+  sensors: {T: structure}
+  channels: {Z: {kind: fixed_point, direction: Z, location: spindle_nose}}
+  reference: {mode: first_reading}
+  runs: {r: {}}
+run: r
+files:
+  logger: {path: logger.csv, time: {column: when, format: iso}, columns: {T: T_C}}
+  cnc: {path: cnc.csv, time: {column: when, format: iso}, columns: {rpm: spindle_rpm, dz: {channel: Z}}}
+""", encoding="utf-8")
+    ds = import_dataset(tmp_path / "mapping.yaml", tmp_path / "ds")
+    np.testing.assert_allclose(ds.process["t_s"], t)  # the same instants, so no shift
+    np.testing.assert_allclose(ds.process["T_C"], 20 + t / 3600)
+    np.testing.assert_allclose(ds.process["spindle_rpm"], np.where(t > 600, 2000.0, 0.0))

@@ -287,8 +287,9 @@ def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None) ->
     return conv.to_numpy(dtype=float)
 
 
-def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.ndarray, bool]:
-    """The file's time column as (seconds or datetime64[ns] as int ns, is_timestamp)."""
+def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.ndarray, bool | str]:
+    """The file's time column as seconds (timestamps: since the epoch, UTC when they carry a
+    time zone) and its kind: False (numbers), "aware" or "naive" (timestamps)."""
     s = _column(df, f.time.column, f"{where}.time.column", path)
     if f.time.format is not None or pd.api.types.is_datetime64_any_dtype(s.dtype):
         if f.time.unit is not None:
@@ -303,13 +304,14 @@ def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.nda
                 i = int(np.flatnonzero(bad.to_numpy())[0])
                 raise MappingError(f"{where}.time.format: data row {i + 1} of {path.name}, {short_repr(s.iloc[i])}, "
                                    f"does not match {f.time.format!r}")  # fmt: skip
-        if getattr(ts.dt, "tz", None) is not None:
+        aware = getattr(ts.dt, "tz", None) is not None
+        if aware:
             ts = ts.dt.tz_convert("UTC").dt.tz_localize(None)
         ns = ts.to_numpy(dtype="datetime64[ns]").astype(np.int64).astype(float)
         if np.isnan(ts.to_numpy(dtype="datetime64[ns]").astype(float)).any() or ts.isna().any():
             i = int(np.flatnonzero(ts.isna().to_numpy())[0])
             raise MappingError(f"{where}.time.column: data row {i + 1} of {path.name} has no time")
-        return ns / 1e9 + f.offset_s, True
+        return ns / 1e9 + f.offset_s, "aware" if aware else "naive"
     factor, _ = UNITS["s"].get(f.time.unit or "s", (None, None))
     if factor is None:
         raise MappingError(f"{where}.time.unit: unknown unit {f.time.unit!r}; known: {', '.join(UNITS['s'])}")
@@ -382,8 +384,8 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
         src = Path(os.path.expanduser(f.path))
         src = src if src.is_absolute() else base_dir / src
         df = _read_source(f, src, f"{where}")
-        t, is_ts = _times(df, f, where, src)
-        kinds.add(is_ts)
+        t, kind = _times(df, f, where, src)
+        kinds.add(kind)
         proc: dict[str, np.ndarray] = {}
         wide: dict[str, np.ndarray] = {}
         long: dict[str, np.ndarray] = {}
@@ -429,10 +431,14 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
             run_col = np.full(len(df), m.run or next(iter(meta.runs)), dtype=object)
         frames[name] = {"t": t, "run": run_col, "proc": proc, "wide": wide, "long": long, "channel": f.channel,
                         "where": where, "max_gap_s": f.max_gap_s, "path": src}  # fmt: skip
-    if len(kinds) > 1:
+    if False in kinds and len(kinds) > 1:
         raise MappingError(f"{path}: key 'files': some files have timestamps and some seconds; a common clock needs "
                            "the same kind in every file (give each file's time the same way)")  # fmt: skip
-    if kinds == {True}:  # timestamps: seconds since the earliest one of the process files
+    if kinds == {"aware", "naive"}:
+        raise MappingError(f"{path}: key 'files': some files' timestamps carry a time zone and some do not; a "
+                           "timestamp without one could be any zone: write the zone into the files, or read all "
+                           "without it and align them with offset_s")  # fmt: skip
+    if False not in kinds:  # timestamps: seconds since the earliest one of the process files
         zero = min(float(np.min(fr["t"])) for fr in frames.values() if fr["proc"] or fr["wide"]) if any(
             fr["proc"] or fr["wide"] for fr in frames.values()) else min(float(np.min(fr["t"])) for fr in frames.values())
         for fr in frames.values():
