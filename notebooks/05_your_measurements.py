@@ -307,9 +307,10 @@ assert thermbench_cli("validate", good_dir).returncode == 0
 # Each case below starts from the good mapping, makes one mistake as it typically happens (in the
 # mapping, or in a file), and shows the one line the import gives. A mistake in the mapping or in
 # the files it names is reported with the mapping key (`files.logger.read.encoding`), the file and
-# the column; what only shows in the assembled dataset (a negative feed, a reading outside the
-# travel, a run not declared) is caught by the dataset's validation before anything is written, and
-# names the dataset's table, column and row. Nothing is written in either case.
+# the column (a run the files hold but `dataset.runs` does not declare, too); what only shows in the
+# assembled dataset (a negative feed, a reading outside the travel) is caught by the dataset's
+# validation before anything is written, and names the imported table, column and row. Nothing is
+# written in either case.
 
 # %%
 mapping = yaml.safe_load(mapping_path.read_text(encoding="utf-8"))  # the good mapping, to edit
@@ -360,7 +361,7 @@ MISTAKES = {  # name: (mapping changes, files written instead of the good ones, 
     "position declared in µm": ({"files.cnc.columns.X_act [mm]": {"to": "axis_mm", "unit": "um"}}, {},
                                 ["errors", "target_mm", "row ", "outside the travel"]),
     "run not declared in dataset.runs": ({f"dataset.runs.{HELDOUT_RUNS[0]}": DROP}, {},
-                                         ["process", "run_id", "row ", repr(HELDOUT_RUNS[0])]),
+                                         ["files.", "'Test'", "dataset.runs", repr(HELDOUT_RUNS[0])]),
     "mounting misspelt": ({"dataset.screw.mounting": "fixed-supported"}, {}, ["dataset.screw.mounting", "fixed-supported"]),
 }  # fmt: skip
 

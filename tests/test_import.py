@@ -302,3 +302,36 @@ files:
     np.testing.assert_allclose(ds.process["t_s"], t)  # the same instants, so no shift
     np.testing.assert_allclose(ds.process["T_C"], 20 + t / 3600)
     np.testing.assert_allclose(ds.process["spindle_rpm"], np.where(t > 600, 2000.0, 0.0))
+
+
+def test_a_text_cell_among_decimal_commas_is_named(tmp_path, capsys):
+    mapping = _lab_copy(tmp_path)
+    log = mapping.parent / "logger.csv"
+    lines = log.read_bytes().split(b"\r\n")
+    fields = lines[12].split(b";")
+    fields[2] = b"ERR"  # the logger's text for an open thermocouple, in 'Temp. Bett'
+    lines[12] = b";".join(fields)
+    log.write_bytes(b"\r\n".join(lines))
+    assert main(["import", str(mapping), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "key files.logger.columns.'Temp. Bett [°C]': data row 11 of logger.csv holds 'ERR', not a number" in err, err
+    assert "decimal comma" not in err
+
+
+def test_runs_not_declared_are_named_at_the_mapping(tmp_path, capsys):
+    pd.DataFrame({"Test": ["A", "A", "B", "B"], "t": [0.0, 1.0, 0.0, 1.0], "rpm": 1000.0, "z": 0.0}).to_csv(
+        tmp_path / "log.csv", index=False)
+    (tmp_path / "mapping.yaml").write_text(
+        """format: thermbench-import/1
+dataset:
+  machine: {name: m}
+  parts: [spindle]
+  sensors: {}
+  channels: {Z: {kind: fixed_point, direction: Z, location: nose}}
+  runs: {A: {}}
+files:
+  log: {path: log.csv, time: {column: t}, columns: {Test: run_id, rpm: spindle_rpm, z: {channel: Z}}}
+""", encoding="utf-8")
+    assert main(["import", str(tmp_path / "mapping.yaml"), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "key files.log.columns.'Test': log.csv holds run(s) ['B'] that dataset.runs does not declare" in err, err

@@ -720,8 +720,10 @@ def precompensate(
         notes.append(
             f"the program's axis {axis.upper()} is compensated with a model of machine axis {meta.machine.axis}"
         )
-    lo = min(r.condition.start_mm for r in meta.runs.values())
-    hi = max(r.condition.end_mm for r in meta.runs.values())
+    ends = [(r.condition.start_mm, r.condition.end_mm) for r in meta.runs.values()
+            if r.condition is not None and r.condition.start_mm is not None and r.condition.end_mm is not None]
+    lo = min((a for a, _ in ends), default=-np.inf)  # format 2 without strokes: no travel to compare with
+    hi = max((b for _, b in ends), default=np.inf)
     tx = moves.loc[comp, "axis_target_mm"]
     if tx.min() < lo - 0.5 or tx.max() > hi + 0.5:
         notes.append(

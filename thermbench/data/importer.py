@@ -265,7 +265,7 @@ def _column(df: pd.DataFrame, name: str, where: str, path: Path) -> pd.Series:
     raise MappingError(f"{where}: column {name!r} is not in {path.name} (columns: {shown}){hint}")
 
 
-def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None) -> np.ndarray:
+def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None, decimal: str = ".") -> np.ndarray:
     if codes is not None:
         mapped = s.map(lambda v: codes.get(v, codes.get(str(v).strip(), np.nan)) if pd.notna(v) else np.nan)
         bad = mapped.isna() & s.notna()
@@ -276,12 +276,16 @@ def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None) ->
         return mapped.to_numpy(dtype=float)
     if pd.api.types.is_bool_dtype(s.dtype):
         raise MappingError(f"{where}: column holds true/false values in {path.name}; expected numbers")
-    conv = pd.to_numeric(s, errors="coerce")
+    text = s
+    if decimal != "." and (s.dtype == object or pd.api.types.is_string_dtype(s.dtype)):
+        # a column pandas left as text (one bad cell in it): its numbers still have the declared decimal mark
+        text = s.map(lambda v: v.strip().replace(decimal, ".") if isinstance(v, str) else v)
+    conv = pd.to_numeric(text, errors="coerce")
     bad = conv.isna() & s.notna()
     if bad.any():
         i = int(np.flatnonzero(bad.to_numpy())[0])
         hint = ""
-        if isinstance(s.iloc[i], str) and re.fullmatch(r"\s*-?\d+,\d+\s*", s.iloc[i]):
+        if decimal == "." and isinstance(s.iloc[i], str) and re.fullmatch(r"\s*-?\d+,\d+\s*", s.iloc[i]):
             hint = "; it has a decimal comma: add read: {decimal: ','}"
         raise MappingError(f"{where}: data row {i + 1} of {path.name} holds {short_repr(s.iloc[i])}, not a number{hint}")
     return conv.to_numpy(dtype=float)
@@ -315,7 +319,7 @@ def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.nda
     factor, _ = UNITS["s"].get(f.time.unit or "s", (None, None))
     if factor is None:
         raise MappingError(f"{where}.time.unit: unknown unit {f.time.unit!r}; known: {', '.join(UNITS['s'])}")
-    t = _numbers(s, f"{where}.time.column", path)
+    t = _numbers(s, f"{where}.time.column", path, decimal=f.read.decimal)
     if np.isnan(t).any():
         i = int(np.flatnonzero(np.isnan(t))[0])
         raise MappingError(f"{where}.time.column: data row {i + 1} of {path.name} has no time")
@@ -398,8 +402,13 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
             s = _column(df, col, cw, src)
             if cm.to == "run_id":
                 run_col = s.astype(str).str.strip().to_numpy()
+                unknown = [r for r in pd.unique(run_col) if r not in meta.runs]
+                if unknown:
+                    raise MappingError(f"{cw}: {src.name} holds run(s) {unknown[:5]} that "
+                                       f"dataset.runs does not declare (it declares {sorted(meta.runs)})")  # fmt: skip
                 continue
-            values = _numbers(s, cw, src, None if cm.map is None else {k: float(v) for k, v in cm.map.items()})
+            values = _numbers(s, cw, src, None if cm.map is None else {k: float(v) for k, v in cm.map.items()},
+                              f.read.decimal)
             if cm.channel is not None:
                 if cm.channel not in channels:
                     raise MappingError(f"{cw}: channel {cm.channel!r} is not declared in dataset.channels "
@@ -446,6 +455,11 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
     process = _align_process(m, frames, meta, path)
     errors = _errors(frames, channels)
     _check_reading_times(frames, process)
+    if False not in kinds and len(process):  # timestamps: each run's clock starts at its first process sample
+        zero = process.groupby("run_id")["t_s"].min()
+        process["t_s"] = process["t_s"] - process["run_id"].map(zero).to_numpy()
+        if len(errors):
+            errors["t_s"] = errors["t_s"] - errors["run_id"].map(zero).to_numpy()
     return meta, process, errors
 
 
@@ -593,7 +607,10 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
         try:
             ds = load_dataset(tmp)
         except DatasetError as exc:
-            raise MappingError(f"{mapping_path}: the imported dataset is not valid: "
-                               f"{str(exc).replace(str(tmp), str(out))}") from None  # fmt: skip
+            msg = str(exc)
+            for name in ("process", "errors"):
+                msg = msg.replace(f"{tmp / name}.{file_format}", f"the imported {name} table")
+            msg = msg.replace(str(tmp / "metadata.yaml"), "dataset").replace(str(tmp), str(out))
+            raise MappingError(f"{mapping_path}: the imported dataset is not valid: {msg}") from None
     ds.path = out
     return ds

@@ -111,7 +111,7 @@ def load_tables_v2(root: Path, meta: Metadata) -> tuple[pd.DataFrame, pd.DataFra
             if q.lo == 0.0 and (v < 0).any():
                 i = io._first(v < 0)
                 what = "speed magnitude" if col == "feed_mm_min" else "a speed"
-                raise DatasetError(f"{ppath}: column {col!r}, {io._where(ppath, i)}: must be >= 0 ({what}), got {v[i]}; "
+                raise DatasetError(f"{ppath}: column {col!r}, {io._where(ppath, i)}: must be >= 0 ({what}), got {v[i]:.6g}; "
                                    "a signed velocity is converted by thermbench import (abs: true)")  # fmt: skip
             io._check_range(process, col, ppath, q)
     t = process["t_s"].to_numpy()

@@ -66,6 +66,26 @@ def _check_effects(names: Sequence[str], key: str) -> list[str]:
     return out
 
 
+def physics_view(ds: Dataset) -> Dataset:
+    """What the workflow confronts the screw physics model with: a format 1 dataset as it is; a
+    format 2 one through its one along-axis channel, which needs a screw block. Anything else
+    is one line saying what is missing (a spindle test has no screw to simulate)."""
+    from ..models.base import NEEDS
+
+    if ds.metadata.version == 1:
+        return ds
+    along = [c for c, m in ds.metadata.error_channels().items() if m.kind == "along_axis"]
+    missing = ([NEEDS["screw"]] if ds.metadata.screw is None else []) + ([NEEDS["along_axis"]] if not along else [])
+    if missing:
+        raise DiagnoseError(f"{ds.path}: the discrepancy workflow confronts the screw physics model with the data; it "
+                            f"needs {'; and '.join(missing)}, and this dataset (a test of: "
+                            f"{', '.join(ds.metadata.parts or [])}) has none")  # fmt: skip
+    if len(along) > 1:
+        raise DiagnoseError(f"{ds.path}: {len(along)} along-axis channels {along}; the workflow takes one: "
+                            "write a dataset with that channel only")  # fmt: skip
+    return ds.channel_view(along[0])
+
+
 def run_diagnosis(
     ds: Dataset,
     base: Sequence[str] = (),
@@ -336,7 +356,7 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     out = check_out_dir(conf["out_dir"], conf["data_dir"], force)
     track = bool(conf.get("track", True))
     exp_id = tracking.connect(conf["tracking"]) if track else None  # an unreachable server fails first
-    ds = load_dataset(conf["data_dir"])
+    ds = physics_view(load_dataset(conf["data_dir"]))
     d = run_diagnosis(ds, base=base, max_effects=max_effects, cv=conf.get("cv", "loro"), settings=settings,
                       noise_window_s=window_s, noise_min_groups=min_groups)  # fmt: skip
     tables = d.pop("_tables")
