@@ -225,3 +225,35 @@ def test_benchmark_skips_families_a_dataset_cannot_serve(tmp_path):
     axis_view = channel_view(load_dataset(write(tmp_path / "a", AXIS_META, pa, ea)), "X")
     assert family_lacks("mlr_seed001", axis_view) is None
     assert family_lacks("physics", axis_view) == "needs a screw block (metadata 'screw': the ball screw's geometry)"
+
+
+def test_iso230_tilt_by_position_and_drift_from_a_time_reference(tmp_path):
+    from thermbench.iso230_report import compute
+
+    p, e = spindle_tables()
+    # X2 declared before X1, further out: the tilt is (X2 - X1) / 100 mm whatever the order
+    meta = {**SPINDLE_META, "channels": {"X2": SPINDLE_META["channels"]["X2"], "X1": SPINDLE_META["channels"]["X1"],
+                                         "Z": SPINDLE_META["channels"]["Z"]},
+            "reference": {"mode": "time", "t_s": 1500.0}}  # fmt: skip
+    figs = compute(load_dataset(write(tmp_path / "d", meta, p, e)))
+    run = figs["runs"]["r1"]
+    # by hand: X1 = 1 + 0.01 t, X2 = 1 + 0.02 t; from the reference at 1500 s, X2 - X1 = 0.01 (t - 1500) µm;
+    # largest |.| at t = 0 (15 µm) vs t = 2985 (14.85 µm): 15 µm over 100 mm = 150 µrad, signed -150
+    (pair, tl), = run["tilt"].items()
+    assert pair == "X1-X2" and tl["signed_urad"] == pytest.approx(-150.0) and tl["t_s"] == 0.0
+    z = next(r for r in run["channels"]["Z"]["drift"] if r["block"] == "all")
+    # Z = 1 + 0.05 t, from its value at 1500 s: largest |.| = 0.05 * 1500 = 75 µm at t = 0
+    assert z["max_from_reference_um"] == pytest.approx(75.0) and z["max_from_reference_signed_um"] == pytest.approx(-75.0)
+
+
+def test_iso230_unidirectional_run_gets_its_one_direction_figures(tmp_path):
+    from thermbench.iso230_report import compute
+
+    p, e = axis_tables()
+    up = e[e["direction"] == 1].drop(columns="direction")
+    figs = compute(load_dataset(write(tmp_path / "d", AXIS_META, p, up)))
+    a = figs["runs"]["r1"]["channels"]["X"]["iso230_2_run"]
+    # by hand, deviations 0.02 x + 1.5 (+ 0.3 x in cycle 2 at t0 = 300: 0.001 x 300): targets 0, 50, 100
+    # cycle 1: 1.5, 2.5, 3.5; cycle 2: 1.5, 17.5, 33.5 -> means 1.5, 10, 18.5: E_up = 17
+    assert a["E_up_um"] == pytest.approx(17.0) and a["E_um"] == pytest.approx(17.0)
+    assert a["B_um"] is None and a["M_um"] is None  # undefined with one direction (NaN -> null)

@@ -152,7 +152,7 @@ def test_iso230_on_the_spindle_test(fl, workbook, tmp_path, capsys):
     figs = json.loads((tmp_path / "iso" / "figures.json").read_text(encoding="utf-8"))
     ch3 = workbook["ch3(um)"].astype(float).to_numpy()
     drift = next(r for r in figs["runs"]["test"]["channels"]["ch3"]["drift"] if r["block"] == "all")
-    assert drift["max_drift_from_start_um"] == pytest.approx(np.max(np.abs(ch3 - ch3[0])), abs=1e-3)
+    assert drift["max_from_reference_um"] == pytest.approx(np.max(np.abs(ch3 - ch3[0])), abs=1e-3)
     blocks = [r["block"] for r in figs["runs"]["test"]["channels"]["ch3"]["drift"]]
     assert blocks == ["rpm1250", "rpm2500", "rpm3750", "rpm5000", "rpm3500", "stepped", "all"]
 

@@ -142,9 +142,10 @@ def cmd_iso230(data_dir: str, out: str, force: bool) -> int:
         for ch, e in res["channels"].items():
             if e["kind"] == "fixed_point":
                 a = next(r for r in e["drift"] if r["block"] == "all")
-                print(f"  {run} {ch}: max drift {a['max_drift_from_start_um']} µm at {a['t_max_drift_from_start_s']} s")
+                print(f"  {run} {ch}: max drift {a['max_from_reference_um']} µm at {a['t_max_from_reference_s']} s")
             else:
-                extra = f", reversal B {e['iso230_2_run']['B_um']} µm" if "iso230_2_run" in e else ""
+                b = e.get("iso230_2_run", {}).get("B_um")
+                extra = f", reversal B {b} µm" if b is not None else ""
                 print(f"  {run} {ch}: max |thermal error| {e['max_thermal_um']} µm{extra}")
     print(f"  -> {Path(out).resolve() / 'report.md'}")
     return 0

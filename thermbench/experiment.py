@@ -33,11 +33,11 @@ from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
-from .models.base import FallbackWarning
 from ._atomic import write_text_atomic
-from .outputs import output_dir
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
+from .models.base import FallbackWarning
+from .outputs import output_dir
 
 LOG = logging.getLogger(__name__)
 

@@ -48,6 +48,15 @@ def _blocks(ds: Dataset, run: str) -> list[tuple[str, float, float]]:
     return out
 
 
+def _from_reference(t: np.ndarray, thermal: np.ndarray, a: float, b: float) -> dict:
+    """The largest |thermal error| in [a, b], counted from the dataset's reference (where the
+    thermal error is 0), its sign and time."""
+    m = (t >= a) & (t <= b)
+    k = int(np.argmax(np.abs(thermal[m])))
+    return {"max_from_reference_um": float(abs(thermal[m][k])), "max_from_reference_signed_um": float(thermal[m][k]),
+            "t_max_from_reference_s": float(t[m][k])}  # fmt: skip
+
+
 def _cycle_temperatures(ds: Dataset, pr: pd.DataFrame, t_s: np.ndarray, cyc: np.ndarray) -> pd.DataFrame:
     """Per measuring cycle, the mean of each sensor over the cycle's time span (``<sensor>_C``):
     how the figures drift with temperature."""
@@ -121,8 +130,12 @@ def compute(ds: Dataset) -> dict:
             if cm.kind == "fixed_point":
                 t = g["t_s"].to_numpy()
                 keep = np.r_[True, np.diff(t) > 0]
-                d = iso230.drift_summary(t[keep], g["thermal_um"].to_numpy()[keep],
-                                         [b for b in blocks if ((t >= b[1]) & (t <= b[2])).sum() >= 1])  # fmt: skip
+                th = g["thermal_um"].to_numpy()[keep]
+                used = [b for b in blocks if ((t >= b[1]) & (t <= b[2])).sum() >= 1]
+                d = iso230.drift_summary(t[keep], th, used)
+                # from the dataset's reference (thermal_um is 0 there), whatever the reference mode
+                ref_rows = [_from_reference(t[keep], th, a, b) for _, a, b in used] + [_from_reference(t[keep], th, -np.inf, np.inf)]
+                d = pd.concat([d, pd.DataFrame(ref_rows)], axis=1)
                 entry["drift"] = d.to_dict(orient="records")
                 if ambient is not None:
                     amb = np.interp(t[keep], pr["t_s"].to_numpy(), pr[meta.sensor_column(ambient)].to_numpy())
@@ -144,10 +157,14 @@ def compute(ds: Dataset) -> dict:
                 tab = per.groupby(["target_mm", "direction"]).agg(max_abs_thermal_um=("abs_um", "max")).reset_index()
                 fin = per[per["last"]].groupby(["target_mm", "direction"])["thermal_um"].mean().rename("last_cycle_thermal_um")
                 entry["per_target"] = tab.merge(fin.reset_index(), on=["target_mm", "direction"], how="left").to_dict(orient="records")
-                if direction is not None and np.unique(direction).size == 2:
-                    pos = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "direction": direction.astype(int),
-                                        "cycle": cyc, "deviation_um": g["error_um"].to_numpy()})  # fmt: skip
-                    entry["iso230_2_run"] = iso230.positioning_statistics(pos)["axis"]
+                # ISO 230-2 figures: bidirectional with a direction column, else those of the one direction
+                pos = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(),
+                                    "direction": (direction if direction is not None else np.ones(len(g))).astype(int),
+                                    "cycle": cyc, "deviation_um": g["error_um"].to_numpy()})  # fmt: skip
+                if not pos.duplicated(["target_mm", "direction", "cycle"]).any():
+                    whole = iso230.positioning_statistics(pos)
+                    entry["iso230_2_run"] = whole["axis"]
+                    entry["iso230_2_per_target"] = whole["per_target"].to_dict(orient="records")
                     per = iso230.positioning_statistics_by(pos, "cycle")
                     t_mean = pd.Series(g["t_s"].to_numpy()).groupby(cyc).mean()
                     per.insert(1, "t_s", per["cycle"].map(t_mean))
@@ -155,7 +172,9 @@ def compute(ds: Dataset) -> dict:
             res["channels"][ch] = entry
         # tilt of two fixed-point channels of one direction with declared positions
         tilts = {}
-        fixed = [(c, m) for c, m in channels.items() if m.kind == "fixed_point" and m.position_mm is not None]
+        # ordered by position along the mandrel: the tilt is (far - near) / spacing, whatever the declaration order
+        fixed = sorted(((c, m) for c, m in channels.items() if m.kind == "fixed_point" and m.position_mm is not None),
+                       key=lambda cm: cm[1].position_mm)  # fmt: skip
         for i, (a, ma) in enumerate(fixed):
             for b, mb in fixed[i + 1:]:
                 if ma.direction != mb.direction or ma.position_mm == mb.position_mm:
@@ -230,10 +249,10 @@ def _report_md(figs: dict, images: list[str]) -> str:
             if e["kind"] == "fixed_point":
                 d = pd.DataFrame(e["drift"])
                 lines += [f"### {ch}: fixed point, {e['direction']} ({u})", "",
-                          "Drift from the reference (`max_drift_from_start_um`) and within each block "
-                          "(`max_drift_um`, from the block's first sample):", "",
-                          _table_md(d, ["block", "start_s", "end_s", "max_drift_from_start_um",
-                                        "max_drift_from_start_signed_um", "t_max_drift_from_start_s",
+                          f"Drift from the reference ({figs['reference']}; `max_from_reference_um`) and within each "
+                          "block (`max_drift_um`, from the block's first sample):", "",
+                          _table_md(d, ["block", "start_s", "end_s", "max_from_reference_um",
+                                        "max_from_reference_signed_um", "t_max_from_reference_s",
                                         "max_drift_um", "range_um"])]  # fmt: skip
                 if "environmental" in e:
                     ev = e["environmental"]
@@ -253,7 +272,7 @@ def _report_md(figs: dict, images: list[str]) -> str:
                 if "iso230_2_run" in e:
                     a = e["iso230_2_run"]
                     lines += ["ISO 230-2 figures over the whole run (every cycle a repetition; thermal drift "
-                              "between cycles inflates R and A):", "",
+                              "between cycles inflates R and A; B and M need both directions):", "",
                               "| A | E | R | M | B | B mean |", "| --- | --- | --- | --- | --- | --- |",
                               f"| {a['A_um']} | {a['E_um']} | {a['R_um']} | {a['M_um']} | {a['B_um']} | {a['B_mean_um']} |",
                               "", "Per measuring cycle (one repetition: s, R and A undefined):", "",

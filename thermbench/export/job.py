@@ -14,7 +14,6 @@ makes, so no stale folder looks current; a directory holding anything else is re
 from __future__ import annotations
 
 import json
-
 import re
 import sys
 from pathlib import Path

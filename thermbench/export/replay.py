@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..outputs import output_dir
 from ..data.io import load_dataset
 from ..data.reference import thermal_errors
 from ..metrics import cycle_curves, residual_metrics
+from ..outputs import output_dir
 from .bundle import read_manifest, replay_dir
 from .encoding import ExportError
 
