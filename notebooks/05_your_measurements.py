@@ -307,8 +307,9 @@ assert thermbench_cli("validate", good_dir).returncode == 0
 # Each case below starts from the good mapping, makes one mistake as it typically happens (in the
 # mapping, or in a file), and shows the one line the import gives. A mistake in the mapping or in
 # the files it names is reported with the mapping key (`files.logger.read.encoding`), the file and
-# the column (a run the files hold but `dataset.runs` does not declare, too); what only shows in the
-# assembled dataset (a negative feed, a reading outside the travel) is caught by the dataset's
+# the column (a run the files hold but `dataset.runs` does not declare, a negative feed, a value out of
+# its range after the unit conversion, too); what only shows in the assembled dataset (a reading
+# outside the travel) is caught by the dataset's
 # validation before anything is written, and names the imported table, column and row. Nothing is
 # written in either case.
 
@@ -357,7 +358,7 @@ MISTAKES = {  # name: (mapping changes, files written instead of the good ones, 
     "logger dropout longer than max_gap_s": ({}, {"logger.csv": (write_logger, logger[~dropout])},
                                              ["files.logger", "T_nut_C", repr(TRAIN_RUNS[0]), "max_gap_s"]),
     "signed velocity without abs": ({"files.cnc.columns.X_vel [mm/s].abs": DROP}, {},
-                                    ["process", "feed_mm_min", "row ", ">= 0", "abs: true"]),
+                                    ["files.cnc.columns", "X_vel [mm/s]", "cnc_trace.csv", "feed_mm_min", "abs: true"]),
     "position declared in µm": ({"files.cnc.columns.X_act [mm]": {"to": "axis_mm", "unit": "um"}}, {},
                                 ["errors", "target_mm", "row ", "outside the travel"]),
     "run not declared in dataset.runs": ({f"dataset.runs.{HELDOUT_RUNS[0]}": DROP}, {},

@@ -257,3 +257,28 @@ def test_iso230_unidirectional_run_gets_its_one_direction_figures(tmp_path):
     # cycle 1: 1.5, 2.5, 3.5; cycle 2: 1.5, 17.5, 33.5 -> means 1.5, 10, 18.5: E_up = 17
     assert a["E_up_um"] == pytest.approx(17.0) and a["E_um"] == pytest.approx(17.0)
     assert a["B_um"] is None and a["M_um"] is None  # undefined with one direction (NaN -> null)
+
+
+def test_iso230_environmental_figure_only_over_the_machine_at_rest(tmp_path):
+    from thermbench.iso230_report import compute
+
+    p, e = spindle_tables()
+    p["T_amb_C"] = 20.0 + 0.001 * p["t_s"]
+    figs = compute(load_dataset(write(tmp_path / "d", SPINDLE_META, p, e)))
+    ev = figs["runs"]["r1"]["channels"]["Z"]["environmental"]
+    # by hand: at rest for t < 60 s and t >= 1560 s (readings every 15 s to 2985 s); Z drift = 0.05 t:
+    # range 0.05 * 2985 - 0 = 149.25 µm, ambient 0.001 * 2985 - 20... range 2.985 °C
+    assert ev["etve_um"] == pytest.approx(149.25) and ev["ambient_range_C"] == pytest.approx(2.985)
+    assert ev["at_rest_s"] == pytest.approx(45.0 + (2985.0 - 1560.0))
+
+
+def test_a_model_is_scored_on_the_channel_it_was_fitted_on(tmp_path):
+    from thermbench.experiment import ExperimentError, dataset_config_for, model_from_config
+
+    p, e = spindle_tables()
+    view = channel_view(load_dataset(write(tmp_path / "d", SPINDLE_META, p, e)), "Z")
+    model = model_from_config("mlr_seed002").set_params(sensors=["T_front"]).fit(view)
+    assert model.channel_ == "Z"
+    assert dataset_config_for(model, {"source": {}, "channel": None})["channel"] == "Z"
+    with pytest.raises(ExperimentError, match=r"'dataset.channel': the model predicts error channel 'Z' .* not 'X1'"):
+        dataset_config_for(model, {"source": {}, "channel": "X1"})

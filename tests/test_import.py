@@ -335,3 +335,70 @@ files:
     assert main(["import", str(tmp_path / "mapping.yaml"), "--out", str(tmp_path / "ds")]) == 2
     err = capsys.readouterr().err
     assert "key files.log.columns.'Test': log.csv holds run(s) ['B'] that dataset.runs does not declare" in err, err
+
+
+def _spindle_mapping(tmp_path: Path, files: str, extra_dataset: str = "") -> Path:
+    text = f"""format: thermbench-import/1
+dataset:
+  machine: {{name: m}}
+  parts: [spindle]
+  sensors: {{T: structure}}
+  channels: {{Z: {{kind: fixed_point, direction: Z, location: nose}}}}
+  reference: {{mode: first_reading}}
+  runs: {{r: {{}}}}{extra_dataset}
+run: r
+files:
+{files}"""
+    (tmp_path / "mapping.yaml").write_text(text, encoding="utf-8")
+    return tmp_path / "mapping.yaml"
+
+
+def test_a_date_and_a_time_column_and_a_units_row(tmp_path):
+    """An Excel-style German logger: date and time in two columns, a units row under the header."""
+    t = np.arange(0, 1800, 10.0)
+    stamps = pd.Timestamp("2026-03-12 07:30:00") + pd.to_timedelta(t, unit="s")
+    lines = ["Datum;Uhrzeit;Temp;Drehzahl;Z", "TT.MM.JJJJ;hh:mm:ss;°C;1/min;µm"]
+    for k, s in enumerate(stamps):
+        temp, z = f"{20 + k / 100:.2f}".replace(".", ","), f"{k / 10:.1f}".replace(".", ",")
+        lines.append(f"{s:%d.%m.%Y};{s:%H:%M:%S};{temp};1000;{z}")
+    (tmp_path / "log.csv").write_bytes(("\r\n".join(lines) + "\r\n").encode("cp1252"))
+    files = """  log:
+    path: log.csv
+    read: {sep: ";", decimal: ",", encoding: cp1252, skip_after_header: 1}
+    time: {column: [Datum, Uhrzeit], format: "%d.%m.%Y %H:%M:%S"}
+    columns: {Temp: T_C, Drehzahl: spindle_rpm, Z: {channel: Z}}
+"""
+    ds = import_dataset(_spindle_mapping(tmp_path, files), tmp_path / "ds")
+    np.testing.assert_allclose(ds.process["t_s"], t)
+    np.testing.assert_allclose(ds.process["T_C"], 20 + np.arange(t.size) / 100)
+    assert ds.metadata.runs["r"].model_extra["started"] == "2026-03-12T07:30:00"
+
+
+@pytest.mark.parametrize(
+    "files, expected",
+    [
+        ("  x: {path: book.xlsx, read: {sheet: Messwert}, time: {column: t}, columns: {T: T_C}}\n",
+         "key files.x.read.sheet: book.xlsx has no sheet 'Messwert'; its sheets: ['Info', 'Messwerte']; did you mean 'Messwerte'?"),
+        ("  x: {path: book.xlsx, time: {column: t}, columns: {T: T_C}}\n",
+         "the workbook has sheets ['Info', 'Messwerte']: choose one with read.sheet"),
+        ("  x: {path: book.xlsx, read: {sheet: Messwerte}, time: {column: t}, columns: {T: T_C, rpm: spindle_rpm, Z: {channel: Z, unit: mm}}}\n",
+         "key files.x.columns.'Z'.unit: data row 1 of book.xlsx becomes 50000 µm as error_um"),
+        ("  x: {path: book.xlsx, read: {sheet: Messwerte}, time: {column: t}, columns: {T: T_C, rpm: axis_mm}}\n",
+         "axis_mm is the position of a linear axis; dataset.parts ['spindle'] has none"),
+        ("  x: {path: missing.yaml.csv, time: {column: t}, columns: {T: T_C}}\n", "key files.x.path: "),
+    ],
+)
+def test_workbook_mistakes(tmp_path, capsys, files, expected):
+    with pd.ExcelWriter(tmp_path / "book.xlsx") as xw:
+        pd.DataFrame({"Feld": ["Maschine"], "Wert": ["VMC 1"]}).to_excel(xw, sheet_name="Info", index=False)
+        pd.DataFrame({"t": [0.0, 1.0, 2.0], "T": 20.0, "rpm": 1000.0, "Z": 50.0}).to_excel(xw, sheet_name="Messwerte", index=False)
+    assert main(["import", str(_spindle_mapping(tmp_path, files)), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and expected in err, err
+
+
+def test_a_mapping_file_that_does_not_exist(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["import", "thermbench/realdata/fl_thermal/mapping.yaml", "--out", "ds"]) == 2
+    err = capsys.readouterr().err
+    assert "no such mapping file (relative paths start from the current directory" in err, err

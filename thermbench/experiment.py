@@ -289,6 +289,21 @@ def dataset_view(ds, channel, segments=True):
     return channel_view(ds, channel)
 
 
+def dataset_config_for(model, dcfg, key: str = "dataset.channel") -> dict:
+    """``dcfg`` with the error channel ``model`` was fitted on (``channel_``) when none is given;
+    a different one is one line: scoring a Z model on Y compares unlike quantities."""
+    d = OmegaConf.to_container(dcfg, resolve=True) if OmegaConf.is_config(dcfg) else dict(dcfg)
+    fitted = getattr(model, "channel_", None)
+    if fitted is None:
+        return d
+    if d.get("channel") is None:
+        d["channel"] = fitted
+    elif d["channel"] != fitted:
+        raise ExperimentError(f"config key {key!r}: the model predicts error channel {fitted!r} (it was fitted on "
+                              f"it), not {d['channel']!r}; leave the key out to score it on {fitted!r}")  # fmt: skip
+    return d
+
+
 def resolve_runs(spec, split: Split, key: str) -> list[str]:
     """``all`` = every loading state; ``a+b`` or a list = those runs; null = every run with
     readings (a format 2 run without readings is for prediction and replay only)."""
@@ -481,7 +496,7 @@ def evaluate(cfg: DictConfig) -> JobResult:
     conf = plain(cfg)
     uri = tracking.model_uri(cfg.get("name"), cfg.get("alias"), cfg.get("model_uri"))
     model = tracking.load_model(uri)
-    split = load_split(cfg.dataset)
+    split = load_split(dataset_config_for(model, cfg.dataset))
     runs = resolve_runs(cfg.get("runs"), split, "runs")
     h = tracking.config_hash(conf)
     with mlflow.start_run(experiment_id=exp_id, run_name=f"evaluate {uri} | {split.name}") as run:

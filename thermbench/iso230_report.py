@@ -137,9 +137,16 @@ def compute(ds: Dataset) -> dict:
                 ref_rows = [_from_reference(t[keep], th, a, b) for _, a, b in used] + [_from_reference(t[keep], th, -np.inf, np.inf)]
                 d = pd.concat([d, pd.DataFrame(ref_rows)], axis=1)
                 entry["drift"] = d.to_dict(orient="records")
-                if ambient is not None:
-                    amb = np.interp(t[keep], pr["t_s"].to_numpy(), pr[meta.sensor_column(ambient)].to_numpy())
-                    entry["environmental"] = iso230.environmental_variation_error(t[keep], g["thermal_um"].to_numpy()[keep], amb)
+                if ambient is not None:  # ISO 230-3 ETVE: the machine at rest, so over the stopped samples only
+                    tk = t[keep]
+                    ops = [c for c in meta.operating_inputs() if c in pr.columns]
+                    rest = np.ones(tk.size, dtype=bool)
+                    for c in ops:
+                        rest &= np.abs(np.interp(tk, pr["t_s"].to_numpy(), pr[c].to_numpy())) <= 0.0
+                    if rest.sum() >= 2:
+                        amb = np.interp(tk[rest], pr["t_s"].to_numpy(), pr[meta.sensor_column(ambient)].to_numpy())
+                        ev = iso230.environmental_variation_error(tk[rest], th[rest], amb)
+                        entry["environmental"] = {**ev, "at_rest_s": float(np.sum(np.diff(tk)[rest[1:] & rest[:-1]]))}
             else:
                 direction = g["direction"].to_numpy() if "direction" in g.columns else None
                 cyc = measuring_cycles(g["t_s"].to_numpy(), g["target_mm"].to_numpy(), direction)
@@ -256,8 +263,9 @@ def _report_md(figs: dict, images: list[str]) -> str:
                                         "max_drift_um", "range_um"])]  # fmt: skip
                 if "environmental" in e:
                     ev = e["environmental"]
-                    lines += [f"Environmental variation: {ev['etve_um']} µm over an ambient range of "
-                              f"{ev['ambient_range_C']} °C ({ev['etve_um_per_C']} µm/°C).", ""]  # fmt: skip
+                    lines += [f"Environmental variation, over the samples with the machine at rest "
+                              f"({ev['at_rest_s'] / 3600:.1f} h; the heat of earlier operation still in it): {ev['etve_um']} µm "
+                              f"over an ambient range of {ev['ambient_range_C']} °C ({ev['etve_um_per_C']} µm/°C).", ""]  # fmt: skip
             else:
                 el = pd.DataFrame(e["error_lines"])
                 tcols = _hottest(el)

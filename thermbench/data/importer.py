@@ -96,7 +96,7 @@ class ColumnMap(_M):
 
 
 class TimeMap(_M):
-    column: str
+    column: Union[str, list[str]]  # a list: the cells joined with a space (a date and a time column)
     unit: Optional[str] = None  # numbers: s (default), ms, min, h
     format: Optional[str] = None  # timestamps: a strftime format, or "iso"
     dayfirst: bool = False
@@ -109,6 +109,7 @@ class ReadOptions(_M):
     thousands: Optional[str] = None
     encoding: str = "utf-8"
     skip_rows: int = Field(0, ge=0)  # preamble lines before the header
+    skip_after_header: int = Field(0, ge=0)  # rows between the header and the data (a units row)
 
 
 class FileMap(_M):
@@ -147,6 +148,9 @@ def _key(loc) -> str:
 
 def read_mapping(path: Path) -> tuple[Mapping, dict]:
     """The mapping file, validated; :class:`MappingError` naming the key on any mistake."""
+    if not os.path.lexists(path):
+        raise MappingError(f"{path}: no such mapping file (relative paths start from the current directory, "
+                           f"{Path.cwd()})")  # fmt: skip
     try:
         check_regular_file(path, MAPPING_MAX_BYTES, "a mapping file")
         with open_regular_file(path, MAPPING_MAX_BYTES, "a mapping file") as fh:
@@ -226,8 +230,17 @@ def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
                     df = pd.read_csv(fh, sep=r.sep or ",", decimal=r.decimal, thousands=r.thousands,
                                      encoding=r.encoding, skiprows=r.skip_rows, engine="python" if r.sep and len(r.sep) > 1 else "c")  # fmt: skip
             elif fmt == "excel":
-                df = pd.read_excel(path, sheet_name=r.sheet if r.sheet is not None else 0, skiprows=r.skip_rows,
-                                   engine="openpyxl")  # fmt: skip
+                with pd.ExcelFile(path, engine="openpyxl") as book:
+                    sheets = list(book.sheet_names)
+                    if isinstance(r.sheet, str) and r.sheet not in sheets:
+                        near = difflib.get_close_matches(r.sheet, sheets, n=1)
+                        raise MappingError(f"{where}.read.sheet: {path.name} has no sheet {r.sheet!r}; its sheets: "
+                                           f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
+                    if isinstance(r.sheet, int) and not 0 <= r.sheet < len(sheets):
+                        raise MappingError(f"{where}.read.sheet: {path.name} has {len(sheets)} sheet(s) {sheets}; "
+                                           f"index {r.sheet} is out of range (0-based)")  # fmt: skip
+                    df = book.parse(sheet_name=r.sheet if r.sheet is not None else 0, skiprows=r.skip_rows)
+                    df.attrs["sheets"] = sheets
             else:
                 df = pd.read_parquet(path)
         except MappingError:
@@ -246,13 +259,18 @@ def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
                                f"{short_repr(str(exc), 200)})") from None  # fmt: skip
     if df.shape[0] * max(df.shape[1], 1) > limits.TABLE_MAX_CELLS:
         raise MappingError(f"{where}.path: {path.name} holds more than {limits.TABLE_MAX_CELLS} cells")
+    sheets = df.attrs.get("sheets")
     df.columns = [str(c) for c in df.columns]
+    if r.skip_after_header:
+        df = df.iloc[r.skip_after_header:].reset_index(drop=True)
     if df.empty:
         raise MappingError(f"{where}.path: {path.name} has no data rows")
-    if len(df.columns) == 1 and r.sep is None:
-        for sep, name in ((";", "semicolon"), ("\t", "tab")):
-            if sep in df.columns[0]:
-                raise MappingError(f"{where}.read.sep: {path.name} looks {name}-separated; add sep: {sep!r}")
+    if len(df.columns) == 1 and fmt == "csv":
+        for sep, name in ((";", "semicolon"), ("\t", "tab"), (",", "comma")):
+            if sep in df.columns[0] and sep != (r.sep or ","):
+                raise MappingError(f"{where}.read.sep: the header of {path.name} is one column "
+                                   f"{short_repr(df.columns[0])}: it looks {name}-separated; set sep: {sep!r}")  # fmt: skip
+    df.attrs["sheets"] = sheets
     return df
 
 
@@ -261,6 +279,11 @@ def _column(df: pd.DataFrame, name: str, where: str, path: Path) -> pd.Series:
         return df[name]
     near = difflib.get_close_matches(name, list(df.columns), n=1, cutoff=0.6)
     hint = f"; did you mean {near[0]!r}?" if near else ""
+    if not near and sum(str(c).startswith("Unnamed: ") for c in df.columns) >= max(1, len(df.columns) // 2):
+        hint = "; the header read looks like a preamble line: check read.skip_rows (the lines before the header)"
+    sheets = df.attrs.get("sheets")
+    if not near and sheets and len(sheets) > 1:
+        hint += f"; the workbook has sheets {sheets}: choose one with read.sheet"
     shown = ", ".join(repr(c) for c in list(df.columns)[:12]) + (", ..." if len(df.columns) > 12 else "")
     raise MappingError(f"{where}: column {name!r} is not in {path.name} (columns: {shown}){hint}")
 
@@ -294,7 +317,19 @@ def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None, de
 def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.ndarray, bool | str]:
     """The file's time column as seconds (timestamps: since the epoch, UTC when they carry a
     time zone) and its kind: False (numbers), "aware" or "naive" (timestamps)."""
-    s = _column(df, f.time.column, f"{where}.time.column", path)
+    cols = [f.time.column] if isinstance(f.time.column, str) else list(f.time.column)
+    if not cols:
+        raise MappingError(f"{where}.time.column: an empty list; name the time column (or a date and a time column)")
+    parts = [_column(df, c, f"{where}.time.column", path) for c in cols]
+    if len(parts) == 1:
+        s = parts[0]
+    else:
+        if f.time.format is None:
+            raise MappingError(f"{where}.time.format: the cells of {cols} are joined with a space into one "
+                               "timestamp: give its format, e.g. \"%d.%m.%Y %H:%M:%S\"")  # fmt: skip
+        s = parts[0].map(_cell_text)
+        for extra in parts[1:]:
+            s = s + " " + extra.map(_cell_text)
     if f.time.format is not None or pd.api.types.is_datetime64_any_dtype(s.dtype):
         if f.time.unit is not None:
             raise MappingError(f"{where}.time.unit: timestamps have no unit; give either unit (numbers) or format")
@@ -319,11 +354,27 @@ def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.nda
     factor, _ = UNITS["s"].get(f.time.unit or "s", (None, None))
     if factor is None:
         raise MappingError(f"{where}.time.unit: unknown unit {f.time.unit!r}; known: {', '.join(UNITS['s'])}")
-    t = _numbers(s, f"{where}.time.column", path, decimal=f.read.decimal)
+    try:
+        t = _numbers(s, f"{where}.time.column", path, decimal=f.read.decimal)
+    except MappingError as exc:
+        first = s.dropna().iloc[0] if s.notna().any() else None
+        if isinstance(first, str) and not pd.isna(pd.to_datetime(first, errors="coerce", format="mixed")):
+            raise MappingError(f"{exc}; it looks like a timestamp: give time.format (a strftime format, or iso)") from None
+        raise
     if np.isnan(t).any():
         i = int(np.flatnonzero(np.isnan(t))[0])
         raise MappingError(f"{where}.time.column: data row {i + 1} of {path.name} has no time")
     return t * factor + f.offset_s, False
+
+
+def _cell_text(v) -> str:
+    """A cell as text for joining a date and a time column (an Excel date or time cell is a
+    datetime / time object: written the ISO way, which the format must then match)."""
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return ""
+    if isinstance(v, pd.Timestamp):
+        return v.strftime("%Y-%m-%d") if v == v.normalize() else v.isoformat(sep=" ")
+    return str(v).strip()
 
 
 def _convert(values: np.ndarray, cm: ColumnMap, target: str, where: str) -> np.ndarray:
@@ -341,9 +392,40 @@ def _convert(values: np.ndarray, cm: ColumnMap, target: str, where: str) -> np.n
     return np.abs(values) if cm.abs else values
 
 
+RANGES = {"error_um": limits.ERROR_UM, "error_urad": limits.TILT_URAD, "target_mm": limits.POSITION_MM,
+          "axis_mm": limits.POSITION_MM, "feed_mm_min": limits.FEED_MM_MIN, "spindle_rpm": limits.SPINDLE_RPM,
+          "load_N": limits.LOAD_N}  # fmt: skip
+
+
+def _check_range(values: np.ndarray, target: str, cm: ColumnMap, where: str, path: Path) -> None:
+    """The converted values in the plausible range of ``target`` (a temperature: of °C); else one
+    line naming the mapping key: the usual cause is a wrong or missing ``unit``."""
+    q = limits.TEMPERATURE_C if target.endswith("_C") else RANGES.get(target)
+    if q is None:
+        return
+    v = np.asarray(values, dtype=float)
+    bad = ~np.isnan(v) & ~((v >= q.lo) & (v <= q.hi))
+    if q.lo == 0.0 and target != "feed_mm_min":
+        bad &= v < 0  # speeds: only negative values (the upper bound is checked at validation)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        given = f"unit: {cm.unit}" if cm.unit else "no unit (the column taken as already in the target's unit)"
+        fix = ("a signed velocity needs abs: true" if v[i] < 0 and target in ("feed_mm_min", "spindle_rpm")
+               else f"the mapping gives {given}: check the column's unit (and scale)")  # fmt: skip
+        key = f"{where}.unit" if cm.unit and not (v[i] < 0 and target in ("feed_mm_min", "spindle_rpm")) else where
+        raise MappingError(f"{key}: data row {i + 1} of {path.name} becomes {v[i]:.6g} {q.unit} as {target}, outside "
+                           f"{q.range_text()}; {fix}")  # fmt: skip
+
+
 def _target_ok(target: str, meta: Metadata, where: str) -> None:
     sensors = {meta.sensor_column(s) for s in meta.sensors}
     known = {"axis_mm", "run_id", *ERROR_TARGETS, *meta.operating_inputs(), "feed_mm_min", "spindle_rpm", "load_N"}
+    if target == "axis_mm" and not meta.has_axis:
+        raise MappingError(f"{where}: axis_mm is the position of a linear axis; dataset.parts {meta.parts} has none "
+                           "(add axis to it, or leave the column out)")  # fmt: skip
+    if target == "feed_mm_min" and not meta.has_axis and "feed_mm_min" not in meta.operating_inputs():
+        raise MappingError(f"{where}: feed_mm_min is the feed of a linear axis; dataset.parts {meta.parts} has none "
+                           "(add axis to parts, or feed_mm_min to dataset.operating)")  # fmt: skip
     if target in sensors or target in known:
         return
     if target.endswith("_C"):
@@ -419,9 +501,11 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
                                        f"with files.{name}.channel")  # fmt: skip
                 unit = "urad" if channels[cm.channel].unit == "urad" else "um"
                 wide[cm.channel] = _convert(values, cm, f"error_{unit}", cw)
+                _check_range(wide[cm.channel], f"error_{unit}", cm, cw, src)
                 continue
             _target_ok(cm.to, meta, cw)
             v = _convert(values, cm, cm.to, cw)
+            _check_range(v, cm.to, cm, cw, src)
             (long if cm.to in ERROR_TARGETS else proc)[cm.to] = v
         if long and "error_um" not in long:
             raise MappingError(f"{where}.columns: maps {sorted(long)} but no column to error_um")
@@ -447,11 +531,12 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
         raise MappingError(f"{path}: key 'files': some files' timestamps carry a time zone and some do not; a "
                            "timestamp without one could be any zone: write the zone into the files, or read all "
                            "without it and align them with offset_s")  # fmt: skip
+    epoch = 0.0
     if False not in kinds:  # timestamps: seconds since the earliest one of the process files
-        zero = min(float(np.min(fr["t"])) for fr in frames.values() if fr["proc"] or fr["wide"]) if any(
-            fr["proc"] or fr["wide"] for fr in frames.values()) else min(float(np.min(fr["t"])) for fr in frames.values())
+        with_proc = [fr for fr in frames.values() if fr["proc"] or fr["wide"]] or list(frames.values())
+        epoch = min(float(np.min(fr["t"])) for fr in with_proc)
         for fr in frames.values():
-            fr["t"] = fr["t"] - zero
+            fr["t"] = fr["t"] - epoch
     process = _align_process(m, frames, meta, path)
     errors = _errors(frames, channels)
     _check_reading_times(frames, process)
@@ -460,6 +545,10 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
         process["t_s"] = process["t_s"] - process["run_id"].map(zero).to_numpy()
         if len(errors):
             errors["t_s"] = errors["t_s"] - errors["run_id"].map(zero).to_numpy()
+        zone = "+00:00" if kinds == {"aware"} else ""
+        for run, z in zero.items():  # when t_s = 0 was, on the files' clock (the base file's, offsets applied)
+            stamp = pd.Timestamp(round((epoch + float(z)) * 1e6), unit="us").isoformat()
+            setattr(meta.runs[run], "started", stamp + zone)
     return meta, process, errors
 
 
@@ -557,8 +646,10 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
                                            f"{t[i]:g} s of run {run!r}")  # fmt: skip
                 out[col] = vals
         if not keep.any():
-            raise MappingError(f"{path}: key 'files': the process files of run {run!r} do not overlap in time "
-                               "(check each file's offset_s and time column)")  # fmt: skip
+            spans = "; ".join(f"{n} {np.min(frames[n]['t'][frames[n]['run'] == run]):.6g}.."
+                              f"{np.max(frames[n]['t'][frames[n]['run'] == run]):.6g} s" for n in with_proc)
+            raise MappingError(f"{path}: key 'files': the process files of run {run!r} do not overlap in time ({spans}, "
+                               "offsets applied); check each file's offset_s and time column (and its format)")  # fmt: skip
         parts.append(pd.DataFrame(out)[keep])
     process = pd.concat(parts, ignore_index=True)
     if process.shape[0] and process["t_s"].min() < 0:

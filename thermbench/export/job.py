@@ -127,7 +127,10 @@ def run_export(cfg: DictConfig) -> tuple[pd.DataFrame, dict]:
     items = _items(e, cfg)
     with output_dir(out_root, "exports", force=force, force_option="export.force=true") as stage:
         rows = _export_all(items, e, opts, stage, out_root)
-    return pd.DataFrame(rows), {"dir": str(out_root)}
+    out = {"dir": str(out_root)}
+    if len(rows) == 1:  # what replay and the compensator take: the model's own directory
+        out["model_dir"] = rows[0]["dir"]
+    return pd.DataFrame(rows), out
 
 
 def _run_dataset_config(run_id: str | None) -> dict | None:
@@ -155,11 +158,11 @@ def _load_split_cached(cfg: dict, cache: dict):
     return cache[k]
 
 
-def _dataset_split(e: dict, info: dict, key: str, cache: dict):
+def _dataset_split(e: dict, info: dict, key: str, cache: dict, model=None):
     """(name, Split) of the dataset the model was trained on, or (None, None): ``export.dataset``
     (a conf/dataset option or a dataset directory), else the MLflow run's logged dataset config,
     else the benchmark dataset the key names."""
-    from ..experiment import group_option
+    from ..experiment import dataset_config_for, group_option
 
     given = e.get("dataset")
     logged = info.pop("dataset_config", None)
@@ -172,12 +175,12 @@ def _dataset_split(e: dict, info: dict, key: str, cache: dict):
                                   f"({_dataset_names()}) nor a dataset directory (no metadata.yaml)")  # fmt: skip
             cfg = {"name": None, "source": {"_target_": "thermbench.data.io.load_dataset", "path": str(path)},
                    "channel": e.get("channel")}  # fmt: skip
-            sp = _load_split_cached(cfg, cache)
+            sp = _load_split_cached(dataset_config_for(model, cfg, "export.channel"), cache)
             return sp.name, sp
         cfg = dict(group_option("dataset", str(given)))
         if e.get("channel") is not None:
             cfg["channel"] = e.get("channel")
-        return str(given), _load_split_cached(cfg, cache)
+        return str(given), _load_split_cached(dataset_config_for(model, cfg, "export.channel"), cache)
     if logged is not None:
         src = logged["source"]
         if src.get("_target_") == "thermbench.data.io.load_dataset" and not Path(str(src.get("path"))).is_dir():
@@ -206,7 +209,7 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
     rows = []
     cache: dict = {}
     for key, model, info in items:
-        dname, sp = _dataset_split(e, info, key, cache)
+        dname, sp = _dataset_split(e, info, key, cache, model)
         ds, heldout = None, []
         if sp is not None:
             ds = sp.dataset

@@ -266,6 +266,7 @@ class ThermalErrorModel(BaseEstimator, ABC):
             delattr(self, attr)
         self._fit(dataset, runs)
         self.train_runs_ = list(runs)
+        self.channel_ = dataset.channel  # the error channel of a format 2 dataset it predicts (None: format 1)
         return self
 
     # --- subclass hooks ---------------------------------------------------
