@@ -282,3 +282,16 @@ def test_a_model_is_scored_on_the_channel_it_was_fitted_on(tmp_path):
     assert dataset_config_for(model, {"source": {}, "channel": None})["channel"] == "Z"
     with pytest.raises(ExperimentError, match=r"'dataset.channel': the model predicts error channel 'Z' .* not 'X1'"):
         dataset_config_for(model, {"source": {}, "channel": "X1"})
+
+
+def test_a_declared_operating_input_is_a_checked_numeric_column(tmp_path):
+    p, e = spindle_tables()
+    meta = {**SPINDLE_META, "operating": ["spindle_rpm", "coolant_l_min"]}
+    msg = refused(write(tmp_path / "a", meta, p, e))
+    assert "process.csv: missing column(s) ['coolant_l_min']" in msg
+    p["coolant_l_min"] = ["off" if i == 7 else "5.0" for i in range(len(p))]
+    assert "column 'coolant_l_min', row 8 (line 9): expected a number, got 'off'" in refused(write(tmp_path / "b", meta, p, e))
+    p["coolant_l_min"] = 5.0
+    ds = load_dataset(write(tmp_path / "c", meta, p, e))
+    assert ds.metadata.operating_inputs() == ["spindle_rpm", "coolant_l_min"]
+    assert ds.process["coolant_l_min"].dtype == float
