@@ -295,3 +295,15 @@ def test_a_declared_operating_input_is_a_checked_numeric_column(tmp_path):
     ds = load_dataset(write(tmp_path / "c", meta, p, e))
     assert ds.metadata.operating_inputs() == ["spindle_rpm", "coolant_l_min"]
     assert ds.process["coolant_l_min"].dtype == float
+
+
+def test_a_derived_segment_is_a_run_of_its_own_for_the_models(tmp_path):
+    from thermbench.experiment import dataset_view
+
+    p, e = spindle_tables()
+    meta = {**SPINDLE_META, "runs": {"r1": {"segments": ["heat3000"]}}}
+    view = dataset_view(load_dataset(write(tmp_path / "d", meta, p, e)), "Z", True)
+    er = view.errors_run("heat3000")
+    # Z = 1 + 0.05 t; the segment starts at 60 s: its thermal error counts from its first reading there
+    assert er["t_s"].iloc[0] == 60.0
+    np.testing.assert_allclose(er["thermal_um"], 0.05 * (er["t_s"] - 60.0), atol=1e-12)

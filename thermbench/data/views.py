@@ -10,7 +10,8 @@
 - :func:`split_segments`: every run without a declared condition becomes one run per
   segment derived from its operating signal (:mod:`thermbench.data.segments`), named
   by ``runs.<id>.segments`` or ``s01_1250rpm``, ...; a constant segment's condition is its
-  level. The thermal error keeps the whole run's reference.
+  level. A segment is a run of its own: :func:`channel_view` of the split dataset counts its
+  thermal error from the reference rule applied to the segment (as if a test started there).
 """
 
 from __future__ import annotations
