@@ -307,3 +307,15 @@ def test_a_derived_segment_is_a_run_of_its_own_for_the_models(tmp_path):
     # Z = 1 + 0.05 t; the segment starts at 60 s: its thermal error counts from its first reading there
     assert er["t_s"].iloc[0] == 60.0
     np.testing.assert_allclose(er["thermal_um"], 0.05 * (er["t_s"] - 60.0), atol=1e-12)
+
+
+def test_segmentation_settings_in_the_metadata(tmp_path):
+    p, e = spindle_tables()
+    t = p["t_s"]
+    p["spindle_rpm"] = np.where(((t >= 60) & (t < 1560)) | ((t >= 2100) & (t < 2400)), 3000.0, 0.0)  # + a 300 s run
+    # by default a period must last 10 windows (10 x 5 x 15 s = 750 s): the 300 s run is no segment of its own
+    assert list(split_segments(load_dataset(write(tmp_path / "a", SPINDLE_META, p, e))).metadata.runs) == ["s01_3000rpm"]
+    meta = {**SPINDLE_META, "segmentation": {"min_duration_s": 200}}
+    seg = split_segments(load_dataset(write(tmp_path / "b", meta, p, e)))
+    assert list(seg.metadata.runs) == ["s01_3000rpm", "s02_3000rpm"]
+    assert seg.process_run("s02_3000rpm")["t_s"].iloc[0] == 2100.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numbers
 from typing import Annotated, Literal, Optional
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from . import limits
 from .errors import short_repr
@@ -181,6 +181,20 @@ class SamplingMeta(_Model):
     max_gap_s: Optional[_quantity(limits.MAX_GAP_S)] = None  # largest step in process t_s
 
 
+class SegmentationMeta(_Model):
+    """How runs without a condition are split into segments (format 2; the defaults of
+    :func:`thermbench.data.segments.derive_segments` for what is left out)."""
+
+    stop_below: Optional[float] = Field(None, ge=0)  # operating value at or below which the machine is stopped
+    window_s: Optional[_quantity(limits.MAX_GAP_S)] = None  # moving-median window
+    min_duration_s: Optional[_quantity(limits.MAX_GAP_S)] = None  # shortest period, stop or level that counts
+    rel_tol: Optional[float] = Field(None, gt=0, lt=1)  # relative tolerance of a level
+
+    def kwargs(self) -> dict:
+        return {k: v for k, v in self.model_dump().items() if v is not None and k in
+                ("stop_below", "window_s", "min_duration_s", "rel_tol")}  # fmt: skip
+
+
 class ReferenceMeta(_Model):
     """Where the thermal error of a reading is counted from (format 2).
 
@@ -216,6 +230,7 @@ class Metadata(_Model):
     operating: Optional[list[str]] = None
     sampling: Optional[SamplingMeta] = None
     reference: Optional[ReferenceMeta] = None
+    segmentation: Optional[SegmentationMeta] = None
 
     @model_validator(mode="after")
     def _check(self) -> "Metadata":
@@ -241,7 +256,8 @@ class Metadata(_Model):
                             if getattr(run.condition, k) is None]  # fmt: skip
         if missing:
             raise ValueError(f"{missing[0]}: missing (required in {FORMAT_V1}; {FORMAT_V2} makes it optional)")
-        v2_only = [k for k in ("parts", "channels", "operating", "sampling", "reference") if getattr(self, k) is not None]
+        v2_only = [k for k in ("parts", "channels", "operating", "sampling", "reference", "segmentation")
+                   if getattr(self, k) is not None]
         v2_only += [f"runs.{r}.segments" for r, run in self.runs.items() if run.segments is not None]
         if v2_only:
             raise ValueError(f"{v2_only[0]}: a key of {FORMAT_V2}; write format: {FORMAT_V2}")

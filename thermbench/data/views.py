@@ -77,7 +77,7 @@ def split_segments(ds: Dataset) -> Dataset:
             e_parts.append(er)
             continue
         t = pr["t_s"].to_numpy()
-        segs = derive_segments(t, pr[op].to_numpy())
+        segs = derive_segments(t, pr[op].to_numpy(), **(meta.segmentation.kwargs() if meta.segmentation else {}))
         names = run.segments or [segment_name(s, UNIT_NAMES.get(op, op)) for s in segs]
         if len(names) != len(segs):
             found = ", ".join(f"{s.start_s:g} s ({s.kind}{'' if s.level is None else f' {s.level:g}'})" for s in segs)
