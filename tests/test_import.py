@@ -402,3 +402,15 @@ def test_a_mapping_file_that_does_not_exist(tmp_path, capsys, monkeypatch):
     assert main(["import", "thermbench/realdata/fl_thermal/mapping.yaml", "--out", "ds"]) == 2
     err = capsys.readouterr().err
     assert "no such mapping file (relative paths start from the current directory" in err, err
+
+
+def test_iso230_never_overwrites_a_users_directory(lab, tmp_path, capsys):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "report.md").write_text("my own report")
+    assert main(["iso230", str(lab.path), "--out", str(out)]) == 2
+    assert "thermbench did not write there" in capsys.readouterr().err
+    assert (out / "report.md").read_text() == "my own report" and sorted(p.name for p in out.iterdir()) == ["report.md"]
+    assert main(["iso230", str(lab.path), "--out", str(tmp_path / "new")]) == 0
+    assert main(["iso230", str(lab.path), "--out", str(tmp_path / "new")]) == 0  # its own earlier report: replaced
+    capsys.readouterr()
