@@ -168,7 +168,14 @@ def tasks(cfg: DictConfig) -> list[dict]:
     out = []
     for dname in cfg.datasets:
         dcfg = group_option("dataset", str(dname))
-        ds = load_split(dcfg).dataset
+        try:
+            ds = load_split(dcfg).dataset
+        except ExperimentError as exc:
+            if not str(exc).startswith("config key 'dataset.channel'"):
+                raise
+            raise ExperimentError(f"config key 'datasets': {dname!r} is a format 2 dataset with several error "
+                                  f"channels; the benchmark takes a dataset option that names one (channel: in "
+                                  f"conf/dataset/{dname}.yaml, or an option of your own)") from None  # fmt: skip
         data_hash = ds.content_hash()
         for fam in families:
             lacks = family_lacks(fam, ds)
