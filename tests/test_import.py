@@ -175,7 +175,7 @@ def _lab_copy(tmp_path: Path) -> Path:
         (('"Umgebung [°C]": T_amb_C', '"Umgebung [°C]": T_room_C'), "'T_room_C' is a temperature column, but dataset.sensors declares no sensor 'T_room'"),
         (("offset_s: 1.2", "offset_s: -30"), "outside the process log of run 'warmup_6000'"),
         (("align: {base: cnc}", "align: {base: plc}"), "key 'align.base': 'plc' is not one of files"),
-        (("channel: X\n", "channel: Y\n"), "key files.laser.channel: name the error channel"),
+        (("channel: X\n", "channel: Y\n"), "key files.laser.channel: 'Y' is not declared in dataset.channels (['X'])"),
         (("{fwd: 1, bwd: -1}", "{fwd: 1}"), "value 'bwd' (data row 10 of interferometer.txt) is not mapped"),
         (("kind: along_axis", "kind: alongaxis"), "key 'dataset.channels.X.kind'"),
     ],
@@ -414,3 +414,70 @@ def test_iso230_never_overwrites_a_users_directory(lab, tmp_path, capsys):
     assert main(["iso230", str(lab.path), "--out", str(tmp_path / "new")]) == 0
     assert main(["iso230", str(lab.path), "--out", str(tmp_path / "new")]) == 0  # its own earlier report: replaced
     capsys.readouterr()
+
+
+def _three_files(tmp_path: Path, order: tuple[str, ...], hole_in_b: bool = True) -> Path:
+    ta = np.arange(0.0, 101.0)
+    pd.DataFrame({"t": ta, "rpm": 1000.0}).to_csv(tmp_path / "a.csv", index=False)
+    tb = np.r_[0.0, np.arange(50.0, 101.0)] if hole_in_b else ta
+    tb_T = 20 + tb / 100
+    pd.DataFrame({"t": tb, "T1": tb_T}).to_csv(tmp_path / "b.csv", index=False)
+    tc = np.arange(60.0, 101.0)
+    pd.DataFrame({"t": tc, "T2": 30 + tc / 100, "z": tc / 100}).to_csv(tmp_path / "c.csv", index=False)
+    specs = {"a": "  a: {path: a.csv, time: {column: t}, columns: {rpm: spindle_rpm}}\n",
+             "b": "  b: {path: b.csv, time: {column: t}, max_gap_s: 5, columns: {T1: T1_C}}\n",
+             "c": "  c: {path: c.csv, time: {column: t}, max_gap_s: 5, columns: {T2: T2_C, z: {channel: Z}}}\n"}  # fmt: skip
+    text = f"""format: thermbench-import/1
+dataset:
+  machine: {{name: m}}
+  parts: [spindle]
+  sensors: {{T1: structure, T2: structure}}
+  channels: {{Z: {{kind: fixed_point, direction: Z, location: nose}}}}
+  reference: {{mode: first_reading}}
+  runs: {{r: {{}}}}
+run: r
+align: {{base: a}}
+files:
+{''.join(specs[k] for k in order)}"""
+    (tmp_path / f"mapping_{''.join(order)}.yaml").write_text(text, encoding="utf-8")
+    return tmp_path / f"mapping_{''.join(order)}.yaml"
+
+
+def test_the_common_span_does_not_depend_on_the_order_of_the_files(tmp_path):
+    """b has a hole from 0 to 50 s, but c starts at 60 s: the process keeps 60..100 s, whatever
+    the order in which the mapping lists the files."""
+    for order in (("a", "b", "c"), ("a", "c", "b")):
+        ds = import_dataset(_three_files(tmp_path, order), tmp_path / f"ds_{''.join(order)}")
+        np.testing.assert_allclose(ds.process["t_s"], np.arange(60.0, 101.0))
+        np.testing.assert_allclose(ds.process["T1_C"], 20 + np.arange(60.0, 101.0) / 100)
+
+
+def test_an_empty_temperature_cell_is_interpolated_from_its_neighbours(tmp_path):
+    mapping = _three_files(tmp_path, ("a", "b", "c"), hole_in_b=False)
+    b = pd.read_csv(tmp_path / "b.csv")
+    b.loc[b["t"] == 80.0, "T1"] = np.nan  # an empty cell: no reading at 80 s
+    b.to_csv(tmp_path / "b.csv", index=False)
+    ds = import_dataset(mapping, tmp_path / "ds")
+    at80 = ds.process.loc[ds.process["t_s"] == 80.0, "T1_C"].iloc[0]
+    assert at80 == pytest.approx(20.80)  # between 20.79 at 79 s and 20.81 at 81 s, linear
+
+
+def test_a_tilt_channel_in_long_form_takes_a_tilt_unit(tmp_path):
+    t = np.arange(0.0, 61.0)
+    pd.DataFrame({"t": t, "rpm": 1000.0}).to_csv(tmp_path / "a.csv", index=False)
+    pd.DataFrame({"t": t, "tilt": t / 1000}).to_csv(tmp_path / "e.csv", index=False)  # mrad
+    (tmp_path / "mapping.yaml").write_text("""format: thermbench-import/1
+dataset:
+  machine: {name: m}
+  parts: [spindle]
+  sensors: {}
+  channels: {B: {kind: fixed_point, direction: B, location: spindle, unit: urad}}
+  reference: {mode: first_reading}
+  runs: {r: {}}
+run: r
+files:
+  a: {path: a.csv, time: {column: t}, columns: {rpm: spindle_rpm}}
+  e: {path: e.csv, time: {column: t}, channel: B, columns: {tilt: {to: error_um, unit: mrad}}}
+""", encoding="utf-8")
+    ds = import_dataset(tmp_path / "mapping.yaml", tmp_path / "ds")
+    np.testing.assert_allclose(ds.errors["error_um"], t)  # t/1000 mrad = t µrad (the column holds µrad for a tilt)

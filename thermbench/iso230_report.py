@@ -39,11 +39,9 @@ def _blocks(ds: Dataset, run: str) -> list[tuple[str, float, float]]:
     seg = split_segments(ds)
     out = []
     for name, r in seg.metadata.runs.items():
-        if name in meta.runs:
-            continue
         pr = seg.process_run(name)
-        if pr.empty or not r.notes or f"of run {run}:" not in r.notes:
-            continue
+        if pr.empty or not r.notes or not (r.notes.startswith("segment ") and f" of run {run}:" in r.notes):
+            continue  # a run kept as it is, or a segment of another run
         out.append((name, float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])))
     return out
 
@@ -141,8 +139,11 @@ def compute(ds: Dataset) -> dict:
                     tk = t[keep]
                     ops = [c for c in meta.operating_inputs() if c in pr.columns]
                     rest = np.ones(tk.size, dtype=bool)
-                    for c in ops:
-                        rest &= np.abs(np.interp(tk, pr["t_s"].to_numpy(), pr[c].to_numpy())) <= 0.0
+                    for c in ops:  # stopped: at or below the segmentation's stop threshold (data/segments.py)
+                        v = np.abs(pr[c].to_numpy())
+                        given = meta.segmentation.stop_below if meta.segmentation is not None else None
+                        stop = given if given is not None else 0.02 * float(np.percentile(v, 99))
+                        rest &= np.interp(tk, pr["t_s"].to_numpy(), v) <= stop
                     if rest.sum() >= 2:
                         amb = np.interp(tk[rest], pr["t_s"].to_numpy(), pr[meta.sensor_column(ambient)].to_numpy())
                         ev = iso230.environmental_variation_error(tk[rest], th[rest], amb)

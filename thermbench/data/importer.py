@@ -210,8 +210,11 @@ def _line(lines: dict, loc: tuple) -> str:
 
 # ------------------------------------------------------------------ files ---
 def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
+    if path.suffix.lower() == ".xls":
+        raise MappingError(f"{where}.path: {path.name} is an Excel 97-2003 workbook (.xls), which openpyxl cannot "
+                           "read; save it as .xlsx or CSV")  # fmt: skip
     fmt = f.format or {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".xlsx": "excel", ".xlsm": "excel",
-                       ".xls": "excel", ".parquet": "parquet"}.get(path.suffix.lower())  # fmt: skip
+                       ".parquet": "parquet"}.get(path.suffix.lower())  # fmt: skip
     if fmt is None:
         raise MappingError(f"{where}.path: cannot tell the format of {path.name!r} from its suffix; "
                            "add format: csv, excel or parquet")  # fmt: skip
@@ -473,6 +476,10 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
         t, kind = _times(df, f, where, src)
         kinds.add(kind)
         proc: dict[str, np.ndarray] = {}
+        sources: dict[str, str] = {}  # dataset column -> the file's column (for messages)
+        file_channel = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
+        if file_channel is not None and file_channel not in channels:
+            raise MappingError(f"{where}.channel: {file_channel!r} is not declared in dataset.channels ({sorted(channels)})")
         wide: dict[str, np.ndarray] = {}
         long: dict[str, np.ndarray] = {}
         run_col = None
@@ -504,9 +511,13 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
                 _check_range(wide[cm.channel], f"error_{unit}", cm, cw, src)
                 continue
             _target_ok(cm.to, meta, cw)
-            v = _convert(values, cm, cm.to, cw)
-            _check_range(v, cm.to, cm, cw, src)
+            target = cm.to
+            if cm.to == "error_um" and file_channel is not None and channels[file_channel].unit == "urad":
+                target = "error_urad"  # a tilt channel's readings: converted to µrad, checked as tilts
+            v = _convert(values, cm, target, cw)
+            _check_range(v, target, cm, cw, src)
             (long if cm.to in ERROR_TARGETS else proc)[cm.to] = v
+            sources[cm.to] = col
         if long and "error_um" not in long:
             raise MappingError(f"{where}.columns: maps {sorted(long)} but no column to error_um")
         if long:
@@ -522,7 +533,7 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
             if m.run is None and len(meta.runs) > 1:
                 raise MappingError(f"{where}.columns: map a column to run_id, or give the mapping key 'run'")
             run_col = np.full(len(df), m.run or next(iter(meta.runs)), dtype=object)
-        frames[name] = {"t": t, "run": run_col, "proc": proc, "wide": wide, "long": long, "channel": f.channel,
+        frames[name] = {"t": t, "run": run_col, "proc": proc, "wide": wide, "long": long, "channel": f.channel, "src": sources,
                         "where": where, "max_gap_s": f.max_gap_s, "path": src}  # fmt: skip
     if False in kinds and len(kinds) > 1:
         raise MappingError(f"{path}: key 'files': some files have timestamps and some seconds; a common clock needs "
@@ -607,9 +618,16 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
             i = int(np.flatnonzero(np.diff(t) <= 0)[0])
             raise MappingError(f"{b['where']}.time.column: time {t[i]:g} s appears twice in run {run!r}")
         out = {"run_id": np.full(t.size, run, dtype=object), "t_s": t}
-        keep = np.ones(t.size, dtype=bool)
         for col, v in b["proc"].items():
-            out[col] = v[sel][order]
+            v = v[sel][order]
+            if np.isnan(v).any():
+                i = int(np.flatnonzero(np.isnan(v))[0])
+                raise MappingError(f"{b['where']}.columns.{b['src'][col]!r}: empty at {t[i]:g} s of run {run!r}; the "
+                                   "file whose clock the process table takes (align.base) needs every value")  # fmt: skip
+            out[col] = v
+        # first the span every process file covers: what lies outside is dropped, not filled in
+        keep = np.ones(t.size, dtype=bool)
+        others = {}
         for n in with_proc:
             if n == base:
                 continue
@@ -617,24 +635,37 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
             s = fr["run"] == run
             if not s.any():
                 raise MappingError(f"{fr['where']}: has no rows of run {run!r}, which {base!r} has")
-            ft = fr["t"][s]
-            o = np.argsort(ft, kind="stable")
-            ft = ft[o]
-            gap = _file_gap(fr)
+            o = np.argsort(fr["t"][s], kind="stable")
+            ft = fr["t"][s][o]
+            if np.any(np.diff(ft) <= 0):
+                i = int(np.flatnonzero(np.diff(ft) <= 0)[0])
+                raise MappingError(f"{fr['where']}.time.column: time {ft[i]:g} s appears twice in run {run!r}")
             keep &= (t >= ft[0]) & (t <= ft[-1])
-            j = np.clip(np.searchsorted(ft, t, side="right"), 1, ft.size - 1) if ft.size > 1 else np.zeros(t.size, int)
-            for col, v in fr["proc"].items():
-                v = v[s][o]
-                if col.endswith("_C") and ft.size > 1:
+            others[n] = (s, o, ft)
+        for n, (s, o, ft_all) in others.items():
+            fr = frames[n]
+            gap = _file_gap(fr)
+            for col, v_all in fr["proc"].items():
+                v_all = v_all[s][o]
+                ok = ~np.isnan(v_all)  # an empty cell is no reading: its neighbours are used
+                ft, v = ft_all[ok], v_all[ok]
+                if ft.size == 0:
+                    raise MappingError(f"{fr['where']}.columns.{fr['src'][col]!r}: no value in run {run!r}")
+                if col.endswith("_C"):
+                    j = np.clip(np.searchsorted(ft, t, side="right"), 1, max(ft.size - 1, 1))
                     vals = np.interp(t, ft, v)
-                    span = ft[j] - ft[j - 1]
-                    near = (np.abs(t - ft[j - 1]) <= 1e-9) | (np.abs(t - ft[j]) <= 1e-9)
-                    holes = keep & (span > gap * 1.01) & ~near
+                    if ft.size > 1:
+                        span = ft[j] - ft[j - 1]
+                        near = (np.abs(t - ft[j - 1]) <= 1e-9) | (np.abs(t - ft[j]) <= 1e-9)
+                        holes = keep & (span > gap * 1.01) & ~near
+                    else:
+                        holes = keep & (np.abs(t - ft[0]) > 1e-9)
                     if holes.any():
                         i = int(np.flatnonzero(holes)[0])
-                        raise MappingError(f"{fr['where']}: no {col} reading between {ft[j[i] - 1]:g} and "
-                                           f"{ft[j[i]]:g} s of run {run!r} ({span[i]:g} s apart, more than its max_gap_s "
-                                           f"{gap:g} s): it is not filled in over a long gap")  # fmt: skip
+                        a, z = (ft[j[i] - 1], ft[j[i]]) if ft.size > 1 else (ft[0], ft[0])
+                        raise MappingError(f"{fr['where']}: no {col} reading between {a:g} and {z:g} s of run {run!r} "
+                                           f"({z - a:g} s apart, more than its max_gap_s {gap:g} s): it is not filled "
+                                           "in over a long gap")  # fmt: skip
                 else:
                     left = pd.DataFrame({"t_s": t})
                     right = pd.DataFrame({"t_s": ft, "v": v})

@@ -4,8 +4,8 @@
 - :func:`channel_view`: one error channel as a dataset of the format 1 shape: readings at
   ``target_mm`` (a fixed-point channel: the one position 0.0), ``thermal_um`` computed
   with the dataset's reference rule and per direction of approach, and ``error_um`` =
-  ``thermal_um`` + the reference averaged over the directions, so a bidirectional run's
-  reversal value is in neither. A process log without ``axis_mm`` / ``feed_mm_min`` (a
+  ``thermal_um`` + the run's reference at that target averaged over the directions, so a
+  bidirectional run's reversal value is in neither. A process log without ``axis_mm`` / ``feed_mm_min`` (a
   spindle test) gets them as zeros: the spindle does not move an axis.
 - :func:`split_segments`: every run without a declared condition becomes one run per
   segment derived from its operating signal (:mod:`thermbench.data.segments`), named
@@ -42,8 +42,12 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
     er = te[te["channel"] == channel].copy() if len(te) else te.copy()
     if channels[channel].kind == "fixed_point" or "target_mm" not in er.columns:
         er["target_mm"] = 0.0
-    base = er.groupby("target_mm")["reference_um"].mean()
-    er["error_um"] = er["thermal_um"] + er["target_mm"].map(base).to_numpy()
+    # per run and target, the reference averaged over the directions of approach (each counted once)
+    keys = ["run_id", "target_mm"] + (["direction"] if "direction" in er.columns else [])
+    per_direction = er.groupby(keys, sort=False)["reference_um"].first()
+    base = per_direction.groupby(level=["run_id", "target_mm"]).mean()
+    idx = pd.MultiIndex.from_arrays([er["run_id"], er["target_mm"]])
+    er["error_um"] = er["thermal_um"].to_numpy() + base.reindex(idx).to_numpy()
     er = er[["run_id", "t_s", "target_mm", "error_um", "thermal_um", "channel"]].reset_index(drop=True)
     process = ds.process.copy()
     for col in ("axis_mm", "feed_mm_min"):
