@@ -29,21 +29,35 @@ from .data.reference import measuring_cycles, thermal_errors
 from .outputs import check_output_dir, output_dir
 
 
-def _blocks(ds: Dataset, run: str) -> list[tuple[str, float, float]]:
-    """The heating/cooling blocks of a run: its derived segments (format 2, no condition)."""
+def _segmented(ds: Dataset) -> Dataset | None:
+    """The dataset split into its derived segments (format 2 runs without a condition), once."""
     from .data.views import split_segments
 
-    meta = ds.metadata
-    if meta.version == 1 or meta.runs[run].condition is not None:
+    if ds.metadata.version == 1 or all(r.condition is not None for r in ds.metadata.runs.values()):
+        return None
+    return split_segments(ds)
+
+
+def _blocks(seg: Dataset | None, run: str) -> list[tuple[str, float, float]]:
+    """The heating/cooling blocks of a run: its derived segments in ``seg`` (:func:`_segmented`)."""
+    if seg is None:
         return []
-    seg = split_segments(ds)
     out = []
     for name, r in seg.metadata.runs.items():
-        pr = seg.process_run(name)
-        if pr.empty or not r.notes or not (r.notes.startswith("segment ") and f" of run {run}:" in r.notes):
+        if not r.notes or not (r.notes.startswith("segment ") and f" of run {run}:" in r.notes):
             continue  # a run kept as it is, or a segment of another run
-        out.append((name, float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])))
+        pr = seg.process_run(name)
+        if not pr.empty:
+            out.append((name, float(pr["t_s"].iloc[0]), float(pr["t_s"].iloc[-1])))
     return out
+
+
+def _readings(ds: Dataset) -> pd.DataFrame:
+    """The thermal errors of every reading, with a ``channel`` column (format 1: its one channel)."""
+    te = thermal_errors(ds)
+    if len(te) and "channel" not in te.columns:
+        te = te.assign(channel=next(iter(ds.metadata.error_channels())))
+    return te
 
 
 def _from_reference(t: np.ndarray, thermal: np.ndarray, a: float, b: float) -> dict:
@@ -99,9 +113,10 @@ def _table_md(df: pd.DataFrame, cols: list[str]) -> str:
     return head + "\n".join(rows) + "\n"
 
 
-def compute(ds: Dataset) -> dict:
-    """All figures of the dataset, as plain data (what ``figures.json`` holds)."""
-    te = thermal_errors(ds)
+def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
+    """All figures of the dataset, as plain data (what ``figures.json`` holds); ``te``: its
+    :func:`_readings`, when already computed."""
+    te = _readings(ds) if te is None else te
     meta = ds.metadata
     channels = meta.error_channels()
     ambient = next((s for s, loc in meta.sensors.items() if loc == "ambient"), None)
@@ -110,13 +125,12 @@ def compute(ds: Dataset) -> dict:
     if te.empty:
         out["note"] = "the dataset has no readings: nothing to evaluate"
         return out
-    if "channel" not in te.columns:
-        te = te.assign(channel=next(iter(channels)))
+    seg = _segmented(ds)
     for run in ds.run_ids:
         tr = te[te["run_id"] == run]
         if tr.empty:
             continue
-        blocks = _blocks(ds, run)
+        blocks = _blocks(seg, run)
         res: dict = {"blocks": [b[0] for b in blocks], "channels": {}}
         pr = ds.process_run(run)
         for ch, cm in channels.items():
@@ -202,14 +216,11 @@ def compute(ds: Dataset) -> dict:
     return _clean(out)
 
 
-def _figures(ds: Dataset, figs: dict, out: Path) -> list[str]:
+def _figures(ds: Dataset, te: pd.DataFrame, figs: dict, out: Path) -> list[str]:
     from .report import _new_figure, _save
 
-    te = thermal_errors(ds)
     if te.empty:
         return []
-    if "channel" not in te.columns:
-        te = te.assign(channel=next(iter(ds.metadata.error_channels())))
     names = []
     for run in figs["runs"]:
         tr = te[te["run_id"] == run]
@@ -301,9 +312,10 @@ def iso230_report(data_dir: str | Path, out_dir: str | Path, force: bool = False
     out = Path(out_dir)
     check_output_dir(out, "iso230", force=force)
     ds = load_dataset(data_dir)
-    figs = compute(ds)
+    te = _readings(ds)
+    figs = compute(ds, te)
     with output_dir(out, "iso230", force=force) as tmp:
-        images = _figures(ds, figs, tmp)
+        images = _figures(ds, te, figs, tmp)
         (tmp / "figures.json").write_text(json.dumps(figs, indent=1, ensure_ascii=False), encoding="utf-8")
         (tmp / "report.md").write_text(_report_md(figs, images), encoding="utf-8")
     return figs
