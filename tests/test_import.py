@@ -70,15 +70,15 @@ def test_spindle_test_segments_are_its_test_plan(fl):
     seg = split_segments(fl)
     plan = {"rpm1250": (465, 1250), "rpm2500": (29265, 2500), "rpm3750": (58065, 3750), "rpm5000": (86865, 5000),
             "rpm3500": (115665, 3500)}  # fmt: skip  (SOURCE.md)
-    assert list(seg.metadata.runs) == [*plan, "stepped"]
+    assert list(seg.metadata.runs) == [*plan, "tail"]
     for name, (start, rpm) in plan.items():
         pr = seg.process_run(name)
         assert pr["t_s"].iloc[0] == start
         assert seg.metadata.runs[name].condition.levels() == {"spindle_rpm": rpm}
         # the 4 h heating and the 4 h stop after it
         assert pr["t_s"].iloc[-1] == start + 28800 - 15
-    assert seg.metadata.runs["stepped"].condition is None  # a duty cycle, not one level
-    assert seg.process_run("stepped")["t_s"].iloc[0] == 144465
+    assert seg.metadata.runs["tail"].condition is None  # a duty cycle, not one level
+    assert seg.process_run("tail")["t_s"].iloc[0] == 144465
     # every segment keeps the readings of its time span
     assert set(seg.errors["run_id"]) == set(seg.metadata.runs)
 
@@ -154,7 +154,7 @@ def test_iso230_on_the_spindle_test(fl, workbook, tmp_path, capsys):
     drift = next(r for r in figs["runs"]["test"]["channels"]["ch3"]["drift"] if r["block"] == "all")
     assert drift["max_from_reference_um"] == pytest.approx(np.max(np.abs(ch3 - ch3[0])), abs=1e-3)
     blocks = [r["block"] for r in figs["runs"]["test"]["channels"]["ch3"]["drift"]]
-    assert blocks == ["rpm1250", "rpm2500", "rpm3750", "rpm5000", "rpm3500", "stepped", "all"]
+    assert blocks == ["rpm1250", "rpm2500", "rpm3750", "rpm5000", "rpm3500", "tail", "all"]
 
 
 # ---------------------------------------------------------- mapping mistakes ---

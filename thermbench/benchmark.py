@@ -9,10 +9,15 @@ each family (``conf/model``), one task (:func:`run_task`) fits
 * ``global``: one model on all loading states;
 * ``bank``: the single-state models behind a condition classifier (seed 002 §2.4,
   :class:`thermbench.models.bank.ConditionBank`), reusing the single fits;
+* ``bank_soft``: the same members blended by the classifier's probabilities instead of
+  switched by its label;
 
 and scores them on the validation duty cycles (seed 001 Table 2, seed 002 Table 6,
-seed 000's random cycle), the seeds' headline: compensation rate and max residual on
-unseen cycles. Tasks run in parallel (joblib), each cached on disk by its arguments
+seed 000's random cycle; the measured spindle test's stepped tail), the seeds' headline:
+compensation rate and max residual on unseen cycles. A format 2 dataset with several error
+channels (``channel: null`` in its option) is benchmarked on each channel: one task per
+(dataset, channel, family); the results' ``channel`` column names it (``all`` for a format 1
+dataset). Tasks run in parallel (joblib), each cached on disk by its arguments
 (joblib.Memory), so an interrupted benchmark resumes where it stopped.
 """
 
@@ -42,6 +47,7 @@ from .experiment import (
     group_option,
     headline_metrics,
     hydra_runtime,
+    load_source,
     load_split,
     model_flags,
     plain,
@@ -61,12 +67,14 @@ def run_task(
     dataset_hash: str = "",
     code_version: str = __version__,
     verbose: bool = False,
+    channel: str = "all",
 ) -> dict[str, Any]:
     """Fit and score one family on one dataset (see module docstring).
 
     ``dataset_hash`` (the data's content) and ``code_version`` (a hash of thermbench's
     source) are not used here: with the configs they are the key of the on-disk cache,
     so changed data or code is never served from it. ``verbose`` prints a line per fit.
+    ``channel``: the error channel (``dataset_cfg`` names it) as the results label it.
 
     Returns ``results`` (one row per fitted model x test run, the columns of
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
@@ -82,22 +90,26 @@ def run_task(
         df = df.copy()
         df.insert(0, "approach", approach)
         df.insert(0, "family", family)
+        df.insert(0, "channel", channel)
         df.insert(0, "dataset", split.name)
         df["train"] = train
         df["kind"] = [split.kind(r) for r in df["run_id"]]
         return df
 
+    where = split.name if channel == "all" else f"{split.name} {channel}"
+
     def say(what: str, fit_s: float) -> None:
         if verbose:
-            print(f"    {split.name} x {family}: {what} fitted in {fit_s:.1f} s", flush=True)
+            print(f"    {where} x {family}: {what} fitted in {fit_s:.1f} s", flush=True)
 
     singles, single_fit_s = {}, {}
-    if "single" in approaches or "bank" in approaches:
+    banks = [a for a in approaches if a in BANKS]
+    if "single" in approaches or banks:
         for state in split.states:
             try:
                 fitted, res, _ = fit_evaluate(model, ds, [state])
             except ModelError as exc:
-                errors.append(f"{split.name}/{family}/single {state}: {exc}")
+                errors.append(f"{where}/{family}/single {state}: {exc}")
                 continue
             singles[state] = fitted
             single_fit_s[state] = float(res["fit_s"].iloc[0])
@@ -112,11 +124,12 @@ def run_task(
             models["global"] = fitted
             say("global", float(res["fit_s"].iloc[0]))
         except ModelError as exc:
-            errors.append(f"{split.name}/{family}/global: {exc}")
-    if "bank" in approaches and len(singles) > 1 and classifier_cfg is not None:
+            errors.append(f"{where}/{family}/global: {exc}")
+    for approach in banks if len(singles) > 1 and classifier_cfg is not None else []:
         from .models.bank import ConditionBank
 
-        bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"))
+        bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
+                             blend=BANKS[approach])  # fmt: skip
         try:
             t1 = time.perf_counter()
             bank.fit_from_fitted(ds, singles)
@@ -124,14 +137,15 @@ def run_task(
             res, cur = evaluate_runs(bank, ds, None, curves=True)
             res.insert(1, "own", res["run_id"].isin(list(singles)))
             res["fit_s"] = fit_s
-            rows.append(tag(res, "bank", "all"))
-            curves.append(tag(cur[cur["run_id"].isin(split.validation)], "bank", "all"))
-            models["bank"] = bank
-            say("bank classifier", time.perf_counter() - t1)
+            rows.append(tag(res, approach, "all"))
+            curves.append(tag(cur[cur["run_id"].isin(split.validation)], approach, "all"))
+            models[approach] = bank
+            say(f"{approach} classifier", time.perf_counter() - t1)
         except ModelError as exc:
-            errors.append(f"{split.name}/{family}/bank: {exc}")
+            errors.append(f"{where}/{family}/{approach}: {exc}")
     return {
         "dataset": split.name,
+        "channel": channel,
         "family": family,
         "results": pd.concat(rows, ignore_index=True) if rows else pd.DataFrame(),
         "curves": pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(),
@@ -142,16 +156,36 @@ def run_task(
     }
 
 
+#: the bank approaches: name -> how the members are combined (ConditionBank ``blend``)
+BANKS = {"bank": "hard", "bank_soft": "soft"}
+APPROACHES = ("single", "global", *BANKS)
+
+
+def channels_of(ds, dcfg: Mapping) -> list[str]:
+    """The error channels a benchmark scores ``ds`` on: the option's ``channel`` when it names
+    one, every channel of a format 2 dataset when it is null, ``all`` for format 1."""
+    if ds.metadata.version == 1:
+        return ["all"]
+    if dcfg.get("channel") is not None:
+        return [str(dcfg["channel"])]
+    return sorted(ds.metadata.error_channels())
+
+
+def case_label(dataset: str, channel: str) -> str:
+    """How a (dataset, channel) pair is named in model keys, registry names and the report:
+    the dataset's name, with ``-<channel>`` for one channel of a format 2 dataset."""
+    return str(dataset) if channel == "all" else f"{dataset}-{channel}"
+
+
 def tasks(cfg: DictConfig) -> list[dict]:
-    """One task per (dataset, family) of ``cfg.datasets`` x ``cfg.families``.
+    """One task per (dataset, channel, family) of ``cfg.datasets`` x their error channels x ``cfg.families``.
 
     Each dataset is loaded (built on first use) here, once, before any task runs, so
     parallel workers never build the same dataset at the same time; its content hash
     and the code version join the task's cache key."""
-    approaches = _names(cfg, "approaches", ["single", "global", "bank"])
-    bad = sorted(set(approaches) - {"single", "global", "bank"})
-    if bad or not approaches:
-        raise ExperimentError(f"config key 'approaches': {bad or approaches} not among single, global, bank")
+    approaches = _names(cfg, "approaches", list(APPROACHES))
+    if not approaches:
+        raise ExperimentError(f"config key 'approaches': empty; choose among {', '.join(APPROACHES)}")
     families = _names(cfg, "families", _options("model"))
     bank_families = _names(cfg, "bank_families", families, required=False)
     _names(cfg, "datasets", _options("dataset"))
@@ -168,34 +202,58 @@ def tasks(cfg: DictConfig) -> list[dict]:
     out = []
     for dname in cfg.datasets:
         dcfg = group_option("dataset", str(dname))
-        try:
-            ds = load_split(dcfg).dataset
-        except ExperimentError as exc:
-            if not str(exc).startswith("config key 'dataset.channel'"):
-                raise
-            raise ExperimentError(f"config key 'datasets': {dname!r} is a format 2 dataset with several error "
-                                  f"channels; the benchmark takes a dataset option that names one (channel: in "
-                                  f"conf/dataset/{dname}.yaml, or an option of your own)") from None  # fmt: skip
-        data_hash = ds.content_hash()
-        for fam in families:
-            lacks = family_lacks(fam, ds)
-            if lacks:  # e.g. the screw physics model on a spindle test: skipped there, and said so
-                print(f"[benchmark] skipped {fam} on {dname}: {lacks}", file=sys.stderr, flush=True)
-                continue
-            out.append(
-                dict(
-                    dataset_cfg=dcfg,
-                    family=fam,
-                    model_cfg=group_option("model", fam),
-                    approaches=[a for a in approaches if a != "bank" or fam in bank_families],
-                    classifier_cfg=classifier,
-                    seed=int(cfg.seed),
-                    dataset_hash=data_hash,
-                    code_version=version,
-                    verbose=bool(cfg.get("progress", True)),
+        raw = load_source(dcfg)[0]
+        for channel in channels_of(raw, dcfg):
+            ccfg = dcfg if channel == "all" else {**dcfg, "channel": channel}
+            ds = load_split(ccfg).dataset
+            data_hash = ds.content_hash()
+            for fam in families:
+                lacks = family_lacks(fam, ds)
+                if lacks:  # e.g. the screw physics model on a spindle test: skipped there, and said so
+                    if channel == channels_of(raw, dcfg)[0]:
+                        print(f"[benchmark] skipped {fam} on {dname}: {lacks}", file=sys.stderr, flush=True)
+                    continue
+                out.append(
+                    dict(
+                        dataset_cfg=ccfg,
+                        family=fam,
+                        model_cfg=model_config(fam, dcfg, str(dname)),
+                        approaches=[a for a in approaches if a not in BANKS or fam in bank_families],
+                        classifier_cfg=classifier,
+                        seed=int(cfg.seed),
+                        dataset_hash=data_hash,
+                        code_version=version,
+                        verbose=bool(cfg.get("progress", True)),
+                        channel=channel,
+                    )
                 )
-            )
     return out
+
+
+def model_config(family: str, dcfg: Mapping, dname: str) -> dict:
+    """The model option ``family`` with the settings the dataset option gives it
+    (``benchmark_models.<family>`` in ``conf/dataset/<dname>.yaml``: e.g. fewer epochs or a
+    smaller LSSVM subsample on a 46 h log). An unknown family or parameter names the key."""
+    import difflib
+
+    base = dict(group_option("model", family))
+    extra = dcfg.get("benchmark_models") or {}
+    if not isinstance(extra, Mapping):
+        raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models': expected a mapping family -> "
+                              f"settings, got {extra!r}")  # fmt: skip
+    known = _options("model")
+    for fam in extra:
+        if fam not in known:
+            near = difflib.get_close_matches(str(fam), known, n=1)
+            raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models.{fam}': no model option "
+                                  f"{fam!r}{f'; did you mean {near[0]!r}?' if near else ''}")  # fmt: skip
+    settings = extra.get(family) or {}
+    for k, v in dict(settings).items():
+        if k not in base:
+            raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models.{family}.{k}': conf/model/"
+                                  f"{family}.yaml has no parameter {k!r}; it has {sorted(base)}")  # fmt: skip
+        base[k] = OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+    return base
 
 
 def family_lacks(family: str, ds) -> str | None:
@@ -217,15 +275,32 @@ def family_lacks(family: str, ds) -> str | None:
 
 
 def flagged(results: pd.DataFrame) -> dict[tuple[str, str, str, str], list[str]]:
-    """(dataset, family, approach, train) -> what disqualifies that fitted model
-    (:func:`thermbench.experiment.model_flags`); models with no flag are left out."""
+    """(case, family, approach, train) -> what disqualifies that fitted model
+    (:func:`thermbench.experiment.model_flags`); models with no flag are left out. The case
+    is :func:`case_label` of the dataset and channel."""
     out = {}
-    by = [c for c in ("dataset", "family", "approach", "train") if c in results]
+    results = _with_case(results)
+    by = [c for c in ("case", "family", "approach", "train") if c in results]
     for key, g in results.groupby(by, sort=False):
         flags = model_flags(g)
         if flags:
             out[tuple(str(k) for k in key) + ("",) * (4 - len(by))] = flags
     return out
+
+
+def _with_case(results: pd.DataFrame) -> pd.DataFrame:
+    """``results`` with a ``case`` column: :func:`case_label` of each row's dataset and channel."""
+    channel = results["channel"] if "channel" in results else pd.Series("all", index=results.index)
+    return results.assign(case=[case_label(d, c) for d, c in zip(results["dataset"], channel)])
+
+
+def reference_only(family: str) -> bool:
+    """True for a baseline family (``reference_only`` on its class): in the tables for
+    comparison, never chosen for deployment."""
+    from hydra._internal.utils import _locate
+
+    target = group_option("model", family).get("_target_")
+    return bool(target) and bool(getattr(_locate(str(target)), "reference_only", False))
 
 
 def _options(group: str) -> list[str]:
@@ -252,24 +327,30 @@ def _names(cfg, key: str, known: Sequence[str], required: bool = True) -> list[s
     return names
 
 
-def choose(results: pd.DataFrame) -> pd.DataFrame:
-    """Per dataset, the (family, approach) to deploy: the best worst-case compensation rate on
-    the validation runs (ties: the smaller max residual). Single-state models are not
-    candidates: which state would you train on? Nor is a model with a non-finite score on any
-    run, or one that makes the error worse than no compensation on its own training runs
-    (:func:`flagged`). Note that the choice is made on the same validation runs the headline
-    reports, so the chosen model's figures are not an independent estimate (the report says so)."""
+def choose(results: pd.DataFrame, exclude: Sequence[str] = ()) -> pd.DataFrame:
+    """Per dataset and channel, the (family, approach) to deploy: the best worst-case
+    compensation rate on the validation runs (ties: the smaller max residual). Single-state
+    models are not candidates: which state would you train on? Nor is a family in ``exclude``
+    (the baselines), a model with a non-finite score on any run, or one that makes the error
+    worse than no compensation on its own training runs (:func:`flagged`). Note that the
+    choice is made on the same validation runs the headline reports, so the chosen model's
+    figures are not an independent estimate (the report says so). Columns: ``dataset``,
+    ``channel``, ``case`` (:func:`case_label`), ``family``, ``approach``, ``worst_rate``,
+    ``max_residual_um``."""
+    results = _with_case(results)
     bad = {k[:3] for k in flagged(results)}
-    keep = [(d, f, a) not in bad for d, f, a in zip(results["dataset"], results["family"], results["approach"])]
+    keep = [(d, f, a) not in bad and f not in exclude
+            for d, f, a in zip(results["case"], results["family"], results["approach"])]  # fmt: skip
     results = results[keep]
     v = results[(results["kind"] == "validation") & (results["approach"] != "single")]
+    cols = ["dataset", "channel", "case", "family", "approach"]
     if v.empty:
-        return pd.DataFrame(columns=["dataset", "family", "approach"])
-    agg = v.groupby(["dataset", "family", "approach"]).agg(
+        return pd.DataFrame(columns=cols)
+    agg = v.assign(channel=v["channel"] if "channel" in v else "all").groupby(cols).agg(
         worst_rate=("compensation_rate", "min"), max_residual_um=("max_abs_residual_um", "max")
     )
-    agg = agg.reset_index().sort_values(["dataset", "worst_rate", "max_residual_um"], ascending=[True, False, True])
-    return agg.groupby("dataset").head(1).reset_index(drop=True)
+    agg = agg.reset_index().sort_values(["case", "worst_rate", "max_residual_um"], ascending=[True, False, True])
+    return agg.groupby("case").head(1).reset_index(drop=True)
 
 
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
@@ -346,7 +427,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     todo = tasks(cfg)
     if not todo:
         raise ExperimentError("config keys 'datasets' and 'families': nothing to run")
-    data_hashes = sorted({f"{t['dataset_cfg'].get('name')}={t['dataset_hash']}" for t in todo})
+    data_hashes = sorted({f"{case_label(t['dataset_cfg'].get('name'), t['channel'])}={t['dataset_hash']}" for t in todo})
+    case_cfg = {case_label(t["dataset_cfg"].get("name"), t["channel"]): t["dataset_cfg"] for t in todo}
     h = tracking.config_hash(conf | {"dataset_content": data_hashes})
     t0 = time.perf_counter()
     done_tasks = []
@@ -354,7 +436,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     for k, out in enumerate(_iterate(cfg, todo), 1):
         done_tasks.append(out)
         n_models = out["results"][["approach", "train"]].drop_duplicates().shape[0] if not out["results"].empty else 0
-        bar.write(f"[{k}/{len(todo)}] {out['dataset']} x {out['family']}: {n_models} models in {out['seconds']:.1f} s"
+        where = out["dataset"] if out.get("channel", "all") == "all" else f"{out['dataset']} {out['channel']}"
+        bar.write(f"[{k}/{len(todo)}] {where} x {out['family']}: {n_models} models in {out['seconds']:.1f} s"
                   + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
         bar.update(1)
     bar.close()
@@ -366,7 +449,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     parts = [o["curves"] for o in done_tasks if not o["curves"].empty]
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     wall_s = time.perf_counter() - t0
-    chosen = choose(results)
+    baselines = [str(f) for f in cfg.families if reference_only(str(f))]
+    chosen = choose(results, exclude=baselines)
     flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
@@ -377,24 +461,28 @@ def benchmark(cfg: DictConfig) -> JobResult:
         "git commit": tracking.git_commit(),
         "dataset hashes": ", ".join(data_hashes),
         "wall time": f"{wall_s:.0f} s",
-        "chosen models": "; ".join(f"{r.dataset}: {r.family} ({r.approach})" for r in chosen.itertuples())
-        + " (best worst-case rate on the validation runs; chosen on the runs reported, so not an independent estimate)",
+        "chosen models": "; ".join(f"{r.case}: {r.family} ({r.approach})" for r in chosen.itertuples())
+        + " (best worst-case rate on the validation runs; chosen on the runs reported, so not an independent estimate"
+        + (f"; baselines {', '.join(baselines)} are for comparison, never chosen)" if baselines else ")"),
     }
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
     if flag_lines:
         meta["flagged (never chosen)"] = " | ".join(flag_lines)
-    unchosen = sorted(set(results["dataset"]) - set(chosen["dataset"]))
+    unchosen = sorted(set(_with_case(results)["case"]) - set(chosen["case"]))
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
-    report = write_report(results, curves, report_dir, meta=meta, force=force)
-    models = {f"{o['dataset']}__{o['family']}__{a}": m for o in done_tasks for a, m in o["models"].items()}
-    chosen_keys = [f"{r.dataset}__{r.family}__{r.approach}" for r in chosen.itertuples()]
+    report = write_report(results, curves, report_dir, meta=meta, force=force)  # with results.csv
+    models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
+              for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
+    chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
     extra = {}
-    for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
+    cased = _with_case(results)
+    for (c, d, ch, f, a), g in cased.groupby(["case", "dataset", "channel", "family", "approach"], sort=False):
         cell = headline_metrics(g, list(g.loc[g["kind"] == "validation", "run_id"].unique()))
-        extra[f"{d}__{f}__{a}"] = {"dataset": str(d), "metrics": {k: float(v) for k, v in cell.items()}}
+        extra[f"{c}__{f}__{a}"] = {"dataset": str(d), **({"channel": str(ch)} if ch != "all" else {}),
+                                   "metrics": {k: float(v) for k, v in cell.items()}}  # fmt: skip
     logged = {}
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
         for v in extra.values():
@@ -403,15 +491,17 @@ def benchmark(cfg: DictConfig) -> JobResult:
         mlflow.set_tags(tracking.standard_tags(";".join(data_hashes), h, "benchmark"))
         tracking.log_config(conf)
         metrics = {}
-        for (d, f, a), g in results.groupby(["dataset", "family", "approach"], sort=False):
-            cell = extra[f"{d}__{f}__{a}"]["metrics"]
+        for (c, d, ch, f, a), g in cased.groupby(["case", "dataset", "channel", "family", "approach"], sort=False):
+            cell = extra[f"{c}__{f}__{a}"]["metrics"]
             for k in ("validation_worst_compensation_rate", "validation_max_abs_residual_um"):
                 if k in cell:
-                    metrics[f"{d}/{f}/{a}/{k}"] = cell[k]
-            # one nested run per (dataset, family, approach): the MLflow UI lists and compares them
-            with mlflow.start_run(experiment_id=exp_id, run_name=f"{f} | {a} | {d}", nested=True):
-                mlflow.set_tags({"dataset": d, "model": f, "approach": a, "thermbench.job": "benchmark-cell"})
-                mlflow.log_params({"dataset": d, "family": f, "approach": a, "n_models": int(g["train"].nunique())})
+                    metrics[f"{c}/{f}/{a}/{k}"] = cell[k]
+            # one nested run per (dataset, channel, family, approach): the MLflow UI lists and compares them
+            with mlflow.start_run(experiment_id=exp_id, run_name=f"{f} | {a} | {c}", nested=True):
+                mlflow.set_tags({"dataset": d, "channel": ch, "model": f, "approach": a,
+                                 "thermbench.job": "benchmark-cell"})  # fmt: skip
+                mlflow.log_params({"dataset": d, "channel": ch, "family": f, "approach": a,
+                                   "n_models": int(g["train"].nunique())})  # fmt: skip
                 mlflow.log_metrics(cell)
                 mlflow.log_text(g.to_csv(index=False), "results.csv")
         mlflow.log_metrics(metrics | {"wall_s": wall_s})
@@ -419,9 +509,9 @@ def benchmark(cfg: DictConfig) -> JobResult:
         mlflow.log_artifacts(str(model_dir), "models")  # every fitted global/bank model + manifest.yaml
         mlflow.log_text(results.to_csv(index=False), "results.csv")
         for r in chosen.itertuples():
-            key = f"{r.dataset}__{r.family}__{r.approach}"
-            ds = load_split(group_option("dataset", r.dataset)).dataset
-            logged[r.dataset] = tracking.log_model(models[key], ds, name=key.replace("__", "-"))
+            key = f"{r.case}__{r.family}__{r.approach}"
+            ds = load_split(case_cfg[r.case]).dataset
+            logged[r.case] = tracking.log_model(models[key], ds, name=key.replace("__", "-"))
     registered = {}
     if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
         for d, info in logged.items():

@@ -208,6 +208,7 @@ class Split:
     states: list[str]
     validation: list[str]
     own: bool = False  # loaded from a directory (dataset=path), not a shipped benchmark dataset
+    history: bool = False  # dataset.history: segments keep their run's log from the start
 
     def registry_name(self, model_name: str) -> str:
         """The registered-model name of ``model_name`` fitted on this dataset: never shared by
@@ -224,9 +225,8 @@ class Split:
         return "validation" if run in self.validation else "state"
 
 
-def load_split(dcfg: Mapping) -> Split:
-    """Load ``dataset.source`` (instantiate) and check ``dataset.states`` / ``dataset.validation``."""
-    dcfg = dict(dcfg)
+def load_source(dcfg: Mapping):
+    """The dataset ``dataset.source`` loads (instantiated), as stored, and the source config."""
     if "source" not in dcfg:
         raise ExperimentError("config key 'dataset.source': expected a loader with _target_")
     source = OmegaConf.to_container(dcfg["source"], resolve=True) if OmegaConf.is_config(dcfg["source"]) else dcfg["source"]
@@ -243,7 +243,15 @@ def load_split(dcfg: Mapping) -> Split:
             raise
         msg = str(cause)  # a dataset, file or config mistake: one line naming it
         raise ExperimentError(msg if msg.startswith("config key") else f"config key 'dataset.source': {msg}") from None
-    ds = dataset_view(ds, dcfg.get("channel"), dcfg.get("segments", True))
+    return ds, source
+
+
+def load_split(dcfg: Mapping) -> Split:
+    """Load ``dataset.source`` (instantiate), take the view the models see (:func:`dataset_view`)
+    and check ``dataset.states`` / ``dataset.validation``."""
+    dcfg = dict(dcfg)
+    ds, source = load_source(dcfg)
+    ds = dataset_view(ds, dcfg.get("channel"), dcfg.get("segments", True), dcfg.get("history", False))
     runs = list(ds.run_ids)
     validation = list(dcfg.get("validation") or [])
     scored = set(ds.errors["run_id"]) if len(ds.errors) else set()  # runs without readings: prediction only
@@ -256,13 +264,18 @@ def load_split(dcfg: Mapping) -> Split:
     if both:
         raise ExperimentError(f"config keys 'dataset.states' and 'dataset.validation' share runs {both}")
     own = str(source.get("_target_")) == "thermbench.data.io.load_dataset"
-    return Split(str(dcfg.get("name") or ds.metadata.machine.name), ds, states, validation, own=own)
+    return Split(str(dcfg.get("name") or ds.metadata.machine.name), ds, states, validation, own=own,
+                 history=bool(dcfg.get("history", False)) and ds.metadata.version == 2)  # fmt: skip
 
 
-def dataset_view(ds, channel, segments=True):
+def dataset_view(ds, channel, segments=True, history=False):
     """What the models see of a format 2 dataset (:mod:`thermbench.data.views`): its runs
     split into derived segments (``dataset.segments``) and one error channel
-    (``dataset.channel``; null: the only one). A format 1 dataset is used as it is."""
+    (``dataset.channel``; null: the only one). ``dataset.history``: each segment keeps the
+    log of its run from the start and the whole run's thermal error (temperature rises and
+    thermal errors count from the start of the test, as a compensator running since power-on
+    sees them); false: each segment counts from its own start. A format 1 dataset is used
+    as it is."""
     from .data.views import channel_view, split_segments
 
     meta = ds.metadata
@@ -271,8 +284,12 @@ def dataset_view(ds, channel, segments=True):
             raise ExperimentError(f"config key 'dataset.channel': a format 1 dataset has one channel "
                                   f"({next(iter(meta.error_channels()))!r}); leave it null")  # fmt: skip
         return ds
-    if not isinstance(segments, bool):
-        raise ExperimentError(f"config key 'dataset.segments': expected true or false, got {segments!r}")
+    for key, v in (("segments", segments), ("history", history)):
+        if not isinstance(v, bool):
+            raise ExperimentError(f"config key 'dataset.{key}': expected true or false, got {v!r}")
+    if history and not segments:
+        raise ExperimentError("config key 'dataset.history': true needs dataset.segments=true (the history is "
+                              "the log before each segment)")  # fmt: skip
     channels = sorted(meta.error_channels())
     if channel is None:
         if len(channels) != 1:
@@ -284,6 +301,8 @@ def dataset_view(ds, channel, segments=True):
         near = difflib.get_close_matches(str(channel), channels, n=1)
         hint = f"; did you mean {near[0]!r}?" if near else ""
         raise ExperimentError(f"config key 'dataset.channel': no channel {channel!r}; channels: {channels}{hint}")
+    if history:  # the thermal error of the whole run first, then the segments with their past
+        return split_segments(channel_view(ds, channel), history=True)
     if segments:
         ds = split_segments(ds)
     return channel_view(ds, channel)

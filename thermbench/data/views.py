@@ -12,6 +12,11 @@
   by ``runs.<id>.segments`` or ``s01_1250rpm``, ...; a constant segment's condition is its
   level. A segment is a run of its own: :func:`channel_view` of the split dataset counts its
   thermal error from the reference rule applied to the segment (as if a test started there).
+  With ``history=True`` a segment keeps its past instead: its process log starts where its
+  run starts (the lead-in), its readings are the segment's own, and a channel view split this
+  way keeps the whole run's ``thermal_um`` (``dataset.history``: temperature rises and thermal
+  errors count from the start of the test; a dynamic model runs through the lead-in, and
+  only the segment's readings are fitted and scored).
 """
 
 from __future__ import annotations
@@ -57,9 +62,13 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
     return Dataset(meta, process, er, ds.path, channel=channel)
 
 
-def split_segments(ds: Dataset) -> Dataset:
+def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     """Each format 2 run without a condition split into its derived segments (module
-    docstring); runs with a condition, and format 1 datasets, are kept as they are."""
+    docstring); runs with a condition, and format 1 datasets, are kept as they are.
+
+    ``history``: each segment's process log starts at its run's first sample (the lead-in
+    before the segment's first reading: what the machine went through before it), its
+    errors are those inside the segment only."""
     from .segments import derive_segments, segment_name
 
     meta = ds.metadata
@@ -91,12 +100,14 @@ def split_segments(ds: Dataset) -> Dataset:
             if name in meta.runs and name != run_id or name in runs:
                 raise DatasetError(f"{ds.path}/metadata.yaml: key 'runs.{run_id}.segments': {name!r} is already a run id")
             last = k == len(segs) - 1
-            pm = (t >= seg.start_s) & ((t <= seg.end_s) if last else (t < seg.end_s))
+            pm = (t >= (t[0] if history else seg.start_s)) & ((t <= seg.end_s) if last else (t < seg.end_s))
             et = er["t_s"].to_numpy()
             em = (et >= seg.start_s) & ((et <= seg.end_s) if last else (et < seg.end_s))
             cond = Condition(**{op: float(seg.level)}) if seg.kind == "constant" else None
             levels = ", ".join(f"{v:g}" for v in seg.levels)
             note = f"segment {k + 1} of run {run_id}: {op} {levels} from {seg.start_s:g} s to {seg.end_s:g} s"
+            if history:
+                note += f" (its log from {t[0]:g} s: the history before it)"
             runs[name] = RunMeta(condition=cond, notes=note)
             p_parts.append(pr[pm].assign(run_id=name))
             e_parts.append(er[em].assign(run_id=name))

@@ -191,8 +191,8 @@ def _dataset_split(e: dict, info: dict, key: str, cache: dict, model=None):
         sp = _load_split_cached(logged, cache)
         return sp.name, sp
     name = name or datasets.of_key(key)
-    if name:
-        return str(name), _load_split_cached(dict(group_option("dataset", str(name))), cache)
+    if name:  # the model's own channel of a multi-channel dataset (a benchmark key names the dataset only)
+        return str(name), _load_split_cached(dataset_config_for(model, dict(group_option("dataset", str(name)))), cache)
     return None, None
 
 
@@ -220,7 +220,8 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
                 f"{key}: cannot tell which dataset it was trained on; set export.dataset (a conf/dataset option: "
                 f"{_dataset_names()}, or a dataset directory) or export.verify=false"
             )
-        source = {**info, "training": {"dataset_name": dname}} if dname else info
+        training = {"dataset_name": dname, **({"history": True} if sp is not None and sp.history else {})}
+        source = {**info, "training": training} if dname else info
         man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
         files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
                  else list(man["files"].values()))  # fmt: skip

@@ -35,7 +35,8 @@ from .encoding import ExportError
 def _replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     """A format 2 dataset as the model saw it: the error channel it was trained on (``--channel``,
     else the one in its manifest, else the only one) and, when ``run`` names a derived
-    segment, the run split into its segments."""
+    segment, the run split into its segments (with the log before each, when the model was
+    trained that way: ``training.history`` in its manifest)."""
     from ..data.views import channel_view, split_segments
 
     channels = sorted(ds.metadata.error_channels())
@@ -47,6 +48,12 @@ def _replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
         channel = channels[0] if channels else None
     if channel is not None and channel not in channels:
         raise ExportError(f"--channel {channel!r}: not a channel of {data_dir}; its channels: {channels}")
+    if run not in ds.run_ids and channel is not None and man.get("training", {}).get("history"):
+        # trained with dataset.history: the segment keeps its run's log from the start, and the
+        # whole run's thermal error, as the model saw its training segments
+        seg = split_segments(channel_view(ds, channel), history=True)
+        if run in seg.run_ids:
+            return seg
     if run not in ds.run_ids:
         seg = split_segments(ds)
         if run in seg.run_ids:
@@ -118,7 +125,9 @@ def compensation_figures(readings: pd.DataFrame) -> dict:
         "before_max_abs_um": m["max_abs_error_um"], "after_max_abs_um": m["max_abs_residual_um"],
         "before_interval_um": [float(readings["thermal_um"].min()), float(readings["thermal_um"].max())],
         "after_interval_um": [float(readings["residual_um"].min()), float(readings["residual_um"].max())],
-        "before_pv_um": m["pv_error_um"], "after_pv_um": m["pv_residual_um"], "after_rmse_um": m["rmse_um"],
+        "before_pv_um": m["pv_error_um"], "after_pv_um": m["pv_residual_um"],
+        "before_rms_um": float(np.sqrt(np.mean(readings["thermal_um"].to_numpy(dtype=float) ** 2))),
+        "after_rmse_um": m["rmse_um"],
         "compensation_rate": m["compensation_rate"],
         "pv_reduction": 1.0 - m["pv_residual_um"] / m["pv_error_um"] if m["pv_error_um"] > 0 else float("nan"),
     }  # fmt: skip

@@ -49,6 +49,14 @@ def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple
     Cycles with fewer than degree + 2 distinct targets are dropped (residual NaN).
     Degree 0 (a fixed measuring point: the curve is the reading itself) keeps every cycle.
     """
+    if degree == 0:  # the curve is the cycle's mean reading: no fit needed (a fixed point: one reading a cycle)
+        g = rd.groupby(["run_id", "cycle"], sort=False)
+        mean = g["error_um"].transform("mean").to_numpy()
+        agg = g.agg(t_s=("t_s", "mean"), c0=("error_um", "mean")).reset_index()
+        if agg.empty:
+            raise ModelError("too few samples: no measuring cycle has 2 or more distinct targets")
+        agg["t_s"] = agg["t_s"].astype(float)
+        return agg[["run_id", "cycle", "t_s", "c0"]], rd["error_um"].to_numpy(dtype=float) - mean
     rows = []
     resid = np.full(len(rd), np.nan)
     for (run, cyc), g in rd.groupby(["run_id", "cycle"], sort=False):

@@ -1,0 +1,106 @@
+"""Baselines: what a user would pick instead of a thermal error model family.
+
+The methods of the peers, so every thermbench family is compared in the same tables with
+what an engineer without thermbench would try first: a scikit-learn regressor on the rises
+of **all** temperature sensors above the run's first reading, with no sensor selection, no
+filtering, no physics and no memory (the source repository of the measured spindle test,
+``thermbench/realdata/fl_thermal/SOURCE.md``, tuned a random forest and XGBoost on its
+sixteen temperatures):
+
+* ``baseline_ols``: ordinary least squares (:class:`sklearn.linear_model.LinearRegression`);
+* ``baseline_rf``: :class:`sklearn.ensemble.RandomForestRegressor` (seeded);
+* ``baseline_hgb``: :class:`sklearn.ensemble.HistGradientBoostingRegressor` (seeded).
+
+:class:`SensorRegressor` wraps any scikit-learn regressor. Features at a reading (t, P):
+the rises ΔT_j(t) of every sensor of the dataset (or of ``sensors``); on an axis with
+several measuring targets also the position P and, for the linear model, P·ΔT_j (a thermal
+error that grows along the axis). The target is the reading itself (``error_um``); the
+geometric part is left in the regressor (``geometric_`` is 0), as a user fitting a
+regressor to the raw readings would.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from numpy.polynomial import Polynomial
+from sklearn.base import RegressorMixin, clone
+
+from ..data.io import Dataset
+from .base import Inputs, ModelError, ThermalErrorModel, readings, temperatures_at
+
+__all__ = ["SensorRegressor"]
+
+
+class SensorRegressor(ThermalErrorModel):
+    """A scikit-learn regressor on the temperature rises of all sensors (module docstring).
+
+    Parameters
+    ----------
+    estimator : scikit-learn regressor
+        Cloned at fit (e.g. ``RandomForestRegressor(n_estimators=100, random_state=0)``).
+    sensors : list of str or None
+        The sensors whose rises are the features; None: every sensor of the dataset.
+    seed : int or None
+        Set as the estimator's ``random_state`` when it has one (``thermbench train`` and
+        ``benchmark`` set it from their top-level ``seed``).
+    interactions : bool
+        With several measuring targets: also P·ΔT_j (for a linear estimator).
+
+    Fitted: ``estimator_``, ``sensors_``, ``targets_mm_`` (the distinct measuring targets),
+    ``uses_position_`` and ``geometric_`` (0: the regressor predicts the whole reading).
+
+    ``reference_only``: the benchmark reports it beside the families and never chooses it.
+    """
+
+    reference_only = True
+
+    def __init__(self, estimator=None, sensors=None, seed=None, interactions=False):
+        self.estimator = estimator
+        self.sensors = sensors
+        self.seed = seed
+        self.interactions = interactions
+
+    def _features(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        dT = temperatures_at(ds, run, self.sensors_, t_s, preprocess=None, delta=True)
+        if not self.uses_position_:
+            return dT
+        p = np.asarray(axis_mm, dtype=float)[:, None]
+        parts = [dT, p] + ([p * dT] if self.interactions else [])
+        return np.hstack(parts)
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        if self.estimator is None or not isinstance(self.estimator, RegressorMixin):
+            raise ModelError(f"estimator must be a scikit-learn regressor, got {type(self.estimator).__name__}")
+        if not isinstance(self.interactions, bool):
+            raise ModelError(f"interactions must be true or false, got {self.interactions!r}")
+        if self.sensors is None:
+            sensors = list(ds.metadata.sensors)
+        elif isinstance(self.sensors, str) or not isinstance(self.sensors, Sequence) or not self.sensors:
+            raise ModelError(f"sensors must be a non-empty list of sensor names or null, got {self.sensors!r}")
+        else:
+            sensors = [str(s) for s in self.sensors]
+        if not sensors:
+            raise ModelError(f"the dataset has no temperature sensors; {type(self).__name__} needs some")
+        self.sensors_ = sensors
+        rd = readings(ds, runs)
+        self.targets_mm_ = np.unique(rd["target_mm"].to_numpy())
+        self.uses_position_ = self.targets_mm_.size > 1
+        X, y = [], []
+        for run in runs:
+            r = rd[rd["run_id"] == run]
+            X.append(self._features(ds, run, r["t_s"].to_numpy(), r["target_mm"].to_numpy()))
+            y.append(r["error_um"].to_numpy())
+        est = clone(self.estimator)
+        if self.seed is not None and "random_state" in est.get_params():
+            est.set_params(random_state=int(self.seed))
+        est.fit(np.vstack(X), np.concatenate(y))
+        self.estimator_ = est
+        self.geometric_ = Polynomial([0.0])
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        return np.asarray(self.estimator_.predict(self._features(ds, run, t_s, axis_mm)), dtype=float)
+
+    def _model_inputs(self) -> Inputs:
+        return Inputs(sensors=tuple(self.sensors_))
