@@ -86,7 +86,7 @@ def run_task(
     model = build_model(model_cfg, seed=seed)
     rows, curves, models, errors = [], [], {}, []
 
-    def tag(df: pd.DataFrame, approach: str, train: str) -> pd.DataFrame:
+    def tag(df: pd.DataFrame, approach: str, train: str, fitted=None) -> pd.DataFrame:
         df = df.copy()
         df.insert(0, "approach", approach)
         df.insert(0, "family", family)
@@ -94,6 +94,8 @@ def run_task(
         df.insert(0, "dataset", split.name)
         df["train"] = train
         df["kind"] = [split.kind(r) for r in df["run_id"]]
+        if fitted is not None:  # the sensors it reads (e.g. those seed 002's selection chose)
+            df["sensors"] = " ".join(fitted.required_inputs().sensors)
         return df
 
     where = split.name if channel == "all" else f"{split.name} {channel}"
@@ -115,11 +117,11 @@ def run_task(
             single_fit_s[state] = float(res["fit_s"].iloc[0])
             say(f"single {state}", single_fit_s[state])
             if "single" in approaches:
-                rows.append(tag(res, "single", state))
+                rows.append(tag(res, "single", state, fitted))
     if "global" in approaches and len(split.states) > 1:
         try:
             fitted, res, cur = fit_evaluate(model, ds, split.states, curves=True)
-            rows.append(tag(res, "global", "all"))
+            rows.append(tag(res, "global", "all", fitted))
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
             models["global"] = fitted
             say("global", float(res["fit_s"].iloc[0]))
@@ -137,7 +139,7 @@ def run_task(
             res, cur = evaluate_runs(bank, ds, None, curves=True)
             res.insert(1, "own", res["run_id"].isin(list(singles)))
             res["fit_s"] = fit_s
-            rows.append(tag(res, approach, "all"))
+            rows.append(tag(res, approach, "all", bank))
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], approach, "all"))
             models[approach] = bank
             say(f"{approach} classifier", time.perf_counter() - t1)

@@ -109,6 +109,7 @@ def _common(m) -> dict:
         "val_fraction": float(vf),
         "batch_size": None if m.batch_size is None else _int(owner, "batch_size", m.batch_size, 1),
         "seed": _int(owner, "seed", m.seed, 0),
+        "max_samples": None if m.max_samples is None else _int(owner, "max_samples", m.max_samples, MIN_TRAIN_READINGS),
     }
     opts["min_epochs"] = min(opts["min_epochs"], opts["max_epochs"])  # the last epoch is always a candidate
     return opts
@@ -218,6 +219,10 @@ class _NeuralModel(ThermalErrorModel):
         self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
         rd = readings(ds, runs)
         require(len(rd), MIN_TRAIN_READINGS, f"readings in run(s) {runs}")
+        self.subsampled_ = opts["max_samples"] is not None and len(rd) > opts["max_samples"]
+        if self.subsampled_:  # a long log at a high rate: a seeded random subset, in time order
+            keep = np.random.RandomState(opts["seed"]).choice(len(rd), opts["max_samples"], replace=False)
+            rd = rd.iloc[np.sort(keep)].reset_index(drop=True)
         # seed 002 eq. 6-7: line per measuring cycle, geometric = cubic through the mean residuals
         self.geometric_ = line_separated_geometric(rd, self.geometric_degree)  # seed 002 eq. 6-7
         y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
@@ -327,7 +332,9 @@ class MLPModel(_NeuralModel):
     lr, weight_decay : Adam learning rate and L2 term.
     max_epochs, patience, min_epochs, val_fraction : early stopping (module docstring).
     batch_size : None = full batch, else shuffled mini-batches of that size.
-    seed : seeds the weight initialisation and the shuffling.
+    max_samples : None = every training reading, else a seeded random subset of that many
+        (a 46 h log at 15 s holds ~10 000 readings of a drift that changes over hours).
+    seed : seeds the weight initialisation, the shuffling and the subset.
     geometric_degree : degree of the geometric-error polynomial (seed 002 eq. 7: 3;
         None = per-target table).
 
@@ -352,6 +359,7 @@ class MLPModel(_NeuralModel):
         batch_size: int | None = None,
         seed: int = 0,
         geometric_degree: int | None = 3,
+        max_samples: int | None = None,
     ):
         self.sensors = sensors
         self.selection = selection
@@ -367,6 +375,7 @@ class MLPModel(_NeuralModel):
         self.batch_size = batch_size
         self.seed = seed
         self.geometric_degree = geometric_degree
+        self.max_samples = max_samples
 
     def _check_net_params(self, ds: Dataset) -> dict:
         owner = type(self).__name__
@@ -410,7 +419,7 @@ class GRUModel(_NeuralModel):
     as given.
 
     Parameters: ``sensors``, ``selection``, ``preprocess``, ``lr``, ``weight_decay``,
-    ``max_epochs``, ``patience``, ``min_epochs``, ``val_fraction``, ``batch_size``,
+    ``max_epochs``, ``patience``, ``min_epochs``, ``val_fraction``, ``batch_size``, ``max_samples``,
     ``seed``, ``geometric_degree`` as in :class:`MLPModel`, plus ``hidden_size`` (GRU
     state size), ``window_s`` and ``step_s`` (the history) and ``position_degree``.
 
@@ -436,6 +445,7 @@ class GRUModel(_NeuralModel):
         batch_size: int | None = None,
         seed: int = 0,
         geometric_degree: int | None = 3,
+        max_samples: int | None = None,
     ):
         self.sensors = sensors
         self.selection = selection
@@ -453,6 +463,7 @@ class GRUModel(_NeuralModel):
         self.batch_size = batch_size
         self.seed = seed
         self.geometric_degree = geometric_degree
+        self.max_samples = max_samples
 
     def _check_net_params(self, ds: Dataset) -> dict:
         owner = type(self).__name__

@@ -1,0 +1,617 @@
+"""A grey-box lumped thermal network for a spindle, identified from measured drift.
+
+Lumped-capacitance thermal networks (a few heat capacities joined by thermal
+resistances, heated by the bearing friction, losing heat to the surroundings) are
+the standard grey-box description of a motor spindle's thermal behaviour in the
+literature; thermbench's own physics for the ball screw is the seed 000 §3
+finite-difference model (:mod:`thermbench.models.physics`). Seed 003 drives a
+spindle's thermal error by the spindle speed alone, with an auto-regressive model
+(:mod:`thermbench.models.autoregressive`); this family keeps that input (no
+temperature sensors needed) but gives the dynamics a physical structure: a short
+chain of first-order thermal nodes whose time constants are identified.
+
+The model (:class:`LumpedThermalNetwork`)
+-----------------------------------------
+Heat input, from an operating signal ``u(t)`` of the process log (spindle speed)::
+
+    q(t) = (u(t) / u_ref) ** p                     (dimensionless, 1 at u = u_ref)
+
+A chain of ``n`` nodes, each a first-order lag of the one before (rises above the
+cold state, all zero at the start of the process log)::
+
+    dθ1/dt = (q − θ1) / τ1
+    dθi/dt = (θ_{i−1} − θi) / τi        i = 2..n
+
+i.e. ``dθ/dt = A θ + B q`` with ``A`` lower bidiagonal (``A_ii = −1/τi``,
+``A_{i,i−1} = 1/τi``) and ``B = e1/τ1``. The displacement at a reading is::
+
+    E(t, x) = Σ_i c_i θ_i(t) [+ c_a θ_a(t)] + d + G(x)
+
+with the optional measured drive ``θ_a``: the rise of a structure/ambient sensor
+above its first sample in the log, through its own lag ``dθa/dt = (ΔT_s − θa)/τa``.
+
+Why this form. A physical RC ladder (node 1 heated, node i exchanging heat with
+nodes i±1, the last node with the ambient) has n distinct real negative
+eigenvalues, so every node temperature, and every linear combination of them, is
+``Σ_j g_j·L_j[q]`` with ``L_j`` the first-order lag of time constant ``τ_j`` (its
+eigen-modes). The cascade above with free gains c spans exactly that set: by
+partial fractions, ``span{L_1, L_1 L_2, ..., L_1...L_n} = span{L_1, ..., L_n}``
+for distinct τ. So the cascade with free output gains represents every ladder's
+displacement response, with n time constants instead of 2n−1 capacities and
+resistances (which the displacement alone cannot identify). The exchange with the
+ambient is what makes every eigenvalue strictly negative: each node relaxes to a
+finite rise under a constant heat input (unit static gain per node), and all
+rises are counted from the ambient at rest. A varying ambient or structure
+temperature enters through the measured drive θ_a. The cascade (rather than a
+parallel sum of lags) stays well defined when two τ coincide (it then holds the
+``t·exp(−t/τ)`` mode) and is what a compensator runs (one lag after another).
+After identification the τ are reported in ascending order (the gains re-solved
+at the sorted τ, the same fit: the span does not depend on the order).
+
+Simulation. The operating samples, turned into heat ``q`` sample by sample, are
+held from one sample to the next (zero-order hold) and averaged exactly over the
+intervals of a uniform grid of ``step_s`` from the run's FIRST PROCESS SAMPLE; the
+chain is discretised exactly for an input constant over each step (matrix
+exponential of the augmented ``[[A, B], [0, 0]]·step_s``; the discrete ``A_d`` is
+lower triangular, so the nodes are computed one after another by first-order
+:func:`scipy.signal.lfilter` sections); the node states are interpolated linearly
+in time to the reading times. A run's process log may start long before its first
+reading (the history, or lead-in, of a segment of a long test): the simulation
+always starts at the log's first sample and only the readings are fitted and
+predicted. Before the log starts the machine is taken at rest (θ = 0); after it
+ends, the last operating value is held.
+
+Identification (variable projection, as :mod:`thermbench.models.physics`). The
+output is linear in the gains ``c``, ``c_a``, the offset ``d`` and the geometric
+polynomial ``G``: for given nonlinear parameters (log τ_i, p, log τ_a) they are
+the least-squares solution, so the nonlinear search
+(:func:`scipy.optimize.least_squares`, trust-region reflective within bounds) sees
+only the residual of that solution. The starts are the best ``n_starts`` points of
+a deterministic grid (eight log-spaced values per τ, ascending τ combinations;
+three exponents; four τ_a), each evaluated by the same inner least squares.
+Each search stops at a relative change of 1e-6 in the cost or the parameters: the
+cost has flat valleys (two time constants trading places with their gains) along
+which tighter tolerances take several times more evaluations for an RMSE change
+below 1e-6. Nothing is random.
+
+The target is ``error_um`` of the training readings. At a fixed-point channel (a
+spindle's drift at the test mandrel, every ``target_mm`` 0) the geometric part is
+``Polynomial([0.0])`` and the offset ``d`` is part of the thermal part (as the
+MLR families' regression constant), so ``predict`` = geometric + thermal is the
+fitted value. On an along-axis channel the thermal part is the same at every
+target (a limitation: the model has no spatial shape) and ``G`` is a polynomial of
+``geometric_degree`` in position without constant term, fitted jointly.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from numpy.polynomial import Polynomial
+from scipy import sparse
+from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
+from scipy.optimize import least_squares
+from scipy.signal import lfilter
+from threadpoolctl import threadpool_limits
+
+from ..data.io import Dataset
+from .base import Inputs, ModelError, ThermalErrorModel, _name, fallback, readings, require, sensor_series, temperatures_at
+from .mlr import check_int, check_real, lstsq_fit
+
+__all__ = ["LumpedThermalNetwork", "chain_matrices"]
+
+MOTION_COLUMNS = ("feed_mm_min", "axis_mm")  # an operating input that is the motion itself
+_GRID_TAU = 8  # log-spaced start values per time constant
+_GRID_TAU_A = 4  # start values of the ambient lag
+_GRID_P = 3  # start values of the exponent
+
+
+def chain_matrices(tau_s, step_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation ``(A_d, B_d)`` of the node chain
+    ``dθ1/dt = (q − θ1)/τ1, dθi/dt = (θ_{i−1} − θi)/τi`` over ``step_s``:
+    ``θ[k+1] = A_d θ[k] + B_d q[k]`` for ``q`` constant over the step."""
+    tau = np.asarray(tau_s, dtype=float)
+    n = tau.size
+    m = np.zeros((n + 1, n + 1))
+    m[np.arange(n), np.arange(n)] = -1.0 / tau
+    m[np.arange(1, n), np.arange(n - 1)] = 1.0 / tau[1:]
+    m[0, n] = 1.0 / tau[0]
+    e = expm(m * step_s)
+    return e[:n, :n], e[:n, n]
+
+
+def _zoh_average(t: np.ndarray, v: np.ndarray, gidx: np.ndarray, gfrac: np.ndarray, h: float) -> np.ndarray:
+    """Interval averages over a uniform grid of a signal held from each sample to the next
+    (the last sample held on): ``gidx``/``gfrac`` locate each grid time in ``t``."""
+    cum = np.concatenate([[0.0], np.cumsum(v[:-1] * np.diff(t))])
+    f = cum[gidx] + v[gidx] * gfrac
+    return np.diff(f) / h
+
+
+def _residual(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``y − X c`` of the linear least-squares solution ``c`` (the projection of variable
+    projection): column-scaled semi-normal equations with one refinement step (as accurate
+    as QR for these few, scaled columns, and several times faster on 10⁴ readings), plain
+    :func:`numpy.linalg.lstsq` when the Gram matrix is near singular."""
+    s = np.max(np.abs(X), axis=0)
+    s[s == 0] = 1.0
+    xs = X / s
+    try:
+        cf = cho_factor(xs.T @ xs, check_finite=False)
+        d = np.abs(np.diag(cf[0]))
+        if d.min() < 1e-6 * d.max():  # condition number of the Gram matrix > 1e12
+            raise LinAlgError("near singular")
+        c = cho_solve(cf, xs.T @ y, check_finite=False)
+        r = y - xs @ c
+        return r - xs @ cho_solve(cf, xs.T @ r, check_finite=False)
+    except LinAlgError:
+        return y - xs @ np.linalg.lstsq(xs, y, rcond=None)[0]
+
+
+@dataclass
+class _Drive:
+    """One run prepared for simulation: the grid, the operating samples, the ambient
+    rise averaged over the grid, and where the requested times fall on the grid."""
+
+    run: str
+    h: float
+    t_proc: np.ndarray
+    u: np.ndarray
+    gidx: np.ndarray
+    gfrac: np.ndarray
+    rise_avg: np.ndarray | None  # ambient/structure rise averaged per grid interval (°C)
+    interp: sparse.csr_matrix  # linear interpolation from the grid to the requested times
+    _heat: tuple | None = None  # (u_ref, p, q) of the last call
+
+    @property
+    def n_steps(self) -> int:
+        return self.gidx.size - 1
+
+    def heat(self, u_ref: float, p: float) -> np.ndarray:
+        """q per grid interval: (u/u_ref)^p held between samples, averaged over the interval."""
+        if self._heat is None or self._heat[:2] != (u_ref, p):  # p is unchanged across most calls
+            self._heat = (u_ref, p, _zoh_average(self.t_proc, (self.u / u_ref) ** p, self.gidx, self.gfrac, self.h))
+        return self._heat[2]
+
+    def at(self, states: np.ndarray) -> np.ndarray:
+        """Grid states (n_steps + 1, m) interpolated to the requested times."""
+        return self.interp @ states
+
+
+class LumpedThermalNetwork(ThermalErrorModel):
+    """Lumped thermal network driven by an operating signal (module docstring).
+
+    Parameters
+    ----------
+    n_nodes : number of thermal nodes in the chain (1..6; default 2).
+    operating : process column of the heat-producing operating signal (e.g.
+        ``"spindle_rpm"``); None = the dataset's first operating input
+        (``metadata.operating_inputs()[0]``).
+    u_ref : scale of the operating signal (its unit); None = the largest ``|u|``
+        over the training runs (``u_ref_``).
+    exponent : the exponent p of ``q = (u/u_ref)^p``; None = identified within
+        ``exponent_bounds``; a number = fixed.
+    exponent_bounds : (lo, hi) of the identified exponent, 0 < lo < hi.
+    tau_bounds_s : (lo, hi) of every time constant (s), 0 < lo < hi.
+    ambient_sensor : None (no measured drive), a sensor name, or ``"auto"`` (the
+        sensor at location ``ambient``, none if the dataset has none): its rise above
+        the first sample of the run's log, through its own identified lag τ_a,
+        is an additional regressor.
+    sensors : measured boundary temperatures: None (none), a list of sensor names,
+        ``"all"`` (every sensor of the dataset) or ``"auto"`` (chosen at fit time, see
+        below). Each one's rise above the first sample of the run's log enters the
+        displacement with its own gain, unlagged: the structure around the heat path,
+        whose temperatures are measured, expands with them, while the nodes stand for the
+        unmeasured path from the heat source.
+    max_sensors : ``sensors="auto"``: at most this many. The network is identified on the
+        operating input alone, then sensors are added one at a time (forward selection),
+        each time the one that lowers the cross-validated RMSE most, until none lowers it
+        by 3 % or more. The folds are the training runs (leave one loading state out: the
+        question the benchmark asks), or five consecutive parts of a single run. The
+        network is then identified again with the chosen sensors (``sensor_selection_``
+        records each step's sensor and cross-validated RMSE).
+    preprocess : filters for the ambient/structure sensors (``"default"`` = limit +
+        Kalman of seed 002 §2.3.1; None = none; or a list of filters).
+    step_s : simulation step (s); the operating log is averaged over it.
+    n_starts : nonlinear searches started from the best points of the start grid.
+    geometric_degree : along an axis, the degree of the geometric polynomial in
+        position fitted with the gains (no constant term: that is ``d``); unused at a
+        fixed point.
+
+    Fitted attributes: ``tau_s_`` (ascending, s), ``exponent_``, ``gains_um_`` (µm
+    per unit node rise, one per node), ``ambient_tau_s_`` and
+    ``ambient_gain_um_per_C_`` (None without a drive), ``sensors_`` and
+    ``sensor_gains_um_per_C_`` (the boundary temperatures), ``offset_um_`` (d),
+    ``u_ref_``, ``operating_``, ``ambient_sensor_``, ``rmse_um_`` (training RMSE),
+    ``geometric_``, ``n_evaluations_``, ``fit_s_``, ``optimizer_message_``.
+    """
+
+    needs: tuple[str, ...] = ()
+
+    def __init__(
+        self,
+        n_nodes=2,
+        operating=None,
+        u_ref=None,
+        exponent=None,
+        exponent_bounds=(0.5, 2.5),
+        tau_bounds_s=(60.0, 2.0e5),
+        ambient_sensor=None,
+        preprocess="default",
+        step_s=60.0,
+        n_starts=3,
+        geometric_degree=3,
+        sensors=None,
+        max_sensors=4,
+    ):
+        self.n_nodes = n_nodes
+        self.operating = operating
+        self.u_ref = u_ref
+        self.exponent = exponent
+        self.exponent_bounds = exponent_bounds
+        self.tau_bounds_s = tau_bounds_s
+        self.ambient_sensor = ambient_sensor
+        self.preprocess = preprocess
+        self.step_s = step_s
+        self.n_starts = n_starts
+        self.geometric_degree = geometric_degree
+        self.sensors = sensors
+        self.max_sensors = max_sensors
+
+    # ------------------------------------------------------------ checks ---
+    @staticmethod
+    def _bounds(name: str, value) -> tuple[float, float]:
+        try:
+            lo, hi = (float(v) for v in value)
+        except (TypeError, ValueError):
+            raise ModelError(f"{name} must be a pair (lo, hi) of numbers, got {value!r}") from None
+        if not (0.0 < lo < hi < math.inf):
+            raise ModelError(f"{name} must satisfy 0 < lo < hi (finite), got {value!r}")
+        return lo, hi
+
+    def _operating_name(self, ds: Dataset) -> str:
+        op = self.operating
+        if op is None:
+            inputs = ds.metadata.operating_inputs()
+            if not inputs:
+                raise ModelError(f"operating: the dataset {_name(ds)} declares no operating input (metadata "
+                                 f"'operating'); name the process column that drives the heat, e.g. operating=spindle_rpm")  # fmt: skip
+            return str(inputs[0])
+        if not isinstance(op, str):
+            try:
+                items = [str(o) for o in op]
+            except TypeError:
+                items = []
+            if len(items) != 1:
+                raise ModelError(f"operating must be one process column name (e.g. 'spindle_rpm') or None, got {op!r}")
+            op = items[0]
+        return op
+
+    def _operating_values(self, ds: Dataset, run: str, col: str, fractional: bool) -> tuple[np.ndarray, np.ndarray]:
+        pr = ds.process_run(run)
+        if col not in pr.columns:
+            raise ModelError(f"operating: column {col!r} is not in the process log of run {run!r}; "
+                             f"columns: {list(pr.columns)}")  # fmt: skip
+        t = pr["t_s"].to_numpy(dtype=float)
+        u = pd.to_numeric(pr[col], errors="coerce").to_numpy(dtype=float)
+        if not np.isfinite(u).all():
+            raise ModelError(f"operating: column {col!r} of run {run!r} has non-numeric or missing values")
+        if t.size == 0:
+            raise ModelError(f"run {run!r} has no process samples: nothing drives the thermal network")
+        if fractional and (u < 0).any():
+            raise ModelError(f"operating: column {col!r} of run {run!r} is negative (min {u.min():g}); the heat "
+                             "(u/u_ref)^p needs u >= 0 when the exponent is identified or not an integer")  # fmt: skip
+        return t, u
+
+    def _ambient_name(self, ds: Dataset) -> str | None:
+        a = self.ambient_sensor
+        if a is None:
+            return None
+        if a == "auto":
+            name = next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
+            if name is None:
+                fallback("ambient_sensor auto: the dataset has no sensor at location 'ambient'; "
+                         "the network is driven by the operating input alone")  # fmt: skip
+            return name
+        if not isinstance(a, str) or a not in ds.metadata.sensors:
+            raise ModelError(f"ambient_sensor: {a!r} is not a sensor of the dataset {_name(ds)}; expected None, "
+                             f"'auto' or one of {list(ds.metadata.sensors)}")  # fmt: skip
+        return a
+
+    # ------------------------------------------------------- simulation ---
+    def _drive(self, ds: Dataset, run: str, t_s: np.ndarray) -> _Drive:
+        """The run's operating log on the grid from its first process sample (lead-in
+        included), and the grid positions of the times ``t_s``."""
+        h = self.step_
+        t, u = self._operating_values(ds, run, self.operating_, self.fractional_)
+        t0 = float(t[0])
+        t_end = max(float(t[-1]), float(np.max(t_s)) if t_s.size else t0)
+        n = max(int(math.ceil((t_end - t0) / h - 1e-9)), 1)
+        grid = t0 + h * np.arange(n + 1)
+        gidx = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)
+        gfrac = grid - t[gidx]
+        rise = None
+        if self.ambient_sensor_ is not None:
+            s = sensor_series(ds, run, [self.ambient_sensor_], self.preprocess)
+            ts = s["t_s"].to_numpy(dtype=float)
+            y = s[ds.metadata.sensor_column(self.ambient_sensor_)].to_numpy(dtype=float)
+            sidx = np.clip(np.searchsorted(ts, grid, side="right") - 1, 0, ts.size - 1)
+            # before the sensor's first sample: its first value (rise 0)
+            rise = _zoh_average(ts, y - y[0], sidx, np.maximum(grid - ts[sidx], 0.0), h)
+        pos = np.clip((np.asarray(t_s, dtype=float) - t0) / h, 0.0, float(n))
+        k = np.minimum(np.floor(pos).astype(int), n - 1)
+        w = pos - k
+        rows = np.repeat(np.arange(pos.size), 2)
+        cols = np.column_stack([k, k + 1]).ravel()
+        vals = np.column_stack([1.0 - w, w]).ravel()
+        interp = sparse.csr_matrix((vals, (rows, cols)), shape=(pos.size, n + 1))
+        return _Drive(run, h, t, u, gidx, gfrac, rise, interp)
+
+    def _states(self, dr: _Drive, tau: np.ndarray, p: float, tau_a: float | None) -> np.ndarray:
+        """Node rises (and the lagged ambient rise) at the grid times, shape (n_steps+1, m)."""
+        q = dr.heat(self.u_ref_, p)
+        ad, bd = chain_matrices(tau, dr.h)
+        n = tau.size
+        x = np.zeros((dr.n_steps + 1, n + (tau_a is not None)))
+        for i in range(n):
+            w = bd[i] * q
+            for j in range(i):
+                w = w + ad[i, j] * x[:-1, j]
+            x[1:, i] = lfilter([1.0], [1.0, -ad[i, i]], w)
+        if tau_a is not None:
+            a = math.exp(-dr.h / tau_a)
+            x[1:, n] = lfilter([1.0 - a], [1.0, -a], dr.rise_avg)
+        return x
+
+    def _unpack(self, z: np.ndarray) -> tuple[np.ndarray, float, float | None]:
+        n = self.n_nodes_
+        tau = np.exp(z[:n])
+        i = n
+        if self.exponent_fixed_ is None:
+            p = float(z[i])
+            i += 1
+        else:
+            p = self.exponent_fixed_
+        tau_a = float(np.exp(z[i])) if self.ambient_sensor_ is not None else None
+        return tau, p, tau_a
+
+    def _design(self, drives: list[_Drive], z: np.ndarray, geo: np.ndarray, rises: np.ndarray) -> np.ndarray:
+        tau, p, tau_a = self._unpack(z)
+        phi = np.vstack([dr.at(self._states(dr, tau, p, tau_a)) for dr in drives])
+        return np.column_stack([phi, rises, np.ones(phi.shape[0]), geo])
+
+    def _sensor_names(self, ds: Dataset) -> list[str]:
+        v = self.sensors
+        if v is None:
+            return []
+        if v == "all":
+            return list(ds.metadata.sensors)
+        if v == "auto":
+            raise ModelError("sensors: 'auto' is resolved at fit time")  # never reached: _fit resolves it
+        if isinstance(v, str) or not isinstance(v, (list, tuple)) or not v:
+            raise ModelError(f"sensors: expected None, 'all' or a non-empty list of sensor names, got {v!r}")
+        unknown = [x for x in v if x not in ds.metadata.sensors]
+        if unknown:
+            raise ModelError(f"sensors: {unknown} are not sensors of the dataset {_name(ds)}; "
+                             f"it has {list(ds.metadata.sensors)}")  # fmt: skip
+        return [str(x) for x in v]
+
+    def _rises(self, ds: Dataset, run: str, t_s: np.ndarray) -> np.ndarray:
+        """The boundary temperatures' rises above the first sample of the run's log at ``t_s``."""
+        if not self.sensors_:
+            return np.zeros((np.size(t_s), 0))
+        return temperatures_at(ds, run, self.sensors_, t_s, self.preprocess, delta=True)
+
+    # -------------------------------------------------------------- fit ---
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        # the matrices are tiny (n+1 square, a few columns): threaded BLAS only costs time
+        # (on a busy machine an expm of 3x3 took 16 ms with threads, 15 us without)
+        with threadpool_limits(limits=1, user_api="blas"):
+            chosen = self._auto_sensors(ds, runs) if self.sensors == "auto" else None
+            self._identify(ds, runs, chosen)
+            if chosen is not None:
+                self.sensor_selection_ = self._selection_steps
+
+    def _auto_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
+        """``sensors="auto"``: forward selection by cross-validated RMSE (see ``max_sensors``)."""
+        k_max = check_int("max_sensors", self.max_sensors, 1)
+        base = type(self)(**{**self.get_params(), "sensors": None})
+        base._identify(ds, runs, [])
+        base.train_runs_ = list(runs)
+        cands = list(ds.metadata.sensors)
+        if not cands:
+            raise ModelError(f"sensors: 'auto' needs temperature sensors; the dataset {_name(ds)} has none")
+        rd = readings(ds, runs)
+        phi, rises, y, fold = [], [], [], []
+        for i, run in enumerate(runs):
+            m = (rd["run_id"] == run).to_numpy()
+            if not m.any():
+                continue
+            t = rd.loc[m, "t_s"].to_numpy(dtype=float)
+            phi.append(base.simulate(ds, run, t))
+            rises.append(temperatures_at(ds, run, cands, t, self.preprocess, delta=True))
+            y.append(rd.loc[m, "error_um"].to_numpy(dtype=float))
+            fold.append(np.full(t.size, i))
+        phi, rises, y, fold = np.vstack(phi), np.vstack(rises), np.concatenate(y), np.concatenate(fold)
+        if np.unique(fold).size < 2:  # one run: five consecutive parts of it
+            fold = np.minimum((np.arange(y.size) * 5) // max(y.size, 1), 4)
+
+        def cv_rmse(cols: list[int]) -> float:
+            X = np.column_stack([phi, rises[:, cols], np.ones(y.size)])
+            sq = 0.0
+            for f in np.unique(fold):
+                te = fold == f
+                coef = np.linalg.lstsq(X[~te], y[~te], rcond=None)[0]
+                sq += float(np.sum((X[te] @ coef - y[te]) ** 2))
+            return math.sqrt(sq / y.size)
+
+        chosen: list[int] = []
+        best = cv_rmse(chosen)
+        self._selection_steps = [("(operating input only)", best)]
+        while len(chosen) < min(k_max, len(cands)):
+            score, j = min((cv_rmse(chosen + [j]), j) for j in range(len(cands)) if j not in chosen)
+            if score > 0.97 * best:
+                break
+            chosen.append(j)
+            best = score
+            self._selection_steps.append((cands[j], score))
+        return [cands[j] for j in chosen]
+
+    def _identify(self, ds: Dataset, runs: list[str], sensors: list[str] | None = None) -> None:
+        t_start = time.perf_counter()
+        self.n_nodes_ = check_int("n_nodes", self.n_nodes, 1, 6)
+        self.step_ = check_real("step_s", self.step_s, positive=True)
+        n_starts = check_int("n_starts", self.n_starts, 1)
+        tau_lo, tau_hi = self._bounds("tau_bounds_s", self.tau_bounds_s)
+        if self.exponent is None:
+            p_lo, p_hi = self._bounds("exponent_bounds", self.exponent_bounds)
+            self.exponent_fixed_ = None
+        else:
+            self.exponent_fixed_ = check_real("exponent", self.exponent, positive=True)
+        self.fractional_ = self.exponent_fixed_ is None or not float(self.exponent_fixed_).is_integer()
+        if self.u_ref is not None:
+            check_real("u_ref", self.u_ref, positive=True)
+        self.operating_ = self._operating_name(ds)
+        self.ambient_sensor_ = self._ambient_name(ds)
+        self.ambient_location_ = ds.metadata.sensors.get(self.ambient_sensor_) if self.ambient_sensor_ else None
+        self.sensors_ = list(sensors) if sensors is not None else self._sensor_names(ds)
+
+        rd = readings(ds, runs)
+        u_max = 0.0
+        for run in runs:  # every training run's log is checked, and sets the scale
+            u_max = max(u_max, float(np.max(np.abs(self._operating_values(ds, run, self.operating_, self.fractional_)[1]))))
+        if self.u_ref is None:
+            if u_max <= 0.0:
+                raise ModelError(f"operating: column {self.operating_!r} is zero in every training run {runs}: "
+                                 "there is no heat input to identify the network from (u_ref cannot be its maximum)")  # fmt: skip
+            self.u_ref_ = u_max
+        else:
+            self.u_ref_ = float(self.u_ref)
+
+        # geometric columns in the scaled position (along an axis; none at a fixed point)
+        x = rd["target_mm"].to_numpy(dtype=float)
+        lo, hi = float(x.min()) if x.size else 0.0, float(x.max()) if x.size else 0.0
+        gdeg = check_int("geometric_degree", self.geometric_degree, 0)
+        if hi <= lo:
+            gdeg = 0  # a fixed point: no geometric part
+        else:
+            n_x = np.unique(x).size
+            if n_x <= gdeg:
+                raise ModelError(f"geometric_degree: {gdeg} needs more than {gdeg} distinct targets, the readings have {n_x}")
+        xs = (x - 0.5 * (lo + hi)) / (0.5 * (hi - lo)) if hi > lo else np.zeros_like(x)
+        geo = np.column_stack([xs**k for k in range(1, gdeg + 1)]) if gdeg else np.zeros((x.size, 0))
+
+        n_lin = self.n_nodes_ + (self.ambient_sensor_ is not None) + len(self.sensors_) + 1 + gdeg
+        n_nonlin = self.n_nodes_ + (self.exponent_fixed_ is None) + (self.ambient_sensor_ is not None)
+        require(len(rd), n_lin + n_nonlin + 1, f"readings in runs {runs}")
+        drives, order, rises = [], [], []
+        for run in runs:
+            m = (rd["run_id"] == run).to_numpy()
+            if m.any():
+                drives.append(self._drive(ds, run, rd.loc[m, "t_s"].to_numpy(dtype=float)))
+                rises.append(self._rises(ds, run, rd.loc[m, "t_s"].to_numpy(dtype=float)))
+                order.append(np.flatnonzero(m))
+        order = np.concatenate(order)
+        rises = np.vstack(rises)
+        y = rd["error_um"].to_numpy(dtype=float)[order]
+        geo = geo[order]
+        if not np.isfinite(y).all():
+            raise ModelError("error_um of the training readings has NaN/inf values")
+
+        n_eval = 0
+
+        def solve(z):
+            nonlocal n_eval
+            n_eval += 1
+            return _residual(self._design(drives, z, geo, rises), y)
+
+        # bounds and the deterministic start grid of the nonlinear parameters
+        lb = [math.log(tau_lo)] * self.n_nodes_
+        ub = [math.log(tau_hi)] * self.n_nodes_
+        tau_grid = np.exp(np.linspace(lb[0], ub[0], _GRID_TAU + 2)[1:-1])
+        # distinct, ascending τ: the order does not matter (module docstring); n_nodes <= 6 < 8
+        axes = [list(itertools.combinations(np.log(tau_grid), self.n_nodes_))]
+        if self.exponent_fixed_ is None:
+            lb.append(p_lo)
+            ub.append(p_hi)
+            axes.append([(v,) for v in np.linspace(p_lo, p_hi, _GRID_P + 2)[1:-1]])
+        if self.ambient_sensor_ is not None:
+            lb.append(math.log(tau_lo))
+            ub.append(math.log(tau_hi))
+            axes.append([(v,) for v in np.linspace(lb[-1], ub[-1], _GRID_TAU_A + 2)[1:-1]])
+        lb, ub = np.array(lb), np.array(ub)
+        grid = [np.concatenate(c) for c in itertools.product(*axes)]
+        costs = np.array([np.sum(solve(z) ** 2) for z in grid])
+        best = None
+        for i in np.argsort(costs, kind="stable")[:n_starts]:
+            res = least_squares(solve, grid[i], bounds=(lb, ub), method="trf", x_scale=1.0, ftol=1e-6, xtol=1e-6)
+            if best is None or res.cost < best.cost:
+                best = res
+        z = best.x
+        self.optimizer_message_ = str(best.message)
+
+        # canonical form: τ ascending, gains re-solved (the span is the same)
+        z = z.copy()
+        z[: self.n_nodes_] = np.sort(z[: self.n_nodes_])
+        tau, p, tau_a = self._unpack(z)
+        X = self._design(drives, z, geo, rises)
+        names = [f"c{i + 1}" for i in range(self.n_nodes_)] + (["c_a"] if tau_a is not None else [])
+        names += [f"s_{x}" for x in self.sensors_] + ["d"]
+        names += [f"g{k}" for k in range(1, gdeg + 1)]
+        coef = lstsq_fit(X, y, names, "lumped network gains")
+        n = self.n_nodes_
+        self.tau_s_ = tau
+        self.exponent_ = float(p)
+        self.gains_um_ = coef[:n].copy()
+        self.ambient_tau_s_ = tau_a
+        self.ambient_gain_um_per_C_ = float(coef[n]) if tau_a is not None else None
+        na = n + (tau_a is not None)
+        k = len(self.sensors_)
+        self.sensor_gains_um_per_C_ = coef[na : na + k].copy()
+        self.offset_um_ = float(coef[na + k])
+        gcoef = np.r_[0.0, coef[na + k + 1 :]]
+        self.geometric_ = Polynomial(gcoef, domain=[lo, hi], window=[-1.0, 1.0]) if gdeg else Polynomial([0.0])
+        self._coef_ = coef[: na + k + 1]
+        self._n_states_ = na
+        self._z_ = z
+        self.rmse_um_ = float(np.sqrt(np.mean((y - X @ coef) ** 2)))
+        self.n_evaluations_ = n_eval
+        self.fit_s_ = time.perf_counter() - t_start
+
+    # ---------------------------------------------------------- predict ---
+    def simulate(self, dataset: Dataset, run: str, t_s) -> np.ndarray:
+        """The fitted network's node rises at times ``t_s`` of ``run``, shape (len(t_s), n_nodes
+        [+ 1 for the lagged ambient rise]), simulated from the first sample of the run's log."""
+        self._check_fitted()
+        if self.ambient_sensor_ is not None and self.ambient_sensor_ not in dataset.metadata.sensors:
+            raise ModelError(f"the model was identified with ambient_sensor {self.ambient_sensor_!r}, which this "
+                             f"dataset lacks; sensors: {list(dataset.metadata.sensors)}")  # fmt: skip
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        dr = self._drive(dataset, run, t)
+        tau, p, tau_a = self._unpack(self._z_)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return dr.at(self._states(dr, tau, p, tau_a))
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        if t_s.size == 0:
+            return np.zeros(0)
+        phi = self.simulate(ds, run, t_s)
+        na = self._n_states_
+        out = phi @ self._coef_[:na] + self._coef_[-1]
+        if self.sensors_:
+            out = out + self._rises(ds, run, t_s) @ self._coef_[na:-1]
+        return out
+
+    def _model_inputs(self) -> Inputs:
+        amb = self.ambient_sensor_
+        return Inputs(
+            sensors=((amb,) if amb else ()) + tuple(s for s in self.sensors_ if s != amb),
+            motion=self.operating_ in MOTION_COLUMNS,  # a feed-driven network reads the motion log
+            ambient=self.ambient_location_ == "ambient",
+            operating=(self.operating_,),
+        )
