@@ -329,6 +329,7 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
     write_report(results, _curves(), out, meta={"command": "first"})
     before_text = (out / "report.md").read_bytes()
     before_figs = {p.name: p.read_bytes() for p in figure_paths(out)}
+    before_csv = (out / "results.csv").read_bytes()
 
     def boom(*args, **kwargs):
         raise RuntimeError("injected plotting failure")
@@ -338,7 +339,8 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
         write_report(results.assign(compensation_rate=0.0), _curves(), out, meta={"command": "second"})
     assert (out / "report.md").read_bytes() == before_text
     assert {p.name: p.read_bytes() for p in figure_paths(out)} == before_figs
-    assert sorted(p.name for p in out.iterdir()) == [RECORD, "figures", "report.md"]
+    assert (out / "results.csv").read_bytes() == before_csv
+    assert sorted(p.name for p in out.iterdir()) == [RECORD, "figures", "report.md", "results.csv"]
 
     fresh = tmp_path / "fresh"
     with pytest.raises(RuntimeError, match="injected"):
@@ -363,4 +365,269 @@ def test_failed_text_write_leaves_previous_report_intact(results, tmp_path, monk
         write_report(results, None, tmp_path, meta={"command": "second"})
     monkeypatch.undo()
     assert (tmp_path / "report.md").read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == [RECORD, "figures", "report.md"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [RECORD, "figures", "report.md", "results.csv"]
+
+
+# ----------------------------------------------------------------------------- several error channels
+#
+# dataset "spin": modelling states a, b and the validation run "tail", two error channels,
+# the family "fam" and the baseline "base", approaches single (trained on a or b) and global.
+# RMSE (µm) per channel, family, model (training state or "global") and test run; every other
+# metric follows from it: max |residual| = 2 x RMSE, compensation rate = 1 - RMSE / 10.
+SPIN_RMSE = {
+    "ch1": {
+        "base": {"a": {"a": 0.5, "b": 7.0, "tail": 8.0}, "b": {"a": 6.0, "b": 0.4, "tail": 4.0},
+                 "global": {"a": 1.0, "b": 1.2, "tail": 5.0}},
+        "fam": {"a": {"a": 0.3, "b": 4.0, "tail": 3.0}, "b": {"a": 2.0, "b": 0.2, "tail": 5.0},
+                "global": {"a": 0.6, "b": 0.7, "tail": 2.5}},
+    },
+    "ch2": {
+        "base": {"a": {"a": 0.5, "b": 3.0, "tail": 2.0}, "b": {"a": 5.0, "b": 0.6, "tail": 4.0},
+                 "global": {"a": 1.5, "b": 1.1, "tail": 6.0}},
+        "fam": {"a": {"a": 0.9, "b": 12.0, "tail": 9.0}, "b": {"a": 11.0, "b": 0.8, "tail": 7.0},
+                "global": {"a": 2.0, "b": 2.2, "tail": 10.0}},
+    },
+}
+# validation (tail) RMSE, single = mean over the training states a, b:
+#            ch1                      ch2
+# base single (8 + 4)/2 = 6.00        (2 + 4)/2 = 3.00  <- best of ch2 (a baseline)
+# base global 5.00                    6.00
+# fam  single (3 + 5)/2 = 4.00        (9 + 7)/2 = 8.00  <- best thermbench of ch2
+# fam  global 2.50 <- best of ch1     10.00
+CSV_HEAD = ["dataset", "family", "approach", "train", "test", "channel", "rmse_um", "max_abs_residual_um",
+            "compensation_rate", "kind", "own", "reference"]
+
+
+def _spin_results():
+    rows = []
+    for ch, fams in SPIN_RMSE.items():
+        for fam, models in fams.items():
+            for model, cells in models.items():
+                app, train = ("global", "all") if model == "global" else ("single", model)
+                for run, rmse in cells.items():
+                    rows.append({"dataset": "spin", "channel": ch, "family": fam, "approach": app, "train": train,
+                                 "run_id": run, "kind": "validation" if run == "tail" else "state",
+                                 "own": run == model or (model == "global" and run != "tail"),
+                                 "rmse_um": rmse, "max_abs_residual_um": 2 * rmse,
+                                 "compensation_rate": 1 - rmse / 10, "fit_s": 0.25})
+    return pd.DataFrame(rows)
+
+
+def _spin_curves():
+    """Per-cycle before/after on tail for the global models (as the benchmark saves them)."""
+    t_s = 1000.0 + 15.0 * np.arange(40)
+    rows = []
+    for ch in SPIN_RMSE:
+        before = 10 + np.sin(t_s / 100.0)
+        for m, fam in enumerate(["base", "fam"]):
+            rows.append(pd.DataFrame({"dataset": "spin", "channel": ch, "family": fam, "approach": "global",
+                                      "train": "all", "run_id": "tail", "t_s": t_s, "before_um": before,
+                                      "after_um": 0.2 * (m + 1) * before}))
+    return pd.concat(rows, ignore_index=True)
+
+
+@pytest.fixture(scope="module")
+def spin_report(tmp_path_factory):
+    """One report of the format 1 dataset dsA beside the two-channel dataset spin (written once)."""
+    out = tmp_path_factory.mktemp("spin") / "report"
+    mixed = pd.concat([_results().query("dataset == 'dsA'"), _spin_results()], ignore_index=True)
+    curves = pd.concat([_curves().query("dataset == 'dsA'"), _spin_curves()], ignore_index=True)
+    captured = {}
+    real = report._rmse_heatmap_figure
+
+    def spy(panels, n_states, norm, title, path):
+        captured[path.name] = panels
+        return real(panels, n_states, norm, title, path)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(report, "_rmse_heatmap_figure", spy)
+    try:
+        write_report(mixed, curves, out, reference=["base"])
+    finally:
+        mp.undo()
+    return out, mixed, captured
+
+
+def test_two_channels_with_the_same_other_keys_are_two_models():
+    spin = _spin_results()
+    h = headline(spin)  # ch1 and ch2 rows share (dataset, family, approach, train, run_id): accepted
+    assert h.index.names == ["dataset", "channel", "family", "approach"]
+    assert h.loc[("spin", "ch2", "fam", "global"), "val_rate_worst"] == pytest.approx(0.0)  # 1 - 10/10
+    assert h.loc[("spin", "ch1", "fam", "global"), "val_rate_worst"] == pytest.approx(0.75)  # 1 - 2.5/10
+    with pytest.raises(ValueError, match=r"sharing \(dataset, family, approach, train, run_id\) and channel"):
+        headline(pd.concat([spin, spin.iloc[[0]]]))
+    # one channel of a several-channel dataset must be named
+    with pytest.raises(ValueError, match=r"several channels \['ch1', 'ch2'\]; pass channel="):
+        train_test_matrix(spin, "spin", "fam")
+    m = train_test_matrix(spin, "spin", "fam", "rmse_um", channel="ch2")
+    assert m.loc["a", "b"] == pytest.approx(12.0) and m.loc["b", "a"] == pytest.approx(11.0)
+    c = approach_comparison(spin, "spin", channel="ch1")
+    assert c.loc[("fam", "global"), "tail"] == pytest.approx(0.75)
+    with pytest.raises(ValueError, match="no channel 'ch9'"):
+        approach_comparison(spin, "spin", channel="ch9")
+
+
+def test_validation_by_channel_and_best_match_hand_computation():
+    t = report.validation_by_channel(_spin_results(), "spin")
+    assert list(t.columns) == ["ch1", "ch2"]
+    assert list(t.index) == [("base", "single"), ("base", "global"), ("fam", "single"), ("fam", "global")]
+    expected = {("base", "single"): (6.0, 3.0), ("base", "global"): (5.0, 6.0),
+                ("fam", "single"): (4.0, 8.0), ("fam", "global"): (2.5, 10.0)}
+    for key, (v1, v2) in expected.items():
+        assert (t.at[key, "ch1"], t.at[key, "ch2"]) == pytest.approx((v1, v2)), key
+    assert t.attrs["low"].at[("fam", "single"), "ch2"] == pytest.approx(7.0)  # the better state, b
+    assert t.attrs["high"].at[("fam", "single"), "ch2"] == pytest.approx(9.0)
+    b = report.best_by_channel(t, reference=["base"])
+    assert b.loc["ch1", "best"] == ("fam", "global") and b.loc["ch1", "baseline"] == ("base", "global")
+    assert (b.loc["ch1", "family_value"], b.loc["ch1", "baseline_value"]) == pytest.approx((2.5, 5.0))
+    assert b.loc["ch2", "best"] == ("base", "single")  # a baseline is the best of ch2
+    assert b.loc["ch2", "family"] == ("fam", "single")
+    assert (b.loc["ch2", "family_value"], b.loc["ch2", "baseline_value"]) == pytest.approx((8.0, 3.0))
+    # a single-state model that could not be fitted: mean over the one left, marked (1/2)
+    spin = _spin_results()
+    gone = (spin["channel"] == "ch2") & (spin["family"] == "fam") & (spin["train"] == "b")
+    t = report.validation_by_channel(spin[~gone], "spin")
+    assert t.at[("fam", "single"), "ch2"] == pytest.approx(9.0)
+    assert t.attrs["n_models"].at[("fam", "single"), "ch2"] == 1
+    md = report._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True)
+    assert "| fam | single (mean) | 4.00 | 9.00 (1/2) |" in md
+
+
+def test_results_csv_columns_and_values(spin_report):
+    out, mixed, _ = spin_report
+    csv = pd.read_csv(out / "results.csv", keep_default_na=False)
+    assert list(csv.columns[: len(CSV_HEAD)]) == CSV_HEAD
+    assert {"fit_s", "max_abs_error_um"} <= set(csv.columns[len(CSV_HEAD):])
+    assert len(csv) == len(mixed)
+    row = csv[(csv["dataset"] == "spin") & (csv["channel"] == "ch2") & (csv["family"] == "fam")
+              & (csv["approach"] == "global") & (csv["test"] == "tail")]
+    assert len(row) == 1
+    r = row.iloc[0]
+    assert (r["train"], r["kind"], bool(r["own"]), bool(r["reference"])) == ("all", "validation", False, False)
+    assert (r["rmse_um"], r["max_abs_residual_um"], r["compensation_rate"]) == pytest.approx((10.0, 20.0, 0.0))
+    base = csv[(csv["family"] == "base")]
+    assert len(base) == 18 and base["reference"].astype(str).eq("True").all()  # 2 channels x 3 models x 3 runs
+    own = csv[(csv["channel"] == "ch1") & (csv["family"] == "base") & (csv["train"] == "b") & (csv["test"] == "b")]
+    assert own.iloc[0]["rmse_um"] == pytest.approx(0.4) and str(own.iloc[0]["own"]) == "True"
+    # the format 1 rows (no channel column given) are channel "all"
+    fmt1 = csv[csv["dataset"] == "dsA"]
+    assert set(fmt1["channel"]) == {"all"} and len(fmt1) == len(mixed.query("dataset == 'dsA'"))
+    one = fmt1[(fmt1["family"] == "mlr") & (fmt1["train"] == "s3") & (fmt1["test"] == "s1")].iloc[0]
+    assert (one["compensation_rate"], one["max_abs_residual_um"], one["rmse_um"]) == pytest.approx((-1.5, 25.0, 12.5))
+
+
+def test_channel_table_best_and_baseline_lines(spin_report):
+    out, _, _ = spin_report
+    text = (out / "report.md").read_text(encoding="utf-8")
+    assert "### spin (2 error channels: ch1, ch2)" in text
+    assert "| family | approach | ch1 | ch2 |" in text
+    assert "| base (baseline) | single (mean) | 6.00 | **3.00** |" in text
+    assert "| base (baseline) | global | 5.00 | 6.00 |" in text
+    assert "| fam | single (mean) | 4.00 | 8.00 |" in text
+    assert "| fam | global | **2.50** | 10.00 |" in text
+    assert ("- **ch1**: best thermbench family vs best baseline: 2.50 µm vs 5.00 µm "
+            "(fam · global vs base · global; better than the baseline).") in text
+    assert ("- **ch2**: best thermbench family vs best baseline: 8.00 µm vs 3.00 µm "
+            "(fam · single mean vs base · single mean; NOT better than the baseline).") in text
+    # compensation rate per channel, best = highest: ch1 fam global 75 %, ch2 base single mean 70 %
+    assert "| fam | global | **75.0%** | 0.0% |" in text
+    assert "| base (baseline) | single (mean) | 40.0% | **70.0%** |" in text
+    # before/after: the best thermbench model with curves; ch2's best (single) has none
+    assert "- **ch1**: fam · global (2.50 µm) vs baseline base · global (5.00 µm)." in text
+    assert ("- **ch2**: fam · global (10.00 µm) vs baseline base · global (6.00 µm); the lowest thermbench RMSE, "
+            "fam · single mean (8.00 µm), has no curves") in text
+
+
+def test_channel_figures_exist_are_listed_and_hold_the_right_cells(spin_report):
+    out, _, captured = spin_report
+    text = (out / "report.md").read_text(encoding="utf-8")
+    refs = _referenced_pngs(text)
+    spin_figs = ["figures/rmse_bars__spin.png", "figures/rmse_matrix__spin__base.png",
+                 "figures/rmse_matrix__spin__fam.png", "figures/best_curves__spin.png"]
+    # dsA keeps the single-channel layout: comparison, 2 matrices, before/after
+    dsa_figs = ["figures/compare__dsA.png", "figures/matrix__dsA__mlr.png", "figures/matrix__dsA__physics.png",
+                "figures/curves__dsA.png"]
+    assert sorted(refs) == sorted(spin_figs + dsa_figs)
+    assert sorted(out / r for r in refs) == figure_paths(out)
+    for p in figure_paths(out):
+        assert p.read_bytes()[:8] == PNG_MAGIC, p
+    assert text.index("## spin") > text.index("## dsA")
+    # heatmap of fam: a panel per channel; rows a, b, global; columns a, b | tail
+    panels = captured["rmse_matrix__spin__fam.png"]
+    assert [ch for ch, _, _ in panels] == ["ch1", "ch2"]
+    _, vals, own = panels[1]
+    assert list(vals.index) == ["a", "b", "global"] and list(vals.columns) == ["a", "b", "tail"]
+    assert vals.loc["a", "b"] == pytest.approx(12.0) and vals.loc["global", "tail"] == pytest.approx(10.0)
+    assert own.loc["a", "a"] and not own.loc["a", "b"] and own.loc["global", "b"] and not own.loc["global", "tail"]
+
+
+def test_baselines_are_marked(spin_report):
+    out, mixed, _ = spin_report
+    text = (out / "report.md").read_text(encoding="utf-8")
+    assert "#### base (baseline)" in text and "#### fam\n" in text
+    assert "**Baselines**" in text
+    summary = terminal_summary(mixed, reference=["base"])
+    lines = summary.splitlines()
+    assert "* = baseline family (for comparison, never chosen)" in lines
+    assert any(line.startswith("spin ch1") and "base*" in line for line in lines)
+    assert any(line.strip().startswith("fam ") for line in lines)
+
+
+def test_format1_without_channel_column_is_unchanged(results, tmp_path):
+    """The same results with channel "all" (as the benchmark now writes them) or without the
+    column (older callers) give the same report and the same results.csv."""
+    dsa = results[results["dataset"] == "dsA"]
+    a = write_report(dsa, None, tmp_path / "a")
+    b = write_report(dsa.assign(channel="all"), None, tmp_path / "b")
+    assert a.read_text(encoding="utf-8") == b.read_text(encoding="utf-8")
+    assert (tmp_path / "a" / "results.csv").read_bytes() == (tmp_path / "b" / "results.csv").read_bytes()
+    h = headline(dsa.assign(channel="all"))
+    assert h.index.names == ["dataset", "family", "approach"]
+    assert "RMSE per channel" not in a.read_text(encoding="utf-8")
+
+
+def test_several_channels_need_rmse(tmp_path):
+    with pytest.raises(ValueError, match=r"no column 'rmse_um'.*\['spin'\]"):
+        write_report(_spin_results().drop(columns=["rmse_um"]), None, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_terminal_summary_with_channels_fits_120_columns():
+    """Five channels, nine families with long names, four approaches: labels 'dataset chN',
+    every line at most 120 characters."""
+    rng = np.random.default_rng(1)
+    states = ["rpm1250", "rpm2500", "rpm3750", "rpm5000", "rpm3500"]
+    fams = ["baseline_ols", "baseline_rf", "baseline_hgb", "mlr_seed001", "mlr_seed002", "mlr_seed004", "lssvm",
+            "ar_seed003", "physics_spindle"]
+    rows = []
+    for ch in ["ch1", "ch2", "ch3", "ch4", "ch5"]:
+        for fam in fams:
+            for app, trains in [("single", states), ("global", ["all"]), ("bank", ["all"]), ("bank_soft", ["all"])]:
+                for tr in trains:
+                    for run in states + ["tail"]:
+                        rows.append({"dataset": "fl_thermal", "channel": ch, "family": fam, "approach": app,
+                                     "train": tr, "run_id": run, "kind": "state" if run in states else "validation",
+                                     "own": run == tr or (tr == "all" and run in states),
+                                     "compensation_rate": rng.uniform(-30.0, 1.0),
+                                     "max_abs_residual_um": rng.uniform(0.0, 999.0)})
+    text = terminal_summary(pd.DataFrame(rows), reference=["baseline_ols", "baseline_rf", "baseline_hgb"])
+    lines = text.splitlines()
+    assert max(map(len, lines)) <= 120, max(lines, key=len)
+    assert sum(line.startswith("fl_thermal ch3") for line in lines) >= 1
+    assert "baseline_rf*" in text and "bank_soft:val" in text
+
+
+def test_rmse_matrix_rows_are_the_same_in_every_channel():
+    """A family whose single-state fits all failed on ch2 still gets rows a, b there (n/a)."""
+    spin = _spin_results()
+    spin = spin[~((spin["channel"] == "ch2") & (spin["family"] == "fam") & (spin["approach"] == "single"))]
+    r = report._check_results(spin)
+    fam = r[(r["dataset"] == "spin") & (r["family"] == "fam")]
+    models = report._matrix_models(fam, ["a", "b"])
+    assert models == [("a", "single", "a"), ("b", "single", "b"), ("global", "global", "all")]
+    v1, _ = report._test_matrix(fam[fam["channel"] == "ch1"], "rmse_um", models, ["a", "b", "tail"])
+    v2, o2 = report._test_matrix(fam[fam["channel"] == "ch2"], "rmse_um", models, ["a", "b", "tail"])
+    assert list(v1.index) == list(v2.index) == ["a", "b", "global"]
+    assert v1.loc["b", "tail"] == pytest.approx(5.0)
+    assert np.isnan(v2.loc["a"]).all() and not o2.loc["a"].any()
+    assert v2.loc["global", "tail"] == pytest.approx(10.0) and o2.loc["global", "a"]

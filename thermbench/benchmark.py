@@ -475,7 +475,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     unchosen = sorted(set(_with_case(results)["case"]) - set(chosen["case"]))
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
-    report = write_report(results, curves, report_dir, meta=meta, force=force)  # with results.csv
+    report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines)  # with results.csv
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
@@ -521,7 +521,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
             version = tracking.register(info.model_uri, name)
             tracking.set_alias(name, alias, version)  # 'champion' only for the shipped settings
             registered[d] = f"models:/{name}@{alias}"
-    print(terminal_summary(results))
+    print(terminal_summary(results, reference=baselines))
     for line in flag_lines:
         print(f"flagged (never chosen): {line}")
     for d in unchosen:
