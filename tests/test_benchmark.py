@@ -157,7 +157,8 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
         [run.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{res.mlflow_run_id}'")
     assert {(c.data.tags["model"], c.data.tags["approach"]) for c in children} == {
         ("mlr_seed001", "single"), ("mlr_seed001", "global"),
-        ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "bank")}
+        ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "bank"),
+        ("mlr_seed002", "bank_soft")}
     # run again (e.g. after an interruption): every (dataset, family) task comes from the
     # cache, nothing is refitted, and the report and the MLflow run are made again
     (tmp_path / "reports" / "report.md").unlink()

@@ -163,6 +163,23 @@ BANKS = {"bank": "hard", "bank_soft": "soft"}
 APPROACHES = ("single", "global", *BANKS)
 
 
+def families_by_dataset(cfg, datasets: Sequence[str]) -> dict[str, list[str]]:
+    """The families to run per dataset: ``cfg.families`` for every dataset, or when it is null
+    each dataset option's own ``benchmark_families`` (the shipped benchmark: the measured
+    spindle test gets families the simulated axes do not)."""
+    if cfg.get("families") is not None:
+        fams = _names(cfg, "families", _options("model"))
+        return {d: fams for d in datasets}
+    out = {}
+    for d in datasets:
+        own = group_option("dataset", d).get("benchmark_families")
+        if own is None:
+            raise ExperimentError(f"config key 'families': null, and conf/dataset/{d}.yaml has no benchmark_families; "
+                                  f"give the families, e.g. families=[mlr_seed002]")  # fmt: skip
+        out[d] = _names({"benchmark_families": own}, "benchmark_families", _options("model"))
+    return out
+
+
 def channels_of(ds, dcfg: Mapping) -> list[str]:
     """The error channels a benchmark scores ``ds`` on: the option's ``channel`` when it names
     one, every channel of a format 2 dataset when it is null, ``all`` for format 1."""
@@ -188,16 +205,19 @@ def tasks(cfg: DictConfig) -> list[dict]:
     approaches = _names(cfg, "approaches", list(APPROACHES))
     if not approaches:
         raise ExperimentError(f"config key 'approaches': empty; choose among {', '.join(APPROACHES)}")
-    families = _names(cfg, "families", _options("model"))
-    bank_families = _names(cfg, "bank_families", families, required=False)
-    _names(cfg, "datasets", _options("dataset"))
+    datasets = _names(cfg, "datasets", _options("dataset"))
+    per_dataset = families_by_dataset(cfg, datasets)
+    families = list(dict.fromkeys(f for fams in per_dataset.values() for f in fams))
+    # with each dataset's own families (families: null), bank families a dataset does not run are ignored there
+    bank_families = _names(cfg, "bank_families", families if cfg.get("families") is not None else _options("model"),
+                           required=False)  # fmt: skip
     for key, lo in (("seed", 0), ("n_jobs", -1)):
         v = cfg.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or v < lo or (key == "n_jobs" and v == 0):
             raise ExperimentError(f"config key '{key}': expected an integer >= {lo}{' other than 0' if key == 'n_jobs' else ''}"
                                   f", got {v!r}")  # fmt: skip
     stray = sorted(set(bank_families) - set(families))
-    if stray:
+    if stray and cfg.get("families") is not None:
         raise ExperimentError(f"config key 'bank_families': {stray} are not in 'families' {families}")
     classifier = OmegaConf.to_container(cfg.classifier, resolve=True) if cfg.get("classifier") else None
     version = tracking.code_version()
@@ -209,7 +229,7 @@ def tasks(cfg: DictConfig) -> list[dict]:
             ccfg = dcfg if channel == "all" else {**dcfg, "channel": channel}
             ds = load_split(ccfg).dataset
             data_hash = ds.content_hash()
-            for fam in families:
+            for fam in per_dataset[str(dname)]:
                 lacks = family_lacks(fam, ds)
                 if lacks:  # e.g. the screw physics model on a spindle test: skipped there, and said so
                     if channel == channels_of(raw, dcfg)[0]:
@@ -451,13 +471,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
     parts = [o["curves"] for o in done_tasks if not o["curves"].empty]
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     wall_s = time.perf_counter() - t0
-    baselines = [str(f) for f in cfg.families if reference_only(str(f))]
+    baselines = sorted({t["family"] for t in todo if reference_only(t["family"])})
     chosen = choose(results, exclude=baselines)
     flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
         "datasets": ", ".join(map(str, cfg.datasets)),
-        "families": ", ".join(map(str, cfg.families)),
+        "families": "; ".join(f"{d}: {', '.join(f)}" for d, f in families_by_dataset(cfg, list(map(str, cfg.datasets))).items()),
         "approaches": ", ".join(map(str, cfg.approaches)),
         "thermbench version": __version__,
         "git commit": tracking.git_commit(),
