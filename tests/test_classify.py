@@ -11,11 +11,13 @@ from omegaconf import OmegaConf
 from sklearn.base import clone
 
 from thermbench.classify import (
+    ClassifierError,
     ProximityNaiveBayes,
     classify_motion,
     format_classification,
     learned_features,
     measuring_intervals,
+    operating_window_features,
     window_features,
 )
 from thermbench.config import config_dir
@@ -405,3 +407,96 @@ def test_cli_classify_rejects_inconsistent_stroke_and_learned_classifier(capsys)
     assert main(["classify", "--stroke", "40", "--start", "60", "--end", "100", "--feed", "1250",
                  "--classifier", "learned"]) == 2
     assert "--classifier learned" in capsys.readouterr().err
+
+
+# ------------------------------------------- operating factors (spindle speed) ---
+def speed_rows(rpms, label_of):
+    return pd.DataFrame({"spindle_rpm": rpms}), [label_of[r] for r in rpms]
+
+
+def test_one_factor_proximity_by_hand():
+    """seed 002 eq. 15-19 with the spindle speed as the one factor, levels 1000, 2000 and
+    4000 rpm. At 1600 rpm, eq. 15: 1/600, 1/400, 1/2400; eq. 16 normalises them to
+    4/11, 6/11, 1/11 (x 2400: 4, 6, 1); eq. 19 adds the prior 1/3: the class is 2000
+    and the normalised scores are (4/11 + 1/3) / 2, ... (they sum to 1 + 1)."""
+    X, y = speed_rows([1000.0] * 3 + [2000.0] * 3 + [4000.0] * 3, {1000.0: "a", 2000.0: "b", 4000.0: "c"})
+    q = pd.DataFrame({"spindle_rpm": [1600.0]})
+    p16 = np.array([4 / 11, 6 / 11, 1 / 11])
+    clf = ProximityNaiveBayes(factors=["spindle_rpm"]).fit(X, y)
+    assert clf.factors_ == ("spindle_rpm",) and list(clf.classes_) == ["a", "b", "c"]
+    np.testing.assert_allclose(clf.level_probabilities(q)["spindle_rpm"], [p16])
+    np.testing.assert_allclose(clf.condition_scores(q), [p16 + 1 / 3])
+    np.testing.assert_allclose(clf.predict_proba(q), [(p16 + 1 / 3) / 2])
+    assert list(clf.predict(q)) == ["b"]
+    prox = clone(clf).set_params(probability="proximity").fit(X, y)
+    np.testing.assert_allclose(prox.predict_proba(q), [p16])
+    lin = clone(clf).set_params(probability="linear").fit(X, y)
+    np.testing.assert_allclose(lin.predict_proba(q), [[0.4, 0.6, 0.0]])  # (2000-1600)/1000, (1600-1000)/1000
+    # the proximity rule beyond the known speeds: 500 -> 1000, 4500 -> 4000; an exact level has probability 1
+    out = pd.DataFrame({"spindle_rpm": [500.0, 4500.0, 2000.0]})
+    assert list(clf.predict(out)) == ["a", "c", "b"]
+    np.testing.assert_allclose(prox.predict_proba(out)[0], [21 / 31, 7 / 31, 3 / 31])  # 1/500 : 1/1500 : 1/3500
+    np.testing.assert_allclose(prox.predict_proba(out)[2], [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(lin.predict_proba(out)[:2], [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_operating_levels_from_the_conditions_keep_close_speeds_apart():
+    """fl_thermal's speeds: 3500 and 3750 rpm differ by 250 rpm = 5 % of the largest (5000),
+    which merges motion levels; operating levels merge within 5 % of the larger neighbour."""
+    rpms = [1250.0, 2500.0, 3500.0, 3750.0, 5000.0]
+    X, y = speed_rows(rpms, {r: f"rpm{int(r)}" for r in rpms})
+    clf = ProximityNaiveBayes(factors=["spindle_rpm"]).fit(X, y)
+    np.testing.assert_allclose(clf.levels_["spindle_rpm"], rpms)
+    with pytest.raises(ValueError, match=r"conditions \['rpm3500', 'rpm3750'\] map to the same levels"):
+        ProximityNaiveBayes(factors=["spindle_rpm"], level_tolerance=0.1).fit(X, y)
+    given = ProximityNaiveBayes(factors=["spindle_rpm"], levels={"spindle_rpm": [1000, 2500, 3600, 5000]})
+    with pytest.raises(ValueError, match=r"config key 'classifier.levels.spindle_rpm'"):
+        given.fit(X, y)  # 3500 and 3750 both nearest 3600
+
+
+def test_preset_operating_conditions_need_no_data():
+    clf = ProximityNaiveBayes(factors=["spindle_rpm"], conditions={"slow": {"spindle_rpm": 1000},
+                                                                   "fast": {"spindle_rpm": 4000}}).fit()  # fmt: skip
+    assert list(clf.predict(pd.DataFrame({"spindle_rpm": [2400.0, 2600.0]}))) == ["slow", "fast"]
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"factors": "spindle_rpm"}, "config key 'classifier.factors': factors must be null"),
+        ({"factors": ["spindle_rpm", "spindle_rpm"]}, "names a column twice"),
+        ({"factors": ["spindle_rpm"], "stroke_levels_mm": [50.0]}, "'classifier.stroke_levels_mm'.*motion level"),
+        ({"levels": {"spindle_rpm": [1000.0]}}, "'classifier.levels'.*set factors"),
+        ({"factors": ["spindle_rpm"], "levels": {"load_N": [1.0]}}, r"levels names \['load_N'\]"),
+        ({"factors": ["spindle_rpm"], "probability": "soft"}, r"'classifier.probability'.*\['score', 'proximity'"),
+        ({"factors": ["spindle_rpm"], "conditions": {"a": {"rpm": 1.0}}},
+         r"conditions\['a'\]: missing \['spindle_rpm'\]"),
+    ],
+)  # fmt: skip
+def test_bad_operating_classifier_config(kwargs, match):
+    X, y = speed_rows([1000.0, 2000.0], {1000.0: "a", 2000.0: "b"})
+    with pytest.raises(ValueError, match=match):
+        ProximityNaiveBayes(**kwargs).fit(X, y)
+
+
+def test_operating_features_missing_column_is_named():
+    clf = ProximityNaiveBayes(factors=["spindle_rpm"]).fit(*speed_rows([1000.0, 2000.0], {1000.0: "a", 2000.0: "b"}))
+    with pytest.raises(ValueError, match=r"missing column\(s\) \['spindle_rpm'\]"):
+        clf.predict(pd.DataFrame({"feed_mm_min": [1.0]}))
+    with pytest.raises(ClassifierError, match="classifies axis motion"):
+        classify_motion(100, 60, 160, 1250, classifier=clf)
+
+
+def test_operating_window_features_by_hand():
+    """A 10 s log: 1000 rpm until 300 s, stopped until 400 s, 3000 rpm until 1000 s, then
+    stopped. The window (90, 690] holds 20 samples at 1000, 10 stopped, 30 at 3000: the
+    running mean is (20 x 1000 + 30 x 3000) / 50 = 2200 rpm (the stop does not dilute it);
+    (990, 1590] has one running sample (10 s < min_moving_s 60): a stop; (1040, 1640] none."""
+    t = np.arange(0.0, 2000.0, 10.0)
+    rpm = np.where(t < 300, 1000.0, np.where(t < 400, 0.0, np.where(t < 1000, 3000.0, 0.0)))
+    w = operating_window_features(pd.DataFrame({"t_s": t, "spindle_rpm": rpm}), [690.0, 1590.0, 1640.0],
+                                  ["spindle_rpm"], window_s=600.0, min_moving_s=60.0)  # fmt: skip
+    assert w.loc[0, "spindle_rpm"] == pytest.approx(2200.0, rel=1e-12) and w.loc[0, "moving"]
+    assert list(w["moving"]) == [True, False, False] and w.loc[1:, "spindle_rpm"].isna().all()
+    with pytest.raises(ValueError, match=r"no column\(s\) \['spindle_rpm'\]"):
+        operating_window_features(pd.DataFrame({"t_s": t}), [690.0], ["spindle_rpm"])
