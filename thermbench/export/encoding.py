@@ -320,12 +320,27 @@ def _encode_ar(m, channels, where) -> Encoded:
                    needs_load=any(c == "load_N" for c, _ in m.operating_))  # fmt: skip
 
 
+def _check_c_bank(bank, where: str) -> None:
+    """What the C runtime's bank does: a hard switch (seed 002 §2.5) on the axis motion of
+    the sample (tb_sample: axis_mm, feed_mm_min); a bank classified on an operating input
+    (a spindle speed: tb_sample has no such field) or blending its members is refused."""
+    inputs = tuple(getattr(bank, "condition_inputs_", ()))
+    if inputs:
+        raise ExportError(f"{where}: a bank classified on the operating input(s) {list(inputs)} cannot be exported "
+                          "to the C runtime yet (it classifies the axis motion only)")  # fmt: skip
+    if getattr(bank, "blend", "hard") != "hard":
+        raise ExportError(f"{where}: a soft bank (blend {bank.blend!r}) cannot be exported to the C runtime yet "
+                          "(it switches to one member: blend 'hard')")  # fmt: skip
+
+
 def encode_classifier(bank, period_s: float, where: str = "classifier") -> Encoded:
     """seed 002 eq. 15-19 with the bank's window. Body: window_s, step_s, min_moving_s,
     levels A[nA] (stroke), B[nB] (start + end), C[nC] (feed), then per condition its
-    three level indices (conditions in the classifier's class order)."""
+    three level indices (conditions in the classifier's class order). A bank classified
+    on an operating input, or a soft bank, is an ExportError (:func:`_check_c_bank`)."""
     from ..classify import FACTORS, ProximityNaiveBayes
 
+    _check_c_bank(bank, where)
     clf = bank.classifier_
     if type(clf) is not ProximityNaiveBayes:
         raise ExportError(f"{where}: classifier {type(clf).__name__} has no C implementation (ProximityNaiveBayes has)")
