@@ -349,18 +349,19 @@ def _names(cfg, key: str, known: Sequence[str], required: bool = True) -> list[s
     return names
 
 
-def choose(results: pd.DataFrame, exclude: Sequence[str] = ()) -> pd.DataFrame:
+def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable[tuple[str, str, str]] = ()) -> pd.DataFrame:
     """Per dataset and channel, the (family, approach) to deploy: the best worst-case
     compensation rate on the validation runs (ties: the smaller max residual). Single-state
     models are not candidates: which state would you train on? Nor is a family in ``exclude``
-    (the baselines), a model with a non-finite score on any run, or one that makes the error
+    (the baselines), a (case, family, approach) in ``blocked`` (one the C runtime cannot run:
+    the chosen model is the one to deploy), a model with a non-finite score on any run, or one that makes the error
     worse than no compensation on its own training runs (:func:`flagged`). Note that the
     choice is made on the same validation runs the headline reports, so the chosen model's
     figures are not an independent estimate (the report says so). Columns: ``dataset``,
     ``channel``, ``case`` (:func:`case_label`), ``family``, ``approach``, ``worst_rate``,
     ``max_residual_um``."""
     results = _with_case(results)
-    bad = {k[:3] for k in flagged(results)}
+    bad = {k[:3] for k in flagged(results)} | set(blocked)
     keep = [(d, f, a) not in bad and f not in exclude
             for d, f, a in zip(results["case"], results["family"], results["approach"])]  # fmt: skip
     results = results[keep]
@@ -472,7 +473,17 @@ def benchmark(cfg: DictConfig) -> JobResult:
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     wall_s = time.perf_counter() - t0
     baselines = sorted({t["family"] for t in todo if reference_only(t["family"])})
-    chosen = choose(results, exclude=baselines)
+    from .export.encoding import export_blocker
+
+    blockers = {}  # (case, family, approach) -> why the C runtime cannot run it: never chosen
+    for o in done_tasks:
+        if o["family"] in baselines:
+            continue
+        for a, m in o["models"].items():
+            why = export_blocker(m)
+            if why:
+                blockers[(case_label(o["dataset"], o.get("channel", "all")), o["family"], a)] = why
+    chosen = choose(results, exclude=baselines, blocked=blockers)
     flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
@@ -492,6 +503,9 @@ def benchmark(cfg: DictConfig) -> JobResult:
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
     if flag_lines:
         meta["flagged (never chosen)"] = " | ".join(flag_lines)
+    if blockers:
+        meta["not exportable to the C runtime (never chosen)"] = " | ".join(
+            f"{c}/{f}/{a}" for c, f, a in blockers) + " — " + "; ".join(sorted(set(blockers.values())))
     unchosen = sorted(set(_with_case(results)["case"]) - set(chosen["case"]))
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"

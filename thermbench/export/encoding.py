@@ -394,3 +394,21 @@ def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, per
     except ModelError as exc:
         raise ExportError(f"{where}: {exc}") from None
     return check_limits(enc, where)
+
+
+def export_blocker(model) -> str | None:
+    """Why ``model`` cannot go to the C runtime, in one line, or None when it can: what
+    ``thermbench benchmark`` checks before choosing a model to deploy. Encodes the model (and
+    a bank's classifier and members) without writing anything."""
+    from ..models.bank import ConditionBank
+
+    try:
+        if isinstance(model, ConditionBank):
+            encode_classifier(model, period_s=1.0, where="the bank's classifier")
+            for label, member in model.models_.items():
+                encode(member, where=f"the bank's member {label!r}")
+        else:
+            encode(model)
+    except ExportError as exc:
+        return str(exc)
+    return None
