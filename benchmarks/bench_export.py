@@ -67,7 +67,7 @@ def one(model_dir: Path, seconds: float, exe: Path) -> dict:
     files = ([model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
              if bank else [model_dir / man["files"]["model"]["file"]])  # fmt: skip
     inf = info(files)
-    temps = [ds.metadata.sensor_column(s) for s in man["temperatures"]]
+    temps = [ds.metadata.sensor_column(s) for s in man["temperatures"]] + list(man.get("operating", []))
     pr = process_samples(ds, run)
     pr = pr[pr["t_s"] <= pr["t_s"].iloc[0] + seconds].reset_index(drop=True)
     q = pd.DataFrame({"t_s": pr["t_s"], "axis_mm": pr["axis_mm"]})

@@ -25,7 +25,8 @@
  * (tb_model_ready_s() >= t). Between samples, inputs are linear in time, as
  * numpy.interp over the process log; the physics model answers from the
  * thermal-error table of its last two macro steps (seed 000 §4.3), the
- * auto-regressive model from its last two grid steps.
+ * auto-regressive model from its last two grid steps, the lumped network from
+ * its last grid states (docs/concepts.md, physics_spindle).
  *
  * All numbers carry their unit in the name (_s, _mm, _um, _C, _mm_min, _N).
  */
@@ -62,6 +63,8 @@ typedef TB_REAL tb_real;
 #define TB_MAX_LAGS 4096u
 #define TB_MAX_NODES 4096u
 #define TB_MAX_AR_ORDER 64u
+#define TB_MAX_LUMPED_NODES 8u   /* nodes of a lumped network's chain (thermbench fits 1..6) */
+#define TB_MIN_LUMPED_STEP_S 1.0 /* shortest grid step of a lumped network (its state ring is 60 s / step) */
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
 #define TB_MAX_FEEDS 64u /* distinct feeds in one classifier window */
@@ -72,6 +75,8 @@ typedef TB_REAL tb_real;
 #define TB_MAX_AXIS_MM 1e7
 #define TB_MAX_FEED_MM_MIN 1e6
 #define TB_MAX_LOAD_N 1e9
+#define TB_MAX_OPERATING 1e9 /* |operating input| of a lumped network (e.g. spindle_rpm) */
+#define TB_MAX_HEAT 1e30     /* (u/u_ref)^p beyond it is refused */
 #define TB_MIN_TEMP_C (-273.15)
 #define TB_MAX_TEMP_C 2000.0
 
@@ -85,7 +90,8 @@ enum {
     TB_KIND_PHYSICS = 6,    /* seed 000 §3.1-3.2 finite differences + effects */
     TB_KIND_AR = 7,         /* seed 003 ARX on operating parameters */
     TB_KIND_CLASSIFIER = 8, /* seed 002 eq. 15-19 proximity naive Bayes */
-    TB_KIND_MAX = 8
+    TB_KIND_LUMPED = 9,     /* lumped thermal network of a spindle (docs/concepts.md, physics_spindle) */
+    TB_KIND_MAX = 9
 };
 
 /* error codes (all < 0) */
@@ -116,7 +122,10 @@ typedef struct {
     double axis_mm;
     double feed_mm_min;
     double load_N;
-    const double *temps_C; /* the exported input sensors, in manifest order */
+    /* the exported input channels, in manifest order: the temperature sensors (degC), then the
+     * operating inputs that have no field here (manifest "operating", e.g. spindle_rpm of a
+     * lumped network), each in its own unit */
+    const double *temps_C;
     uint32_t n_temps;
     int measuring; /* nonzero inside a measuring cycle (left out of the motion features) */
 } tb_sample;

@@ -66,6 +66,17 @@ def model_inputs(model: ThermalErrorModel) -> list[str]:
     return list(model.required_inputs().sensors)
 
 
+#: the process columns tb_sample carries itself (tb_runtime.h)
+SAMPLE_COLUMNS = ("t_s", "axis_mm", "feed_mm_min", "load_N")
+
+
+def operating_inputs(model: ThermalErrorModel) -> list[str]:
+    """The operating inputs the exported files read as input channels after the temperatures
+    (``tb_sample.temps_C[len(temperatures) + i]``, manifest ``operating``): the process columns a
+    model reads that tb_sample has no field for, e.g. the spindle_rpm of a lumped network."""
+    return [c for c in model.required_inputs().operating if c not in SAMPLE_COLUMNS]
+
+
 def sample_period_s(ds) -> float:
     """The process log's sample period (median step; the contract logs at >= 1 Hz)."""
     dt = ds.process.groupby("run_id", sort=False)["t_s"].diff().dropna()
@@ -198,6 +209,11 @@ def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: st
                               f"it has {list(ds.metadata.sensors)}")  # fmt: skip
         temps.append(col)
     samples = process_samples(ds, run) if samples is None else samples
+    for c in man.get("operating", []):  # input channels after the temperatures
+        if c not in samples.columns:
+            raise ExportError(f"{model_dir}: the model reads the operating input {c!r}, which run {run!r} of {ds.path} "
+                              f"lacks; its process columns: {list(samples.columns)}")  # fmt: skip
+        temps.append(c)
     if man.get("needs_load") and "load_N" not in samples:
         raise ExportError(f"{model_dir}: the model reads load_N, which run {run!r} of {ds.path} lacks")
     if man["kind"] == "bank":
@@ -241,7 +257,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         raise ExportError(f"{name}: expected a fitted thermbench model, got {type(model).__name__}")
     period = sample_period_s(ds) if ds is not None else 1.0
     temps = model_inputs(model)
-    channels = {s: i for i, s in enumerate(temps)}
+    ops = operating_inputs(model)
+    channels = {s: i for i, s in enumerate([*temps, *ops])}
     out_dir = Path(out_dir)
     source = dict(source or {})
     heldout = [r for r in heldout if ds is not None and r in ds.run_ids]
@@ -298,7 +315,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["sample_period_s"] = period
         man["sample_period_from"] = period_note
         man["temperatures"] = temps
-        man["inputs"] = _inputs_json(ds, temps, man["needs_load"], man["kind"] == "bank")
+        man["operating"] = ops
+        man["inputs"] = _inputs_json(ds, temps, man["needs_load"], man["kind"] == "bank", ops)
         per_file = {f: {s: _filters_json(e, s) for s in e.sensors} for f, e in encs.items()}
         man["preprocessing"] = {}
         for s in temps:
@@ -354,7 +372,7 @@ def footprint(model_dir: Path, man: dict) -> dict:
             "within_budget": not over, "over_budget": over}  # fmt: skip
 
 
-def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool) -> list[dict]:
+def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: Sequence[str] = ()) -> list[dict]:
     out = [{"name": "t_s", "unit": "s", "what": "time of the process sample (uniform period)"},
            {"name": "axis_mm", "unit": "mm", "what": "axis position"},
            {"name": "feed_mm_min", "unit": "mm/min", "what": "feed"}]  # fmt: skip
@@ -365,6 +383,9 @@ def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool) -> list[dic
     for i, s in enumerate(temps):
         loc = ds.metadata.sensors.get(s) if ds is not None else None
         out.append({"name": f"{s}_C", "unit": "°C", "sensor": s, "location": loc, "channel": i})
+    for i, c in enumerate(operating):
+        out.append({"name": c, "unit": c.rsplit("_", 1)[-1] if "_" in c else "", "channel": len(temps) + i,
+                    "what": "operating input (process column), in temps_C after the temperatures"})  # fmt: skip
     return out
 
 

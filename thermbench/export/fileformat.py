@@ -47,6 +47,7 @@ class Kind(enum.IntEnum):
     PHYSICS = 6
     AR = 7
     CLASSIFIER = 8
+    LUMPED = 9  # lumped thermal network of a spindle (docs/concepts.md; :mod:`.lumped_encoding`)
 
 
 class ModelFileError(ValueError):

@@ -9,6 +9,7 @@ nothing of the models is computed here. Per control cycle::
 
     live = LiveModel(export_dir)
     rc = live.step(t_s, axis_mm, feed_mm_min, temps_C)      # temps_C in live.temperatures order
+                                                            # (+ operating=[...] in live.operating order)
     rc, thermal_um, total_um, label = live.predict(t_s, axis_mm)  # compensation = -total_um
 
 Runtime codes are returned, never raised (a compensator skips a refused sample and goes
@@ -95,6 +96,8 @@ class LiveModel:
         self.manifest: dict = read_manifest(self.model_dir)
         man = self.manifest
         self.temperatures: list[str] = list(man["temperatures"])
+        # operating inputs without a tb_sample field (e.g. spindle_rpm): input channels after the temperatures
+        self.operating: list[str] = list(man.get("operating", []))
         self.needs_load: bool = bool(man.get("needs_load", False))
         self.period_s: float = float(man["sample_period_s"])
         self.is_bank: bool = man["kind"] == "bank"
@@ -153,15 +156,17 @@ class LiveModel:
                 raise ExportError(f"{self.model_dir}: the C runtime refuses the bank: {msg}")
 
     def step(self, t_s: float, axis_mm: float, feed_mm_min: float, temps_C: Sequence[float], load_N: float = 0.0,
-             measuring: bool = False) -> int:  # fmt: skip
-        """One control cycle (one process-log sample); ``temps_C`` in :attr:`temperatures` order.
+             measuring: bool = False, operating: Sequence[float] = ()) -> int:  # fmt: skip
+        """One control cycle (one process-log sample); ``temps_C`` in :attr:`temperatures` order,
+        ``operating`` in :attr:`operating` order (e.g. the spindle speed of a lumped network).
         Returns the runtime's code: 0, or e.g. ``TB_E_INPUT`` / ``TB_E_SAMPLING`` for a sample it
         refuses (nothing changes then; the next sample is taken as usual). After a gap longer than
         ``TB_MAX_GAP_S`` (60 s) every sample is ``TB_E_SAMPLING``: :meth:`start` again."""
-        n = len(temps_C)
+        vals = [*temps_C, *operating]
+        n = len(vals)
         if n > len(self._temps):
             self._temps = (ctypes.c_double * n)()
-        self._temps[:n] = [float(v) for v in temps_C]
+        self._temps[:n] = [float(v) for v in vals]
         s = self._sample
         s.t_s, s.axis_mm, s.feed_mm_min, s.load_N = float(t_s), float(axis_mm), float(feed_mm_min), float(load_N)
         s.temps_C = self._temps

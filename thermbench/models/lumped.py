@@ -607,6 +607,12 @@ class LumpedThermalNetwork(ThermalErrorModel):
             out = out + self._rises(ds, run, t_s) @ self._coef_[na:-1]
         return out
 
+    def export_encoding(self, channels, period_s, where):
+        """The C runtime's ``LUMPED`` kind (:func:`thermbench.export.lumped_encoding.encode_lumped`)."""
+        from ..export.lumped_encoding import encode_lumped
+
+        return encode_lumped(self, channels, period_s, where)
+
     def _model_inputs(self) -> Inputs:
         amb = self.ambient_sensor_
         return Inputs(
