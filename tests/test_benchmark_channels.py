@@ -53,3 +53,20 @@ def test_a_dataset_option_gives_a_family_its_settings():
         bm.model_config("gru", {"benchmark_models": {"lsvm": {}}}, "d")
     with pytest.raises(ExperimentError, match=r"key 'benchmark_models.lssvm.max_sample': conf/model/lssvm.yaml has no"):
         bm.model_config("lssvm", {"benchmark_models": {"lssvm": {"max_sample": 3}}}, "d")
+
+
+def test_a_model_of_several_runs_is_judged_on_them_together():
+    """Hand-made rows: a global model leaves 2 µm on a block whose drift peaks at 1 µm (rate
+    -100 % there) but 3 µm on a block of 20 µm: over its training runs taken together it
+    compensates (1 - 3/20 = 85 %), so it is not flagged; one trained on the small block alone is."""
+    from thermbench.experiment import model_flags
+
+    rows = pd.DataFrame([
+        dict(run_id="small", own=True, rmse_um=1.0, max_abs_residual_um=2.0, max_abs_error_um=1.0, compensation_rate=-1.0),
+        dict(run_id="big", own=True, rmse_um=1.0, max_abs_residual_um=3.0, max_abs_error_um=20.0, compensation_rate=0.85),
+    ])  # fmt: skip
+    assert model_flags(rows) == []
+    assert model_flags(rows.iloc[:1]) == ["worse than no compensation on its own training run(s) ['small'] "
+                                          "(rate -100.0 % on small)"]  # fmt: skip
+    rows.loc[1, "max_abs_residual_um"] = 25.0  # now worse than the largest drift itself
+    assert "over them taken together" in model_flags(rows)[0]

@@ -318,3 +318,15 @@ def test_auto_picks_the_sensor_that_acts_by_leave_one_run_out():
     # scored with the speed-only time constants, then identified again with the sensor
     assert m.sensor_selection_[1][1] < 0.5 * m.sensor_selection_[0][1]
     assert m.sensor_gains_um_per_C_[0] == pytest.approx(k_col, rel=0.01)
+
+
+def test_node_count_chosen_by_leave_one_run_out(two_node_data):
+    """Data of a two-node chain (solve_ivp): one node cannot follow it, two can; the held-out
+    run picks two (three nodes contain two, so a held-out score cannot reject them reliably)."""
+    ds, _, noise = two_node_data
+    m = LumpedThermalNetwork(n_nodes=[1, 2], preprocess=None).fit(ds, ["a", "b"])
+    scores = dict(m.node_selection_)
+    assert m.n_nodes_ == 2 and set(scores) == {1, 2}
+    assert scores[2] < 0.5 * scores[1]
+    with pytest.raises(ModelError, match=r"n_nodes: expected an integer 1..6 or a non-empty list"):
+        LumpedThermalNetwork(n_nodes=[]).fit(ds, ["a", "b"])

@@ -188,7 +188,11 @@ class LumpedThermalNetwork(ThermalErrorModel):
 
     Parameters
     ----------
-    n_nodes : number of thermal nodes in the chain (1..6; default 2).
+    n_nodes : number of thermal nodes in the chain (1..6; default 2), or a list of
+        candidates: each is identified on the operating input alone (with its own sensor
+        selection when ``sensors="auto"``) and scored by the same leave-one-run-out RMSE as
+        the sensors (see ``max_sensors``); the lowest wins (``node_selection_``: each
+        candidate's score).
     operating : process column of the heat-producing operating signal (e.g.
         ``"spindle_rpm"``); None = the dataset's first operating input
         (``metadata.operating_inputs()[0]``).
@@ -412,19 +416,37 @@ class LumpedThermalNetwork(ThermalErrorModel):
         # the matrices are tiny (n+1 square, a few columns): threaded BLAS only costs time
         # (on a busy machine an expm of 3x3 took 16 ms with threads, 15 us without)
         with threadpool_limits(limits=1, user_api="blas"):
-            chosen = self._auto_sensors(ds, runs) if self.sensors == "auto" else None
-            self._identify(ds, runs, chosen)
-            if chosen is not None:
-                self.sensor_selection_ = self._selection_steps
+            candidates = self._node_candidates()
+            if len(candidates) == 1 and self.sensors != "auto":
+                self._identify(ds, runs, None, candidates[0])
+                return
+            # leave-one-run-out RMSE of each node count (with its own sensor selection): the lowest wins
+            scored = [(*self._select(ds, runs, n), n) for n in candidates]
+            cv, sensors, steps, n = min(scored, key=lambda r: r[0])
+            self._identify(ds, runs, sensors, n)
+            self.node_selection_ = [(k, score) for score, _, _, k in scored]
+            if self.sensors == "auto":
+                self.sensor_selection_ = steps
 
-    def _auto_sensors(self, ds: Dataset, runs: list[str]) -> list[str]:
-        """``sensors="auto"``: forward selection by cross-validated RMSE (see ``max_sensors``)."""
+    def _node_candidates(self) -> list[int]:
+        v = self.n_nodes
+        if isinstance(v, (list, tuple)):
+            if not v:
+                raise ModelError("n_nodes: expected an integer 1..6 or a non-empty list of them, got []")
+            return [check_int("n_nodes", k, 1, 6) for k in v]
+        return [check_int("n_nodes", v, 1, 6)]
+
+    def _select(self, ds: Dataset, runs: list[str], n: int) -> tuple[float, list[str] | None, list]:
+        """For ``n`` nodes: the network identified on the operating input alone, then the sensors
+        (``sensors="auto"``: forward selection by cross-validated RMSE, see ``max_sensors``;
+        else the given ones) scored with it. Returns (cross-validated RMSE, sensors, steps)."""
         k_max = check_int("max_sensors", self.max_sensors, 1)
-        base = type(self)(**{**self.get_params(), "sensors": None})
-        base._identify(ds, runs, [])
+        base = type(self)(**{**self.get_params(), "sensors": None, "n_nodes": n})
+        base._identify(ds, runs, [], n)
         base.train_runs_ = list(runs)
-        cands = list(ds.metadata.sensors)
-        if not cands:
+        auto = self.sensors == "auto"
+        cands = list(ds.metadata.sensors) if auto else self._sensor_names(ds)
+        if auto and not cands:
             raise ModelError(f"sensors: 'auto' needs temperature sensors; the dataset {_name(ds)} has none")
         rd = readings(ds, runs)
         phi, rises, y, fold = [], [], [], []
@@ -450,21 +472,23 @@ class LumpedThermalNetwork(ThermalErrorModel):
                 sq += float(np.sum((X[te] @ coef - y[te]) ** 2))
             return math.sqrt(sq / y.size)
 
+        if not auto:  # the given sensors: only scored
+            return cv_rmse(list(range(len(cands)))), None, []
         chosen: list[int] = []
         best = cv_rmse(chosen)
-        self._selection_steps = [("(operating input only)", best)]
+        steps = [("(operating input only)", best)]
         while len(chosen) < min(k_max, len(cands)):
             score, j = min((cv_rmse(chosen + [j]), j) for j in range(len(cands)) if j not in chosen)
             if score > 0.97 * best:
                 break
             chosen.append(j)
             best = score
-            self._selection_steps.append((cands[j], score))
-        return [cands[j] for j in chosen]
+            steps.append((cands[j], score))
+        return best, [cands[j] for j in chosen], steps
 
-    def _identify(self, ds: Dataset, runs: list[str], sensors: list[str] | None = None) -> None:
+    def _identify(self, ds: Dataset, runs: list[str], sensors: list[str] | None = None, n_nodes: int = 2) -> None:
         t_start = time.perf_counter()
-        self.n_nodes_ = check_int("n_nodes", self.n_nodes, 1, 6)
+        self.n_nodes_ = n_nodes
         self.step_ = check_real("step_s", self.step_s, positive=True)
         n_starts = check_int("n_starts", self.n_starts, 1)
         tau_lo, tau_hi = self._bounds("tau_bounds_s", self.tau_bounds_s)
