@@ -208,7 +208,15 @@ def _source_name(e: dict) -> str:
 def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path) -> list[dict]:
     rows = []
     cache: dict = {}
+    every = e.get("select", "all") == "all" and len(items) > 1
     for key, model, info in items:
+        if every:  # select all: what the C runtime cannot run (a baseline, a soft bank) is skipped, and said so
+            from .encoding import export_blocker
+
+            why = export_blocker(model)
+            if why:
+                print(f"thermbench export: skipped {key}: {why}", file=sys.stderr)
+                continue
         dname, sp = _dataset_split(e, info, key, cache, model)
         ds, heldout = None, []
         if sp is not None:

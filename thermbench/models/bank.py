@@ -249,6 +249,7 @@ class ConditionBank(ThermalErrorModel):
         inputs = condition_inputs(dataset, list(seen), require=False)
         self._build(dataset, {str(k): v for k, v in fitted.items()}, inputs)
         self.train_runs_ = list(seen)
+        self.channel_ = dataset.channel  # as fit() sets it: the error channel of a format 2 dataset
         return self
 
     def _new_classifier(self, inputs: tuple[str, ...]):
