@@ -54,6 +54,7 @@ bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/bench_lssvm_reduced.py
 	$(BIN)/python benchmarks/bench_compensator.py
 	$(BIN)/python benchmarks/bench_notebooks.py
+	$(BIN)/python benchmarks/bench_fl_thermal.py
 
 # the loader and runtime under libFuzzer + ASan + UBSan; corpus grows in $(FUZZ_DIR)/corpus
 fuzz:
