@@ -30,5 +30,5 @@ def test_link_checker_sees_links_and_ignores_code_and_urls():
 
 
 def test_readme_picture_is_a_png():
-    png = ROOT / "docs" / "img" / "demo_before_after.png"
+    png = ROOT / "docs" / "img" / "fl_thermal_tail.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -208,6 +208,8 @@ def load_yaml(text: str) -> tuple[object, dict[tuple, int]]:
         mark = exc.problem_mark or exc.context_mark
         problem = "; ".join(p for p in (exc.context, exc.problem) if p) or "not valid YAML"
         line = _line(mark)
+        if "maximum nesting depth" in problem:  # PyYAML >= 6.0.4 stops deep nesting in its scanner, before the composer
+            raise YAMLInputError(f"nested deeper than {StrictLoader.max_depth} levels", line) from None
         if line is not None and text.split("\n", line)[min(line, text.count("\n") + 1) - 1].startswith("\t"):
             problem += " (a tab: indent YAML with spaces)"
         raise YAMLInputError(f"not valid YAML: {problem}", line) from None
