@@ -102,8 +102,7 @@ def main() -> None:
               f"{' (half or better)' if ratio <= 0.5 else ''}")  # fmt: skip
     print(f"target 'beats the best baseline on every channel': {'met' if ok else 'NOT met'}")
 
-    exports = work / "exports"
-    shutil.rmtree(exports, ignore_errors=True)  # this script's own scratch directory
+    exports = Path(tempfile.mkdtemp(prefix="exports-", dir=work))  # new and empty: nothing of anyone's replaced
     run([sys.executable, "-m", "thermbench", "export", f"export.source={models}", "export.select=chosen",
          f"export.out_dir={exports}",
          f"hydra.run.dir={work}/hydra-export", f"tracking.uri=sqlite:///{work}/mlflow0.db"], work)  # fmt: skip
@@ -112,8 +111,7 @@ def main() -> None:
     for d in sorted(p for p in exports.iterdir() if (p / "manifest.json").is_file()):
         man = json.loads((d / "manifest.json").read_text())
         par = man.get("parity", {}).get("model", {})
-        out = work / f"replay-{d.name}"
-        shutil.rmtree(out, ignore_errors=True)  # this script's own scratch directory
+        out = Path(tempfile.mkdtemp(prefix=f"replay-{d.name}-", dir=work))
         run([sys.executable, "-m", "thermbench", "replay", str(d), str(data), "--run", TAIL, "--out", str(out)], work)
         fig = json.loads((out / "replay.json").read_text())
         before, after = fig.get("before_rms_um"), fig.get("after_rmse_um")
