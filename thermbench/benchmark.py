@@ -278,21 +278,27 @@ def model_config(family: str, dcfg: Mapping, dname: str) -> dict:
     return base
 
 
+def family_class(family: str):
+    """The model class of option ``family`` (``conf/model/<family>.yaml``); for a bank option,
+    the class of the models inside it. None when the option names no ``_target_``."""
+    from hydra._internal.utils import _locate
+
+    opt = group_option("model", family)
+    target = opt.get("_target_")
+    if target is None:
+        return None
+    if str(target).endswith("ConditionBank") and opt.get("model", {}).get("_target_"):
+        target = opt["model"]["_target_"]
+    return _locate(str(target))
+
+
 def family_lacks(family: str, ds) -> str | None:
     """What dataset ``ds`` lacks that model family ``family`` needs (its class's ``needs``,
     :func:`thermbench.models.base.missing_needs`), as text; None when it has everything."""
-    from hydra._internal.utils import _locate
-
     from .models.base import NEEDS, missing_needs
 
-    target = group_option("model", family).get("_target_")
-    if target is None:
-        return None
-    cls = _locate(str(target))
-    if str(target).endswith("ConditionBank"):
-        inner = group_option("model", family).get("model", {}).get("_target_")
-        cls = _locate(str(inner)) if inner else cls
-    missing = missing_needs(cls, ds)
+    cls = family_class(family)
+    missing = missing_needs(cls, ds) if cls is not None else []
     return "needs " + "; and ".join(NEEDS[m] for m in missing) if missing else None
 
 
@@ -319,10 +325,7 @@ def _with_case(results: pd.DataFrame) -> pd.DataFrame:
 def reference_only(family: str) -> bool:
     """True for a baseline family (``reference_only`` on its class): in the tables for
     comparison, never chosen for deployment."""
-    from hydra._internal.utils import _locate
-
-    target = group_option("model", family).get("_target_")
-    return bool(target) and bool(getattr(_locate(str(target)), "reference_only", False))
+    return bool(getattr(family_class(family), "reference_only", False))
 
 
 def _options(group: str) -> list[str]:
