@@ -118,6 +118,39 @@ def test_fast_integrator_matches_the_explicit_seed000_scheme():
     assert ref.max() > 10.0  # a real signal, not two zeros
 
 
+def test_extra_nut_heat_of_an_effect_matches_the_explicit_scheme():
+    """The macro path averages an effect's extra nut heat over the nut's coverage in a
+    second pass; the explicit scheme adds it sample by sample (an independent route)."""
+    from thermbench.sim.effects import make_effect
+
+    _, motion = seed000_motion(9000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+    model = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k4_W_per_mm_min=0.0),
+                              effects=[make_effect("quadratic_friction_heat")])  # fmt: skip
+    grid = np.arange(0.0, 501.0, 25.0)
+    fast = model.run(motion, method="macro").error_field_um(grid)
+    ref = model.run(motion, method="explicit").error_field_um(grid)
+    assert ref.max() > 1.0  # the effect's heat alone moves the screw
+    assert np.max(np.abs(fast - ref)) < 0.02 * ref.max()
+
+
+def test_a_prepared_run_serves_models_that_differ_in_heat_gains_only():
+    """Identification re-runs one motion with other k1..k4 and lambda: one prepare() serves
+    them; a model with another Pf refuses it."""
+    _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+    amb = 20.0 + 0.3 * np.sin(motion.t_s / 2000.0)
+    a = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams())
+    b = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k1_W_m2K_per_mm_min=0.002, k2_W_m2K=20.0,
+                          k3_W_per_mm_min=0.0, k4_W_per_mm_min=0.002, lambda_W_mK=30.0))  # fmt: skip
+    grid = np.arange(0.0, 501.0, 50.0)
+    shared = a.prepare(motion, ambient_C=amb)
+    np.testing.assert_allclose(b.run_prepared(shared).error_field_um(grid),
+                               b.run(motion, ambient_C=amb).error_field_um(grid), atol=1e-12, rtol=0)  # fmt: skip
+    assert not np.allclose(a.run_prepared(shared).error_field_um(grid), b.run_prepared(shared).error_field_um(grid))
+    other_pf = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=0.1))
+    with pytest.raises(ValueError, match="another screw, numerics or Pf"):
+        other_pf.run_prepared(shared)
+
+
 def test_paper_check_seed000_x_axis_table1_table3_table2():
     """seed 000 X axis (Table 1, Table 3) under Table 2 loading: max thermal error
     20-90 um, rising with feed (the paper measured up to 57 um)."""

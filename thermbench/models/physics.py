@@ -234,10 +234,17 @@ class PhysicsModel(ThermalErrorModel):
             core[name] = value
 
     # ----------------------------------------------------- identification ---
-    def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool):
+    def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool,
+               prepared: dict | None = None):  # fmt: skip
         """Per run, the affine basis (E0, A): E0 the error at the readings (minus
         reference) with every gain zero, column i of A = E_i - E0 for gain i at its
-        unit value (the others zero)."""
+        unit value (the others zero).
+
+        The runs of one basis differ in the gains only, so each run's motion, ambient and
+        nut coverage are prepared once (:meth:`ScrewThermalModel.prepare`) and kept in
+        ``prepared`` (run id -> the last one made) for the next basis at the same Pf:
+        identification's finite-difference steps in k1, k2 and lambda reuse it."""
+        prepared = {} if prepared is None else prepared
         out = []
         for rd in rds:
             resp = []
@@ -246,9 +253,12 @@ class PhysicsModel(ThermalErrorModel):
                 sp = {k: dict(v) for k, v in specs.items()}
                 for g, unit in gains.items():
                     self._set(c, sp, g, unit if g == active else 0.0)
-                hist = self._build(ds, c, sp, ambient).run(
-                    rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s, duration_s=rd.duration_s
-                )
+                model = self._build(ds, c, sp, ambient)
+                p = prepared.get(rd.run)
+                if p is None or p.key != model.prepared_key():
+                    p = prepared[rd.run] = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
+                                                         duration_s=rd.duration_s)  # fmt: skip
+                hist = model.run_prepared(p)
                 e = hist.error_um(rd.t_s, rd.x_mm)
                 resp.append(e - e[rd.ref_idx])
             e0 = resp[0]
@@ -324,6 +334,7 @@ class PhysicsModel(ThermalErrorModel):
         ub = np.array([b[1] for b in bounds])
         gain_lb = np.zeros(len(gains))  # heat gains k > 0 (seed 000 §4.2)
         n_eval = 0
+        prepared: dict = {}  # run id -> its motion, ambient and coverage at the last Pf (see _basis)
 
         def solve(z):
             nonlocal n_eval
@@ -332,7 +343,7 @@ class PhysicsModel(ThermalErrorModel):
             sp = {k: dict(v) for k, v in specs.items()}
             for n, val in zip(nonlinear, z * scale):
                 self._set(core, sp, n, float(val))
-            parts = self._basis(ds, rds, core, sp, gains, ambient)
+            parts = self._basis(ds, rds, core, sp, gains, ambient, prepared)
             e0 = np.concatenate([p[0] for p in parts])
             a = np.concatenate([p[1] for p in parts])
             sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")

@@ -80,45 +80,34 @@ def _add_cover(d, k, lo, hi, w_lo, w_hi, value):
 
 
 @njit(cache=True)
-def accumulate_step_averages(
-    x_nut_m, qn_W, h_W_m2K, n_per_step, n_steps, n_nodes, dx_m, half_nut_m, nut_len_m, n_bearing
-):
-    """Average over each macro step of the nut heat per node and the coverage.
+def accumulate_cover(x_nut_m, weights, n_per_step, n_steps, n_nodes, dx_m, half_nut_m, n_bearing):
+    """Average over each macro step of the nut's coverage of every node, plain and weighted.
 
-    Returns
-    -------
-    q_nut_W : (n_steps, n_nodes) mean nut power entering each node
-    h_cover : (n_steps, n_nodes) mean of h x covered fraction (so the mean
-        h of the exposed surface is mean(h) - h_cover)
-    cover : (n_steps, n_nodes) mean covered fraction of each node
+    ``weights`` (n_w, n_fine): per fine sample series w (e.g. the speed). Returns
+    ``out`` of shape (n_w + 1, n_steps, n_nodes): ``out[0]`` the mean covered
+    fraction of each node, ``out[1 + s]`` the mean of ``weights[s] x`` covered fraction.
+    The step averages of anything affine in such series follow without another pass
+    over the fine samples: with h = k1 v + k2 the mean of h x covered fraction is
+    ``k1 out[v] + k2 out[0]`` (the heat parameterisation of seed 000 §4.1).
     """
-    dq = np.zeros((n_steps, n_nodes + 1))
-    dh = np.zeros((n_steps, n_nodes + 1))
-    dc = np.zeros((n_steps, n_nodes + 1))
-    per_node = dx_m / nut_len_m
+    n_w = weights.shape[0]
+    d = np.zeros((n_w + 1, n_steps, n_nodes + 1))
     for j in range(n_steps * n_per_step):
         k = j // n_per_step
         lo, hi, w_lo, w_hi = _nut_cover(x_nut_m[j], half_nut_m, dx_m, n_bearing, n_nodes)
         if hi >= lo:
-            _add_cover(dq, k, lo, hi, w_lo, w_hi, qn_W[j] * per_node)
-            _add_cover(dh, k, lo, hi, w_lo, w_hi, h_W_m2K[j])
-            _add_cover(dc, k, lo, hi, w_lo, w_hi, 1.0)
-    q_nut = np.empty((n_steps, n_nodes))
-    h_cov = np.empty((n_steps, n_nodes))
-    cov = np.empty((n_steps, n_nodes))
+            _add_cover(d[0], k, lo, hi, w_lo, w_hi, 1.0)
+            for s in range(n_w):
+                _add_cover(d[s + 1], k, lo, hi, w_lo, w_hi, weights[s, j])
+    out = np.empty((n_w + 1, n_steps, n_nodes))
     inv = 1.0 / n_per_step
-    for k in range(n_steps):
-        a = 0.0
-        b = 0.0
-        c = 0.0
-        for i in range(n_nodes):
-            a += dq[k, i]
-            b += dh[k, i]
-            c += dc[k, i]
-            q_nut[k, i] = a * inv
-            h_cov[k, i] = b * inv
-            cov[k, i] = c * inv
-    return q_nut, h_cov, cov
+    for s in range(n_w + 1):
+        for k in range(n_steps):
+            a = 0.0
+            for i in range(n_nodes):
+                a += d[s, k, i]
+                out[s, k, i] = a * inv
+    return out
 
 
 @njit(cache=True)

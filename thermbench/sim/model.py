@@ -56,6 +56,29 @@ class Drive:
 
 
 @dataclass
+class Prepared:
+    """What a run takes from the motion, the ambient series and the nut's path alone
+    (:meth:`ScrewThermalModel.prepare`): the drive, the ambient on the fine and macro
+    grids, and the step-averaged nut coverage of every node, plain and speed-weighted.
+
+    Models that differ only in k1..k4, lambda, the housings or the effects' gains give
+    the same ``Prepared``, so one serves them all (identification re-runs the model
+    many times per run; :meth:`ScrewThermalModel.run_prepared`). ``key``: the screw,
+    numerics and Pf it was made for; a model with others refuses it.
+    """
+
+    key: tuple
+    drive: Drive
+    t_b_s: np.ndarray  # macro-step boundaries
+    ta0_C: float
+    measured_f_C: np.ndarray | None  # the measured ambient on the fine grid (None: constant ta0)
+    measured_b_C: np.ndarray | None  # ... on the macro grid
+    cover: np.ndarray  # (n_steps, n_nodes) mean covered fraction
+    v_cover: np.ndarray  # (n_steps, n_nodes) mean speed x covered fraction
+    v_mean: np.ndarray  # (n_steps,) mean speed per step
+
+
+@dataclass
 class ThermalHistory:
     """Temperature field and derived displacement at the macro-step boundaries."""
 
@@ -185,6 +208,41 @@ class ScrewThermalModel:
         x = np.clip(sign * (axis / 1000.0 - pf), 0.0, self.screw.length_m)
         return Drive(t_s=t, dt_s=num.dt_s, axis_mm=axis, x_screw_m=x, v_mm_min=v, load_N=load)
 
+    def prepared_key(self) -> tuple:
+        return (self.screw, self.numerics.dx_m, self.numerics.dt_s, self.numerics.macro_dt_s, float(self.core.pf_m))
+
+    def prepare(
+        self,
+        motion: Motion,
+        ambient_C: np.ndarray | float | None = None,
+        ambient_t_s: np.ndarray | None = None,
+        duration_s: float | None = None,
+    ) -> Prepared:
+        """The part of :meth:`run` that depends on the motion, the ambient series, the
+        screw, the numerics and Pf only (see :class:`Prepared`)."""
+        g = self.geom
+        num = self.numerics
+        d = self.drive(motion, duration_s)
+        m = num.per_step
+        n_steps = d.t_s.size // m
+        t_b = d.t_s[0] + np.arange(n_steps + 1) * num.macro_dt_s
+        if ambient_C is None:
+            ambient_C = 20.0
+        amb_in = np.asarray(ambient_C, dtype=float)
+        if amb_in.ndim == 0:
+            ta0 = float(amb_in)
+            measured_f = measured_b = None
+        else:
+            src_t = motion.t_s if ambient_t_s is None else np.asarray(ambient_t_s, dtype=float)
+            ta0 = float(amb_in[0])
+            measured_f = np.interp(d.t_s, src_t, amb_in)
+            measured_b = np.interp(t_b, src_t, amb_in)
+        cov = kernels.accumulate_cover(
+            d.x_screw_m, d.v_mm_min[None, :], m, n_steps, g.n_nodes, num.dx_m, self.screw.nut_length_m / 2.0, g.n_bearing
+        )
+        v_mean = d.v_mm_min.reshape(n_steps, m).mean(axis=1)
+        return Prepared(self.prepared_key(), d, t_b, ta0, measured_f, measured_b, cov[0], cov[1], v_mean)
+
     def run(
         self,
         motion: Motion,
@@ -200,46 +258,43 @@ class ScrewThermalModel:
         the motion's times). Without the ``ambient_drift`` effect the screw sees a
         constant ambient Ta0 = the first value (seed 000 §3.1, T_n(0) = Ta).
         """
+        return self.run_prepared(self.prepare(motion, ambient_C, ambient_t_s, duration_s), theta0_C, method)
+
+    def run_prepared(self, p: Prepared, theta0_C: np.ndarray | None = None, method: str | None = None) -> ThermalHistory:
+        """:meth:`run` from a :meth:`prepare` result (of this model or of one with the same
+        screw, numerics and Pf)."""
+        if p.key != self.prepared_key():
+            raise ValueError("run_prepared: prepared for another screw, numerics or Pf; call prepare() with this model")
         g = self.geom
         num = self.numerics
         method = method or num.method
-        d = self.drive(motion, duration_s)
+        d = p.drive
         n = g.n_nodes
         m = num.per_step
         n_steps = d.t_s.size // m
-        t_b = d.t_s[0] + np.arange(n_steps + 1) * num.macro_dt_s
+        t_b, ta0 = p.t_b_s, p.ta0_C
 
         # ambient -----------------------------------------------------------
-        if ambient_C is None:
-            ambient_C = 20.0
-        amb_in = np.asarray(ambient_C, dtype=float)
-        if amb_in.ndim == 0:
-            ta0 = float(amb_in)
-            measured_f = measured_b = None
-        else:
-            src_t = motion.t_s if ambient_t_s is None else np.asarray(ambient_t_s, dtype=float)
-            ta0 = float(amb_in[0])
-            measured_f = np.interp(d.t_s, src_t, amb_in)
-            measured_b = np.interp(t_b, src_t, amb_in)
         drift = self.effect(AmbientDrift.id)
         if drift is not None:
-            amb_f = drift.ambient_C(d.t_s, measured_f, ta0)
-            amb_b = drift.ambient_C(t_b, measured_b, ta0)
+            amb_f = drift.ambient_C(d.t_s, p.measured_f_C, ta0)
+            amb_b = drift.ambient_C(t_b, p.measured_b_C, ta0)
         else:
             amb_f = np.full(d.t_s.size, ta0)
             amb_b = np.full(t_b.size, ta0)
         dta_f = amb_f - ta0
 
         # heat (seed 000 §4.1 + effects) -------------------------------------
+        # h = k1 v + k2, QB = k3 v, QN = k4 v (+ the effects' nut heat): their step means are
+        # affine in the mean speed; the fine series only for the explicit scheme
         c = self.core
-        v = d.v_mm_min
-        h = c.k1_W_m2K_per_mm_min * v + c.k2_W_m2K
-        qb = c.k3_W_per_mm_min * v
-        qn = c.k4_W_per_mm_min * v
-        for eff in self.effects:
-            extra = eff.nut_heat_W(d)
-            if extra is not None:
-                qn = qn + extra
+        v_mean = p.v_mean
+        extras = [x for x in (eff.nut_heat_W(d) for eff in self.effects) if x is not None]
+        extra = np.sum(extras, axis=0) if extras else None
+        qb_mean = c.k3_W_per_mm_min * v_mean
+        qn_mean = c.k4_W_per_mm_min * v_mean
+        if extra is not None:
+            qn_mean = qn_mean + extra.reshape(n_steps, m).mean(axis=1)
         srcs = [s for eff in self.effects for s in eff.sources(g, d)]
         if srcs:
             sw = np.stack([s[0] for s in srcs]).astype(float)
@@ -252,10 +307,15 @@ class ScrewThermalModel:
         th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
         half = self.screw.nut_length_m / 2.0
         nb = g.n_bearing
-        q_nut, h_cov, cov = kernels.accumulate_step_averages(
-            d.x_screw_m, qn, h, m, n_steps, n, num.dx_m, half, self.screw.nut_length_m, nb
-        )
-        qb_mean = qb.reshape(n_steps, m).mean(axis=1)
+        # step means of (nut heat per node) and (h x covered fraction), both affine in the
+        # speed-weighted coverage (Prepared); the effects' extra nut heat takes one more pass
+        per_node = num.dx_m / self.screw.nut_length_m
+        q_nut = (c.k4_W_per_mm_min * per_node) * p.v_cover
+        if extra is not None:
+            extra_cov = kernels.accumulate_cover(d.x_screw_m, extra[None, :], m, n_steps, n, num.dx_m, half, nb)[1]
+            q_nut = q_nut + per_node * extra_cov
+        h_cov = c.k1_W_m2K_per_mm_min * p.v_cover + c.k2_W_m2K * p.cover
+        cov = p.cover
         q = q_nut
         if nb > 0:
             q = q.copy()
@@ -266,6 +326,10 @@ class ScrewThermalModel:
         conv_J = np.zeros(n_steps)
 
         if method == "explicit":
+            v = d.v_mm_min
+            h = c.k1_W_m2K_per_mm_min * v + c.k2_W_m2K
+            qb = c.k3_W_per_mm_min * v
+            qn = c.k4_W_per_mm_min * v + (0.0 if extra is None else extra)
             theta = kernels.explicit_run(
                 th0, d.x_screw_m, qn, qb, h, dta_f, sw, sp, num.dt_s, m, num.dx_m, half,
                 self.screw.nut_length_m, nb, self.screw.fixed_bearing_length_m,
@@ -275,12 +339,12 @@ class ScrewThermalModel:
             area = np.full(n, g.side_area_m2)
             area[-1] += g.end_area_m2
             area[:nb] = 0.0
-            h_mean = h.reshape(n_steps, m).mean(axis=1)
+            h_mean = c.k1_W_m2K_per_mm_min * v_mean + c.k2_W_m2K
             gk = (h_mean[:, None] - h_cov) * area[None, :]
             dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
             theta, conv_J = kernels.macro_run(th0, q, gk, dta_step, num.macro_dt_s, g.cap_J_K, cond)
 
-        housing = self._housings(d, theta, cov, amb_b, ta0, n_steps, m, qn, qb)
+        housing = self._housings(d, theta, cov, amb_b, ta0, n_steps, m, qn_mean, qb_mean, v_mean)
         return ThermalHistory(
             t_s=t_b, theta_C=theta, ambient_C=amb_b, ta0_C=ta0, housing_C=housing, geom=g,
             core=self.core, effects=self.effects, heat_in_J=heat_in, convected_J=conv_J,
@@ -290,17 +354,17 @@ class ScrewThermalModel:
         """lambda A_s / dx: the conductance between neighbouring nodes."""
         return lambda_W_mK * self.screw.area_m2 / self.numerics.dx_m
 
-    def _housings(self, d, theta, cov, amb_b, ta0, n_steps, m, qn, qb) -> dict[str, np.ndarray]:
-        """Lumped housing temperatures at the step boundaries (see :class:`Housing`)."""
+    def _housings(self, d, theta, cov, amb_b, ta0, n_steps, m, qn_mean, qb_mean, v_step) -> dict[str, np.ndarray]:
+        """Lumped housing temperatures at the step boundaries (see :class:`Housing`);
+        ``qn_mean``, ``qb_mean``, ``v_step``: the nut and bearing heat and the speed, step means."""
         fb = self.effect(FreeEndBearingHeat.id)
         mean = lambda a: np.asarray(a).reshape(n_steps, m).mean(axis=1)  # noqa: E731
         q_src = {
-            "nut": mean(qn),
-            "fixed_bearing": mean(qb),
+            "nut": qn_mean,
+            "fixed_bearing": qb_mean,
             "free_bearing": mean(fb.heat_W(d.v_mm_min)) if fb is not None else np.zeros(n_steps),
             "none": np.zeros(n_steps),
         }
-        v_step = mean(d.v_mm_min)
         th = theta[:-1]
         covsum = cov.sum(axis=1)
         nut_local = np.where(covsum > 0, (th * cov).sum(axis=1) / np.maximum(covsum, 1e-12), th.mean(axis=1))
