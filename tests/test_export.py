@@ -339,6 +339,35 @@ def test_export_job_and_replay_command(exported, ds, seed001_data_root, tmp_path
     assert "nope" in capsys.readouterr().err
 
 
+def test_export_in_two_processes_writes_what_one_process_writes(exported, seed001_data_root, tmp_path, monkeypatch):
+    """export.n_jobs=2 exports the models of a directory in two processes: the same files,
+    byte for byte, and the same rows in the same order as in one process."""
+    from thermbench.config import ConfigError, load_config
+    from thermbench.experiment import save_models
+    from thermbench.export.job import run_export
+
+    monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))
+    fams = ["mlr_seed001", "physics", "lssvm"]
+    keys = {f"seed001_vmc_x__{f}__global": exported[f][0] for f in fams}
+    save_models(keys, tmp_path / "models", extra={k: {"dataset": "seed001_vmc_x"} for k in keys})
+    tables = {}
+    for n in (1, 2):
+        cfg = load_config("export", [f"export.source={tmp_path / 'models'}", f"export.out_dir={tmp_path / f'out{n}'}",
+                                     f"export.n_jobs={n}", "export.lssvm_reduced_size=40"])  # fmt: skip
+        tables[n] = run_export(cfg)[0]
+    assert tables[2]["model"].tolist() == tables[1]["model"].tolist() == list(keys)
+    for k in keys:
+        files = sorted(p.name for p in (tmp_path / "out1" / k).glob("*.tbm"))
+        assert files and files == sorted(p.name for p in (tmp_path / "out2" / k).glob("*.tbm"))
+        for f in files:
+            assert (tmp_path / "out1" / k / f).read_bytes() == (tmp_path / "out2" / k / f).read_bytes()
+    assert (tables[2]["parity_max_abs_diff_nm"] < 1000 * TOL_UM).all()
+    bad = load_config("export", [f"export.source={tmp_path / 'models'}", f"export.out_dir={tmp_path / 'o3'}",
+                                 "export.n_jobs=0"])  # fmt: skip
+    with pytest.raises(ConfigError, match="export.n_jobs"):
+        run_export(bad)
+
+
 # ------------------------------------------------------- hostile streams ---
 def _without_row(ds, run: str, t_s: float):
     """``ds`` with the process sample of ``run`` at ``t_s`` removed (what a compensator that

@@ -312,6 +312,17 @@ def test_write_report_layout_values_and_figures(results, tmp_path):
     assert [p.name for p in (tmp_path / "out").rglob(".*")] == [RECORD]  # no temporary leftovers
 
 
+def test_figures_drawn_in_two_processes_equal_those_drawn_in_one(results, tmp_path):
+    """n_jobs=2 draws the figures in other processes: the same report and the same PNGs, byte for byte."""
+    one = write_report(results, _curves(), tmp_path / "one", meta={"command": "x"})
+    two = write_report(results, _curves(), tmp_path / "two", meta={"command": "x"}, n_jobs=2)
+    assert two.read_text(encoding="utf-8") == one.read_text(encoding="utf-8")
+    pngs = figure_paths(tmp_path / "one")
+    assert len(pngs) == 8 and [p.name for p in figure_paths(tmp_path / "two")] == [p.name for p in pngs]
+    for p in pngs:
+        assert (tmp_path / "two" / "figures" / p.name).read_bytes() == p.read_bytes(), p.name
+
+
 def test_report_without_curves_says_so(results, tmp_path):
     results = results[results["dataset"] == "dsA"]
     path = write_report(results, None, tmp_path)

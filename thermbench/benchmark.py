@@ -512,7 +512,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     unchosen = sorted(set(_with_case(results)["case"]) - set(chosen["case"]))
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
-    report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines)  # with results.csv
+    report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
+                          n_jobs=int(cfg.n_jobs))  # with results.csv
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]

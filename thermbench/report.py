@@ -655,6 +655,26 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+class _Drawing:
+    """The report's figures, collected while its text is written and drawn at the end:
+    in this process, or in ``n_jobs`` processes (joblib; each figure is a module-level
+    function of plain data and its path, so it pickles). Rendering is most of a large
+    report's time; the figures are independent."""
+
+    def __init__(self) -> None:
+        self.jobs: list[tuple[Callable[..., Path], tuple]] = []
+
+    def __call__(self, fn: Callable[..., Path], *args) -> None:
+        self.jobs.append((fn, args))
+
+    def run(self, n_jobs: int = 1) -> list[Path]:
+        if n_jobs == 1 or len(self.jobs) < 2:
+            return [fn(*args) for fn, args in self.jobs]
+        import joblib
+
+        return joblib.Parallel(n_jobs=n_jobs)(joblib.delayed(fn)(*args) for fn, args in self.jobs)
+
+
 def _rate_heatmap(fig, ax, rate: np.ndarray, texts: list[list[str]], rows: list[str], cols: list[str], outline=None):
     """Compensation-rate heatmap: diverging colours centred on 0 (no gain), clipped
     to ±RATE_CLIP so a model that makes things worse shows red; the text carries
@@ -1160,7 +1180,7 @@ def _channels_headline_md(r: pd.DataFrame, ds: str, ref: frozenset[str]) -> list
 
 
 def _channels_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: frozenset[str], fig_dir: Path,
-                      fig_name: Callable[..., str]) -> list[str]:
+                      fig_name: Callable[..., str], draw: "_Drawing") -> list[str]:
     """The section of a dataset scored on several error channels (see :func:`write_report`)."""
     chans, runs, states = _channels(r, ds), _runs(r, ds, "validation"), _runs(r, ds, "state")
     d = r[r["dataset"] == ds]
@@ -1174,7 +1194,7 @@ def _channels_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: fro
     rmse_t = validation_by_channel(r, ds, RMSE) if runs else None
     if runs:
         name = fig_name("rmse_bars", ds)
-        _bars_figure(rmse_t, ref, runs, ds, fig_dir / name)
+        draw(_bars_figure, rmse_t, ref, runs, ds, fig_dir / name)
         md += ["### Validation RMSE per channel", "", f"![{ds} validation RMSE per channel]({FIGURES_DIR}/{name})", ""]
         rate_t = validation_by_channel(r, ds, RATE)
         md += [
@@ -1209,8 +1229,8 @@ def _channels_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: fro
     for fam, panels in panels_by_family.items():
         label = _family_label(fam, ref)
         name = fig_name("rmse_matrix", ds, fam)
-        _rmse_heatmap_figure(panels, len(states), norm, f"{ds} · {label}: RMSE (µm), trained on (rows) × tested on "
-                             "(columns), per channel", fig_dir / name)  # fmt: skip
+        draw(_rmse_heatmap_figure, panels, len(states), norm, f"{ds} · {label}: RMSE (µm), trained on (rows) × tested "
+             "on (columns), per channel", fig_dir / name)  # fmt: skip
         md += [f"#### {label}", "", _rmse_matrix_summary(panels, states), "",
                f"![{ds} {fam} RMSE matrix]({FIGURES_DIR}/{name})", ""]  # fmt: skip
 
@@ -1251,7 +1271,7 @@ def _channels_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: fro
                 items.append(item)
     if items:
         name = fig_name("best_curves", ds)
-        _best_curves_figure(items, ds, fig_dir / name)
+        draw(_best_curves_figure, items, ds, fig_dir / name)
         md += ["The best thermbench model per channel that has before/after curves (lowest validation RMSE, "
                "baselines excluded), with the best baseline for comparison:", "", *notes, "",
                f"![{ds} before/after, best model per channel]({FIGURES_DIR}/{name})", ""]  # fmt: skip
@@ -1302,12 +1322,13 @@ def results_table(results: pd.DataFrame, reference: Sequence[str] = ()) -> pd.Da
 
 
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
-                 force: bool = False, reference: Sequence[str] = ()) -> Path:
+                 force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1) -> Path:
     """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
     ``out_dir/results.csv`` (:func:`results_table`); return the report path.
 
     ``reference``: the baseline families (compared, never chosen): marked in the tables
-    and figures, ``reference`` true in results.csv.
+    and figures, ``reference`` true in results.csv. ``n_jobs``: processes that draw the
+    figures (:class:`_Drawing`).
 
     Layout: header (``meta``), how to read, the terminal summary, the headline
     tables (:func:`headline`, one per dataset), then per dataset: single vs
@@ -1382,10 +1403,11 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     with output_dir(out_dir, "report", force=force) as stage:
         fig_dir = stage / FIGURES_DIR
         fig_dir.mkdir()
+        draw = _Drawing()
         table.to_csv(stage / CSV_NAME, index=False, lineterminator="\n")
         for ds in datasets:
             if ds in multi:
-                md += _channels_section(r, c, ds, ref, fig_dir, fig_name)
+                md += _channels_section(r, c, ds, ref, fig_dir, fig_name, draw)
                 continue
             ch = _channels(r, ds)[0]
             label = _case_label(ds, ch)
@@ -1399,7 +1421,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                     comp.index = pd.MultiIndex.from_tuples([(_family_label(f, ref), m) for f, m in comp.index],
                                                            names=comp.index.names)  # fmt: skip
                 name = fig_name("compare", *parts)
-                _comparison_figure(comp, runs, label, fig_dir / name)
+                draw(_comparison_figure, comp, runs, label, fig_dir / name)
                 md += [
                     "Compensation rate per validation run; single best / worst = the training state with the highest "
                     "/ lowest mean rate over these runs.",
@@ -1425,7 +1447,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                 rate = train_test_matrix(r, ds, fam, RATE, channel=ch)
                 resid = train_test_matrix(r, ds, fam, RESIDUAL, channel=ch)
                 name = fig_name("matrix", *parts, fam)
-                _matrix_figure(rate, resid, label, _family_label(fam, ref), fig_dir / name)
+                draw(_matrix_figure, rate, resid, label, _family_label(fam, ref), fig_dir / name)
                 md += [f"#### {_family_label(fam, ref)}", "", _matrix_summary(rate, resid), ""]
                 md += [f"![{label} {fam} matrix]({FIGURES_DIR}/{name})", ""]
 
@@ -1435,13 +1457,14 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
             plotted = [run for run in runs if cd is not None and (cd["run_id"] == run).any()]
             if plotted:
                 name = fig_name("curves", *parts)
-                curves_figure(cd, plotted, f"{label}, validation runs", fig_dir / name)
+                draw(curves_figure, cd, plotted, f"{label}, validation runs", fig_dir / name)
                 md += [f"![{label} before/after]({FIGURES_DIR}/{name})", ""]
                 missing = [run for run in runs if run not in plotted]
                 if missing:
                     md += [f"_No curves for validation run(s) {', '.join(missing)}._", ""]
             else:
                 md += ["_No before/after curves for this dataset's validation runs._", ""]
+        draw.run(n_jobs)
         text = "\n".join(md).rstrip() + "\n"
         (stage / REPORT_NAME).write_text(text, encoding="utf-8")
     return out_dir / REPORT_NAME

@@ -31,7 +31,7 @@ from .bundle import ExportOptions, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",
-        "verify", "parity_tol_um", "seed", "force"}  # fmt: skip
+        "verify", "parity_tol_um", "seed", "force", "n_jobs"}  # fmt: skip
 
 
 def _options(e: dict) -> ExportOptions:
@@ -149,19 +149,23 @@ def _run_dataset_config(run_id: str | None) -> dict | None:
     return d if isinstance(d, dict) and isinstance(d.get("source"), dict) else None
 
 
-def _load_split_cached(cfg: dict, cache: dict):
+_SPLITS: dict = {}  # per process: dataset config (JSON) -> Split, loaded once for all the models trained on it
+
+
+def _load_split_cached(cfg: dict):
     from ..experiment import load_split
 
     k = json.dumps(cfg, sort_keys=True, default=str)
-    if k not in cache:
-        cache[k] = load_split(cfg)
-    return cache[k]
+    if k not in _SPLITS:
+        _SPLITS[k] = load_split(cfg)
+    return _SPLITS[k]
 
 
-def _dataset_split(e: dict, info: dict, key: str, cache: dict, model=None):
-    """(name, Split) of the dataset the model was trained on, or (None, None): ``export.dataset``
-    (a conf/dataset option or a dataset directory), else the MLflow run's logged dataset config,
-    else the benchmark dataset the key names."""
+def _dataset_config(e: dict, info: dict, key: str, model=None) -> tuple[str | None, dict | None]:
+    """(name, dataset config) of the dataset the model was trained on, or (None, None):
+    ``export.dataset`` (a conf/dataset option or a dataset directory; a directory's name is
+    None: the loaded split names it), else the MLflow run's logged dataset config, else the
+    benchmark dataset the key names. Checked here, loaded by :func:`_load_split_cached`."""
     from ..experiment import dataset_config_for, group_option
 
     given = e.get("dataset")
@@ -175,12 +179,11 @@ def _dataset_split(e: dict, info: dict, key: str, cache: dict, model=None):
                                   f"({_dataset_names()}) nor a dataset directory (no metadata.yaml)")  # fmt: skip
             cfg = {"name": None, "source": {"_target_": "thermbench.data.io.load_dataset", "path": str(path)},
                    "channel": e.get("channel")}  # fmt: skip
-            sp = _load_split_cached(dataset_config_for(model, cfg, "export.channel"), cache)
-            return sp.name, sp
+            return None, dataset_config_for(model, cfg, "export.channel")
         cfg = dict(group_option("dataset", str(given)))
         if e.get("channel") is not None:
             cfg["channel"] = e.get("channel")
-        return str(given), _load_split_cached(dataset_config_for(model, cfg, "export.channel"), cache)
+        return str(given), dataset_config_for(model, cfg, "export.channel")
     if logged is not None:
         src = logged["source"]
         if src.get("_target_") == "thermbench.data.io.load_dataset" and not Path(str(src.get("path"))).is_dir():
@@ -188,11 +191,10 @@ def _dataset_split(e: dict, info: dict, key: str, cache: dict, model=None):
                               "directory here; set export.dataset to the dataset's path")  # fmt: skip
         if e.get("channel") is not None:
             logged = {**logged, "channel": e.get("channel")}
-        sp = _load_split_cached(logged, cache)
-        return sp.name, sp
+        return None, logged
     name = name or datasets.of_key(key)
     if name:  # the model's own channel of a multi-channel dataset (a benchmark key names the dataset only)
-        return str(name), _load_split_cached(dataset_config_for(model, dict(group_option("dataset", str(name)))), cache)
+        return str(name), dataset_config_for(model, dict(group_option("dataset", str(name))))
     return None, None
 
 
@@ -206,9 +208,11 @@ def _source_name(e: dict) -> str:
 
 
 def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path) -> list[dict]:
-    rows = []
-    cache: dict = {}
+    """Export every item into ``stage/<key>``: what each needs is checked here first (so a
+    bad key fails before any work), then the models are exported in ``export.n_jobs``
+    processes (joblib; each model's directory is its own), rows in the items' order."""
     every = e.get("select", "all") == "all" and len(items) > 1
+    todo = []
     for key, model, info in items:
         if every:  # select all: what the C runtime cannot run (a baseline, a soft bank) is skipped, and said so
             from .encoding import export_blocker
@@ -217,31 +221,46 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
             if why:
                 print(f"thermbench export: skipped {key}: {why}", file=sys.stderr)
                 continue
-        dname, sp = _dataset_split(e, info, key, cache, model)
-        ds, heldout = None, []
-        if sp is not None:
-            ds = sp.dataset
-            train = set(getattr(model, "train_runs_", []))
-            heldout = [r for r in sp.validation if r not in train] or [r for r in ds.run_ids if r not in train]
-        elif opts.verify:
+        dname, dcfg = _dataset_config(e, info, key, model)
+        if dcfg is None and opts.verify:
             raise ConfigError(
                 f"{key}: cannot tell which dataset it was trained on; set export.dataset (a conf/dataset option: "
                 f"{_dataset_names()}, or a dataset directory) or export.verify=false"
             )
-        training = {"dataset_name": dname, **({"history": True} if sp is not None and sp.history else {})}
-        source = {**info, "training": training} if dname else info
-        man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
-        files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
-                 else list(man["files"].values()))  # fmt: skip
-        par = man.get("parity", {}).get("model", {})
-        rows.append({"model": key, "kind": man["kind"], "files": len(files), "bytes": sum(f["bytes"] for f in files),
-                     "largest_file_bytes": max(f["bytes"] for f in files),
-                     "parity_max_abs_diff_nm": None if par.get("max_abs_diff_um") is None else 1000 * par["max_abs_diff_um"],
-                     "heldout_rmse_um": par.get("heldout_rmse_um_c"), "ram_bytes": man["footprint"]["ram_bytes"],
-                     "within_budget": man["footprint"]["within_budget"], "dir": str(out_root / key)})  # fmt: skip
-        if not man["footprint"]["within_budget"]:
-            print(f"thermbench export: warning: {key} exceeds the STM32F407 budget: "
-                  f"{', '.join(man['footprint']['over_budget'])}", file=sys.stderr)  # fmt: skip
-    if not rows:
+        todo.append((key, model, info, dname, dcfg))
+    if not todo:
         raise ExportError("nothing to export: export.select matched no model")
-    return rows
+    n_jobs = e.get("n_jobs", 1)
+    if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0 or n_jobs < -1:
+        raise ConfigError(f"config key 'export.n_jobs': expected an integer >= 1 (or -1: every core), got {n_jobs!r}")
+    if n_jobs == 1 or len(todo) == 1:
+        return [_export_one(*t, opts, stage, out_root) for t in todo]
+    import joblib
+
+    return joblib.Parallel(n_jobs=n_jobs)(joblib.delayed(_export_one)(*t, opts, stage, out_root) for t in todo)
+
+
+def _export_one(key: str, model, info: dict, dname: str | None, dcfg: dict | None, opts: ExportOptions, stage: Path,
+                out_root: Path) -> dict:  # fmt: skip
+    """One model to ``stage/key``; its row of the summary table."""
+    ds, heldout, sp = None, [], None
+    if dcfg is not None:
+        sp = _load_split_cached(dcfg)
+        dname = dname or sp.name
+        ds = sp.dataset
+        train = set(getattr(model, "train_runs_", []))
+        heldout = [r for r in sp.validation if r not in train] or [r for r in ds.run_ids if r not in train]
+    training = {"dataset_name": dname, **({"history": True} if sp is not None and sp.history else {})}
+    source = {**info, "training": training} if dname else info
+    man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
+    files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
+             else list(man["files"].values()))  # fmt: skip
+    par = man.get("parity", {}).get("model", {})
+    if not man["footprint"]["within_budget"]:
+        print(f"thermbench export: warning: {key} exceeds the STM32F407 budget: "
+              f"{', '.join(man['footprint']['over_budget'])}", file=sys.stderr)  # fmt: skip
+    return {"model": key, "kind": man["kind"], "files": len(files), "bytes": sum(f["bytes"] for f in files),
+            "largest_file_bytes": max(f["bytes"] for f in files),
+            "parity_max_abs_diff_nm": None if par.get("max_abs_diff_um") is None else 1000 * par["max_abs_diff_um"],
+            "heldout_rmse_um": par.get("heldout_rmse_um_c"), "ram_bytes": man["footprint"]["ram_bytes"],
+            "within_budget": man["footprint"]["within_budget"], "dir": str(out_root / key)}  # fmt: skip

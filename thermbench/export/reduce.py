@@ -16,6 +16,7 @@ import copy
 
 import numpy as np
 from sklearn.cluster import KMeans
+from threadpoolctl import threadpool_limits
 
 from ..models.lssvm import PSOLSSVM, rbf_kernel
 from .encoding import ExportError
@@ -33,14 +34,16 @@ def reduced_lssvm(model: PSOLSSVM, size: int, seed: int = 0) -> PSOLSSVM:
     out.reduced_from_ = int(X.shape[0])
     if size >= X.shape[0]:
         return out
-    km = KMeans(n_clusters=int(size), random_state=int(seed), n_init=4).fit(X)
-    centres = km.cluster_centers_
-    target = rbf_kernel(X, X, r.sigma2_) @ r.alpha_ + r.b_
-    A = np.column_stack([rbf_kernel(X, centres, r.sigma2_), np.ones(X.shape[0])])
-    scale = np.max(np.abs(A), axis=0)
-    scale[scale == 0] = 1.0
-    sol, *_ = np.linalg.lstsq(A / scale, target, rcond=1e-12)
-    sol = sol / scale
+    # one thread: k-means and the solve give the same bits however many cores or processes run them
+    with threadpool_limits(1):
+        km = KMeans(n_clusters=int(size), random_state=int(seed), n_init=4).fit(X)
+        centres = km.cluster_centers_
+        target = rbf_kernel(X, X, r.sigma2_) @ r.alpha_ + r.b_
+        A = np.column_stack([rbf_kernel(X, centres, r.sigma2_), np.ones(X.shape[0])])
+        scale = np.max(np.abs(A), axis=0)
+        scale[scale == 0] = 1.0
+        sol, *_ = np.linalg.lstsq(A / scale, target, rcond=1e-12)
+        sol = sol / scale
     reg = out.regressor_
     reg.X_fit_, reg.alpha_, reg.b_ = centres, sol[:-1], float(sol[-1])
     reg.n_support_ = int(size)
