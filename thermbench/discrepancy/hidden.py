@@ -24,6 +24,7 @@ import copy
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -31,6 +32,7 @@ from omegaconf import OmegaConf
 from ..config import config_dir
 from ..data.io import Dataset, save_dataset
 from ..models.physics import PhysicsModel
+from ..sim.effects import Effect, first_order_lag
 from ..sim.scenario import simulate_dataset
 
 #: reference parameters of each effect; ``SCALED`` names the ones a strength multiplies
@@ -199,3 +201,140 @@ def make(out_dir: str | Path, effects: dict, seed: int, world: World | None = No
     """Write the noisy dataset with ``effects`` on to ``out_dir`` (contract format)."""
     world = world or World()
     return save_dataset(simulate(world, effects, seed), Path(out_dir))
+
+
+# ------------------------------------------------------- out-of-library physics ---
+# Physics that real machines have and the canonical library (thermbench.sim.effects.EFFECTS)
+# does not: the discrepancy workflow must describe it with an open term or say "unexplained",
+# never "none" while the residual is above the floor. Their parameters are drawn at random
+# (seeded) from wide physical ranges, never from the search's start grids.
+
+
+@dataclass
+class SupportBearingHeat(Effect):
+    """An intermediate support bearing heats the screw at a fixed place: Q = k v over
+    ``length_m`` centred ``at_frac`` of the way from the fixed end. Not a canonical effect."""
+
+    id: ClassVar[str] = "support_bearing_heat"
+    k_W_per_mm_min: float = 0.6e-3
+    at_frac: float = 0.5
+    length_m: float = 0.03
+
+    def sources(self, geom, drive):
+        n, dx = geom.n_nodes, geom.numerics.dx_m
+        centre = self.at_frac * n * dx
+        lo = int(max(0, math.floor((centre - self.length_m / 2) / dx)))
+        hi = int(min(n, max(lo + 1, math.ceil((centre + self.length_m / 2) / dx))))
+        w = np.zeros(n)
+        w[lo:hi] = 1.0 / (hi - lo)
+        return [(w, self.k_W_per_mm_min * drive.v_mm_min)]
+
+
+def lagged_speed_m_min(ds: Dataset, run: str, t_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """The run's axis speed (m/min) through a first-order lag ``tau_s``, at times ``t_s``:
+    how a structure warmed by the axis's friction follows the duty cycle."""
+    pr = ds.process_run(run)
+    t = pr["t_s"].to_numpy()
+    v = np.abs(pr["feed_mm_min"].to_numpy()) / 1000.0
+    y = first_order_lag(v, float(np.median(np.diff(t))), tau_s)
+    return np.interp(t_s, t, y)
+
+
+@dataclass(frozen=True)
+class StructureGrowth:
+    """Unsensed structure growth (column, saddle): a position-independent error
+    ``g x lag_tau(speed)`` lagging the duty cycle by hours; no sensor sees it."""
+
+    id: ClassVar[str] = "structure_growth"
+    g_um_per_m_min: float = 2.0
+    tau_s: float = 3 * 3600.0
+
+    def delta_um(self, ds: Dataset, run: str, t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        return self.g_um_per_m_min * lagged_speed_m_min(ds, run, t_s, self.tau_s)
+
+
+@dataclass(frozen=True)
+class ScaleExpansion:
+    """The linear scale's mount warms with the duty (lagged) and expands about its fixing
+    point P0: ``e x lag_tau(speed) x (Px - P0) / 1000`` (um; e in um per m of travel per m/min)."""
+
+    id: ClassVar[str] = "scale_expansion"
+    e_um_per_m_per_m_min: float = 4.0
+    tau_s: float = 3600.0
+    p0_mm: float = 200.0
+
+    def delta_um(self, ds: Dataset, run: str, t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        lag = lagged_speed_m_min(ds, run, t_s, self.tau_s)
+        return self.e_um_per_m_per_m_min * lag * (target_mm - self.p0_mm) / 1000.0
+
+
+@dataclass(frozen=True)
+class OutOfLibrary:
+    """One out-of-library case: its class, the strength parameter a calibration scales and
+    the wide physical ranges its parameters are drawn from (uniform, or log-uniform for
+    strengths)."""
+
+    cls: type
+    strength: str
+    ranges: dict
+
+    def draw(self, rng: np.random.Generator, world: World) -> dict:
+        out = {}
+        for k, (lo, hi) in self.ranges.items():
+            if k == "p0_mm":  # anywhere on the measured travel
+                lo, hi = world.travel_mm
+            out[k] = float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if k == self.strength else float(rng.uniform(lo, hi))
+        return out
+
+
+OUT_OF_LIBRARY = {
+    "support_bearing_heat": OutOfLibrary(SupportBearingHeat, "k_W_per_mm_min",
+                                         {"k_W_per_mm_min": (0.2e-3, 2e-3), "at_frac": (0.25, 0.75)}),
+    "structure_growth": OutOfLibrary(StructureGrowth, "g_um_per_m_min",
+                                     {"g_um_per_m_min": (0.5, 5.0), "tau_s": (1.5 * 3600, 5 * 3600)}),
+    "scale_expansion": OutOfLibrary(ScaleExpansion, "e_um_per_m_per_m_min",
+                                    {"e_um_per_m_per_m_min": (1.0, 10.0), "tau_s": (0.5 * 3600, 3 * 3600),
+                                     "p0_mm": (0.0, 1.0)}),
+}  # fmt: skip
+
+
+def simulate_out_of_library(world: World, name: str, params: dict, seed: int, clean: bool = False) -> Dataset:
+    """The world with the out-of-library case ``name`` on: a screw heat source joins the
+    truth model; a growth off the screw is added to the interferometer readings."""
+    case = OUT_OF_LIBRARY[name]
+    obj = case.cls(**params)
+    cfg = _config(world, {}, seed, clean)
+    if clean:
+        cfg["machine"]["geometric"] = {"poly_um": []}
+    if isinstance(obj, Effect):
+        return simulate_dataset(cfg, extra_effects=[obj])[0]
+    ds, _ = simulate_dataset(cfg)
+    err = ds.errors.copy()
+    for run, g in err.groupby("run_id", sort=False):
+        err.loc[g.index, "error_um"] += obj.delta_um(ds, str(run), g["t_s"].to_numpy(), g["target_mm"].to_numpy())
+    return Dataset(ds.metadata, ds.process, err, path=ds.path)
+
+
+def draw_out_of_library(name: str, seed: int, world: World, ratio: float = 4.0, physics: dict | None = None,
+                        max_rounds: int = 4) -> tuple[dict, float]:  # fmt: skip
+    """Parameters of out-of-library case ``name`` drawn at random (``seed``) from its wide
+    ranges, the strength then scaled so that the core model, re-identified on noise-free
+    data, leaves about ``ratio`` x the noise floor (>= 3 x); returns (params, residual_um)."""
+    case = OUT_OF_LIBRARY[name]
+    params = case.draw(np.random.default_rng([seed, 101]), world)
+    floor = world.noise_floor_um
+    r = 0.0
+    for _ in range(max_rounds):
+        r = core_residual_um(simulate_out_of_library(world, name, params, seed, clean=True), physics)
+        if 3.0 * floor <= r <= 2.0 * ratio * floor:
+            return params, r
+        params = {**params, case.strength: params[case.strength] * ratio * floor / max(r, 1e-6)}
+    if r >= 3.0 * floor:
+        return params, r
+    raise ValueError(f"{name}: residual {r:.3f} um < 3 x floor {floor:.3f} um after {max_rounds} rounds, {params}")
+
+
+def make_out_of_library(out_dir: str | Path, name: str, params: dict, seed: int, world: World | None = None) -> Path:
+    """Write the noisy dataset of out-of-library case ``name`` to ``out_dir`` (contract format)."""
+    world = world or World()
+    return save_dataset(simulate_out_of_library(world, name, params, seed), Path(out_dir))

@@ -135,30 +135,55 @@ def write_markdown(d: dict, out: Path) -> Path:
                              for c in scan["candidates"]])  # fmt: skip
         md += [markdown_table(rows, index=False), "", f"![](candidates_step{k}.png)", ""]
     md += ["## Final model", "", f"effects: core{''.join(' + ' + e for e in d['final']['effects'])}; "
-           f"held-out RMSE {d['final']['heldout_rmse_um']:.3f} um", ""]  # fmt: skip
+           f"held-out RMSE {d['final']['heldout_rmse_um']:.3f} um ({d['final']['heldout_x_floor']:.1f}x the noise "
+           f"floor {d['final']['noise_floor_um']:.3f} um)", ""]  # fmt: skip
     md += [markdown_table(pd.DataFrame({"parameter": list(d["final"]["identified"]),
                                         "value": [f"{v:.6g}" for v in d["final"]["identified"].values()]})), ""]  # fmt: skip
     md += ["## Where the final model disagrees (held-out)", "", _loc_md(d["localisation"]["after"]), "",
            "![](residual_maps_after.png)", ""]  # fmt: skip
+    md += ["## What is left", "", *gap_md(d)]
     path = out / "report.md"
     path.write_text("\n".join(md), encoding="utf-8")
     return path
 
 
 def verdict_line(d: dict) -> str:
-    if d["verdict"] == "not_searched":
-        return "no search (max_effects = 0): the base model's disagreement is mapped below"
-    if d["verdict"] == "not_confirmed":
-        s = d["steps"][-1]
-        return (f"no missing effect confirmed: {s['effect']} passed the screening but not the held-out test with "
-                f"every parameter re-identified per fold")  # fmt: skip
+    """One line: the verdict (``none``, ``found``, ``found_partial``, ``ambiguous``,
+    ``unexplained``) with the final held-out RMSE against the noise floor."""
+    f = d["final"]
+    vs = f"held-out RMSE {f['heldout_rmse_um']:.3f} um, {f['heldout_x_floor']:.1f}x the noise floor {f['noise_floor_um']:.3f} um"
+    found = ", ".join(d["missing_effects"])
     if d["verdict"] == "ambiguous":
         amb = "; ".join(" or ".join(a) for a in d["ambiguous"])
-        found = f"missing: {', '.join(d['missing_effects'])}; then " if d["missing_effects"] else ""
-        return f"{found}ambiguous: {amb} (the data cannot tell them apart)"
-    if d["missing_effects"]:
-        return f"missing effect(s), in the order found: {', '.join(d['missing_effects'])}"
-    return "no missing effect: none of the candidates explains the residual beyond the noise floor"
+        return f"{'missing: ' + found + '; then ' if found else ''}ambiguous: {amb} (the data cannot tell them apart; {vs})"
+    if d["verdict"] == "found":
+        return f"missing effect(s), in the order found: {found}; with them the model explains the data ({vs})"
+    if d["verdict"] == "found_partial":
+        return (f"{found} explain(s) part of the gap, not all of it: the {vs}; something else is missing "
+                "(see 'What is left')")  # fmt: skip
+    if d["verdict"] == "unexplained":
+        return (f"unexplained: no candidate accounts for the residual, {vs} (see 'What is left')")
+    return f"no missing effect: the base model explains the data ({vs})"
+
+
+def gap_md(d: dict) -> list[str]:
+    """The 'What is left' section: how far above the floor, where, when, the best candidate
+    and what data would tell more (``d['gap']``)."""
+    g = d["gap"]
+    if g["within_floor"]:
+        return [f"The final model's held-out RMSE ({g['heldout_rmse_um']:.3f} um) is within "
+                f"{d['test']['within_x_floor']:g}x the noise floor ({g['noise_floor_um']:.3f} um).", ""]  # fmt: skip
+    lines = [f"- the final model's held-out RMSE is {g['heldout_rmse_um']:.3f} um, {g['x_floor']:.1f}x the noise floor "
+             f"({g['noise_floor_um']:.3f} um): a systematic part of about {g['systematic_um']:.3f} um is left",
+             f"- where and when: {d['localisation']['after']['summary']}"]  # fmt: skip
+    b = g["best_candidate"]
+    if b is not None:
+        lines.append(f"- the best remaining candidate, {b['effect']}, explains {b['explains_um']:.3f} um and leaves "
+                     f"{b['heldout_rmse_um']:.3f} um ({b['remains_x_floor']:.1f}x the floor)"
+                     + ("" if b["significant"] else "; it does not pass the test"))  # fmt: skip
+    for h in g["more_data"]:
+        lines.append(f"- to tell more: {h}")
+    return lines + [""]
 
 
 def terminal_verdict(d: dict, out: Path | None = None) -> str:
@@ -173,6 +198,13 @@ def terminal_verdict(d: dict, out: Path | None = None) -> str:
                      f"{s['heldout_rmse_after_um']:.3f} um ({shrink:.0%} less), BIC gain {s['bic_gain']:.1f}")  # fmt: skip
     lines.append(f"where (before): {d['localisation']['before']['summary']}")
     lines.append(f"where (after):  {d['localisation']['after']['summary']}")
+    if not d["gap"]["within_floor"]:
+        b = d["gap"]["best_candidate"]
+        if b is not None:
+            lines.append(f"best remaining candidate: {b['effect']} explains {b['explains_um']:.3f} um, leaves "
+                         f"{b['remains_x_floor']:.1f}x the floor")  # fmt: skip
+        for h in d["gap"]["more_data"]:
+            lines.append(f"to tell more: {h}")
     for e, why in d["skipped"].items():
         lines.append(f"skipped {e}: {why}")
     if out is not None:

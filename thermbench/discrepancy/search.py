@@ -57,14 +57,20 @@ class SignificanceTest:
     explained_x_floor: float = 2.0
     bic_min: float = 10.0
     tie_x_floor: float = 1.0
+    within_x_floor: float = 1.5
 
     def describe(self) -> str:
         return (
             f"named when the held-out error it explains, sqrt(RMSE_before^2 - RMSE_after^2), is >= "
             f"{self.explained_x_floor:g} x the noise floor and its BIC gain is > {self.bic_min:g}; "
             f"two significant candidates tie when the better explains < {self.tie_x_floor:g} x the noise "
-            f"floor beyond the other"
+            f"floor beyond the other; a model explains the data (verdict none or found) only when its held-out "
+            f"RMSE is <= {self.within_x_floor:g} x the noise floor"
         )
+
+    def within_floor(self, heldout_um: float, floor_um: float) -> bool:
+        """Whether a held-out RMSE is within the noise floor by this test."""
+        return bool(heldout_um <= self.within_x_floor * floor_um)
 
 
 @dataclass

@@ -147,7 +147,12 @@ def run_diagnosis(
                       "candidates": [_public(c) for c in cands], "named": best["effect"] if best else None,
                       "ambiguous_with": ties})  # fmt: skip
         if best is None:
-            say("[diagnose] no candidate passes the test: nothing (more) is missing that these data can show")
+            if settings.test.within_floor(before_um, floor):
+                say(f"[diagnose] no candidate passes the test, and the held-out RMSE ({before_um:.3f} um) is within "
+                    f"{settings.test.within_x_floor:g}x the noise floor: nothing (more) is missing that these data show")  # fmt: skip
+            else:
+                say(f"[diagnose] no candidate passes the test, but the held-out RMSE ({before_um:.3f} um) is still "
+                    f"{before_um / floor:.1f}x the noise floor: something the candidates cannot describe is missing")  # fmt: skip
             break
         new = [*current.effects, best["effect"]]
         after_um, after_table, new_fold_models = heldout_loro(new, ds, folds, settings, fold_models, best["effect"])
@@ -183,14 +188,19 @@ def run_diagnosis(
     final_table = tables[list(tables)[-1]]
     loc_after = loc.localise(loc.annotate(final_table, ds, pf_mm(current.model), floor), floor)
     first = steps[0]["heldout_rmse_before_um"] if steps else before_um
+    within = settings.test.within_floor(before_um, floor)
+    if int(max_effects) == 0:
+        notes.append("no search (max_effects = 0): the verdict judges the base model alone")
+    if steps and not steps[-1]["confirmed"]:
+        notes.append(f"{steps[-1]['effect']} passed the screening but not the held-out test with every parameter "
+                     "re-identified per fold")  # fmt: skip
     if ambiguous:
         verdict = "ambiguous"
     elif missing:
-        verdict = "found"
-    elif steps:
-        verdict = "not_confirmed"
+        verdict = "found" if within else "found_partial"
     else:
-        verdict = "none" if int(max_effects) > 0 else "not_searched"
+        verdict = "none" if within else "unexplained"
+    gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise)
     return {
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
         "base_effects": list(base),
@@ -205,9 +215,13 @@ def run_diagnosis(
         "final": {
             "effects": list(current.effects),
             "heldout_rmse_um": before_um,
+            "noise_floor_um": floor,
+            "heldout_x_floor": before_um / floor,
+            "within_floor": within,
             "heldout_rmse_base_um": first,
             "identified": current.identified,
         },
+        "gap": gap,
         "cv": {"kind": "loro" if len(folds) > 1 else "split", "fit_runs": list(fit_runs),
                "folds": [{"train": a, "test": b} for a, b in folds]},  # fmt: skip
         "test": {"description": settings.test.describe(), **vars(settings.test)},
@@ -216,6 +230,69 @@ def run_diagnosis(
         "runtime_s": time.perf_counter() - t_start,
         "_tables": tables,
     }
+
+
+def _gap(heldout_um: float, floor_um: float, test: SignificanceTest, where: dict, scans: list[dict], ds: Dataset,
+         noise) -> dict:  # fmt: skip
+    """What is left after the search: how far above the floor, where and when (the final
+    model's localisation), what the best remaining candidate explains and what remains,
+    and what data would tell more."""
+    best = None
+    if scans:
+        tried = [c for c in scans[-1]["candidates"] if not c.get("skipped") and c.get("heldout_rmse_um") is not None]
+        if tried:
+            c = min(tried, key=lambda c: c["heldout_rmse_um"])
+            best = {"effect": c["effect"], "explains_um": c["explained_um"], "heldout_rmse_um": c["heldout_rmse_um"],
+                    "remains_x_floor": c["heldout_rmse_um"] / floor_um, "significant": bool(c.get("significant"))}  # fmt: skip
+    return {
+        "heldout_rmse_um": heldout_um,
+        "noise_floor_um": floor_um,
+        "x_floor": heldout_um / floor_um,
+        "systematic_um": explained(heldout_um, floor_um),
+        "within_floor": test.within_floor(heldout_um, floor_um),
+        "where": where["where"],
+        "phase": where["phase"],
+        "feed_trend": where["feed_trend"],
+        "load_trend": where["load_trend"],
+        "best_candidate": best,
+        "more_data": more_data(where, ds, noise) if not test.within_floor(heldout_um, floor_um) else [],
+    }
+
+
+def more_data(where: dict, ds: Dataset, noise) -> list[str]:
+    """What measurements would tell more about a residual the search could not explain,
+    from where and when it shows (:func:`.localise.localise` of the final model)."""
+    from .search import ambient_sensor
+
+    hints = []
+    targets = ds.errors["target_mm"]
+    w = where["where"]
+    if w == "far_end":
+        hints.append(f"the residual is largest near the far end of the measured travel: measure beyond "
+                     f"{targets.max():.0f} mm if the axis allows, and add a temperature sensor near the free end")  # fmt: skip
+    elif w == "fixed_end":
+        hints.append("the residual is largest near the fixed end: add a temperature sensor at the fixed bearing and "
+                     "the motor flange")  # fmt: skip
+    elif w == "middle":
+        hints.append("the residual is largest mid-travel: a heat source along the screw (a support bearing, coolant) "
+                     "would show on a temperature sensor mid-screw")  # fmt: skip
+    elif w == "everywhere":
+        hints.append("the residual is alike over the whole travel (an offset or a growth off the screw): log the "
+                     "structure's temperatures (column, saddle, bed, scale mount)")  # fmt: skip
+    if where["phase"] == "cooling":
+        hints.append("it shows mostly while cooling: longer cool-downs would separate slow sources")
+    elif where["phase"] == "heating":
+        hints.append("it shows mostly while heating: heating ramps at more feeds would show how it scales")
+    feeds = {ds.metadata.runs[r].condition.feed_mm_min for r in ds.run_ids}
+    if len(feeds) < 3:
+        hints.append(f"the runs cover {len(feeds)} feed(s): runs at three or more would show its speed dependence")
+    if "load_N" not in ds.process.columns:
+        hints.append("log the axial load (load_N): load-dependent heat cannot be tried without it")
+    if ambient_sensor(ds) is None:
+        hints.append("add an ambient temperature sensor (location 'ambient')")
+    if noise.method != "repeat":
+        hints.append("repeat readings of a target within a minute would give a model-free noise floor")
+    return hints
 
 
 def _in_sample_table(model, ds, runs):

@@ -20,7 +20,7 @@ from ..config import ConfigError
 from ..data.io import Dataset
 from ..data.schema import FORMAT, Metadata
 from .duty import Measuring, Phase, Trajectory, build_run, random_phases
-from .effects import effects_from_config
+from .effects import Effect, effects_from_config
 from .instruments import GeometricError, Interferometer, SensorSpec
 from .model import ScrewThermalModel, ThermalHistory
 from .parts import CoreParams, Material, Numerics, Screw, housings_from_config
@@ -50,8 +50,9 @@ def _build(spec: Any, cls: type, key: str) -> Any:
         raise ConfigError(f"config key {key!r}: {why}") from None
 
 
-def build_model(cfg: Any) -> ScrewThermalModel:
-    """The truth model of a simulate config: machine physics + enabled effects."""
+def build_model(cfg: Any, extra_effects: Sequence[Effect] = ()) -> ScrewThermalModel:
+    """The truth model of a simulate config: machine physics + enabled effects (+ ``extra_effects``:
+    effect objects outside the canonical library, e.g. the discrepancy tests' out-of-library physics)."""
     c = _plain(cfg)
     m = c["machine"]
     clean = bool(c.get("clean", False))
@@ -63,7 +64,7 @@ def build_model(cfg: Any) -> ScrewThermalModel:
         screw=_build(m["screw"], Screw, "machine.screw"),
         material=_build(m["material"], Material, "machine.material"),
         core=_build(m["core"], CoreParams, "machine.core"),
-        effects=effects_from_config(effects_cfg),
+        effects=[*effects_from_config(effects_cfg), *([] if clean else extra_effects)],
         numerics=_build(c.get("numerics") or {}, Numerics, "numerics"),
         housings=housings_from_config(m.get("housings")),
     )
@@ -143,7 +144,8 @@ def simulate_run(model: ScrewThermalModel, traj: Trajectory, ambient_C: float) -
     return model.run(traj.sample(t), ambient_C=ambient_C, duration_s=traj.now)
 
 
-def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[Dataset, dict]:
+def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None,
+                     extra_effects: Sequence[Effect] = ()) -> tuple[Dataset, dict]:  # fmt: skip
     """Simulate every run of the protocol on the machine; return the dataset and a summary.
 
     ``runs_only``: simulate just these runs (the same numbers as in the full dataset: each
@@ -157,7 +159,7 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None) -> tuple[
         raise ConfigError(f"config key 'seed': expected an integer >= 0, got {seed!r}")
     seed = int(seed)
     m = c["machine"]
-    model = build_model(c)
+    model = build_model(c, extra_effects)
     inst = c.get("instruments") or {}
     sensor = SensorSpec(noise_C=0, quantum_C=0) if clean else _build(inst.get("sensor"), SensorSpec, "instruments.sensor")
     geometric = GeometricError() if clean else _build(m.get("geometric"), GeometricError, "machine.geometric")
