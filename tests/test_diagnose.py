@@ -182,6 +182,9 @@ def test_bad_input_is_one_line_exit_2(clean_data, tmp_path, capsys):
     assert "load_N" in capsys.readouterr().err
     assert main(["diagnose", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"), "track=false"]) == 2
     assert "nowhere" in capsys.readouterr().err
+    assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "test.within_x_floor=0.8", "track=false"]) == 2
+    err = capsys.readouterr().err
+    assert "test.within_x_floor" in err and "Traceback" not in err
     assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "cv={train: [run1], test: [run9]}", "track=false"]) == 2
     assert "'cv'" in capsys.readouterr().err
     for override, key in (("+physics.foo=1", "'physics'"), ("max_effects=abc", "'max_effects'"),

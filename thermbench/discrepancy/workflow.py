@@ -358,6 +358,9 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
     if bad := sorted(set(test) - known):
         raise DiagnoseError(f"config key 'test': unknown key(s) {bad}; known: {sorted(known)}")
     t = SignificanceTest(**{k: _number(v, f"test.{k}") for k, v in test.items()})
+    if t.within_x_floor < 1.0:
+        raise DiagnoseError(f"config key 'test.within_x_floor': expected a number >= 1 (a perfect model's held-out "
+                            f"RMSE is the noise floor itself), got {t.within_x_floor:g}")  # fmt: skip
     physics = dict(cfg.get("physics") or {})
     if bad := sorted(set(physics) - set(PHYSICS_KEYS)):
         raise DiagnoseError(f"config key 'physics': unknown or reserved key(s) {bad}; allowed: {sorted(PHYSICS_KEYS)}")
