@@ -69,6 +69,18 @@ def _time_steps_within(log: pd.DataFrame, rate_um_s: float, period_s: float = 1.
     return bool(same.sum() > 100 and np.all(dv[same] <= rate_um_s * dt[same] + 1e-9))
 
 
+def _cycle_starts(log: pd.DataFrame, period_s: float, attempts: np.ndarray) -> np.ndarray:
+    """Every logged cycle's start on the event loop's clock. The log gives them from the loop's
+    start (cycle k starts late_ms after k x period); that start is the offset that puts every
+    reconnection attempt (loop times) on a logged cycle start, to the log's 1 us."""
+    rel = log["cycle"].to_numpy() * period_s + log["late_ms"].to_numpy() / 1e3
+    for r in rel:
+        t0 = attempts[0] - r
+        if np.all(np.abs(attempts[:, None] - t0 - rel[None, :]).min(axis=1) < 2e-6):
+            return t0 + rel
+    raise AssertionError("the reconnection attempts are not at logged cycle starts")
+
+
 def _client_cfg(tmp_path, **kw):
     cfg = {"period_s": 0.004, "log": str(tmp_path / "cycles.csv"), "rate_limit_um_s": 20.0, "stale_after_s": 2.0,
            "reconnect": {"initial_s": 0.05, "max_s": 0.4, "factor": 2.0}}  # fmt: skip
@@ -174,6 +186,8 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
                 return
         raise AssertionError("no fresh compensation after the server came back")
 
+    opens = []  # per connection attempt: (its start, when it ended, whether it connected), loop time
+
     async def scenario():
         port = _port()
         ep = f"opc.tcp://127.0.0.1:{port}/sim"
@@ -182,11 +196,26 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
         await a.start_server()
         clock = asyncio.ensure_future(a.run_clock())
         comp = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, period_s=0.01))
+        loop, session_open = asyncio.get_running_loop(), comp.session.open
+
+        async def recorded_open():
+            t0 = loop.time()
+            try:
+                await session_open()
+            except Exception:
+                opens.append((t0, loop.time(), False))
+                raise
+            opens.append((t0, loop.time(), True))
+
+        comp.session.open = recorded_open
         task = asyncio.ensure_future(comp.run())
         await asyncio.sleep(1.0)
         clock.cancel()
         await a.stop_server()  # the server goes away ...
-        await asyncio.sleep(1.2)
+        end = loop.time() + 30.0  # (a guard against a hang, not a speed limit)
+        while sum(not ok for *_, ok in opens) < 6:  # ... for six failed attempts, however long they take ...
+            assert loop.time() < end and not task.done(), "the compensator does not retry"
+            await asyncio.sleep(0.05)
         b = SimCnc(machine, cfg)  # ... and comes back with its machine clock restarted
         await b.start_server()
         clock = asyncio.ensure_future(b.run_clock())
@@ -206,10 +235,21 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
     last_good = log.loc[: down.index[0] - 1].dropna(subset=["value_um"])["value_um"].iloc[-1]
     assert (down["value_um"] == last_good).all()  # held at the last good value
     assert s["flags"]["reconnects"] >= 1 and s["flags"]["connection_lost"] >= 1 and s["ended"] == "stopped"
-    gaps = np.diff(list(comp.connect_attempts))
-    assert len(gaps) >= 3 and np.all(np.diff(gaps[:3]) > 0)  # back-off: each wait longer than the last
-    # ... up to reconnect.max_s (plus the attempt itself; the server shares this event loop)
-    assert 0.4 <= np.median(gaps[3:]) < 0.5
+    # back-off (reconnect: initial_s 0.05, factor 2, max_s 0.4): after the k-th failed attempt the
+    # next one is due min(0.05 * 2^k, 0.4) s after the cycle that saw the failure, and starts at
+    # the first cycle on or after that time. Checked on the loop's own clock against its cycles, not
+    # against fixed seconds, so a slow machine (late cycles) cannot make it fail.
+    attempts = np.array(comp.connect_attempts)  # the loop time of each reconnection attempt's cycle
+    failed_at = np.array([t1 for _, t1, ok in opens[1:-1]])
+    assert [ok for *_, ok in opens] == [True] + [False] * failed_at.size + [True]  # start-up, outage, back
+    assert attempts.size == failed_at.size + 1 >= 7
+    starts = _cycle_starts(log, 0.01, attempts)
+    tol = 2e-6  # the log's late_ms has 1 us steps
+    for k, (failed, attempt) in enumerate(zip(failed_at, attempts[1:])):
+        due = min(0.05 * 2.0**k, 0.4) - tol  # 0.05, 0.1, 0.2, 0.4, 0.4, 0.4, ... (uncapped: 0.8, 1.6)
+        seen = starts[np.searchsorted(starts, failed)]  # the first cycle after the failure ...
+        j = np.searchsorted(starts, attempt - tol)  # ... and the cycle of the next attempt
+        assert starts[j - 1] - seen < due + 2 * tol and attempt - seen >= due, (k, seen, starts[j - 1], attempt)
     after = log.loc[down.index[-1] + 1:]
     assert (after["flags"] & RESTARTED).any()  # the server's clock restarted: a new timeline
     assert _time_steps_within(log, 20.0)  # and the compensation never stepped, across the outage too

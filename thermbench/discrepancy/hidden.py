@@ -32,29 +32,14 @@ from omegaconf import OmegaConf
 from ..config import config_dir
 from ..data.io import Dataset, save_dataset
 from ..models.physics import PhysicsModel
-from ..sim.effects import Effect, first_order_lag
+from ..sim.effects import EFFECTS, Effect, first_order_lag
 from ..sim.scenario import simulate_dataset
 
-#: reference parameters of each effect; ``SCALED`` names the ones a strength multiplies
-REFERENCE = {
-    "ambient_drift": {"amplitude_C": 1.0, "period_s": 86400.0, "phase_s": 0.0, "rate_C_per_h": 0.2},
-    "free_end_bearing_heat": {"kF_W_per_mm_min": 0.5e-3},
-    "motor_heat": {"k_motor_W_per_mm_min": 0.4e-3, "tau_s": 1800.0},
-    "origin_drift": {"beta_um_per_K": 2.0},
-    "fixed_fixed_constraint": {"kappa": 0.3},
-    "quadratic_friction_heat": {"k5_W_per_mm_min2": 5e-8},
-    "load_dependent_heat": {"k6_W_per_N_mm_min": 2e-7},
-}
-SCALED = {
-    "ambient_drift": ("amplitude_C", "rate_C_per_h"),
-    "free_end_bearing_heat": ("kF_W_per_mm_min",),
-    "motor_heat": ("k_motor_W_per_mm_min",),
-    "origin_drift": ("beta_um_per_K",),
-    "fixed_fixed_constraint": ("kappa",),
-    "quadratic_friction_heat": ("k5_W_per_mm_min2",),
-    "load_dependent_heat": ("k6_W_per_N_mm_min",),
-}
-CAPS = {"fixed_fixed_constraint.kappa": 0.95}
+#: reference parameters of each effect; ``SCALED`` names the ones a strength multiplies, ``CAPS``
+#: their largest values: what each effect class declares (``Effect.reference``, ``scaled``, ``caps``)
+REFERENCE = {eid: dict(cls.reference) for eid, cls in EFFECTS.items()}
+SCALED = {eid: tuple(cls.scaled) for eid, cls in EFFECTS.items()}
+CAPS = {f"{eid}.{k}": v for eid, cls in EFFECTS.items() for k, v in cls.caps.items()}
 IFM_NOISE_UM = 0.25
 FEEDS_MM_MIN = (1500.0, 3500.0, 6000.0, 9000.0)
 LOADS_N = (0.0, 1500.0, 3000.0, 4500.0)
@@ -164,12 +149,12 @@ def core_residual_um(ds: Dataset, physics: dict | None = None) -> float:
 
 
 def scaled(effect: str, factor: float) -> dict:
-    p = dict(REFERENCE[effect])
-    for k in SCALED[effect]:
-        p[k] = p[k] * factor
-        cap = CAPS.get(f"{effect}.{k}")
-        if cap is not None:
-            p[k] = min(p[k], cap)
+    """The effect's reference parameters (``Effect.reference``) with its ``scaled`` ones times
+    ``factor``, each at most its cap (``Effect.caps``)."""
+    cls = EFFECTS[effect]
+    p = dict(cls.reference)
+    for k in cls.scaled:
+        p[k] = min(p[k] * factor, cls.caps.get(k, math.inf))
     return p
 
 
@@ -194,7 +179,8 @@ def calibrate(effect: str, world: World, seed: int, ratio: float = 4.0, minimum:
 
 
 def _at_cap(effect: str, params: dict) -> bool:
-    return any(params[k] >= CAPS.get(f"{effect}.{k}", math.inf) for k in SCALED[effect])
+    cls = EFFECTS[effect]
+    return any(params[k] >= cls.caps.get(k, math.inf) for k in cls.scaled)
 
 
 def make(out_dir: str | Path, effects: dict, seed: int, world: World | None = None) -> Path:

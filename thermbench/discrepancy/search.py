@@ -44,12 +44,12 @@ from ..sim.effects import EFFECTS, make_effect
 
 #: the candidates, in the order they are tried (the canonical effect library)
 CANDIDATES = tuple(EFFECTS)
-#: nonlinear parameters identified by SQP together with an effect (its heat gains are linear)
-OWN_PARAMS = {
-    "motor_heat": ("tau_s",),
-    "origin_drift": ("beta_um_per_K",),
-    "fixed_fixed_constraint": ("kappa",),
-}
+
+
+def own_params(effect: str) -> tuple[str, ...]:
+    """The nonlinear parameters identified by SQP together with ``effect`` (its heat gains are
+    linear): what the effect class declares (``Effect.nonlinear``)."""
+    return tuple(EFFECTS[effect].nonlinear)
 
 
 @dataclass(frozen=True)
@@ -88,12 +88,21 @@ def ambient_sensor(ds: Dataset) -> str | None:
     return next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
 
 
+#: why a dataset lacks what an effect ``needs`` (``Effect.needs``), by need
+NEEDS = {
+    "ambient_sensor": (lambda ds: ambient_sensor(ds) is not None,
+                       "no ambient temperature sensor (no sensor at location 'ambient' in metadata.yaml)"),
+    "load_N": (lambda ds: "load_N" in ds.process.columns, "no axial load in the process log (column load_N absent)"),
+}  # fmt: skip
+
+
 def unavailable(effect: str, ds: Dataset) -> str | None:
-    """Why ``effect`` cannot be tried on this dataset (None: it can)."""
-    if effect == "ambient_drift" and ambient_sensor(ds) is None:
-        return "no ambient temperature sensor (no sensor at location 'ambient' in metadata.yaml)"
-    if effect == "load_dependent_heat" and "load_N" not in ds.process.columns:
-        return "no axial load in the process log (column load_N absent)"
+    """Why ``effect`` cannot be tried on this dataset (None: it can): the first of its
+    ``needs`` the dataset lacks."""
+    for need in EFFECTS[effect].needs:
+        has, why = NEEDS[need]
+        if not has(ds):
+            return why
     return None
 
 
@@ -101,7 +110,7 @@ def n_params(effects: Sequence[str]) -> int:
     """Identified parameters of core + effects (the ambient series adds none)."""
     p = len(CORE_GAINS) + len(CORE_NONLINEAR)
     for e in effects:
-        p += len(make_effect(e).heat_gains) + len(OWN_PARAMS.get(e, ()))
+        p += len(make_effect(e).heat_gains) + len(own_params(e))
     return p
 
 
@@ -119,7 +128,7 @@ def make_model(
         params = dict(warm.effects_.get(e, {})) if warm is not None else {}
         params.update((start or {}).get(e, {}))
         eff[e] = params
-        identify += [f"{e}.{p}" for p in OWN_PARAMS.get(e, ())]
+        identify += [f"{e}.{p}" for p in own_params(e)]
     initial = {k: warm.params_[k] for k in CORE_NONLINEAR} if warm is not None else None
     amb = ambient_sensor(ds) if "ambient_drift" in effects else None
     return PhysicsModel(effects=eff, identify=identify, initial=initial, ambient_sensor=amb, **settings.physics)
@@ -224,7 +233,8 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
 def screen_start(effect: str, current_effects, warm: PhysicsModel | None, ds, runs, settings) -> dict:
     """Start values of the candidate's own nonlinear parameters: the best of the
     configured grid with every other nonlinear parameter held (gains solved)."""
-    grid = {p: list(settings.starts.get(effect, {}).get(p) or []) for p in OWN_PARAMS.get(effect, ())}
+    own = {**EFFECTS[effect].starts, **settings.starts.get(effect, {})}  # the effect's grid, or the config's
+    grid = {p: list(own.get(p) or []) for p in own_params(effect)}
     grid = {p: v for p, v in grid.items() if v}
     if not grid:
         return {}

@@ -35,7 +35,7 @@ from . import localise as loc
 from .noise import estimate_noise_floor
 from .search import (
     CANDIDATES,
-    OWN_PARAMS,
+    own_params,
     Settings,
     SignificanceTest,
     decide,
@@ -368,12 +368,13 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
     _check_physics(physics)
     starts = {}
     for eid, params in dict(cfg.get("starts") or {}).items():
-        if eid not in OWN_PARAMS or not isinstance(params, dict):
-            raise DiagnoseError(f"config key 'starts.{eid}': expected one of {sorted(OWN_PARAMS)} with "
+        searched = sorted(e for e in EFFECTS if own_params(e))
+        if eid not in searched or not isinstance(params, dict):
+            raise DiagnoseError(f"config key 'starts.{eid}': expected one of {searched} with "
                                 f"{{param: [values]}}, e.g. starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
         for param, values in params.items():
-            if param not in OWN_PARAMS[eid]:
-                raise DiagnoseError(f"config key 'starts.{eid}.{param}': {eid} has {list(OWN_PARAMS[eid])}")
+            if param not in own_params(eid):
+                raise DiagnoseError(f"config key 'starts.{eid}.{param}': {eid} has {list(own_params(eid))}")
             values = values if isinstance(values, (list, tuple)) else [values]
             starts.setdefault(eid, {})[param] = [_number(v, f"starts.{eid}.{param}") for v in values]
     return Settings(

@@ -34,7 +34,7 @@ import pandas as pd
 from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
-from ..sim.effects import AmbientDrift, FixedFixedConstraint, make_effect
+from ..sim.effects import EFFECTS, AmbientDrift, FixedFixedConstraint, make_effect
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
 from ..sim.parts import CoreParams, Material, Numerics, Screw
 from .base import Inputs, ModelError, ThermalErrorModel, fallback, readings, require, sensor_series
@@ -213,8 +213,8 @@ class PhysicsModel(ThermalErrorModel):
             "lambda_W_mK": (1.0, 5000.0),
             # the nut stays on the screw over the measured travel, on the side of the initial Pf
             "pf_m": (hi_mm / 1000.0 - L, lo_mm / 1000.0) if pf0 <= 0 else (hi_mm / 1000.0, lo_mm / 1000.0 + L),
-            f"{FixedFixedConstraint.id}.kappa": (0.0, 1.0),
         }
+        default.update({f"{eid}.{k}": b for eid, cls in EFFECTS.items() for k, b in cls.bounds.items()})  # Effect.bounds
         user = dict(self.bounds or {})
         out = []
         for n in names:

@@ -19,6 +19,16 @@ heat gains; those are searched by SLSQP when named in ``identify``.
 
 The canonical ids (used by configs, the discrepancy workflow and export) are the
 keys of :data:`EFFECTS`.
+
+Each effect class describes itself, so that adding one touches this module (and, for the
+C runtime, its encoder): besides ``heat_gains`` it declares
+
+* ``nonlinear``: parameters the discrepancy search identifies by SQP when it tries the effect;
+* ``bounds``: their search bounds; ``starts``: the start values the search screens;
+* ``needs``: what a dataset must have for the effect to be tried (``load_N``: the process
+  column; ``ambient_sensor``: a sensor at location ``ambient``);
+* ``reference``, ``scaled``, ``caps``: how the discrepancy tests' hidden-data generator makes
+  it (reference parameters, the ones a strength multiplies, their caps).
 """
 
 from __future__ import annotations
@@ -59,6 +69,14 @@ class Effect:
     # parameters that scale a heat input: the error is affine in them when every
     # other parameter is fixed (the identified physics model solves them linearly)
     heat_gains: ClassVar[tuple[str, ...]] = ()
+    # self-description (module docstring): the search and the hidden-data generator read these
+    nonlinear: ClassVar[tuple[str, ...]] = ()
+    bounds: ClassVar[dict[str, tuple[float, float]]] = {}
+    starts: ClassVar[dict[str, tuple[float, ...]]] = {}
+    needs: ClassVar[tuple[str, ...]] = ()
+    reference: ClassVar[dict[str, float]] = {}
+    scaled: ClassVar[tuple[str, ...]] = ()
+    caps: ClassVar[dict[str, float]] = {}
 
     def nut_heat_W(self, drive: "Drive") -> np.ndarray | None:
         return None
@@ -91,6 +109,9 @@ class AmbientDrift(Effect):
 
     id: ClassVar[str] = "ambient_drift"
     description: ClassVar[str] = "ambient temperature varies; screw follows it and the axis grows alpha*dTa*x"
+    needs: ClassVar[tuple[str, ...]] = ("ambient_sensor",)
+    reference: ClassVar[dict[str, float]] = {"amplitude_C": 1.0, "period_s": 86400.0, "phase_s": 0.0, "rate_C_per_h": 0.2}
+    scaled: ClassVar[tuple[str, ...]] = ("amplitude_C", "rate_C_per_h")
     amplitude_C: float = 1.5
     period_s: float = 86400.0
     phase_s: float = 0.0
@@ -116,6 +137,8 @@ class FreeEndBearingHeat(Effect):
     id: ClassVar[str] = "free_end_bearing_heat"
     description: ClassVar[str] = "free/support-end bearing friction heat kF*v at the far end"
     heat_gains: ClassVar[tuple[str, ...]] = ("kF_W_per_mm_min",)
+    reference: ClassVar[dict[str, float]] = {"kF_W_per_mm_min": 0.5e-3}
+    scaled: ClassVar[tuple[str, ...]] = ("kF_W_per_mm_min",)
     kF_W_per_mm_min: float = 0.5e-3
     length_m: float = 0.03
 
@@ -140,6 +163,11 @@ class MotorHeat(Effect):
     id: ClassVar[str] = "motor_heat"
     description: ClassVar[str] = "motor heat through the coupling into the fixed end, lagging the speed"
     heat_gains: ClassVar[tuple[str, ...]] = ("k_motor_W_per_mm_min",)
+    nonlinear: ClassVar[tuple[str, ...]] = ("tau_s",)
+    bounds: ClassVar[dict[str, tuple[float, float]]] = {"tau_s": (1.0, 1e5)}
+    starts: ClassVar[dict[str, tuple[float, ...]]] = {"tau_s": (600.0, 1800.0, 5400.0)}
+    reference: ClassVar[dict[str, float]] = {"k_motor_W_per_mm_min": 0.4e-3, "tau_s": 1800.0}
+    scaled: ClassVar[tuple[str, ...]] = ("k_motor_W_per_mm_min",)
     k_motor_W_per_mm_min: float = 0.4e-3
     tau_s: float = 1800.0
 
@@ -158,6 +186,11 @@ class OriginDrift(Effect):
 
     id: ClassVar[str] = "origin_drift"
     description: ClassVar[str] = "fixed-point shift beta*(T_fixed_bearing_housing - T0), position-independent"
+    nonlinear: ClassVar[tuple[str, ...]] = ("beta_um_per_K",)
+    bounds: ClassVar[dict[str, tuple[float, float]]] = {"beta_um_per_K": (0.0, np.inf)}
+    starts: ClassVar[dict[str, tuple[float, ...]]] = {"beta_um_per_K": (1.0,)}
+    reference: ClassVar[dict[str, float]] = {"beta_um_per_K": 2.0}
+    scaled: ClassVar[tuple[str, ...]] = ("beta_um_per_K",)
     beta_um_per_K: float = 2.0
 
     def offset_um(self, history):
@@ -174,6 +207,12 @@ class FixedFixedConstraint(Effect):
 
     id: ClassVar[str] = "fixed_fixed_constraint"
     description: ClassVar[str] = "fixed-fixed mounting suppresses a fraction kappa of the free elongation"
+    nonlinear: ClassVar[tuple[str, ...]] = ("kappa",)
+    bounds: ClassVar[dict[str, tuple[float, float]]] = {"kappa": (0.0, 1.0)}
+    starts: ClassVar[dict[str, tuple[float, ...]]] = {"kappa": (0.3, 0.8)}
+    reference: ClassVar[dict[str, float]] = {"kappa": 0.3}
+    scaled: ClassVar[tuple[str, ...]] = ("kappa",)
+    caps: ClassVar[dict[str, float]] = {"kappa": 0.95}
     kappa: float = 0.8
 
     def adjust_elongation_um(self, u_um, geom):
@@ -189,6 +228,8 @@ class QuadraticFrictionHeat(Effect):
     id: ClassVar[str] = "quadratic_friction_heat"
     description: ClassVar[str] = "viscous nut friction: QN = k4*v + k5*v^2"
     heat_gains: ClassVar[tuple[str, ...]] = ("k5_W_per_mm_min2",)
+    reference: ClassVar[dict[str, float]] = {"k5_W_per_mm_min2": 5e-8}
+    scaled: ClassVar[tuple[str, ...]] = ("k5_W_per_mm_min2",)
     k5_W_per_mm_min2: float = 5e-8
 
     def nut_heat_W(self, drive):
@@ -202,6 +243,9 @@ class LoadDependentHeat(Effect):
     id: ClassVar[str] = "load_dependent_heat"
     description: ClassVar[str] = "nut friction grows with axial load: QN = (k4 + k6*F)*v"
     heat_gains: ClassVar[tuple[str, ...]] = ("k6_W_per_N_mm_min",)
+    needs: ClassVar[tuple[str, ...]] = ("load_N",)
+    reference: ClassVar[dict[str, float]] = {"k6_W_per_N_mm_min": 2e-7}
+    scaled: ClassVar[tuple[str, ...]] = ("k6_W_per_N_mm_min",)
     k6_W_per_N_mm_min: float = 2e-7
 
     def nut_heat_W(self, drive):
