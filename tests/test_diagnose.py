@@ -9,6 +9,7 @@ noise floor. ``thermbench diagnose`` then runs on the written files alone.
 from __future__ import annotations
 
 import json
+from typing import ClassVar  # at module level: dataclasses recognise ClassVar fields by it
 
 import numpy as np
 import pandas as pd
@@ -171,6 +172,43 @@ def test_out_of_library_physics_is_never_called_complete(name, tmp_path):
     else:
         assert d["verdict"] in ("found", "none")
     print(f"OUT-OF-LIBRARY {name} {params} -> {d['verdict']} {f['heldout_x_floor']:.2f}x {d['missing_effects']}")
+
+
+def test_an_effect_describes_itself_in_one_place(clean_data, monkeypatch):
+    """Adding an effect is its class: the search's own parameters, start grid, bounds and
+    needs, and the generator's reference strength come from it (registered in EFFECTS)."""
+    from dataclasses import dataclass
+
+    from thermbench.discrepancy import search
+    from thermbench.models.physics import PhysicsModel
+    from thermbench.sim.effects import EFFECTS, Effect
+
+    @dataclass
+    class LaggedTestHeat(Effect):
+        id: ClassVar[str] = "lagged_test_heat"
+        heat_gains: ClassVar[tuple[str, ...]] = ("k_W_per_mm_min",)
+        nonlinear: ClassVar[tuple[str, ...]] = ("tau_s",)
+        bounds: ClassVar[dict] = {"tau_s": (10.0, 7200.0)}
+        starts: ClassVar[dict] = {"tau_s": (120.0, 2400.0)}
+        needs: ClassVar[tuple[str, ...]] = ("load_N",)
+        reference: ClassVar[dict] = {"k_W_per_mm_min": 1e-4, "tau_s": 600.0}
+        scaled: ClassVar[tuple[str, ...]] = ("k_W_per_mm_min",)
+        caps: ClassVar[dict] = {"k_W_per_mm_min": 3e-4}
+        k_W_per_mm_min: float = 1e-4
+        tau_s: float = 600.0
+
+    monkeypatch.setitem(EFFECTS, LaggedTestHeat.id, LaggedTestHeat)
+    ds = load_dataset(clean_data)
+    assert search.own_params("lagged_test_heat") == ("tau_s",)
+    assert "load_N" in search.unavailable("lagged_test_heat", ds)  # clean_data has no load column
+    assert hidden.scaled("lagged_test_heat", 2.0) == {"k_W_per_mm_min": 2e-4, "tau_s": 600.0}
+    assert hidden.scaled("lagged_test_heat", 5.0)["k_W_per_mm_min"] == 3e-4  # capped
+    m = search.make_model(["lagged_test_heat"], ds, search.Settings(physics=PHYSICS))
+    assert "lagged_test_heat.tau_s" in m.identify
+    start = m._start(ds) | {"lagged_test_heat.tau_s": 600.0}
+    assert m._bounds(ds, ["lagged_test_heat.tau_s"], start) == [(10.0, 7200.0)]
+    assert search.n_params(["lagged_test_heat"]) == search.n_params([]) + 2
+    assert isinstance(m, PhysicsModel)
 
 
 # ----------------------------------------------------------- user mistakes ---
