@@ -68,8 +68,8 @@ if QUICK:
         "physics.dt_s=1.0",  # heat inputs at the 1 Hz log rate
         "physics.macro_dt_s=60.0",  # 60 s integrator steps
         "physics.ftol=1e-3",  # SLSQP stops at 1e-3 µm² of MSE, still far below the noise variance
-        "starts.motor_heat.tau_s=[1800.0]",  # one start value per nonlinear parameter
-        "starts.fixed_fixed_constraint.kappa=[0.3]",
+        "+starts.motor_heat.tau_s=[1800.0]",  # one start value per nonlinear parameter
+        "+starts.fixed_fixed_constraint.kappa=[0.3]",
     ]
 else:
     world = hidden.World()  # 4 runs of 2.5 h

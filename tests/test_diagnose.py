@@ -226,7 +226,7 @@ def test_bad_input_is_one_line_exit_2(clean_data, tmp_path, capsys):
     assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), "cv={train: [run1], test: [run9]}", "track=false"]) == 2
     assert "'cv'" in capsys.readouterr().err
     for override, key in (("+physics.foo=1", "'physics'"), ("max_effects=abc", "'max_effects'"),
-                          ("starts.motor_heat.tau_s=[abc]", "'starts.motor_heat.tau_s'"),
+                          ("+starts.motor_heat.tau_s=[abc]", "'starts.motor_heat.tau_s'"),
                           ("test.bic_min=x", "'test.bic_min'"), ("candidates=[nut_magic]", "'candidates'")):  # fmt: skip
         assert main(["diagnose", str(clean_data), "--out", str(tmp_path / "o"), override, "track=false"]) == 2
         err = capsys.readouterr().err

@@ -371,7 +371,7 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
         searched = sorted(e for e in EFFECTS if own_params(e))
         if eid not in searched or not isinstance(params, dict):
             raise DiagnoseError(f"config key 'starts.{eid}': expected one of {searched} with "
-                                f"{{param: [values]}}, e.g. starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
+                                f"{{param: [values]}}, e.g. +starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
         for param, values in params.items():
             if param not in own_params(eid):
                 raise DiagnoseError(f"config key 'starts.{eid}.{param}': {eid} has {list(own_params(eid))}")
