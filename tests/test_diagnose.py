@@ -157,13 +157,17 @@ def test_out_of_library_physics_is_never_called_complete(name, tmp_path):
     floor; above it the diagnosis says what is left, where and what data would tell more."""
     params, resid = hidden.draw_out_of_library(name, seed=21, world=WORLD, ratio=4.0, physics=PHYSICS)
     assert resid >= 3.0 * WORLD.noise_floor_um
-    starts = load_config("diagnose", ["data_dir=x", "out_dir=x"]).starts
-    grid = {float(v) for eff in starts.values() for vals in eff.values() for v in vals}
-    assert not grid & set(params.values())  # the generator's values are not the search's start values
+    from thermbench.sim.effects import EFFECTS
+
+    conf = load_config("diagnose", ["data_dir=x", "out_dir=x"]).starts
+    grid = {float(v) for e, cls in EFFECTS.items() for vals in {**cls.starts, **conf.get(e, {})}.values() for v in vals}
+    assert grid and not grid & set(params.values())  # the generator's values are not the search's start values
     data = hidden.make_out_of_library(tmp_path / "data", name, params, seed=21, world=WORLD)
     d = run_cli(data, tmp_path / "out", "--max-effects", "2")
     f, g = d["final"], d["gap"]
     assert f["within_floor"] == (f["heldout_rmse_um"] <= 1.5 * f["noise_floor_um"])
+    assert g["best_candidate"] is None or g["best_candidate"]["effect"] not in f["effects"]
+    assert name not in (data / "metadata.yaml").read_text()  # the hidden physics is not named in the files
     if not f["within_floor"]:
         assert d["verdict"] in ("unexplained", "found_partial", "ambiguous"), d["verdict"]
         assert g["x_floor"] > 1.5 and g["more_data"] and g["where"] != "nowhere"

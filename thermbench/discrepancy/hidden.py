@@ -309,14 +309,15 @@ def draw_out_of_library(name: str, seed: int, world: World, ratio: float = 4.0, 
     case = OUT_OF_LIBRARY[name]
     params = case.draw(np.random.default_rng([seed, 101]), world)
     floor = world.noise_floor_um
-    r = 0.0
+    r, tried = 0.0, params
     for _ in range(max_rounds):
-        r = core_residual_um(simulate_out_of_library(world, name, params, seed, clean=True), physics)
+        tried = params
+        r = core_residual_um(simulate_out_of_library(world, name, tried, seed, clean=True), physics)
         if 3.0 * floor <= r <= 2.0 * ratio * floor:
-            return params, r
-        params = {**params, case.strength: params[case.strength] * ratio * floor / max(r, 1e-6)}
-    if r >= 3.0 * floor:
-        return params, r
+            return tried, r
+        params = {**tried, case.strength: tried[case.strength] * ratio * floor / max(r, 1e-6)}
+    if r >= 3.0 * floor:  # the last parameters simulated, with their residual
+        return tried, r
     raise ValueError(f"{name}: residual {r:.3f} um < 3 x floor {floor:.3f} um after {max_rounds} rounds, {params}")
 
 

@@ -162,7 +162,11 @@ def verdict_line(d: dict) -> str:
         return (f"{found} explain(s) part of the gap, not all of it: the {vs}; something else is missing "
                 "(see 'What is left')")  # fmt: skip
     if d["verdict"] == "unexplained":
-        return (f"unexplained: no candidate accounts for the residual, {vs} (see 'What is left')")
+        tried = any(not c.get("skipped") for scan in d["scans"] for c in scan["candidates"])
+        why = ("no candidate was tried" if not tried else
+               f"{d['steps'][-1]['effect']} passed the screening but not the per-fold test" if d["steps"] else
+               "no candidate accounts for the residual")  # fmt: skip
+        return f"unexplained: {why}; {vs} (see 'What is left')"
     return f"no missing effect: the base model explains the data ({vs})"
 
 

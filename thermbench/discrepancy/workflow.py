@@ -200,7 +200,7 @@ def run_diagnosis(
         verdict = "found" if within else "found_partial"
     else:
         verdict = "none" if within else "unexplained"
-    gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise)
+    gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise, current.effects)
     return {
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
         "base_effects": list(base),
@@ -233,13 +233,14 @@ def run_diagnosis(
 
 
 def _gap(heldout_um: float, floor_um: float, test: SignificanceTest, where: dict, scans: list[dict], ds: Dataset,
-         noise) -> dict:  # fmt: skip
+         noise, in_model: Sequence[str] = ()) -> dict:  # fmt: skip
     """What is left after the search: how far above the floor, where and when (the final
     model's localisation), what the best remaining candidate explains and what remains,
     and what data would tell more."""
     best = None
     if scans:
-        tried = [c for c in scans[-1]["candidates"] if not c.get("skipped") and c.get("heldout_rmse_um") is not None]
+        tried = [c for c in scans[-1]["candidates"] if not c.get("skipped") and c.get("heldout_rmse_um") is not None
+                 and c["effect"] not in in_model]  # the last scan's winner may have joined the model since
         if tried:
             c = min(tried, key=lambda c: c["heldout_rmse_um"])
             best = {"effect": c["effect"], "explains_um": c["explained_um"], "heldout_rmse_um": c["heldout_rmse_um"],

@@ -236,7 +236,8 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None,
             "simulation": {
                 "seed": seed,
                 "clean": clean,
-                "effects": {e.id: e.params() for e in model.effects},
+                # the canonical effects only: an extra effect object is no config a reader could rebuild
+                "effects": {e.id: e.params() for e in model.effects if not any(e is x for x in extra_effects)},
                 "core": model.core.as_dict(),
                 "numerics": asdict(model.numerics),
                 "protocol": c["protocol"].get("name"),
