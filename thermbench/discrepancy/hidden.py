@@ -129,13 +129,13 @@ def _config(world: World, effects: dict, seed: int, clean: bool) -> dict:
     }
 
 
-def simulate(world: World, effects: dict, seed: int, clean: bool = False) -> Dataset:
-    """The world with ``effects`` ({id: params}) on; ``clean``: no measurement noise
-    and no pitch error (for calibration)."""
+def simulate(world: World, effects: dict, seed: int, clean: bool = False, extra_effects=()) -> Dataset:
+    """The world with ``effects`` ({id: params}) on, and ``extra_effects`` (effect objects
+    outside the library); ``clean``: no measurement noise and no pitch error (for calibration)."""
     cfg = _config(world, effects, seed, clean)
     if clean:
         cfg["machine"]["geometric"] = {"poly_um": []}
-    ds, _ = simulate_dataset(cfg)
+    ds, _ = simulate_dataset(cfg, extra_effects=extra_effects)
     return ds
 
 
@@ -289,12 +289,9 @@ def simulate_out_of_library(world: World, name: str, params: dict, seed: int, cl
     truth model; a growth off the screw is added to the interferometer readings."""
     case = OUT_OF_LIBRARY[name]
     obj = case.cls(**params)
-    cfg = _config(world, {}, seed, clean)
-    if clean:
-        cfg["machine"]["geometric"] = {"poly_um": []}
     if isinstance(obj, Effect):
-        return simulate_dataset(cfg, extra_effects=[obj])[0]
-    ds, _ = simulate_dataset(cfg)
+        return simulate(world, {}, seed, clean, extra_effects=[obj])
+    ds = simulate(world, {}, seed, clean)
     err = ds.errors.copy()
     for run, g in err.groupby("run_id", sort=False):
         err.loc[g.index, "error_um"] += obj.delta_um(ds, str(run), g["t_s"].to_numpy(), g["target_mm"].to_numpy())
