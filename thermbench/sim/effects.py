@@ -1,7 +1,7 @@
 """Composable physical effects on top of the core seed 000 ball-screw model.
 
 Each effect is a small class with named, unit-carrying parameters and one job.
-They hook into the model through five methods; every hook defaults to "no
+They hook into the model through six methods; every hook defaults to "no
 change", so an effect that is not in the model contributes exactly zero:
 
 * ``nut_heat_W(drive)``: extra nut friction power added to QN;
@@ -10,7 +10,11 @@ change", so an effect that is not in the model contributes exactly zero:
   heat with; :meth:`ScrewThermalModel.run` calls it only on the effect with id
   ``ambient_drift``, so it is not a general hook;
 * ``adjust_elongation_um(u, geom)``: changes the growth read off the temperature field;
-* ``offset_um(history)``: adds a position-independent offset.
+* ``offset_um(history)``: adds a position-independent offset;
+* ``slope_um_per_mm(history)``: adds an error proportional to the axis position.
+
+``history.signals`` holds the signals an offset or a slope may follow, per step:
+``speed`` (mm/min) and, when the model is given them, measured temperature rises.
 
 ``heat_gains`` names an effect's heat-input gains: the error is affine in them,
 and the identified physics model solves them by linear least squares. Other
@@ -77,6 +81,10 @@ class Effect:
     reference: ClassVar[dict[str, float]] = {}
     scaled: ClassVar[tuple[str, ...]] = ()
     caps: ClassVar[dict[str, float]] = {}
+    # gains that may take either sign (an offset, an expansion); heat gains are >= 0
+    signed_gains: ClassVar[tuple[str, ...]] = ()
+    # a parameter that names a driving signal (``"speed"`` or a temperature sensor), not a number
+    choice: ClassVar[str | None] = None
 
     def nut_heat_W(self, drive: "Drive") -> np.ndarray | None:
         return None
@@ -93,8 +101,23 @@ class Effect:
     def offset_um(self, history: "ThermalHistory") -> np.ndarray | None:
         return None
 
+    def slope_um_per_mm(self, history: "ThermalHistory") -> np.ndarray | None:
+        """An error proportional to the axis position Px (per step: um per mm of Px), from
+        a growth off the screw (a scale, the bed) about the axis origin."""
+        return None
+
     def params(self) -> dict[str, float]:
         return asdict(self)
+
+    def describe(self) -> str:
+        """The identified effect in words and numbers (open terms say more)."""
+        nums = ", ".join(f"{k} = {v:.4g}" for k, v in self.params().items() if isinstance(v, Real))
+        return f"{self.id} ({nums})"
+
+    def canonical(self, context: Mapping | None = None) -> str | None:
+        """The canonical effect this identified effect is (``context``: what the data say
+        about its signals, e.g. sensor locations); a canonical effect is itself."""
+        return self.id if self.id in EFFECTS else None
 
 
 @dataclass
@@ -268,6 +291,20 @@ EFFECTS: dict[str, type[Effect]] = {
 }
 
 
+#: open-ended terms (:mod:`thermbench.sim.open_terms`): generic parametric forms that the
+#: discrepancy search fits beside the canonical effects and describes in words and numbers
+OPEN_TERMS: dict[str, type[Effect]] = {}
+
+
+def effect_class(effect_id: str) -> type[Effect]:
+    """The class of a canonical effect or an open term (a ConfigError when it is neither)."""
+    cls = EFFECTS.get(effect_id) or OPEN_TERMS.get(effect_id)
+    if cls is None:
+        raise _config_error(f"unknown effect {effect_id!r}; the canonical effects are {sorted(EFFECTS)}, "
+                            f"the open terms {sorted(OPEN_TERMS)}")  # fmt: skip
+    return cls
+
+
 def _config_error(message: str):
     """A :class:`thermbench.config.ConfigError` (a user's mistake, one line); imported here,
     not at the top, so the physics loads without Hydra."""
@@ -279,9 +316,7 @@ def _config_error(message: str):
 def make_effect(effect_id: str, **params) -> Effect:
     """Build a canonical effect by id; unknown ids or parameters give a clear error
     (a :class:`~thermbench.config.ConfigError`: effect ids and parameters come from configs)."""
-    if effect_id not in EFFECTS:
-        raise _config_error(f"unknown effect {effect_id!r}; the canonical effects are {sorted(EFFECTS)}")
-    cls = EFFECTS[effect_id]
+    cls = effect_class(effect_id)
     known = {f.name for f in fields(cls)}
     bad = set(params) - known
     if bad:
@@ -306,15 +341,24 @@ def effects_from_config(cfg, key: str = "effects") -> list[Effect]:
         spec = dict(spec or {})
         if not spec.pop("enabled", True):
             continue
-        if effect_id not in EFFECTS:
-            raise _config_error(f"config key {where!r}: unknown effect {effect_id!r}; "
-                                f"the canonical effects are {sorted(EFFECTS)}")  # fmt: skip
-        known = sorted(f.name for f in fields(EFFECTS[effect_id]))
+        if effect_id not in EFFECTS and effect_id not in OPEN_TERMS:
+            raise _config_error(f"config key {where!r}: unknown effect {effect_id!r}; the canonical effects are "
+                                f"{sorted(EFFECTS)}, the open terms {sorted(OPEN_TERMS)}")  # fmt: skip
+        cls = effect_class(effect_id)
+        known = sorted(f.name for f in fields(cls))
         for param, value in spec.items():
             if param not in known:
                 raise _config_error(f"config key '{where}.{param}': effect {effect_id!r} has no parameter(s) "
                                     f"{[param]}; it takes {known}")  # fmt: skip
+            if param == cls.choice:
+                if not isinstance(value, str) or not value:
+                    raise _config_error(f"config key '{where}.{param}': expected a signal name ('speed' or a "
+                                        f"temperature sensor), got {value!r}")  # fmt: skip
+                continue
             if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
                 raise _config_error(f"config key '{where}.{param}': expected a finite number, got {value!r}")
         out.append(make_effect(str(effect_id), **spec))
     return out
+
+
+from . import open_terms  # noqa: E402,F401  (registers the open terms in OPEN_TERMS)
