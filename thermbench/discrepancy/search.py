@@ -39,17 +39,33 @@ from scipy.optimize import lsq_linear
 
 from ..data.io import Dataset
 from ..models.base import readings
-from ..models.physics import CORE_GAINS, CORE_NONLINEAR, PhysicsModel
-from ..sim.effects import EFFECTS, make_effect
+from ..models.physics import CORE_GAINS, CORE_NONLINEAR, FieldCache, PhysicsModel
+from ..sim.effects import EFFECTS, OPEN_TERMS, effect_class, make_effect
 
-#: the candidates, in the order they are tried (the canonical effect library)
-CANDIDATES = tuple(EFFECTS)
+#: the candidates, in the order they are tried: the canonical effect library, then the open terms
+CANDIDATES = (*EFFECTS, *OPEN_TERMS)
 
 
 def own_params(effect: str) -> tuple[str, ...]:
     """The nonlinear parameters identified by SQP together with ``effect`` (its heat gains are
     linear): what the effect class declares (``Effect.nonlinear``)."""
-    return tuple(EFFECTS[effect].nonlinear)
+    return tuple(effect_class(effect).nonlinear)
+
+
+def variants(effect: str, ds: Dataset) -> list[dict]:
+    """The values of the effect's ``choice`` parameter that the dataset offers (the axis speed
+    and every temperature sensor), one dict each; ``[{}]`` for an effect without a choice."""
+    choice = effect_class(effect).choice
+    if not choice:
+        return [{}]
+    return [{choice: "speed"}, *({choice: s} for s in ds.metadata.sensors)]
+
+
+def context(ds: Dataset) -> dict:
+    """What an open term needs to describe itself and find its canonical name."""
+    targets = ds.errors["target_mm"]
+    return {"length_m": ds.metadata.screw.length_m, "sensors": dict(ds.metadata.sensors),
+            "travel_mm": (float(targets.min()), float(targets.max()))}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -82,6 +98,7 @@ class Settings:
     test: SignificanceTest = field(default_factory=SignificanceTest)
     candidates: Sequence[str] = CANDIDATES
     say: Callable[[str], None] = print
+    refit: int = 3  # candidates re-identified with every parameter free after screening, per step
 
 
 def ambient_sensor(ds: Dataset) -> str | None:
@@ -99,7 +116,7 @@ NEEDS = {
 def unavailable(effect: str, ds: Dataset) -> str | None:
     """Why ``effect`` cannot be tried on this dataset (None: it can): the first of its
     ``needs`` the dataset lacks."""
-    for need in EFFECTS[effect].needs:
+    for need in effect_class(effect).needs:
         has, why = NEEDS[need]
         if not has(ds):
             return why
@@ -115,12 +132,14 @@ def n_params(effects: Sequence[str]) -> int:
 
 
 def make_model(
-    effects: Sequence[str], ds: Dataset, settings: Settings, warm: PhysicsModel | None = None, start: dict | None = None
+    effects: Sequence[str], ds: Dataset, settings: Settings, warm: PhysicsModel | None = None, start: dict | None = None,
+    cache: FieldCache | None = None,
 ) -> PhysicsModel:
     """The physics model with ``effects`` on the core, warm-started from ``warm``'s parameters.
 
     ``ambient_drift`` is the measured ambient series as the model's ambient
-    (without it the ambient is constant, as in the seed 000 core)."""
+    (without it the ambient is constant, as in the seed 000 core). ``cache``: simulated
+    fields shared with other fits of the same search step."""
     eff, identify = {}, list(CORE_NONLINEAR)
     for e in effects:
         if e == "ambient_drift":
@@ -131,7 +150,10 @@ def make_model(
         identify += [f"{e}.{p}" for p in own_params(e)]
     initial = {k: warm.params_[k] for k in CORE_NONLINEAR} if warm is not None else None
     amb = ambient_sensor(ds) if "ambient_drift" in effects else None
-    return PhysicsModel(effects=eff, identify=identify, initial=initial, ambient_sensor=amb, **settings.physics)
+    m = PhysicsModel(effects=eff, identify=identify, initial=initial, ambient_sensor=amb, **settings.physics)
+    if cache is not None:
+        m.field_cache = cache
+    return m
 
 
 def bic(sse: float, n: int, p: int) -> float:
@@ -152,7 +174,7 @@ class Fitted:
 
     @property
     def identified(self) -> dict:
-        return {k: float(v) for k, v in self.model.params_.items()}
+        return {k: (v if isinstance(v, str) else float(v)) for k, v in self.model.params_.items()}
 
 
 def folds_for(runs: Sequence[str], cv) -> list[tuple[list[str], list[str]]]:
@@ -196,30 +218,51 @@ def heldout_fast(model: PhysicsModel, ds: Dataset, folds) -> float:
     return float(np.sqrt(sq / max(n, 1)))
 
 
-def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitted:
-    """Identify ``effects`` on ``runs`` (the training runs: all of them for leave-one-run-out,
-    the declared train runs for a split) and score it."""
-    t0 = time.perf_counter()
-    model = make_model(effects, ds, settings, warm, start).fit(ds, runs)
-    fit_s = time.perf_counter() - t0
+def _scored(effects, model: PhysicsModel, ds, runs, folds, fit_s: float) -> Fitted:
     rd = readings(ds, runs)
     sse = model.train_rmse_um_**2 * len(rd)  # the cold-reference readings have residual 0 ...
     n = int((rd["cycle"] > 0).sum())  # ... and carry no information: n counts the others
     return Fitted(tuple(effects), model, sse, n, bic(sse, n, n_params(effects)), heldout_fast(model, ds, folds), fit_s)
 
 
-def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | None = None):
+def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitted:
+    """Identify ``effects`` on ``runs`` (the training runs: all of them for leave-one-run-out,
+    the declared train runs for a split) and score it."""
+    t0 = time.perf_counter()
+    model = make_model(effects, ds, settings, warm, start).fit(ds, runs)
+    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
+
+
+def fit_screen(effect: str, current: Fitted, ds, runs, folds, settings, start: dict, cache: FieldCache) -> Fitted:
+    """The screening fit of a candidate: the current model's nonlinear parameters held, the
+    candidate's own identified with every gain (a lower bound on what the candidate can do)."""
+    t0 = time.perf_counter()
+    effects = [*current.effects, effect]
+    model = make_model(effects, ds, settings, current.model, start, cache)
+    model.set_params(identify=[f"{effect}.{p}" for p in own_params(effect)])
+    model.fit(ds, runs)
+    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
+
+
+def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | None = None, variant: dict | None = None):
     """Proper held-out score: every parameter re-identified on each fold's training runs,
     warm-started from that fold's own current model (``warms``, one per fold; None: cold),
     never from a fit that saw the held-out run. The new effect's own nonlinear parameters
-    start from the grid value that suits the fold's training runs.
+    start from the grid value that suits the fold's training runs, then are identified with
+    the fold's other parameters held, then everything is identified (as on all runs). A choice
+    term keeps the signal chosen on all runs (``variant``).
 
     Returns the pooled RMSE over readings after the cold reference, the table of held-out
     predictions and the fold models (the warm starts of the next step)."""
     parts, models = [], []
     for k, (train, test) in enumerate(folds):
         warm = warms[k] if warms is not None else None
-        start = screen_start(new_effect, effects[:-1], warm, ds, train, settings) if new_effect else None
+        start = None
+        if new_effect:  # as on all runs: the grid, then the new effect's own parameters with the rest held
+            start = screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant) or {new_effect: dict(variant or {})}
+            held = make_model(effects, ds, settings, warm, start)
+            held.set_params(identify=[f"{new_effect}.{p}" for p in own_params(new_effect)])
+            start = {new_effect: dict(held.fit(ds, train).effects_[new_effect])}
         m = make_model(effects, ds, settings, warm, start).fit(ds, train)
         models.append(m)
         for run in test:
@@ -230,19 +273,22 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
     return float(np.sqrt(np.mean(r**2))), table, models
 
 
-def screen_start(effect: str, current_effects, warm: PhysicsModel | None, ds, runs, settings) -> dict:
+def screen_start(effect: str, current_effects, warm: PhysicsModel | None, ds, runs, settings, variant: dict | None = None,
+                 cache: FieldCache | None = None) -> dict:  # fmt: skip
     """Start values of the candidate's own nonlinear parameters: the best of the
-    configured grid with every other nonlinear parameter held (gains solved)."""
-    own = {**EFFECTS[effect].starts, **settings.starts.get(effect, {})}  # the effect's grid, or the config's
+    configured grid with every other nonlinear parameter held (gains solved).
+    ``variant``: the candidate's choice (its driving signal), kept in the start."""
+    variant = dict(variant or {})
+    own = {**effect_class(effect).starts, **settings.starts.get(effect, {})}  # the effect's grid, or the config's
     grid = {p: list(own.get(p) or []) for p in own_params(effect)}
     grid = {p: v for p, v in grid.items() if v}
     if not grid:
-        return {}
+        return {effect: variant} if variant else {}
     best, best_rmse = {}, np.inf
     for p, values in grid.items():
         for v in values:
-            start = {effect: {p: float(v)}}
-            m = make_model([*current_effects, effect], ds, settings, warm, start)
+            start = {effect: {**variant, p: float(v)}}
+            m = make_model([*current_effects, effect], ds, settings, warm, start, cache)
             m.set_params(identify=[])
             m.fit(ds, runs)
             if m.train_rmse_um_ < best_rmse:
@@ -254,42 +300,115 @@ def explained(before_um: float, after_um: float) -> float:
     return float(np.sqrt(max(0.0, before_um**2 - after_um**2)))
 
 
+def label(effect: str, model: PhysicsModel, ctx: dict) -> tuple[str, str]:
+    """(label, description) of a fitted candidate: the canonical effect an open term's
+    identified form is (within tolerance), else the term and its signal; its form in words."""
+    eff = make_effect(effect, **model.effects_.get(effect, {})) if effect != "ambient_drift" else make_effect(effect)
+    if effect not in OPEN_TERMS:
+        return effect, eff.description
+    choice = effect_class(effect).choice
+    own = f"{effect}[{getattr(eff, choice)}]" if choice else effect
+    return eff.canonical(ctx) or own, eff.describe(ctx)
+
+
+def _record(eid, variant, f: Fitted, current: Fitted, floor_um, settings, ctx, refit: bool) -> dict:
+    lab, words = label(eid, f.model, ctx)
+    rec = {
+        "effect": eid,
+        "variant": dict(variant),
+        "label": lab,
+        "description": words,
+        "skipped": None,
+        "refit": refit,
+        "n_params": n_params(f.effects),
+        "heldout_rmse_um": f.heldout_fast_um,
+        "explained_um": explained(current.heldout_fast_um, f.heldout_fast_um),
+        "bic_gain": current.bic - f.bic,
+        "train_rmse_um": float(np.sqrt(f.sse / f.n)),
+        "fit_s": f.fit_s,
+        "fitted": f,
+    }
+    t = settings.test
+    rec["significant"] = bool(rec["explained_um"] >= t.explained_x_floor * floor_um and rec["bic_gain"] > t.bic_min)
+    return rec
+
+
 def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float, skip: dict) -> list[dict]:
-    """Try every candidate not in the current model; one record per candidate."""
-    out = []
+    """Try every candidate not in the current model; one record per candidate.
+
+    Every candidate is first *screened* (:func:`fit_screen`: the current model's nonlinear
+    parameters held; a choice term with each signal the data offer, the best kept), then the
+    ``refit`` most promising are re-identified with every parameter free (:func:`fit_full`).
+    A candidate named on its screening alone is re-identified before it is named."""
+    cache, ctx = FieldCache(size=256), context(ds)
+    out, screened = [], []
     for eid in settings.candidates:
         if eid in current.effects:
             continue
         if eid in skip:
             out.append({"effect": eid, "skipped": skip[eid]})
             continue
-        start = screen_start(eid, current.effects, current.model, ds, runs, settings)
-        f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start)
-        rec = {
-            "effect": eid,
-            "skipped": None,
-            "heldout_rmse_um": f.heldout_fast_um,
-            "explained_um": explained(current.heldout_fast_um, f.heldout_fast_um),
-            "bic_gain": current.bic - f.bic,
-            "train_rmse_um": float(np.sqrt(f.sse / f.n)),
-            "fit_s": f.fit_s,
-            "fitted": f,
-        }
-        t = settings.test
-        rec["significant"] = bool(rec["explained_um"] >= t.explained_x_floor * floor_um and rec["bic_gain"] > t.bic_min)
-        settings.say(
-            f"[diagnose]   {eid:<24s} held-out {f.heldout_fast_um:7.3f} um  explains {rec['explained_um']:6.3f} um  "
-            f"BIC gain {rec['bic_gain']:9.1f}  {'significant' if rec['significant'] else '-':11s} ({f.fit_s:.1f} s)"
-        )
+        fits = []
+        for var in variants(eid, ds):
+            start = screen_start(eid, current.effects, current.model, ds, runs, settings, var, cache)
+            fits.append((eid, var, fit_screen(eid, current, ds, runs, folds, settings, start or {eid: var}, cache)))
+        best = min(fits, key=lambda x: x[2].sse)
+        screened.append(best)
+        if best[1] and best[1] != fits[0][1]:
+            screened.append(fits[0])  # the speed variant too (see below)
+    # re-identified with every parameter free: the most promising by screening, and every
+    # speed-driven choice term: the core's own heat inputs follow the speed, so the held core
+    # has absorbed most of what such a term explains and its screening underrates it most
+    promising = sorted((x for x in screened if explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
+                       key=lambda x: x[2].heldout_fast_um)[: settings.refit]  # fmt: skip
+    chosen = {id(x) for x in promising} | {id(x) for x in screened if x[1] and next(iter(x[1].values())) == "speed"}
+    for x in screened:
+        eid, var, fs = x
+        rec = _record(eid, var, fs, current, floor_um, settings, ctx, refit=False)
+        if id(x) in chosen:
+            rec = refit(rec, current, ds, runs, folds, settings, floor_um)
         out.append(rec)
+        say_record(rec, settings)
     return out
 
 
+def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float) -> dict:
+    """A screened candidate re-identified with every parameter free, from its screening fit."""
+    eid = rec["effect"]
+    start = {eid: dict(rec["fitted"].model.effects_.get(eid, {}))}
+    f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start)
+    f.fit_s += rec["fit_s"]
+    return _record(eid, rec["variant"], f, current, floor_um, settings, context(ds), refit=True)
+
+
+def say_record(rec: dict, settings) -> None:
+    settings.say(
+        f"[diagnose]   {display(rec):<32s} held-out {rec['heldout_rmse_um']:7.3f} um  explains {rec['explained_um']:6.3f} um  "
+        f"BIC gain {rec['bic_gain']:9.1f}  {'significant' if rec['significant'] else '-':11s} "
+        f"({'refit' if rec['refit'] else 'screened'}, {rec['fit_s']:.1f} s)"
+    )
+
+
 def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[dict | None, list[str]]:
-    """The best significant candidate and the candidates it ties with."""
+    """The best significant candidate and the candidates it ties with.
+
+    Candidates whose identified forms are the same physics (the same ``label``: an open term
+    within tolerance of a canonical effect) do not tie: the one with the fewest parameters is
+    named. The same open term on other signals does not tie either: its form is named, and the
+    signals that drive it alike are listed (``alike``). Distinct physics within
+    ``tie_x_floor`` of the best tie."""
     sig = sorted((c for c in cands if c.get("significant")), key=lambda c: c["heldout_rmse_um"])
     if not sig:
         return None, []
     best = sig[0]
-    ties = [c["effect"] for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um]
-    return best, ties
+    band = [c for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um]
+    pick = min([best, *(c for c in band if c["label"] == best["label"])], key=lambda c: (c["n_params"], c["heldout_rmse_um"]))
+    # the same open term on another signal: the form is found, its driver is not told apart
+    pick = {**pick, "alike": [display(c) for c in band if c["label"] != best["label"] and c["effect"] == pick["effect"]]}
+    ties = [display(c) for c in band if c["label"] != best["label"] and c["effect"] != pick["effect"]]
+    return pick, ties
+
+
+def display(c: dict) -> str:
+    """A candidate's name with its signal: ``driven_offset[T_bed]``."""
+    return c["effect"] + (f"[{next(iter(c['variant'].values()))}]" if c.get("variant") else "")

@@ -30,7 +30,7 @@ import pandas as pd
 
 from ..outputs import check_output_dir, output_dir
 from ..data.io import Dataset, load_dataset
-from ..sim.effects import EFFECTS
+from ..sim.effects import EFFECTS, OPEN_TERMS
 from . import localise as loc
 from .noise import estimate_noise_floor
 from .search import (
@@ -39,10 +39,12 @@ from .search import (
     Settings,
     SignificanceTest,
     decide,
+    display,
     explained,
     fit_full,
     folds_for,
     heldout_loro,
+    refit,
     score_candidates,
     unavailable,
 )
@@ -56,11 +58,15 @@ class DiagnoseError(ValueError):
     """A user mistake in the diagnose command or its config; the message names the key."""
 
 
-def _check_effects(names: Sequence[str], key: str) -> list[str]:
+def _check_effects(names: Sequence[str], key: str, open_terms: bool = False) -> list[str]:
+    """Effect ids of config key ``key``: canonical effects, and the open terms where allowed
+    (as candidates; a base effect is a canonical one)."""
     out = [str(n).strip() for n in names if str(n).strip()]
-    bad = [n for n in out if n not in EFFECTS]
+    known = {*EFFECTS, *(OPEN_TERMS if open_terms else ())}
+    bad = [n for n in out if n not in known]
     if bad:
-        raise DiagnoseError(f"config key {key!r}: unknown effect(s) {bad}; the canonical effects are {sorted(EFFECTS)}")
+        more = f", the open terms {sorted(OPEN_TERMS)}" if open_terms else ""
+        raise DiagnoseError(f"config key {key!r}: unknown effect(s) {bad}; the canonical effects are {sorted(EFFECTS)}{more}")
     if len(set(out)) != len(out):
         raise DiagnoseError(f"config key {key!r}: an effect is listed twice: {out}")
     return out
@@ -100,7 +106,7 @@ def run_diagnosis(
     say = settings.say
     t_start = time.perf_counter()
     base = _check_effects(base, "base")
-    _check_effects(settings.candidates, "candidates")
+    _check_effects(settings.candidates, "candidates", open_terms=True)
     if int(max_effects) < 0:
         raise DiagnoseError(f"config key 'max_effects': expected an integer >= 0, got {max_effects}")
     notes = []
@@ -143,6 +149,10 @@ def run_diagnosis(
             f"{''.join(' + ' + e for e in current.effects)}")  # fmt: skip
         cands = score_candidates(current, ds, fit_runs, folds, settings, floor, skip)
         best, ties = decide(cands, floor, settings.test)
+        while best is not None and not best["refit"]:  # named on its screening: re-identify it first
+            i = next(i for i, c in enumerate(cands) if c.get("fitted") is best["fitted"])
+            cands[i] = refit(cands[i], current, ds, fit_runs, folds, settings, floor)
+            best, ties = decide(cands, floor, settings.test)
         scans.append({"effects": list(current.effects), "heldout_fast_um": current.heldout_fast_um, "noise_floor_um": floor,
                       "candidates": [_public(c) for c in cands], "named": best["effect"] if best else None,
                       "ambiguous_with": ties})  # fmt: skip
@@ -155,9 +165,15 @@ def run_diagnosis(
                     f"{before_um / floor:.1f}x the noise floor: something the candidates cannot describe is missing")  # fmt: skip
             break
         new = [*current.effects, best["effect"]]
-        after_um, after_table, new_fold_models = heldout_loro(new, ds, folds, settings, fold_models, best["effect"])
+        after_um, after_table, new_fold_models = heldout_loro(new, ds, folds, settings, fold_models, best["effect"],
+                                                              best["variant"])  # fmt: skip
         step = {
             "effect": best["effect"],
+            "variant": best["variant"],
+            "label": best["label"],
+            "canonical": best["label"] if best["label"] in EFFECTS else None,
+            "description": best["description"],
+            "signals_alike": best["alike"],
             "ambiguous_with": ties,
             "heldout_rmse_before_um": before_um,
             "heldout_rmse_after_um": after_um,
@@ -172,10 +188,15 @@ def run_diagnosis(
                 f"re-identified per fold ({before_um:.3f} -> {after_um:.3f} um); stopping")  # fmt: skip
             break
         if ties:
-            ambiguous.append([best["effect"], *ties])
-            say(f"[diagnose] ambiguous: {' or '.join([best['effect'], *ties])} explain the data alike; not guessing")
+            ambiguous.append([display(best), *ties])
+            say(f"[diagnose] ambiguous: {' or '.join([display(best), *ties])} explain the data alike; not guessing")
             break
-        say(f"[diagnose] missing effect: {best['effect']}: held-out RMSE {before_um:.3f} -> {after_um:.3f} um "
+        if best["effect"] in OPEN_TERMS:
+            same = f" (= {best['label']})" if best["label"] in EFFECTS else ""
+            say(f"[diagnose] described by an open term{same}: {best['description']}")
+            if best["alike"]:
+                say(f"[diagnose] its driver is not told apart: {' or '.join([display(best), *best['alike']])} fit alike")
+        say(f"[diagnose] missing effect: {display(best)}: held-out RMSE {before_um:.3f} -> {after_um:.3f} um "
             f"({1 - after_um / before_um:.0%} less)")  # fmt: skip
         missing.append(best["effect"])
         current, before_um, fold_models = best["fitted"], after_um, new_fold_models
@@ -369,7 +390,7 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
     _check_physics(physics)
     starts = {}
     for eid, params in dict(cfg.get("starts") or {}).items():
-        searched = sorted(e for e in EFFECTS if own_params(e))
+        searched = sorted(e for e in (*EFFECTS, *OPEN_TERMS) if own_params(e))
         if eid not in searched or not isinstance(params, dict):
             raise DiagnoseError(f"config key 'starts.{eid}': expected one of {searched} with "
                                 f"{{param: [values]}}, e.g. +starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
@@ -382,9 +403,17 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
         physics=physics,
         starts=starts,
         test=t,
-        candidates=_check_effects(_as_list(cfg.get("candidates")) or list(CANDIDATES), "candidates"),
+        candidates=_check_effects(_as_list(cfg.get("candidates")) or list(CANDIDATES), "candidates", open_terms=True),
         say=say,
+        refit=_refit(cfg.get("refit", 3)),
     )
+
+
+def _refit(v) -> int:
+    n = _number(v, "refit", int)
+    if n < 1:
+        raise DiagnoseError(f"config key 'refit': expected an integer >= 1 (candidates re-identified per step), got {v!r}")
+    return n
 
 
 def _as_list(v) -> list[str]:

@@ -159,9 +159,25 @@ def _name(ds: Dataset) -> str:
     return str(ds.path) if ds.path is not None else ds.metadata.machine.name
 
 
+def derived(ds: Dataset, key: tuple, make, copy: bool = True):
+    """What is derived from a dataset, computed once per dataset object and shared (data
+    flows one way: a loaded dataset is not changed, so the thermal errors, the measuring
+    cycles and the filtered sensor series made from it stay valid). Returns a copy, or
+    (``copy=False``) the shared object, which the caller must not change."""
+    memo = ds.__dict__.setdefault("_derived", {})
+    if key not in memo:
+        memo[key] = make()
+    return memo[key].copy() if copy else memo[key]
+
+
 def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
     """The interferometer readings of ``runs`` with ``thermal_um`` (reading minus
-    the run's cold reference at the same target) and the measuring ``cycle``."""
+    the run's cold reference at the same target) and the measuring ``cycle``
+    (computed once per dataset and runs: :func:`derived`)."""
+    return derived(ds, ("readings", tuple(runs)), lambda: _readings(ds, runs))
+
+
+def _readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
     te = thermal_errors(ds)
     te = te[te["run_id"].isin(list(runs))].copy()
     te["cycle"] = 0
@@ -175,6 +191,13 @@ def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess) -> 
     """The run's process log (``t_s`` and ``<sensor>_C`` columns), filtered by ``preprocess``
     (seed 002 §2.3.1: ``"default"``, ``None`` or a list of filters), with a clear error
     for missing sensors or NaN left after filtering."""
+    if preprocess is None or isinstance(preprocess, str):  # a named chain: the same filters every time
+        key = ("sensor_series", run, tuple(sensors), preprocess)
+        return derived(ds, key, lambda: _sensor_series(ds, run, sensors, preprocess))
+    return _sensor_series(ds, run, sensors, preprocess)
+
+
+def _sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess) -> pd.DataFrame:
     from ..preprocess.filters import filter_process, resolve_steps
 
     cols = [ds.metadata.sensor_column(s) for s in check_sensors(ds, sensors)]

@@ -26,7 +26,8 @@ the model's error at that target's cold reference reading.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from collections import OrderedDict
+from dataclasses import dataclass, fields, replace
 from typing import Sequence
 
 import numpy as np
@@ -34,10 +35,10 @@ import pandas as pd
 from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
-from ..sim.effects import EFFECTS, AmbientDrift, FixedFixedConstraint, make_effect
+from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
 from ..sim.parts import CoreParams, Material, Numerics, Screw
-from .base import Inputs, ModelError, ThermalErrorModel, fallback, readings, require, sensor_series
+from .base import Inputs, ModelError, ThermalErrorModel, derived, fallback, readings, require, sensor_series
 from .separation import cold_reference_geometric
 
 CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
@@ -59,6 +60,37 @@ class _RunData:
     x_mm: np.ndarray  # reading targets
     ref_idx: np.ndarray  # per reading, the index of its target's cold reference reading(s)
     thermal_um: np.ndarray  # measured thermal error
+    signals: dict  # measured signals the effects follow: {sensor: (t_s, filtered series)}
+
+
+def _signals_at(rd: _RunData, t_s: np.ndarray) -> dict:
+    """The run's measured signals as rises above their first sample, at times ``t_s``."""
+    return {n: np.interp(t_s, st, sv - sv[0]) for n, (st, sv) in rd.signals.items()}
+
+
+class FieldCache:
+    """The last ``size`` simulated temperature fields of an identification, by run, active
+    gain and every parameter the field depends on (:meth:`PhysicsModel._basis`). The
+    discrepancy search hands one to the fits of a step (``field_cache``), so candidates that
+    only add offsets or slopes re-read the current model's fields instead of re-simulating."""
+
+    def __init__(self, size: int = 64) -> None:
+        self.size = size
+        self._d: OrderedDict = OrderedDict()
+        self.prepared: dict = {}  # run id -> the last Prepared (motion, ambient, coverage at a Pf)
+
+    def get(self, key):
+        hit = self._d.get(key)
+        if hit is not None:
+            self._d.move_to_end(key)
+        return hit
+
+    def put(self, key, value):
+        self._d[key] = value
+        self._d.move_to_end(key)
+        while len(self._d) > self.size:
+            self._d.popitem(last=False)
+        return value
 
 
 class PhysicsModel(ThermalErrorModel):
@@ -145,6 +177,25 @@ class PhysicsModel(ThermalErrorModel):
         s = sensor_series(ds, run, [name], self.preprocess)
         return mot, float(t[-1] - t[0]), s[ds.metadata.sensor_column(name)].to_numpy(), s["t_s"].to_numpy()
 
+    @staticmethod
+    def _signal_names(specs: dict) -> list[str]:
+        """The temperature sensors the effects follow (an effect's ``choice`` parameter)."""
+        return sorted({str(p[cls.choice]) for eid, p in specs.items()
+                       if (cls := effect_class(eid)).choice and p.get(cls.choice, "speed") != "speed"})  # fmt: skip
+
+    def _signals(self, ds: Dataset, run: str, specs: dict) -> dict:
+        """The measured temperature channels the effects follow, filtered like the ambient:
+        {sensor: (t_s, series)}."""
+        names = self._signal_names(specs)
+        if not names:
+            return {}
+        missing = [n for n in names if n not in ds.metadata.sensors]
+        if missing:
+            raise ModelError(f"effects: signal(s) {missing} are not sensors of the dataset; sensors: "
+                             f"{list(ds.metadata.sensors)} (or 'speed')")  # fmt: skip
+        s = sensor_series(ds, run, names, self.preprocess)
+        return {n: (s["t_s"].to_numpy(), s[ds.metadata.sensor_column(n)].to_numpy()) for n in names}
+
     def _effect_specs(self) -> dict[str, dict]:
         specs = {str(k): dict(v or {}) for k, v in dict(self.effects or {}).items()}
         for eid, params in specs.items():
@@ -185,6 +236,12 @@ class PhysicsModel(ThermalErrorModel):
             units.update({f"{eid}.{g}": float(getattr(eff, g)) for g in eff.heat_gains})
         return units
 
+    def gain_lower_bounds(self, gains) -> np.ndarray:
+        """Lower bounds of the gains: heat gains k >= 0 (seed 000 §4.2); an effect's
+        ``signed_gains`` (an offset, an expansion) either sign."""
+        signed = lambda g: "." in g and g.split(".", 1)[1] in effect_class(g.split(".", 1)[0]).signed_gains  # noqa: E731
+        return np.array([-np.inf if signed(g) else 0.0 for g in gains])
+
     def _check_identify(self, effect_specs: dict) -> list[str]:
         out = []
         for name in [self.identify] if isinstance(self.identify, str) else list(self.identify):
@@ -192,7 +249,8 @@ class PhysicsModel(ThermalErrorModel):
                 out.append(name)
                 continue
             eid, _, param = str(name).partition(".")
-            if eid not in effect_specs or param not in {f.name for f in fields(make_effect(eid))}:
+            if eid not in effect_specs or param not in {f.name for f in fields(make_effect(eid))} or \
+                    param == effect_class(eid).choice:
                 raise ModelError(
                     f"identify: {name!r} is neither a core parameter {list(CORE_NONLINEAR)} "
                     f"nor '<effect>.<param>' of an effect in 'effects' ({sorted(effect_specs)})"
@@ -214,7 +272,7 @@ class PhysicsModel(ThermalErrorModel):
             # the nut stays on the screw over the measured travel, on the side of the initial Pf
             "pf_m": (hi_mm / 1000.0 - L, lo_mm / 1000.0) if pf0 <= 0 else (hi_mm / 1000.0, lo_mm / 1000.0 + L),
         }
-        default.update({f"{eid}.{k}": b for eid, cls in EFFECTS.items() for k, b in cls.bounds.items()})  # Effect.bounds
+        default.update({f"{eid}.{k}": b for eid in self._effect_specs() for k, b in effect_class(eid).bounds.items()})
         user = dict(self.bounds or {})
         out = []
         for n in names:
@@ -235,7 +293,7 @@ class PhysicsModel(ThermalErrorModel):
 
     # ----------------------------------------------------- identification ---
     def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool,
-               prepared: dict | None = None):  # fmt: skip
+               prepared: dict | None = None, memo: dict | None = None):  # fmt: skip
         """Per run, the affine basis (E0, A): E0 the error at the readings (minus
         reference) with every gain zero, column i of A = E_i - E0 for gain i at its
         unit value (the others zero).
@@ -243,41 +301,68 @@ class PhysicsModel(ThermalErrorModel):
         The runs of one basis differ in the gains only, so each run's motion, ambient and
         nut coverage are prepared once (:meth:`ScrewThermalModel.prepare`) and kept in
         ``prepared`` (run id -> the last one made) for the next basis at the same Pf:
-        identification's finite-difference steps in k1, k2 and lambda reuse it."""
+        identification's finite-difference steps in k1, k2 and lambda reuse it.
+
+        Effects that do not touch the temperature field (``field_free``: offsets, slopes)
+        cost no simulation: their gain columns read E0's field with their own effects, and
+        ``memo`` keeps each run's last fields, so a step in their nonlinear parameters (a
+        lag) re-reads them instead of re-simulating."""
         prepared = {} if prepared is None else prepared
+        memo = FieldCache() if memo is None else memo
+        free = {e for e in specs if getattr(effect_class(e), "field_free", False)}
         out = []
         for rd in rds:
-            resp = []
+            resp, h0 = [], None
             for active in [None, *gains]:
                 c = dict(core)
                 sp = {k: dict(v) for k, v in specs.items()}
                 for g, unit in gains.items():
                     self._set(c, sp, g, unit if g == active else 0.0)
                 model = self._build(ds, c, sp, ambient)
-                p = prepared.get(rd.run)
-                if p is None or p.key != model.prepared_key():
-                    p = prepared[rd.run] = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                         duration_s=rd.duration_s)  # fmt: skip
-                hist = model.run_prepared(p)
+                if active is not None and active.split(".", 1)[0] in free:
+                    hist = replace(h0, effects=model.effects)  # the same field, other offsets
+                else:
+                    key = (rd.run, active, ambient, tuple(sorted(c.items())),
+                           tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items()) if e not in free))  # fmt: skip
+                    hist = memo.get(key)
+                    if hist is None:
+                        p = prepared.get(rd.run)
+                        if p is None or p.key != model.prepared_key():
+                            p = prepared[rd.run] = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
+                                                                 duration_s=rd.duration_s)  # fmt: skip
+                        hist = memo.put(key, model.run_prepared(p))
+                    hist = replace(hist, effects=model.effects, signals={"speed": hist.signals["speed"],
+                                                                         **_signals_at(rd, hist.t_s)})  # fmt: skip
+                    if active is None:
+                        h0 = hist
                 e = hist.error_um(rd.t_s, rd.x_mm)
                 resp.append(e - e[rd.ref_idx])
             e0 = resp[0]
             out.append((e0, np.stack([r - e0 for r in resp[1:]], axis=1)))
         return out
 
-    def _run_data(self, ds: Dataset, runs: list[str], rd_all) -> list[_RunData]:
+    def _run_data(self, ds: Dataset, runs: list[str], rd_all, specs: dict) -> list[_RunData]:
         """Per run: its drive and readings, each reading with the index of its target's
-        cold reference reading."""
-        rds = []
+        cold reference reading; made once per dataset, run, ambient sensor, filters and
+        signals (:func:`~thermbench.models.base.derived`) and shared by every fit."""
+        names = tuple(self._signal_names(specs))
+        shared = self.preprocess is None or isinstance(self.preprocess, str)
+        out = []
         for run in runs:
-            g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
-            require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
-            ref = g[g["cycle"] == 0]
-            first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
-            ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
-            mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
-            rds.append(_RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx, g["thermal_um"].to_numpy()))
-        return rds
+            make = lambda run=run: self._one_run(ds, run, rd_all, specs)  # noqa: E731
+            key = ("physics_run", run, self.ambient_name_, self.preprocess, names)
+            out.append(derived(ds, key, make, copy=False) if shared else make())
+        return out
+
+    def _one_run(self, ds: Dataset, run: str, rd_all, specs: dict) -> _RunData:
+        g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
+        require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
+        ref = g[g["cycle"] == 0]
+        first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
+        ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
+        mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
+        return _RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx,
+                        g["thermal_um"].to_numpy(), self._signals(ds, run, specs))  # fmt: skip
 
     def gain_basis(self, dataset: Dataset, runs: Sequence[str]) -> tuple[dict[str, float], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
         """At the identified nonlinear parameters, the affine basis of the heat gains
@@ -292,7 +377,7 @@ class PhysicsModel(ThermalErrorModel):
         self._check_fitted()
         runs = list(runs)
         gains = self._gains(self.effects_)
-        rds = self._run_data(dataset, runs, readings(dataset, runs))
+        rds = self._run_data(dataset, runs, readings(dataset, runs), self.effects_)
         parts = self._basis(dataset, rds, self.core_.as_dict(), self.effects_, gains, self.ambient_name_ is not None)
         return gains, [(e0, a, rd.thermal_um) for (e0, a), rd in zip(parts, rds)]
 
@@ -302,7 +387,7 @@ class PhysicsModel(ThermalErrorModel):
         reading: what identification fits and what held-out scores compare."""
         self._check_fitted()
         rd_all = readings(dataset, [run]).reset_index(drop=True)
-        rd = self._run_data(dataset, [run], rd_all)[0]
+        rd = self._run_data(dataset, [run], rd_all, self.effects_)[0]
         e = self.history(dataset, run).error_um(rd.t_s, rd.x_mm)
         return rd_all, e - e[rd.ref_idx]
 
@@ -326,15 +411,21 @@ class PhysicsModel(ThermalErrorModel):
         rd_all = readings(ds, runs)
         require(len(rd_all), len(gains) + len(nonlinear) + 1, "readings")
         self.geometric_ = cold_reference_geometric(rd_all, self.geometric_degree)
-        rds = self._run_data(ds, runs, rd_all)
+        rds = self._run_data(ds, runs, rd_all, specs)
         y = np.concatenate([r.thermal_um for r in rds])
 
-        scale = np.array([_SCALE.get(n, max(abs(start[n]), 1e-6)) for n in nonlinear])
+        # SQP variables scaled to O(1): typical magnitudes, the start value, or (a start at 0,
+        # e.g. no lag) a tenth of the bounded range
+        scale = np.array([_SCALE.get(n, abs(start[n]) if start[n] else
+                                     (hi - lo) / 10.0 if np.isfinite(hi - lo) else 1.0)  # fmt: skip
+                          for n, (lo, hi) in zip(nonlinear, bounds)])
+        scale = np.maximum(scale, 1e-6)
         lb = np.array([b[0] for b in bounds])
         ub = np.array([b[1] for b in bounds])
-        gain_lb = np.zeros(len(gains))  # heat gains k > 0 (seed 000 §4.2)
+        gain_lb = self.gain_lower_bounds(gains)  # heat gains k > 0 (seed 000 §4.2)
         n_eval = 0
-        prepared: dict = {}  # run id -> its motion, ambient and coverage at the last Pf (see _basis)
+        memo = getattr(self, "field_cache", None) or FieldCache()  # the last fields (see _basis)
+        prepared = memo.prepared  # run id -> its motion, ambient and coverage at the last Pf
 
         def solve(z):
             nonlocal n_eval
@@ -343,7 +434,7 @@ class PhysicsModel(ThermalErrorModel):
             sp = {k: dict(v) for k, v in specs.items()}
             for n, val in zip(nonlinear, z * scale):
                 self._set(core, sp, n, float(val))
-            parts = self._basis(ds, rds, core, sp, gains, ambient, prepared)
+            parts = self._basis(ds, rds, core, sp, gains, ambient, prepared, memo)
             e0 = np.concatenate([p[0] for p in parts])
             a = np.concatenate([p[1] for p in parts])
             sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")
@@ -385,11 +476,15 @@ class PhysicsModel(ThermalErrorModel):
             )
         mot, dur, amb, amb_t = self._drive(dataset, run, name)
         model = self._build(dataset, self.core_.as_dict(), self.effects_, name is not None)
-        return model.run(mot, ambient_C=amb, ambient_t_s=amb_t, duration_s=dur)
+        return model.run(mot, ambient_C=amb, ambient_t_s=amb_t, duration_s=dur, signals=self._signals(dataset, run, self.effects_))
 
     def _predict_thermal(self, ds, run, t_s, axis_mm):
         return self.history(ds, run).error_um(t_s, axis_mm)
 
     def _model_inputs(self) -> Inputs:
         name = self.ambient_name_
-        return Inputs(sensors=(name,) if name else (), motion=True, ambient=name is not None)
+        signals = tuple(n for n in self._signals_used() if n != name)
+        return Inputs(sensors=((name,) if name else ()) + signals, motion=True, ambient=name is not None)
+
+    def _signals_used(self) -> list[str]:
+        return self._signal_names(self.effects_)

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import lfilter
 
 from . import kernels
 from .effects import AmbientDrift, Effect, FreeEndBearingHeat, first_order_lag
@@ -76,6 +77,8 @@ class Prepared:
     cover: np.ndarray  # (n_steps, n_nodes) mean covered fraction
     v_cover: np.ndarray  # (n_steps, n_nodes) mean speed x covered fraction
     v_mean: np.ndarray  # (n_steps,) mean speed per step
+    # measured signals (temperature rises above the first sample) at the macro-step boundaries
+    signals_b: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -92,6 +95,33 @@ class ThermalHistory:
     effects: list[Effect]
     heat_in_J: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per step
     convected_J: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per step (macro only)
+    # what offsets and slopes may follow: "speed" (mm/min, step means, n_t - 1) and measured
+    # temperature rises (K, at the step boundaries, n_t)
+    signals: dict = field(default_factory=dict)
+
+    def signal(self, name: str, tau_s: float = 0.0) -> np.ndarray:
+        """Signal ``name`` through a first-order lag ``tau_s`` at the step boundaries:
+        ``"speed"`` in m/min (exact for the step means: y[k+1] = a y[k] + (1 - a) v[k],
+        a = exp(-dt/tau), y[0] = 0; with no lag y[k+1] = v[k]), a temperature rise in K."""
+        if name not in self.signals:
+            raise KeyError(f"signal {name!r} is not available to the model; it has {sorted(self.signals)}")
+        dt = float(self.t_s[1] - self.t_s[0]) if self.t_s.size > 1 else 1.0
+        a = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
+        if name == "speed":
+            v = np.asarray(self.signals[name], dtype=float) / 1000.0
+            y = lfilter([0.0, 1.0 - a], [1.0, -a], np.append(v, v[-1:]))
+            return y
+        r = np.asarray(self.signals[name], dtype=float)
+        y, _ = lfilter([1.0 - a], [1.0, -a], r, zi=[a * r[0]])
+        return y
+
+    def slope_um_per_mm(self) -> np.ndarray | None:
+        out = None
+        for eff in self.effects:
+            s = eff.slope_um_per_mm(self)
+            if s is not None:
+                out = s if out is None else out + s
+        return out
 
     # -- seed 000 §3.2 ------------------------------------------------------
     def elongation_um(self) -> np.ndarray:
@@ -131,6 +161,15 @@ class ThermalHistory:
         return self._read(u, self.offset_um(), self.ambient_C, t, px_mm)
 
     def _read(self, u, off, amb, t, px_mm):
+        slope = self.slope_um_per_mm()
+        out = self._read_screw(u, off, amb, t, px_mm)
+        if slope is None:
+            return out
+        k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
+        w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
+        return out + (slope[k] * (1 - w) + slope[k + 1] * w) * px_mm
+
+    def _read_screw(self, u, off, amb, t, px_mm):
         g = self.geom
         k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
         w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
@@ -217,9 +256,12 @@ class ScrewThermalModel:
         ambient_C: np.ndarray | float | None = None,
         ambient_t_s: np.ndarray | None = None,
         duration_s: float | None = None,
+        signals: dict | None = None,
     ) -> Prepared:
         """The part of :meth:`run` that depends on the motion, the ambient series, the
-        screw, the numerics and Pf only (see :class:`Prepared`)."""
+        screw, the numerics and Pf only (see :class:`Prepared`). ``signals``: measured
+        series ``{name: (t_s, values)}`` that offsets and slopes may follow (as rises above
+        their first value)."""
         g = self.geom
         num = self.numerics
         d = self.drive(motion, duration_s)
@@ -241,7 +283,11 @@ class ScrewThermalModel:
             d.x_screw_m, d.v_mm_min[None, :], m, n_steps, g.n_nodes, num.dx_m, self.screw.nut_length_m / 2.0, g.n_bearing
         )
         v_mean = d.v_mm_min.reshape(n_steps, m).mean(axis=1)
-        return Prepared(self.prepared_key(), d, t_b, ta0, measured_f, measured_b, cov[0], cov[1], v_mean)
+        sig = {}
+        for name, (st, sv) in dict(signals or {}).items():
+            sv = np.asarray(sv, dtype=float)
+            sig[name] = np.interp(t_b, np.asarray(st, dtype=float), sv - sv[0])
+        return Prepared(self.prepared_key(), d, t_b, ta0, measured_f, measured_b, cov[0], cov[1], v_mean, sig)
 
     def run(
         self,
@@ -251,6 +297,7 @@ class ScrewThermalModel:
         theta0_C: np.ndarray | None = None,
         duration_s: float | None = None,
         method: str | None = None,
+        signals: dict | None = None,
     ) -> ThermalHistory:
         """Integrate the temperature field over the motion.
 
@@ -258,7 +305,7 @@ class ScrewThermalModel:
         the motion's times). Without the ``ambient_drift`` effect the screw sees a
         constant ambient Ta0 = the first value (seed 000 §3.1, T_n(0) = Ta).
         """
-        return self.run_prepared(self.prepare(motion, ambient_C, ambient_t_s, duration_s), theta0_C, method)
+        return self.run_prepared(self.prepare(motion, ambient_C, ambient_t_s, duration_s, signals), theta0_C, method)
 
     def run_prepared(self, p: Prepared, theta0_C: np.ndarray | None = None, method: str | None = None) -> ThermalHistory:
         """:meth:`run` from a :meth:`prepare` result (of this model or of one with the same
@@ -348,6 +395,7 @@ class ScrewThermalModel:
         return ThermalHistory(
             t_s=t_b, theta_C=theta, ambient_C=amb_b, ta0_C=ta0, housing_C=housing, geom=g,
             core=self.core, effects=self.effects, heat_in_J=heat_in, convected_J=conv_J,
+            signals={"speed": v_mean, **p.signals_b},
         )  # fmt: skip
 
     def material_conductance(self, lambda_W_mK: float) -> float:
