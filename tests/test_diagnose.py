@@ -21,7 +21,8 @@ from thermbench.data.io import load_dataset
 from thermbench.discrepancy import hidden
 from thermbench.discrepancy.localise import annotate, localise
 from thermbench.discrepancy.noise import estimate_noise_floor
-from thermbench.discrepancy.search import CANDIDATES, SignificanceTest, decide, folds_for
+from thermbench.discrepancy.search import SignificanceTest, decide, folds_for
+from thermbench.sim.effects import EFFECTS
 from thermbench.discrepancy.workflow import settings_from_config
 
 WORLD = hidden.World(n_runs=3, run_h=2.0)
@@ -52,7 +53,7 @@ def calibrated(effect: str, seed: int, world=WORLD, physics=PHYSICS) -> dict:
     return params
 
 
-@pytest.mark.parametrize("effect", CANDIDATES)
+@pytest.mark.parametrize("effect", list(EFFECTS))
 def test_names_the_hidden_effect(effect, tmp_path, capsys):
     params = calibrated(effect, seed=11)
     data = hidden.make(tmp_path / "data", {effect: params}, seed=11, world=WORLD)
@@ -99,7 +100,8 @@ def test_negative_control_names_nothing_and_logs_to_mlflow(clean_data, tmp_path)
     # an effect whose column is absent is skipped, and the diagnosis says so
     assert "load_N" in d["skipped"]["load_dependent_heat"]
     tried = {c["effect"] for c in d["scans"][0]["candidates"] if not c["skipped"]}
-    assert tried == set(CANDIDATES) - {"load_dependent_heat"}
+    # every canonical effect and every open term (the library's and thermbench.sim.open_terms')
+    assert tried == {*EFFECTS, "heat_source", "nut_heat_power", "driven_offset", "referenced_expansion"} - {"load_dependent_heat"}
     # the noise floor estimated from the data is near the interferometer's (0.25 um x sqrt 2)
     assert d["noise_floor_um"] == pytest.approx(hidden.IFM_NOISE_UM * np.sqrt(2), rel=0.25)
 
@@ -175,6 +177,15 @@ def test_out_of_library_physics_is_never_called_complete(name, tmp_path):
         assert "## What is left" in report and "to tell more" in report
     else:
         assert d["verdict"] in ("found", "none")
+    # an open term that is named describes the hidden physics, not something else
+    ident = f["identified"]
+    if name == "support_bearing_heat" and "heat_source" in d["missing_effects"]:
+        assert abs(ident["heat_source.at_frac"] - params["at_frac"]) < 0.1, ident
+    if name == "structure_growth" and "driven_offset" in d["missing_effects"]:
+        assert ident["driven_offset.signal"] == "speed" and ident["driven_offset.g_um_per_unit"] > 0, ident
+    if name == "scale_expansion" and "referenced_expansion" in d["missing_effects"]:
+        p0_mm = 1000 * ident["referenced_expansion.b_um_per_unit"] / ident["referenced_expansion.a_um_per_m_unit"]
+        assert abs(p0_mm - params["p0_mm"]) < 0.2 * (WORLD.travel_mm[1] - WORLD.travel_mm[0]), ident
     print(f"OUT-OF-LIBRARY {name} {params} -> {d['verdict']} {f['heldout_x_floor']:.2f}x {d['missing_effects']}")
 
 
@@ -290,12 +301,28 @@ def test_localise_finds_a_far_end_discrepancy_and_none_in_noise(clean_data):
 
 def test_decide_names_the_best_and_reports_ties():
     t = SignificanceTest(explained_x_floor=2.0, bic_min=10.0, tie_x_floor=1.0)
-    rec = lambda e, ho, sig: {"effect": e, "heldout_rmse_um": ho, "significant": sig}  # noqa: E731
+
+    def rec(e, ho, sig, label=None, n=6, signal=None):
+        return {"effect": e, "heldout_rmse_um": ho, "significant": sig, "label": label or e, "n_params": n,
+                "variant": {"signal": signal} if signal else {}}  # fmt: skip
+
     best, ties = decide([rec("a", 0.5, True), rec("b", 2.0, True), rec("c", 0.4, False)], 0.3, t)
     assert best["effect"] == "a" and ties == []
     best, ties = decide([rec("a", 0.50, True), rec("b", 0.55, True)], 0.3, t)  # sqrt(.55^2-.5^2)=0.23 < 0.3
     assert best["effect"] == "a" and ties == ["b"]
     assert decide([rec("a", 0.5, False)], 0.3, t) == (None, [])
+    # an open term that is a canonical effect within tolerance: the same physics, not a tie; the
+    # one with fewer parameters is named even when the open term fits a little better
+    best, ties = decide([rec("heat_source", 0.50, True, label="motor_heat", n=9), rec("motor_heat", 0.52, True, n=7)], 0.3, t)
+    assert best["effect"] == "motor_heat" and ties == []
+    # the same open term on two signals: its form is named, the other signal is listed as alike
+    best, ties = decide([rec("driven_offset", 0.50, True, "driven_offset[speed]", signal="speed"),
+                         rec("driven_offset", 0.53, True, "driven_offset[T_bed]", signal="T_bed")], 0.3, t)  # fmt: skip
+    assert best["variant"] == {"signal": "speed"} and best["alike"] == ["driven_offset[T_bed]"] and ties == []
+    # beyond the tie band the second is neither a tie nor alike
+    best, ties = decide([rec("driven_offset", 0.50, True, "driven_offset[speed]", signal="speed"),
+                         rec("driven_offset", 0.70, True, "driven_offset[T_bed]", signal="T_bed")], 0.3, t)  # fmt: skip
+    assert best["alike"] == [] and ties == []
 
 
 def test_folds():

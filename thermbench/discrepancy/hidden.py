@@ -256,13 +256,14 @@ class ScaleExpansion:
 
 @dataclass(frozen=True)
 class OutOfLibrary:
-    """One out-of-library case: its class, the strength parameter a calibration scales and
-    the wide physical ranges its parameters are drawn from (uniform, or log-uniform for
-    strengths)."""
+    """One out-of-library case: its class, the strength parameter a calibration scales, the
+    wide physical ranges its parameters are drawn from (uniform, or log-uniform for
+    strengths) and the open term whose form it has."""
 
     cls: type
     strength: str
     ranges: dict
+    term: str = ""  # the open term (thermbench.sim.open_terms) whose form it has
 
     def draw(self, rng: np.random.Generator, world: World) -> dict:
         out = {}
@@ -275,12 +276,12 @@ class OutOfLibrary:
 
 OUT_OF_LIBRARY = {
     "support_bearing_heat": OutOfLibrary(SupportBearingHeat, "k_W_per_mm_min",
-                                         {"k_W_per_mm_min": (0.2e-3, 2e-3), "at_frac": (0.25, 0.75)}),
+                                         {"k_W_per_mm_min": (0.2e-3, 2e-3), "at_frac": (0.25, 0.75)}, "heat_source"),
     "structure_growth": OutOfLibrary(StructureGrowth, "g_um_per_m_min",
-                                     {"g_um_per_m_min": (0.5, 5.0), "tau_s": (1.5 * 3600, 5 * 3600)}),
+                                     {"g_um_per_m_min": (0.5, 5.0), "tau_s": (1.5 * 3600, 5 * 3600)}, "driven_offset"),
     "scale_expansion": OutOfLibrary(ScaleExpansion, "e_um_per_m_per_m_min",
                                     {"e_um_per_m_per_m_min": (1.0, 10.0), "tau_s": (0.5 * 3600, 3 * 3600),
-                                     "p0_mm": (0.0, 1.0)}),
+                                     "p0_mm": (0.0, 1.0)}, "referenced_expansion"),
 }  # fmt: skip
 
 

@@ -41,7 +41,7 @@ def candidates_figure(scan: dict, floor_um: float, threshold_x: float, path: Pat
     c = [x for x in scan["candidates"] if not x.get("skipped")]
     fig = _new_figure(6.5, 0.45 * max(len(c), 2) + 1.4)
     ax = fig.subplots()
-    names = [x["effect"] for x in c]
+    names = [_name(x) for x in c]
     vals = [x["explained_um"] for x in c]
     colours = ["tab:green" if x["significant"] else "tab:grey" for x in c]
     ax.barh(names, vals, color=colours)
@@ -59,7 +59,7 @@ def heldout_figure(d: dict, path: Path) -> Path:
     for s in d["steps"]:
         if s["ambiguous_with"] or not s["confirmed"]:
             continue
-        labels.append("+ " + s["effect"])
+        labels.append("+ " + _name(s))
         vals.append(s["heldout_rmse_after_um"])
     fig = _new_figure(6.5, 3.4)
     ax = fig.subplots()
@@ -84,6 +84,20 @@ def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[
     for k, scan in enumerate(d["scans"], 1):
         names.append(candidates_figure(scan, scan["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
     return names
+
+
+def _name(c: dict) -> str:
+    """A step's or candidate's name with its signal: ``driven_offset[T_bed]``."""
+    return c["effect"] + (f"[{next(iter(c['variant'].values()))}]" if c.get("variant") else "")
+
+
+def described(s: dict) -> str:
+    """An open term's identified form in words (and the canonical effect it is), else ''."""
+    if not s.get("description") or s.get("label") == s["effect"]:
+        return ""
+    same = f" (= {s['canonical']})" if s.get("canonical") else ""
+    alike = f"; driven alike by {', '.join(s['signals_alike'])}" if s.get("signals_alike") else ""
+    return f"{s['description']}{same}{alike}"
 
 
 def _um(x) -> str:
@@ -121,24 +135,32 @@ def write_markdown(d: dict, out: Path) -> Path:
            "![](residual_maps_before.png)", ""]  # fmt: skip
     md += ["## Steps", ""]
     if d["steps"]:
-        rows = pd.DataFrame([{**{k: s[k] for k in ("effect", "heldout_rmse_before_um", "heldout_rmse_after_um", "bic_gain")},
-                              "ambiguous_with": ", ".join(s["ambiguous_with"]), "confirmed": s["confirmed"]}
+        rows = pd.DataFrame([{"effect": _name(s), **{k: s[k] for k in ("heldout_rmse_before_um", "heldout_rmse_after_um", "bic_gain")},
+                              "ambiguous_with": ", ".join(s["ambiguous_with"]), "confirmed": s["confirmed"],
+                              "identified form": described(s)}
                              for s in d["steps"]])  # fmt: skip
         md += [markdown_table(rows, index=False), "", "![](heldout_by_step.png)", ""]
     else:
         md += ["No candidate passed the test.", ""]
     for k, scan in enumerate(d["scans"], 1):
         md += [f"### Candidates, scan {k}: core{''.join(' + ' + e for e in scan['effects'])}", ""]
-        rows = pd.DataFrame([{"effect": c["effect"], "heldout_rmse_um": c.get("heldout_rmse_um"),
+        rows = pd.DataFrame([{"effect": _name(c), "heldout_rmse_um": c.get("heldout_rmse_um"),
                               "explained_um": c.get("explained_um"), "bic_gain": c.get("bic_gain"),
-                              "significant": c.get("significant"), "skipped": c.get("skipped") or ""}
+                              "significant": c.get("significant"),
+                              "fit": "" if c.get("skipped") else ("all parameters" if c.get("refit") else "screened"),
+                              "identified form": "" if c.get("skipped") else described({**c, "canonical": None}),
+                              "skipped": c.get("skipped") or ""}
                              for c in scan["candidates"]])  # fmt: skip
-        md += [markdown_table(rows, index=False), "", f"![](candidates_step{k}.png)", ""]
+        md += [markdown_table(rows, index=False), "",
+               "Screened: the current model's parameters held and the candidate's own identified (a lower bound on "
+               "what it explains); all parameters: re-identified with every parameter free.", "",
+               f"![](candidates_step{k}.png)", ""]  # fmt: skip
     md += ["## Final model", "", f"effects: core{''.join(' + ' + e for e in d['final']['effects'])}; "
            f"held-out RMSE {d['final']['heldout_rmse_um']:.3f} um ({d['final']['heldout_x_floor']:.1f}x the noise "
            f"floor {d['final']['noise_floor_um']:.3f} um)", ""]  # fmt: skip
     md += [markdown_table(pd.DataFrame({"parameter": list(d["final"]["identified"]),
-                                        "value": [f"{v:.6g}" for v in d["final"]["identified"].values()]})), ""]  # fmt: skip
+                                        "value": [v if isinstance(v, str) else f"{v:.6g}"
+                                                  for v in d["final"]["identified"].values()]})), ""]  # fmt: skip
     md += ["## Where the final model disagrees (held-out)", "", _loc_md(d["localisation"]["after"]), "",
            "![](residual_maps_after.png)", ""]  # fmt: skip
     md += ["## What is left", "", *gap_md(d)]
@@ -152,7 +174,8 @@ def verdict_line(d: dict) -> str:
     ``unexplained``) with the final held-out RMSE against the noise floor."""
     f = d["final"]
     vs = f"held-out RMSE {f['heldout_rmse_um']:.3f} um, {f['heldout_x_floor']:.1f}x the noise floor {f['noise_floor_um']:.3f} um"
-    found = ", ".join(d["missing_effects"])
+    found = ", ".join(_name(s) + (f" ({w})" if (w := described(s)) else "")
+                      for s in d["steps"] if s["confirmed"] and not s["ambiguous_with"]) or ", ".join(d["missing_effects"])
     if d["verdict"] == "ambiguous":
         amb = "; ".join(" or ".join(a) for a in d["ambiguous"])
         return f"{'missing: ' + found + '; then ' if found else ''}ambiguous: {amb} (the data cannot tell them apart; {vs})"
@@ -182,7 +205,7 @@ def gap_md(d: dict) -> list[str]:
              f"- where and when: {d['localisation']['after']['summary']}"]  # fmt: skip
     b = g["best_candidate"]
     if b is not None:
-        lines.append(f"- the best remaining candidate, {b['effect']}, explains {b['explains_um']:.3f} um and leaves "
+        lines.append(f"- the best remaining candidate, {b['effect']}{' (' + b['description'] + ')' if b.get('description') else ''}, explains {b['explains_um']:.3f} um and leaves "
                      f"{b['heldout_rmse_um']:.3f} um ({b['remains_x_floor']:.1f}x the floor)"
                      + ("" if b["significant"] else "; it does not pass the test"))  # fmt: skip
     for h in g["more_data"]:
@@ -198,7 +221,9 @@ def terminal_verdict(d: dict, out: Path | None = None) -> str:
         tag = " (ambiguous with " + ", ".join(s["ambiguous_with"]) + ")" if s["ambiguous_with"] else ""
         tag += "" if s["confirmed"] else " (not confirmed)"
         shrink = 1 - s["heldout_rmse_after_um"] / s["heldout_rmse_before_um"]
-        lines.append(f"  step {k}: {s['effect']}{tag}: held-out RMSE {s['heldout_rmse_before_um']:.3f} -> "
+        if w := described(s):
+            tag += f": {w}"
+        lines.append(f"  step {k}: {_name(s)}{tag}: held-out RMSE {s['heldout_rmse_before_um']:.3f} -> "
                      f"{s['heldout_rmse_after_um']:.3f} um ({shrink:.0%} less), BIC gain {s['bic_gain']:.1f}")  # fmt: skip
     lines.append(f"where (before): {d['localisation']['before']['summary']}")
     lines.append(f"where (after):  {d['localisation']['after']['summary']}")

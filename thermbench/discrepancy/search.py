@@ -258,8 +258,9 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
     for k, (train, test) in enumerate(folds):
         warm = warms[k] if warms is not None else None
         start = None
-        if new_effect:  # as on all runs: the grid, then the new effect's own parameters with the rest held
+        if new_effect:
             start = screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant) or {new_effect: dict(variant or {})}
+        if new_effect in OPEN_TERMS:  # as on all runs: then its own parameters with the rest held
             held = make_model(effects, ds, settings, warm, start)
             held.set_params(identify=[f"{new_effect}.{p}" for p in own_params(new_effect)])
             start = {new_effect: dict(held.fit(ds, train).effects_[new_effect])}
@@ -351,25 +352,41 @@ def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float
         fits = []
         for var in variants(eid, ds):
             start = screen_start(eid, current.effects, current.model, ds, runs, settings, var, cache)
+            if eid not in OPEN_TERMS:  # re-identified in full below, from the grid's start
+                fits.append((eid, var, _Start(start)))
+                continue
             fits.append((eid, var, fit_screen(eid, current, ds, runs, folds, settings, start or {eid: var}, cache)))
-        best = min(fits, key=lambda x: x[2].sse)
+        best = min(fits, key=lambda x: x[2].sse) if len(fits) > 1 else fits[0]
         screened.append(best)
         if best[1] and best[1] != fits[0][1]:
             screened.append(fits[0])  # the speed variant too (see below)
-    # re-identified with every parameter free: the most promising by screening, and every
-    # speed-driven choice term: the core's own heat inputs follow the speed, so the held core
-    # has absorbed most of what such a term explains and its screening underrates it most
-    promising = sorted((x for x in screened if explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
+    # re-identified with every parameter free: every canonical effect (the held core may have
+    # absorbed what one explains, and then its screening says nothing), the most promising open
+    # terms by screening, and every speed-driven choice term: the core's own heat inputs follow
+    # the speed, so the held core has absorbed most of what such a term explains
+    promising = sorted((x for x in screened if x[0] in OPEN_TERMS and explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
                        key=lambda x: x[2].heldout_fast_um)[: settings.refit]  # fmt: skip
-    chosen = {id(x) for x in promising} | {id(x) for x in screened if x[1] and next(iter(x[1].values())) == "speed"}
+    chosen = ({id(x) for x in promising} | {id(x) for x in screened if x[0] not in OPEN_TERMS}
+              | {id(x) for x in screened if x[1] and next(iter(x[1].values())) == "speed"})  # fmt: skip
     for x in screened:
         eid, var, fs = x
-        rec = _record(eid, var, fs, current, floor_um, settings, ctx, refit=False)
-        if id(x) in chosen:
-            rec = refit(rec, current, ds, runs, folds, settings, floor_um)
+        if isinstance(fs, _Start):
+            f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, fs.start)
+            rec = _record(eid, var, f, current, floor_um, settings, ctx, refit=True)
+        else:
+            rec = _record(eid, var, fs, current, floor_um, settings, ctx, refit=False)
+            if id(x) in chosen:
+                rec = refit(rec, current, ds, runs, folds, settings, floor_um)
         out.append(rec)
         say_record(rec, settings)
     return out
+
+
+@dataclass
+class _Start:
+    """A canonical candidate's start (no screening fit: it is re-identified in full)."""
+
+    start: dict
 
 
 def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float) -> dict:

@@ -264,7 +264,8 @@ def _gap(heldout_um: float, floor_um: float, test: SignificanceTest, where: dict
                  and c["effect"] not in in_model]  # the last scan's winner may have joined the model since
         if tried:
             c = min(tried, key=lambda c: c["heldout_rmse_um"])
-            best = {"effect": c["effect"], "explains_um": c["explained_um"], "heldout_rmse_um": c["heldout_rmse_um"],
+            words = c.get("description") if c.get("label") != c["effect"] else None
+            best = {"effect": display(c), "description": words, "explains_um": c["explained_um"], "heldout_rmse_um": c["heldout_rmse_um"],
                     "remains_x_floor": c["heldout_rmse_um"] / floor_um, "significant": bool(c.get("significant"))}  # fmt: skip
     return {
         "heldout_rmse_um": heldout_um,
