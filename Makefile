@@ -60,7 +60,7 @@ bench: $(VENV)/.installed-dev
 fuzz:
 	mkdir -p $(FUZZ_DIR)/corpus
 	clang -g -O1 -fsanitize=fuzzer,address,undefined,float-cast-overflow -fno-sanitize-recover=undefined -Iembedded/include \
-	  embedded/src/tb_runtime.c embedded/fuzz/tb_fuzz_loader.c -o $(FUZZ_DIR)/tb_fuzz -lm
+	  embedded/src/*.c embedded/fuzz/tb_fuzz_loader.c -o $(FUZZ_DIR)/tb_fuzz -lm
 	$(FUZZ_DIR)/tb_fuzz -max_total_time=$(FUZZ_SECONDS) -max_len=65536 -print_final_stats=1 \
 	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus embedded/fuzz/corpus
 

@@ -440,3 +440,42 @@ def test_a_family_of_its_own_is_asked_for_its_encoding_first():
     own = Own(enc)
     assert encode(own, {"T_nut": 0}, 2.0, "m2") is enc
     assert own.asked == ({"T_nut": 0}, 2.0, "m2")
+
+
+def test_built_in_families_are_found_by_their_registered_class(monkeypatch):
+    """encode() finds a built-in family's encoder by the class it is registered for (by name, along
+    the MRO: a subclass uses its base's), a new family needs one @family line, and a class that
+    is neither registered nor has export_encoding is refused in one line."""
+    from thermbench.export import ExportError, encode, encoding
+    from thermbench.export.encoding import Encoded
+
+    for name, cls in _families().items():
+        assert encoding.family_encoder(type(cls)) is not None, name
+    assert encoding.family_encoder(MLRSeed002) is encoding.family_encoder(MLRSeed004) is encoding._encode_curve_regression
+
+    class Tuned(PhysicsModel):
+        pass
+
+    assert encoding.family_encoder(Tuned) is encoding._encode_physics
+
+    class Tiny:
+        train_runs_ = ["a"]
+
+    with pytest.raises(ExportError, match=r"^m: no file encoding for Tiny$"):
+        encode(Tiny(), where="m")
+    enc = Encoded(Kind.MLR_CURVE, [1, 1], [1.0] * 8, ["T_nut"])
+    key = f"{Tiny.__module__}:{Tiny.__qualname__}"
+    monkeypatch.setitem(encoding.FAMILIES, key, None)  # the registration below lasts this test only
+    seen = {}
+
+    @encoding.family(key)
+    def _encode_tiny(m, channels, period_s, where, **options):
+        seen.update(channels=channels, period_s=period_s, where=where, options=options)
+        return enc
+
+    assert encode(Tiny(), {"T_nut": 0}, 2.0, "m4") is enc
+    assert seen == {"channels": {"T_nut": 0}, "period_s": 2.0, "where": "m4", "options": {"lssvm_reduced": None}}
+    too_big = Encoded(Kind.MLR_CURVE, [17, 1], [], ["T_nut"])  # check_limits still runs on a family's answer
+    encoding.FAMILIES[key] = lambda *a, **k: too_big
+    with pytest.raises(ExportError, match=r"^m5: sensors = 17 exceeds the C runtime's limit 16"):
+        encode(Tiny(), where="m5")

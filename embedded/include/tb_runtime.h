@@ -8,11 +8,17 @@
  * where it is (flash or a caller buffer) and only the model's running state is
  * placed in a caller-supplied arena, sized by tb_model_arena_bytes().
  *
- * File format v1 (little-endian; written by thermbench.export.fileformat):
- *   0  char[4] magic "TBMF"        4  u16 version (1)      6  u16 kind
+ * File format (little-endian; written by thermbench.export.fileformat):
+ *   0  char[4] magic "TBMF"        4  u16 version          6  u16 kind
  *   8  u16 n_dims (<= 8)           10 u16 flags (0)       12 u32 dims[8]
  *   44 u32 n_payload               48 float32 payload[n_payload]
  *   48 + 4 n_payload   u32 CRC-32 (IEEE 802.3, as zlib.crc32) of all bytes before it
+ * The version is that of the kind's payload layout: 1 for every kind, 2 for TB_KIND_PHYSICS
+ * (its effects as sections); the runtime reads both physics layouts and refuses a version a
+ * kind does not have (TB_E_VERSION).
+ *
+ * Sources: src/tb_runtime.c (the core) and one file per model kind and per physics effect,
+ * all listed in src/tb_registry.def: compile every .c file of src/.
  *
  * Use:
  *   tb_model m; tb_model_open(&m, buf, len);                 validate + parse
@@ -46,7 +52,7 @@ extern "C" {
 typedef TB_REAL tb_real;
 
 #define TB_MAGIC "TBMF"
-#define TB_FORMAT_VERSION 1u
+#define TB_FORMAT_VERSION 1u /* the first version: every kind has it */
 #define TB_HEADER_BYTES 48u
 #define TB_MAX_DIMS 8u
 
@@ -137,7 +143,7 @@ typedef struct {
     uint16_t kind;
     uint32_t dims[TB_MAX_DIMS];
     /* offsets (in float32 values) of the parsed sections */
-    uint32_t off[10]; /* section offsets (tb_runtime.c: O_COUNT) */
+    uint32_t off[10]; /* section offsets (src/tb_internal.h: O_COUNT) */
     uint32_t n_sensors;
     uint32_t max_channel; /* largest temps_C index used + 1 */
     void *state;

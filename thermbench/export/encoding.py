@@ -1,4 +1,4 @@
-"""Fitted thermbench models -> compact model files (payload layouts of format v1).
+"""Fitted thermbench models -> compact model files (the payload layouts of each kind).
 
 Every payload starts with the sample period ``period_s`` (0: any sampling; the GRU
 history and the classifier window need a uniformly sampled log), then, for models
@@ -18,13 +18,17 @@ then the **geometric block** (the geometric error the model separated)::
 
 then the kind's body (see each ``_encode_*``). Temperatures enter as rises dT above
 the run's first filtered sample, as in the Python models.
+
+Which encoder a fitted model gets: its class's own ``export_encoding`` if it has one, else the
+built-in family registered for its class or a base class with :func:`family` (one decorator
+line per family); :data:`KIND_LIMITS` holds each kind's limits (one line per kind).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.polynomial import Polynomial
@@ -39,7 +43,7 @@ SENSOR_VALS = 1 + FSTEP_VALS * MAX_FILTER_STEPS
 #: the C runtime's limits (tb_runtime.h); a model beyond them is refused at export, not by the loader
 LIMITS = {"sensors": 16, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
           "lags": 4096, "nodes": 4096, "ar_order": 64, "ar_terms": 8, "levels": 64, "conditions": 64,
-          "window_samples": 20000, "lumped_nodes": 8}  # fmt: skip
+          "window_samples": 20000, "lumped_nodes": 8, "effects": 8}  # fmt: skip
 ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
 
 
@@ -70,20 +74,25 @@ def split_f32(values) -> list[float]:
     return [*hi, *(v - hi)]
 
 
+#: per kind, the (limit, value) pairs of its dims that :func:`check_limits` compares with :data:`LIMITS`
+KIND_LIMITS: dict[Kind, Callable[[list[int]], list[tuple[str, int]]]] = {
+    Kind.MLR_CURVE: lambda d: [("sensors", d[0]), ("poly", d[1] + 1)],
+    Kind.MLR_SEED001: lambda d: [("poly", d[1])],
+    Kind.LSSVM: lambda d: [("sensors", d[0]), ("support", d[1])],
+    Kind.MLP: lambda d: [("sensors", d[0]), ("layers", d[1])],
+    Kind.GRU: lambda d: [("sensors", d[0]), ("gru_hidden", d[1]), ("poly", d[2] + 1), ("lags", d[3])],
+    Kind.PHYSICS: lambda d: [("nodes", d[1])],
+    Kind.AR: lambda d: [("poly", d[0] + 1), ("ar_order", d[1]), ("ar_order", d[2]), ("ar_terms", d[3])],
+    Kind.CLASSIFIER: lambda d: [("conditions", d[0]), ("levels", max(d[1:4]))],
+    Kind.LUMPED: lambda d: [("lumped_nodes", d[0]), ("sensors", d[1])],
+}
+
+
 def check_limits(enc: "Encoded", where: str) -> "Encoded":
-    """Refuse what the C runtime would refuse (:data:`LIMITS`), with the reason."""
+    """Refuse what the C runtime would refuse (:data:`LIMITS`), with the reason. A kind
+    without an entry in :data:`KIND_LIMITS` is a KeyError (a registration missing)."""
     d, k = enc.dims, enc.kind
-    checks = {
-        Kind.MLR_CURVE: lambda: [("sensors", d[0]), ("poly", d[1] + 1)],
-        Kind.MLR_SEED001: lambda: [("poly", d[1])],
-        Kind.LSSVM: lambda: [("sensors", d[0]), ("support", d[1])],
-        Kind.MLP: lambda: [("sensors", d[0]), ("layers", d[1])],
-        Kind.GRU: lambda: [("sensors", d[0]), ("gru_hidden", d[1]), ("poly", d[2] + 1), ("lags", d[3])],
-        Kind.PHYSICS: lambda: [("nodes", d[1])],
-        Kind.AR: lambda: [("poly", d[0] + 1), ("ar_order", d[1]), ("ar_order", d[2]), ("ar_terms", d[3])],
-        Kind.CLASSIFIER: lambda: [("conditions", d[0]), ("levels", max(d[1:4]))],
-        Kind.LUMPED: lambda: [("lumped_nodes", d[0]), ("sensors", d[1])],
-    }[k]()
+    checks = KIND_LIMITS[k](d)
     for name, value in checks:
         if value > LIMITS[name]:
             raise ExportError(f"{where}: {name} = {value} exceeds the C runtime's limit {LIMITS[name]} "
@@ -155,6 +164,34 @@ def _channels_for(sensors: Sequence[str], channels: dict[str, int] | None) -> di
     return channels
 
 
+# ------------------------------------------------------------------ families ---
+#: the built-in families: fitted class ``"module:QualName"`` (its subclasses included) -> its encoder
+#: ``(model, channels, period_s, where, **options) -> Encoded``; filled by :func:`family`
+FAMILIES: dict[str, Callable[..., "Encoded"]] = {}
+
+
+def family(model_class: str):
+    """Register the decorated function as the encoder of ``model_class`` (``"module:QualName"``)
+    and its subclasses. The class is named, not imported: ``encode`` resolves it along the
+    fitted model's MRO (the nearest registered class wins), so families that import torch
+    load only when used."""
+
+    def register(fn: Callable[..., "Encoded"]) -> Callable[..., "Encoded"]:
+        FAMILIES[model_class] = fn
+        return fn
+
+    return register
+
+
+def family_encoder(cls: type) -> Callable[..., "Encoded"] | None:
+    """The registered encoder of ``cls`` or of its nearest registered base class."""
+    for klass in cls.__mro__:
+        fn = FAMILIES.get(f"{klass.__module__}:{klass.__qualname__}")
+        if fn is not None:
+            return fn
+    return None
+
+
 # ------------------------------------------------------------------ kinds ---
 def encode_mlr_curve(m, channels=None, where: str = "model") -> Encoded:
     """The ``MLR_CURVE`` kind: seed 002 eq. 6-11 / seed 004. Body: origin, coef[(D+1) x (1+S)]
@@ -168,7 +205,14 @@ def encode_mlr_curve(m, channels=None, where: str = "model") -> Encoded:
     return Encoded(Kind.MLR_CURVE, [S, D], payload, list(m.sensors_))
 
 
-def _encode_mlr001(m, channels, where) -> Encoded:
+@family("thermbench.models.mlr:_CurveRegression")
+def _encode_curve_regression(m, channels, period_s, where, **_) -> Encoded:
+    """MLRSeed002 and MLRSeed004: :func:`encode_mlr_curve`."""
+    return encode_mlr_curve(m, channels, where)
+
+
+@family("thermbench.models.mlr:MLRSeed001")
+def _encode_mlr001(m, channels, period_s, where, **_) -> Encoded:
     """seed 001 eq. 12. Body: origin, a1..am, b1, c."""
     ch = _channels_for(m.sensors_, channels)
     payload = [0.0, *sensor_block(m.sensors_, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
@@ -176,10 +220,12 @@ def _encode_mlr001(m, channels, where) -> Encoded:
     return Encoded(Kind.MLR_SEED001, [2, int(m.degree_)], payload, list(m.sensors_))
 
 
-def _encode_lssvm(m, channels, where, reduced: dict | None = None) -> Encoded:
+@family("thermbench.models.lssvm:PSOLSSVM")
+def _encode_lssvm(m, channels, period_s, where, lssvm_reduced: dict | None = None, **_) -> Encoded:
     """seed 002 eq. 12-14. Body: mean[d], scale[d], sigma2, b (hi, lo), alpha hi[N], lo[N],
     sv[N x d] (d = S + 1,
-    features [dT..., position]); ``reduced``: a reduced-set expansion (:mod:`.reduce`)."""
+    features [dT..., position]); ``lssvm_reduced``: a reduced-set expansion (:mod:`.reduce`)."""
+    reduced = lssvm_reduced
     r = m.regressor_
     S = len(m.sensors_)
     ch = _channels_for(m.sensors_, channels)
@@ -207,7 +253,8 @@ def _linear_layers(net) -> tuple[list, str | None]:
     return layers, act
 
 
-def _encode_mlp(m, channels, where) -> Encoded:
+@family("thermbench.models.neural:MLPModel")
+def _encode_mlp(m, channels, period_s, where, **_) -> Encoded:
     """Body: in_mean[d], in_scale[d], y_mean, y_scale, widths[L], then per layer W (out x in), b."""
     S = len(m.sensors_)
     ch = _channels_for(m.sensors_, channels)
@@ -222,7 +269,8 @@ def _encode_mlp(m, channels, where) -> Encoded:
                    notes={"limits": [("width", max(l.out_features for l in layers))]})
 
 
-def _encode_gru(m, channels, where, period_s: float) -> Encoded:
+@family("thermbench.models.neural:GRUModel")
+def _encode_gru(m, channels, period_s: float, where, **_) -> Encoded:
     """Body: step_s, seq_mean[S], seq_scale[S], p_mean, p_scale, y_mean, y_scale, W_ih (3H x S),
     W_hh (3H x H), b_ih, b_hh (PyTorch gate order r, z, n), head W ((D+1) x H), head b."""
     if not period_s > 0:
@@ -241,44 +289,69 @@ def _encode_gru(m, channels, where, period_s: float) -> Encoded:
                    notes={"limits": [("window_samples", int(math.ceil(m.n_lags_ * float(m.step_s) / period_s)))]})
 
 
-PHYSICS_PARAMS = (
+#: the physics payload's core block, after the sensor and geometric blocks (tb_kind_physics.c: P_*)
+PHYSICS_CORE = (
     "dx_m dt_s per_step macro_dt_s n_nodes n_bearing nut_length_m fixed_bearing_length_m length_m cap_J_K "
-    "cond_W_K side_area_m2 end_area_m2 alpha_per_K k1 k2 k3 k4 pf_m ambient_mode amb_amplitude_C amb_period_s "
-    "amb_phase_s amb_rate_C_per_h free_end kF free_k_nodes motor k_motor tau_motor_s k5 load k6 fixed_fixed kappa "
-    "origin_drift beta_um_per_K housing_tau_s housing_gain_K_per_W housing_gain_K_per_mm_min housing_coupling"
+    "cond_W_K side_area_m2 end_area_m2 alpha_per_K k1 k2 k3 k4 pf_m"
 ).split()
 
 
-def _encode_physics(m, channels, where) -> Encoded:
-    """seed 000 §3.1-3.2 + effects. Body: the 41 values of :data:`PHYSICS_PARAMS`."""
-    from ..sim.effects import (
-        AmbientDrift,
-        FixedFixedConstraint,
-        FreeEndBearingHeat,
-        LoadDependentHeat,
-        MotorHeat,
-        OriginDrift,
-        QuadraticFrictionHeat,
-    )
+@dataclass(frozen=True)
+class PhysicsGrid:
+    """What an effect's ``export_params(geom)`` may read besides its own parameters: the
+    physics model's grid and housings (``thermbench.sim.parts``)."""
 
+    n_nodes: int
+    n_bearing: int
+    dx_m: float
+    dt_s: float
+    macro_dt_s: float
+    housings: Mapping[str, Any]
+
+
+def exportable_effects() -> list[str]:
+    """The ids of the registered effects (canonical and open terms) the C runtime implements."""
+    from ..sim.effects import EFFECTS, OPEN_TERMS
+
+    return sorted(i for i, cls in {**OPEN_TERMS, **EFFECTS}.items() if vars(cls).get("export_code") is not None)
+
+
+def effect_sections(effects, geom: PhysicsGrid, where: str) -> list[float]:
+    """The effect list of a physics payload (v2): n_effects, then per effect in increasing
+    ``export_code`` order its section ``(code, n_params, params...)`` with the numbers of its
+    ``export_params(geom)``. An effect whose class declares no ``export_code`` (an open term, a
+    new effect without its C file) is an ExportError naming it."""
+    missing = [e.id for e in effects if vars(type(e)).get("export_code") is None]
+    if missing:
+        what = f"effect {missing[0]!r} has" if len(missing) == 1 else f"effects {', '.join(map(repr, missing))} have"
+        raise ExportError(f"{where}: {what} no C implementation; the runtime implements {exportable_effects()} "
+                          "(docs/extending.md, 'The C side')")  # fmt: skip
+    sections = []
+    for e in effects:
+        try:
+            params = [float(v) for v in e.export_params(geom)]
+        except ValueError as exc:
+            raise ExportError(f"{where}: effect {e.id!r}: {exc}") from None
+        sections.append((int(vars(type(e))["export_code"]), e.id, params))
+    sections.sort(key=lambda c: c[0])
+    for a, b in zip(sections, sections[1:]):
+        if a[0] == b[0]:
+            raise ExportError(f"{where}: effects {a[1]!r} and {b[1]!r} share the export code {a[0]}")
+    out = [float(len(sections))]
+    for code, _, params in sections:
+        out += [float(code), float(len(params)), *params]
+    return out
+
+
+@family("thermbench.models.physics:PhysicsModel")
+def _encode_physics(m, channels, period_s, where, **_) -> Encoded:
+    """seed 000 §3.1-3.2 + effects (payload v2). Body: the core (:data:`PHYSICS_CORE`), then the
+    effects as sections (:func:`effect_sections`); a measured ambient is the sensor block's one
+    sensor (dims[0] = 1), else ``ambient_drift`` (if present) simulates it."""
     sm = m.model_
     g, core, num = sm.geom, sm.core, sm.numerics
-    eff = {e.id: e for e in sm.effects}
-    known = {c.id for c in (AmbientDrift, FixedFixedConstraint, FreeEndBearingHeat, LoadDependentHeat, MotorHeat,
-                            OriginDrift, QuadraticFrictionHeat)}  # fmt: skip
-    unknown = sorted(set(eff) - known)
-    if unknown:
-        raise ExportError(f"{where}: effect(s) {unknown} have no C implementation")
     sensors = [m.ambient_name_] if m.ambient_name_ else []
     ch = _channels_for(sensors, channels)
-    amb = eff.get(AmbientDrift.id)
-    mode = 1 if sensors else (2 if amb is not None else 0)
-    fe, mo, qf, ld, ff, od = (eff.get(k) for k in (FreeEndBearingHeat.id, MotorHeat.id, QuadraticFrictionHeat.id,
-                                                      LoadDependentHeat.id, FixedFixedConstraint.id, OriginDrift.id))  # fmt: skip
-    house = sm.housings["fixed_bearing_housing"]
-    if od is not None and (house.source != "fixed_bearing" or house.screw_at != "fixed_end"):
-        raise ExportError(f"{where}: origin_drift: the runtime models the fixed-bearing housing driven by the "
-                          f"fixed bearing at the fixed end; this model's housing is {house}")  # fmt: skip
     n = g.n_nodes
     vals = {
         "dx_m": num.dx_m, "dt_s": num.dt_s, "per_step": num.per_step, "macro_dt_s": num.macro_dt_s, "n_nodes": n,
@@ -287,24 +360,18 @@ def _encode_physics(m, channels, where) -> Encoded:
         "cap_J_K": g.cap_J_K, "cond_W_K": sm.material_conductance(core.lambda_W_mK), "side_area_m2": g.side_area_m2,
         "end_area_m2": g.end_area_m2, "alpha_per_K": sm.material.alpha_per_K, "k1": core.k1_W_m2K_per_mm_min,
         "k2": core.k2_W_m2K, "k3": core.k3_W_per_mm_min, "k4": core.k4_W_per_mm_min, "pf_m": core.pf_m,
-        "ambient_mode": mode,
-        "amb_amplitude_C": amb.amplitude_C if amb else 0.0, "amb_period_s": amb.period_s if amb else 0.0,
-        "amb_phase_s": amb.phase_s if amb else 0.0, "amb_rate_C_per_h": amb.rate_C_per_h if amb else 0.0,
-        "free_end": fe is not None, "kF": fe.kF_W_per_mm_min if fe else 0.0,
-        "free_k_nodes": max(1, int(math.ceil(fe.length_m / num.dx_m - 1e-9))) if fe else 0,
-        "motor": mo is not None, "k_motor": mo.k_motor_W_per_mm_min if mo else 0.0, "tau_motor_s": mo.tau_s if mo else 0.0,
-        "k5": qf.k5_W_per_mm_min2 if qf else 0.0, "load": ld is not None, "k6": ld.k6_W_per_N_mm_min if ld else 0.0,
-        "fixed_fixed": ff is not None, "kappa": ff.kappa if ff else 0.0,
-        "origin_drift": od is not None, "beta_um_per_K": od.beta_um_per_K if od else 0.0,
-        "housing_tau_s": house.tau_s, "housing_gain_K_per_W": house.gain_K_per_W,
-        "housing_gain_K_per_mm_min": house.gain_K_per_mm_min, "housing_coupling": house.screw_coupling,
     }  # fmt: skip
+    grid = PhysicsGrid(n, g.n_bearing, num.dx_m, num.dt_s, num.macro_dt_s, sm.housings)
     payload = [0.0, *sensor_block(sensors, m.preprocess, ch, where), *geometric_block(m.geometric_, where)]
-    payload += [float(vals[k]) for k in PHYSICS_PARAMS]
-    return Encoded(Kind.PHYSICS, [len(sensors), n], payload, sensors, needs_load=ld is not None)
+    payload += [float(vals[k]) for k in PHYSICS_CORE]
+    payload += effect_sections(sm.effects, grid, where)
+    return Encoded(Kind.PHYSICS, [len(sensors), n], payload, sensors,
+                   needs_load=any("load_N" in type(e).needs for e in sm.effects),
+                   notes={"limits": [("effects", len(sm.effects))]})  # fmt: skip
 
 
-def _encode_ar(m, channels, where) -> Encoded:
+@family("thermbench.models.autoregressive:AutoRegressiveSeed003")
+def _encode_ar(m, channels, period_s, where, **_) -> Encoded:
     """seed 003 (our reading). Body: origin, sample_s, nu x (column code 0 feed / 1 load, power),
     ar[(D+1) x na], input[(D+1) x nb x nu], offset[D+1]."""
     codes = {"feed_mm_min": 0, "load_N": 1}
@@ -362,36 +429,20 @@ def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, per
     """The file content of one fitted model of any family but the bank (see :func:`thermbench.export.bundle`).
 
     A family of its own exports when its class defines ``export_encoding(channels, period_s,
-    where) -> Encoded`` for a kind the C runtime evaluates, e.g. with :func:`encode_mlr_curve`."""
-    from ..models.autoregressive import AutoRegressiveSeed003
-    from ..models.lssvm import PSOLSSVM
-    from ..models.mlr import MLRSeed001, _CurveRegression
-    from ..models.neural import GRUModel, MLPModel
-    from ..models.physics import PhysicsModel
-
+    where) -> Encoded`` for a kind the C runtime evaluates, e.g. with :func:`encode_mlr_curve`;
+    the built-in families are registered with :func:`family`."""
     if not hasattr(model, "train_runs_"):
         raise ExportError(f"{where}: the model is not fitted")
     try:
-        if callable(getattr(type(model), "export_encoding", None)):  # a family outside this chain
+        if callable(getattr(type(model), "export_encoding", None)):  # a family of its own
             enc = model.export_encoding(channels, period_s, where)
             if not isinstance(enc, Encoded):
                 raise ExportError(f"{where}: {type(model).__name__}.export_encoding returned {type(enc).__name__}, not Encoded")
-        elif isinstance(model, _CurveRegression):
-            enc = encode_mlr_curve(model, channels, where)
-        elif isinstance(model, MLRSeed001):
-            enc = _encode_mlr001(model, channels, where)
-        elif isinstance(model, PSOLSSVM):
-            enc = _encode_lssvm(model, channels, where, lssvm_reduced)
-        elif isinstance(model, MLPModel):
-            enc = _encode_mlp(model, channels, where)
-        elif isinstance(model, GRUModel):
-            enc = _encode_gru(model, channels, where, period_s)
-        elif isinstance(model, PhysicsModel):
-            enc = _encode_physics(model, channels, where)
-        elif isinstance(model, AutoRegressiveSeed003):
-            enc = _encode_ar(model, channels, where)
         else:
-            raise ExportError(f"{where}: no file encoding for {type(model).__name__}")
+            fn = family_encoder(type(model))
+            if fn is None:
+                raise ExportError(f"{where}: no file encoding for {type(model).__name__}")
+            enc = fn(model, channels, period_s, where, lssvm_reduced=lssvm_reduced)
     except ModelError as exc:
         raise ExportError(f"{where}: {exc}") from None
     return check_limits(enc, where)

@@ -3,7 +3,7 @@
 Layout, little-endian (the C side: ``embedded/include/tb_runtime.h``)::
 
     0   char[4]  magic "TBMF"
-    4   u16      format version (1)
+    4   u16      format version: the version of the kind's payload layout (:data:`KIND_VERSIONS`)
     6   u16      model kind (:class:`Kind`)
     8   u16      number of dimensions used (<= 8)
     10  u16      flags (0)
@@ -14,6 +14,12 @@ Layout, little-endian (the C side: ``embedded/include/tb_runtime.h``)::
 
 The payload is float32 (integers in it are exact below 2**24). Each kind's
 payload layout is documented with its encoder in :mod:`thermbench.export.encoding`.
+
+Versions: the header is the same for every version; the version number says which layout of
+its kind's payload follows. Every kind has layout 1; :data:`KIND_VERSIONS` lists the kinds with
+later ones (PHYSICS 2: the effects as sections ``(code, n_params, params...)`` instead of fixed
+slots). The writer writes each kind's latest; the C runtime reads every version up to it (it
+keeps a reader for PHYSICS 1), and refuses a version beyond what it knows with TB_E_VERSION.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import numpy as np
 from .._atomic import write_bytes_atomic
 
 MAGIC = b"TBMF"
-VERSION = 1
+VERSION = 1  # the first version, every kind's (tb_runtime.h: TB_FORMAT_VERSION)
 HEADER_BYTES = 48
 MAX_DIMS = 8
 _HEADER = struct.Struct("<4sHHHH8II")
@@ -50,6 +56,16 @@ class Kind(enum.IntEnum):
     LUMPED = 9  # lumped thermal network of a spindle (docs/concepts.md; :mod:`.lumped_encoding`)
 
 
+#: kinds whose latest payload layout is beyond version 1 (tbi_kind.max_version in the C runtime)
+KIND_VERSIONS: dict[Kind, int] = {Kind.PHYSICS: 2}
+MAX_VERSION = max(KIND_VERSIONS.values(), default=VERSION)
+
+
+def kind_version(kind) -> int:
+    """The latest payload version of ``kind`` (what :func:`pack` writes)."""
+    return KIND_VERSIONS.get(Kind(kind), VERSION)
+
+
 class ModelFileError(ValueError):
     """A model file that cannot be read; the message names the file and what is wrong."""
 
@@ -59,15 +75,21 @@ class ModelFile:
     kind: Kind
     dims: tuple[int, ...]
     payload: np.ndarray  # float32
+    version: int = VERSION  # of the kind's payload layout
 
     @property
     def n_bytes(self) -> int:
         return HEADER_BYTES + 4 * self.payload.size + 4
 
 
-def pack(kind: Kind, dims: Sequence[int], payload) -> bytes:
+def pack(kind: Kind, dims: Sequence[int], payload, version: int | None = None) -> bytes:
     """The bytes of a model file. ``payload`` is converted to float32; a value that is
-    not finite in float32 (NaN, inf, or beyond float32's range) is an error."""
+    not finite in float32 (NaN, inf, or beyond float32's range) is an error. ``version``:
+    the payload layout ``payload`` follows, by default the kind's latest (:func:`kind_version`)."""
+    latest = kind_version(kind)
+    version = latest if version is None else int(version)
+    if not 1 <= version <= latest:
+        raise ModelFileError(f"{Kind(kind).name}: payload version {version}; this thermbench writes 1 to {latest}")
     dims = [int(d) for d in dims]
     if len(dims) > MAX_DIMS or any(d < 0 or d >= 2**32 for d in dims):
         raise ModelFileError(f"dims must be at most {MAX_DIMS} integers in [0, 2**32), got {dims}")
@@ -79,7 +101,7 @@ def pack(kind: Kind, dims: Sequence[int], payload) -> bytes:
         raise ModelFileError(
             f"{Kind(kind).name}: payload value #{bad[0]} = {p64[bad[0]]!r} is not a finite float32"
         )
-    header = _HEADER.pack(MAGIC, VERSION, int(kind), len(dims), 0, *(dims + [0] * (MAX_DIMS - len(dims))), p.size)
+    header = _HEADER.pack(MAGIC, version, int(kind), len(dims), 0, *(dims + [0] * (MAX_DIMS - len(dims))), p.size)
     body = header + p.tobytes()
     return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
 
@@ -93,8 +115,8 @@ def unpack(data: bytes, name: str = "model file") -> ModelFile:
     dims, n = rest[:MAX_DIMS], rest[MAX_DIMS]
     if magic != MAGIC:
         raise ModelFileError(f"{name}: not a thermbench model file (magic {magic!r}, expected {MAGIC!r})")
-    if version != VERSION:
-        raise ModelFileError(f"{name}: format version {version}, this thermbench reads {VERSION}")
+    if not VERSION <= version <= MAX_VERSION:
+        raise ModelFileError(f"{name}: format version {version}, this thermbench reads {VERSION} to {MAX_VERSION}")
     if len(data) != HEADER_BYTES + 4 * n + 4:
         raise ModelFileError(f"{name}: {len(data)} bytes, the header announces {HEADER_BYTES + 4 * n + 4}")
     (crc,) = struct.unpack_from("<I", data, len(data) - 4)
@@ -104,13 +126,16 @@ def unpack(data: bytes, name: str = "model file") -> ModelFile:
         kind = Kind(kind)
     except ValueError:
         raise ModelFileError(f"{name}: unknown model kind {kind}") from None
+    if version > kind_version(kind):
+        raise ModelFileError(f"{name}: format version {version} of kind {kind.name}, which has versions 1 to "
+                             f"{kind_version(kind)}")  # fmt: skip
     payload = np.frombuffer(data, dtype="<f4", count=n, offset=HEADER_BYTES)
-    return ModelFile(kind, tuple(dims[:n_dims]), payload.copy())
+    return ModelFile(kind, tuple(dims[:n_dims]), payload.copy(), version)
 
 
-def write(path: Path, kind: Kind, dims: Sequence[int], payload) -> int:
-    """Write a model file atomically; returns its size in bytes."""
-    data = pack(kind, dims, payload)
+def write(path: Path, kind: Kind, dims: Sequence[int], payload, version: int | None = None) -> int:
+    """Write a model file atomically (:func:`pack`); returns its size in bytes."""
+    data = pack(kind, dims, payload, version)
     write_bytes_atomic(Path(path), data)
     return len(data)
 

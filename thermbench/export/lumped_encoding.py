@@ -2,7 +2,7 @@
 thermal network for a spindle", :class:`thermbench.models.lumped.LumpedThermalNetwork`) as the
 C runtime's ``LUMPED`` kind.
 
-What the runtime does with it (``embedded/src/tb_runtime.c``, ``lump_*``) is what
+What the runtime does with it (``embedded/src/tb_kind_lumped.c``) is what
 :meth:`LumpedThermalNetwork.simulate` and ``_predict_thermal`` do: the heat
 ``q = (u/u_ref)^p`` of each process sample is held to the next sample and averaged exactly
 over the intervals of a grid of ``step_s`` from the run's first process sample; the chain

@@ -48,9 +48,14 @@ def cache_dir() -> Path:
     return Path(base) / "embedded"
 
 
+def runtime_sources() -> list[Path]:
+    """The runtime's C files: the core ``src/tb_runtime.c``, a file per model kind and per physics
+    effect (``src/tb_registry.def`` lists them): every ``src/*.c``."""
+    return sorted((embedded_dir() / "src").glob("*.c"))
+
+
 def sources(tool: str) -> list[Path]:
-    d = embedded_dir()
-    return [d / "src" / "tb_runtime.c", d / "tools" / f"{tool}.c"]
+    return [*runtime_sources(), embedded_dir() / "tools" / f"{tool}.c"]
 
 
 def build(tool: str = "tb_replay", extra_flags: Sequence[str] = (), sanitize: bool = False, cc: str | None = None) -> Path:
@@ -59,24 +64,26 @@ def build(tool: str = "tb_replay", extra_flags: Sequence[str] = (), sanitize: bo
 
 
 def build_shared(sanitize: bool = False, cc: str | None = None) -> Path:
-    """Compile the runtime alone (``src/tb_runtime.c``) as a shared library for in-process use
+    """Compile the runtime alone (``src/*.c``) as a shared library for in-process use
     (:mod:`.native`); returns ``libtb_runtime-<hash>.so`` (cached like :func:`build`). A
     ``sanitize`` build loads only into a process with the sanitizer runtimes preloaded."""
-    src = embedded_dir() / "src" / "tb_runtime.c"
-    return _compile("libtb_runtime", [src], ("-shared", "-fPIC"), sanitize, cc, suffix=".so")
+    return _compile("libtb_runtime", runtime_sources(), ("-shared", "-fPIC"), sanitize, cc, suffix=".so")
 
 
 def _compile(stem: str, srcs: Sequence[Path], extra_flags: Sequence[str], sanitize: bool, cc: str | None,
              suffix: str = "") -> Path:  # fmt: skip
     """gcc ``srcs`` with :data:`CFLAGS` into ``<cache_dir>/<stem>-<hash><suffix>``, the hash over the
-    sources, the header, the compiler and the flags; written atomically, reused when present."""
+    sources, the headers (public and internal, ``src/*.def``), the compiler and the flags; written
+    atomically, reused when present."""
     cc = cc or os.environ.get("CC", "gcc")
     if shutil.which(cc) is None:
         raise RuntimeUnavailable(f"no C compiler {cc!r} on PATH: the C runtime needs one (install gcc)")
     d = embedded_dir()
     flags = [*CFLAGS, *(SANITIZE if sanitize else ()), *extra_flags, f"-I{d / 'include'}"]
     h = hashlib.sha256()
-    for p in [*srcs, d / "include" / "tb_runtime.h"]:
+    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
+    for p in [*srcs, *headers]:
+        h.update(p.name.encode())
         h.update(p.read_bytes())
     h.update(" ".join([cc, *flags]).encode())
     out = cache_dir() / f"{stem}-{h.hexdigest()[:16]}{suffix}"

@@ -85,6 +85,10 @@ class Effect:
     signed_gains: ClassVar[tuple[str, ...]] = ()
     # a parameter that names a driving signal (``"speed"`` or a temperature sensor), not a number
     choice: ClassVar[str | None] = None
+    # the C runtime's implementation (embedded/src/tb_fx_<id>.c, docs/extending.md "The C side"): the code
+    # of the effect's section in a physics model file; None: export refuses the effect. Export reads it
+    # from the class itself only: a subclass that changes the physics is not silently its parent in C
+    export_code: ClassVar[int | None] = None
 
     def nut_heat_W(self, drive: "Drive") -> np.ndarray | None:
         return None
@@ -108,6 +112,13 @@ class Effect:
 
     def params(self) -> dict[str, float]:
         return asdict(self)
+
+    def export_params(self, geom) -> list[float]:
+        """The numbers of the effect's section in a physics model file, in the order its C file
+        reads them; ``geom`` is the model's grid (:class:`thermbench.export.encoding.PhysicsGrid`:
+        ``n_nodes``, ``n_bearing``, ``dx_m``, ``dt_s``, ``macro_dt_s``, ``housings``). A
+        ValueError says why this effect's values cannot be exported."""
+        raise ValueError(f"effect {self.id!r} has no C implementation")
 
     def describe(self) -> str:
         """The identified effect in words and numbers (open terms say more)."""
@@ -135,10 +146,14 @@ class AmbientDrift(Effect):
     needs: ClassVar[tuple[str, ...]] = ("ambient_sensor",)
     reference: ClassVar[dict[str, float]] = {"amplitude_C": 1.0, "period_s": 86400.0, "phase_s": 0.0, "rate_C_per_h": 0.2}
     scaled: ClassVar[tuple[str, ...]] = ("amplitude_C", "rate_C_per_h")
+    export_code: ClassVar[int | None] = 1
     amplitude_C: float = 1.5
     period_s: float = 86400.0
     phase_s: float = 0.0
     rate_C_per_h: float = 0.0
+
+    def export_params(self, geom):
+        return [self.amplitude_C, self.period_s, self.phase_s, self.rate_C_per_h]
 
     def ambient_C(self, t_s, measured_C, ta0_C):
         if measured_C is not None:
@@ -162,8 +177,15 @@ class FreeEndBearingHeat(Effect):
     heat_gains: ClassVar[tuple[str, ...]] = ("kF_W_per_mm_min",)
     reference: ClassVar[dict[str, float]] = {"kF_W_per_mm_min": 0.5e-3}
     scaled: ClassVar[tuple[str, ...]] = ("kF_W_per_mm_min",)
+    export_code: ClassVar[int | None] = 5
     kF_W_per_mm_min: float = 0.5e-3
     length_m: float = 0.03
+
+    def export_params(self, geom):
+        k = max(1, int(math.ceil(self.length_m / geom.dx_m - 1e-9)))  # the slices sources() heats
+        if k > geom.n_nodes:
+            raise ValueError(f"length_m = {self.length_m} m covers {k} slices, more than the screw's {geom.n_nodes}")
+        return [self.kF_W_per_mm_min, float(k)]
 
     def sources(self, geom, drive):
         n = geom.n_nodes
@@ -191,8 +213,12 @@ class MotorHeat(Effect):
     starts: ClassVar[dict[str, tuple[float, ...]]] = {"tau_s": (600.0, 1800.0, 5400.0)}
     reference: ClassVar[dict[str, float]] = {"k_motor_W_per_mm_min": 0.4e-3, "tau_s": 1800.0}
     scaled: ClassVar[tuple[str, ...]] = ("k_motor_W_per_mm_min",)
+    export_code: ClassVar[int | None] = 4
     k_motor_W_per_mm_min: float = 0.4e-3
     tau_s: float = 1800.0
+
+    def export_params(self, geom):
+        return [self.k_motor_W_per_mm_min, self.tau_s]
 
     def sources(self, geom, drive):
         w = np.zeros(geom.n_nodes)
@@ -214,7 +240,15 @@ class OriginDrift(Effect):
     starts: ClassVar[dict[str, tuple[float, ...]]] = {"beta_um_per_K": (1.0,)}
     reference: ClassVar[dict[str, float]] = {"beta_um_per_K": 2.0}
     scaled: ClassVar[tuple[str, ...]] = ("beta_um_per_K",)
+    export_code: ClassVar[int | None] = 7
     beta_um_per_K: float = 2.0
+
+    def export_params(self, geom):
+        h = geom.housings.get("fixed_bearing_housing")
+        if h is None or h.source != "fixed_bearing" or h.screw_at != "fixed_end":
+            raise ValueError("the runtime models the fixed-bearing housing driven by the fixed bearing at the "
+                             f"fixed end; this model's housing is {h}")  # fmt: skip
+        return [self.beta_um_per_K, h.tau_s, h.gain_K_per_W, h.gain_K_per_mm_min, h.screw_coupling]
 
     def offset_um(self, history):
         th = history.housing_C["fixed_bearing_housing"]
@@ -236,7 +270,11 @@ class FixedFixedConstraint(Effect):
     reference: ClassVar[dict[str, float]] = {"kappa": 0.3}
     scaled: ClassVar[tuple[str, ...]] = ("kappa",)
     caps: ClassVar[dict[str, float]] = {"kappa": 0.95}
+    export_code: ClassVar[int | None] = 6
     kappa: float = 0.8
+
+    def export_params(self, geom):
+        return [self.kappa]
 
     def adjust_elongation_um(self, u_um, geom):
         n = u_um.shape[-1]
@@ -253,7 +291,11 @@ class QuadraticFrictionHeat(Effect):
     heat_gains: ClassVar[tuple[str, ...]] = ("k5_W_per_mm_min2",)
     reference: ClassVar[dict[str, float]] = {"k5_W_per_mm_min2": 5e-8}
     scaled: ClassVar[tuple[str, ...]] = ("k5_W_per_mm_min2",)
+    export_code: ClassVar[int | None] = 2
     k5_W_per_mm_min2: float = 5e-8
+
+    def export_params(self, geom):
+        return [self.k5_W_per_mm_min2]
 
     def nut_heat_W(self, drive):
         return self.k5_W_per_mm_min2 * drive.v_mm_min**2
@@ -269,7 +311,11 @@ class LoadDependentHeat(Effect):
     needs: ClassVar[tuple[str, ...]] = ("load_N",)
     reference: ClassVar[dict[str, float]] = {"k6_W_per_N_mm_min": 2e-7}
     scaled: ClassVar[tuple[str, ...]] = ("k6_W_per_N_mm_min",)
+    export_code: ClassVar[int | None] = 3
     k6_W_per_N_mm_min: float = 2e-7
+
+    def export_params(self, geom):
+        return [self.k6_W_per_N_mm_min]
 
     def nut_heat_W(self, drive):
         if drive.load_N is None:

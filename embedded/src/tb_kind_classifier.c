@@ -1,0 +1,367 @@
+/*
+ * tb_kind_classifier.c - kind CLASSIFIER: seed 002 §2.4 eq. 15-19, the proximity naive Bayes
+ * that names the working condition from the axis motion of a window (stroke, position, feed),
+ * classified on a grid of step_s; a bank (tb_bank.c) switches its member models with it.
+ * It takes raw samples (no sensor pipeline, no geometric block).
+ * dims [K, nA, nB, nC]; body: window_s, step_s (>= the period), min_moving_s; O_A levels
+ * A[nA] (stroke), B[nB] (start + end), C[nC] (feed), each increasing; O_B per condition its
+ * three level indices.
+ */
+#include "tb_internal.h"
+
+typedef struct {
+    uint32_t cap, n, head; /* ring of samples: t (float, relative), x, f (<0: not moving) */
+    float *rt, *rx, *rf;
+    double t0;
+    int have_t0;
+    uint64_t g_next;       /* next grid index to classify */
+    double last_t, period;
+    int have_prev;
+    /* labels of the last grid points (held) */
+    double lab_t[4];
+    int32_t lab[4];
+    uint32_t lab_n, lab_head;
+    int32_t held;
+    float *scratch;        /* 2 x TB_MAX_FEEDS: distinct feeds of the window and their levels */
+} clf_t;
+
+static void parse(tbi_cur *c, tb_model *m, uint16_t version)
+{
+    uint32_t *d = m->dims, i;
+    uint32_t K = d[0], nA = d[1], nB = d[2], nC = d[3], k;
+    (void)version;
+    if (K < 1 || K > TB_MAX_CONDITIONS || nA < 1 || nA > TB_MAX_LEVELS || nB < 1 || nB > TB_MAX_LEVELS ||
+        nC < 1 || nC > TB_MAX_LEVELS) {
+        c->err = TB_E_DIMS;
+        return;
+    }
+    if (!(PV(m, 0) > 0)) { c->err = TB_E_PAYLOAD; return; }
+    m->off[O_BODY] = c->pos;
+    tbi_take_val(c, 0, 1e6f, 1);     /* window_s */
+    tbi_take_val(c, 1e-3f, 1e6f, 0); /* step_s */
+    if (!c->err && PV(m, m->off[O_BODY] + 1) < PV(m, 0)) c->err = TB_E_PAYLOAD; /* step >= the period */
+    tbi_take_val(c, 0, 1e6f, 0); /* min_moving_s */
+    if (!c->err && PV(m, m->off[O_BODY]) / PV(m, 0) > (tb_real)TB_MAX_WINDOW) c->err = TB_E_DIMS;
+    m->off[O_A] = tbi_take(c, nA + nB + nC);
+    for (i = 0; i < nA + nB + nC && !c->err; i++) {
+        uint32_t first = i == 0 || i == nA || i == nA + nB;
+        if (!first && !(PV(m, m->off[O_A] + i) > PV(m, m->off[O_A] + i - 1))) c->err = TB_E_PAYLOAD;
+    }
+    m->off[O_B] = c->pos;
+    for (k = 0; k < K && !c->err; k++) {
+        tbi_take_int(c, 0, nA - 1);
+        tbi_take_int(c, 0, nB - 1);
+        tbi_take_int(c, 0, nC - 1);
+    }
+    m->n_sensors = 0;
+}
+
+static void carve(const tb_model *m, tbi_arena *a, void **ks)
+{
+    clf_t *k = (clf_t *)tbi_carve(a, sizeof(clf_t));
+    size_t cap = (size_t)ceil((double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) - 1e-9) + 4u; /* the window's samples */
+    float *arr = (float *)tbi_carve(a, sizeof(float) * (3u * cap + 2u * TB_MAX_FEEDS));
+    if (a->p && !a->err) {
+        memset(k, 0, sizeof *k);
+        k->cap = (uint32_t)cap;
+        k->rt = arr;
+        k->rx = arr + cap;
+        k->rf = arr + 2 * cap;
+        k->scratch = arr + 3 * cap;
+        k->held = -1;
+    }
+    *ks = k;
+}
+
+static void clf_levels_prob(const tb_model *m, uint32_t at, uint32_t nl, tb_real v, tb_real *p)
+{
+    uint32_t i;
+    tb_real mx = 0, tot = 0;
+    int hit = 0;
+    for (i = 0; i < nl; i++)
+        if (fabs((double)PV(m, at + i)) > (double)mx) mx = (tb_real)fabs((double)PV(m, at + i));
+    if (mx < 1) mx = 1;
+    for (i = 0; i < nl; i++) {
+        tb_real d = (tb_real)fabs((double)(v - PV(m, at + i)));
+        if (d <= (tb_real)1e-9 * mx) {
+            p[i] = 1;
+            hit = 1;
+        } else {
+            p[i] = 1 / d;
+        }
+    }
+    for (i = 0; i < nl; i++) {
+        tb_real d = (tb_real)fabs((double)(v - PV(m, at + i)));
+        if (hit) p[i] = d <= (tb_real)1e-9 * mx ? 1 : 0;
+        else tot += p[i];
+    }
+    if (!hit && tot > 0)
+        for (i = 0; i < nl; i++) p[i] /= tot;
+}
+
+/* seed 002 eq. 15-19 on one motion (stroke A, position B = start + end, feed C) */
+static int32_t clf_predict_one(const tb_model *m, tb_real A, tb_real B, tb_real C)
+{
+    uint32_t K = m->dims[0], nA = m->dims[1], nB = m->dims[2], nC = m->dims[3], k;
+    tb_real pa[TB_MAX_LEVELS], pb[TB_MAX_LEVELS], pc[TB_MAX_LEVELS], best = -1;
+    int32_t arg = 0;
+    clf_levels_prob(m, m->off[O_A], nA, A, pa);
+    clf_levels_prob(m, m->off[O_A] + nA, nB, B, pb);
+    clf_levels_prob(m, m->off[O_A] + nA + nB, nC, C, pc);
+    for (k = 0; k < K; k++) {
+        uint32_t at = m->off[O_B] + 3 * k;
+        tb_real s = pa[(uint32_t)PV(m, at)] + pb[(uint32_t)PV(m, at + 1)] + pc[(uint32_t)PV(m, at + 2)] + (tb_real)1 / (tb_real)K;
+        if (s > best) {
+            best = s;
+            arg = (int32_t)k;
+        }
+    }
+    return arg;
+}
+
+/* ring index i (0 = oldest) */
+#define RI(k, i) (((k)->head + (k)->cap - (k)->n + (i)) % (k)->cap)
+
+/* features of the window (T - window, T] (thermbench.classify.window_features, with the feed
+ * levels clustered over the window and its two neighbour samples); returns the raw label or -1 */
+static int32_t clf_window(const tb_model *m, clf_t *k, double T)
+{
+    uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo = (uint32_t)-1, hi = 0, a, b;
+    double window = (double)PV(m, body), min_moving = (double)PV(m, body + 2), period = k->period;
+    float *u = k->scratch, *lev = k->scratch + TB_MAX_FEEDS;
+    tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], x0 = 0, x1 = 0, total = 0;
+    uint32_t dom = 0;
+    int found = 0;
+    memset(time_in, 0, sizeof time_in);
+    memset(feed_in, 0, sizeof feed_in);
+    if (k->n == 0) return -1;
+    for (i = 0; i < k->n; i++) {
+        double t = k->t0 + (double)k->rt[RI(k, i)];
+        if (t > T - window && t <= T) {
+            if (lo == (uint32_t)-1) lo = i;
+            hi = i + 1;
+        }
+    }
+    if (lo == (uint32_t)-1) return -1;
+    /* distinct moving feeds of the window and its neighbours, sorted */
+    a = lo > 0 ? lo - 1 : lo;
+    b = hi < k->n ? hi + 1 : hi;
+    for (i = a; i < b; i++) {
+        float f = k->rf[RI(k, i)];
+        uint32_t j, q;
+        if (!(f > 0)) continue;
+        for (j = 0; j < nu && u[j] < f; j++) {}
+        if (j < nu && u[j] == f) continue;
+        if (nu == TB_MAX_FEEDS) return -2; /* more distinct feeds than the runtime clusters */
+        for (q = nu; q > j; q--) u[q] = u[q - 1];
+        u[j] = f;
+        nu++;
+    }
+    if (nu == 0) return -1;
+    /* chain clustering within 1 % (thermbench.classify._cluster_feeds): lev[j] = level of u[j] */
+    {
+        uint32_t j;
+        lev[0] = 0;
+        for (j = 1; j < nu; j++) {
+            if ((tb_real)u[j] - (tb_real)u[j - 1] > (tb_real)0.01 * (tb_real)u[j]) nlev++;
+            lev[j] = (float)nlev;
+        }
+        nlev++;
+    }
+    for (i = 0; i < nlev; i++) time_in[i] = feed_in[i] = 0;
+    for (i = lo; i < hi; i++) {
+        float f = k->rf[RI(k, i)];
+        double w;
+        int32_t c;
+        if (!(f > 0)) continue;
+        if (i + 1 < k->n) w = (double)k->rt[RI(k, i + 1)] - (double)k->rt[RI(k, i)];
+        else w = period;
+        {
+            uint32_t j;
+            for (j = 0; j < nu && u[j] != f; j++) {}
+            c = (int32_t)lev[j];
+        }
+        time_in[c] += (tb_real)w;
+        feed_in[c] += (tb_real)(w * (double)f);
+        total += (tb_real)w;
+    }
+    for (i = 1; i < nlev; i++)
+        if (time_in[i] > time_in[dom]) dom = i;
+    if (!((double)total >= min_moving) || !(time_in[dom] > 0)) return -1;
+    /* stroke range at the dominant feed */
+    for (i = lo; i < hi; i++) {
+        float f = k->rf[RI(k, i)];
+        uint32_t j;
+        tb_real x = (tb_real)k->rx[RI(k, i)];
+        if (!(f > 0)) continue;
+        for (j = 0; j < nu && u[j] != f; j++) {}
+        if ((uint32_t)lev[j] != dom) continue;
+        if (!found) { x0 = x1 = x; found = 1; }
+        if (x < x0) x0 = x;
+        if (x > x1) x1 = x;
+    }
+    {
+        /* turning points between samples (1 Hz aliasing), see window_features */
+        tb_real up = x1, down = x0, tol = (tb_real)1e-6;
+        int32_t cprev, c0, c1n, c2;
+        {
+            tb_real mx = 1;
+            if (fabs((double)x0) > (double)mx) mx = (tb_real)fabs((double)x0);
+            if (fabs((double)x1) > (double)mx) mx = (tb_real)fabs((double)x1);
+            tol = (tb_real)1e-6 * mx;
+        }
+        for (i = lo; i + 1 < hi; i++) {
+            float fa = k->rf[RI(k, i)];
+            double dt, L, gap;
+            tb_real xa, xb, top, bot;
+            int t_in, b_in;
+            uint32_t j;
+#define LEVEL(idx, out)                                                                                                \
+    do {                                                                                                               \
+        float ff = k->rf[RI(k, (idx))];                                                                                \
+        out = -1;                                                                                                      \
+        if (ff > 0) {                                                                                                  \
+            for (j = 0; j < nu && u[j] != ff; j++) {}                                                                  \
+            out = j < nu ? (int32_t)lev[j] : -9;                                                                       \
+        }                                                                                                              \
+    } while (0)
+            LEVEL(i, c0);
+            if (c0 != (int32_t)dom) continue;
+            if (i == 0) continue; /* run start (same[0] is False) or the sample before it left the ring */
+            LEVEL(i - 1, cprev);
+            LEVEL(i + 1, c1n);
+            if (i + 2 < k->n) LEVEL(i + 2, c2);
+            else c2 = -100;
+            if (!(cprev == c0 && c1n == c0 && c2 == c1n)) continue;
+            dt = (double)k->rt[RI(k, i + 1)] - (double)k->rt[RI(k, i)];
+            if (!(dt <= 1.5 * period)) continue;
+            xa = (tb_real)k->rx[RI(k, i)];
+            xb = (tb_real)k->rx[RI(k, i + 1)];
+            L = (double)fa / 60.0 * dt;
+            gap = L - fabs((double)(xb - xa));
+            if (!(gap > 0.02 * L + 0.1)) continue;
+            top = (xa + xb + (tb_real)L) / 2;
+            bot = (xa + xb - (tb_real)L) / 2;
+            t_in = top < x1 - tol;
+            b_in = bot > x0 + tol;
+            if (b_in && !t_in && top > up) up = top;
+            if (t_in && !b_in && bot < down) down = bot;
+        }
+        x0 = down;
+        x1 = up;
+    }
+    return clf_predict_one(m, x1 - x0, x0 + x1, feed_in[dom] / time_in[dom]);
+}
+
+static void clf_label_push(clf_t *k, double T, int32_t raw)
+{
+    if (raw >= 0) k->held = raw;
+    k->lab_t[k->lab_head] = T;
+    k->lab[k->lab_head] = k->held;
+    k->lab_head = (k->lab_head + 1) % 4u;
+    if (k->lab_n < 4) k->lab_n++;
+}
+
+static void clf_classify_due(const tb_model *m, clf_t *k, double t_now, int final)
+{
+    double step = (double)PV(m, m->off[O_BODY] + 1);
+    if (!k->have_t0) return;
+    for (;;) {
+        double T = k->t0 + (double)k->g_next * step;
+        if (!final && !(T < t_now)) break;
+        if (final && T > k->last_t + 1e-9) break;
+        clf_label_push(k, T, clf_window(m, k, T));
+        k->g_next++;
+    }
+}
+
+static int step(const tb_model *m, void *ks, const tb_sample *s)
+{
+    clf_t *k = (clf_t *)ks;
+    uint32_t at;
+    if (!k->have_t0) {
+        k->have_t0 = 1;
+        k->t0 = s->t_s;
+        k->period = (double)PV(m, 0);
+    }
+    if (k->n == k->cap) { /* drop the oldest */
+        k->n--;
+    }
+    at = k->head;
+    k->rt[at] = (float)(s->t_s - k->t0);
+    k->rx[at] = (float)s->axis_mm;
+    k->rf[at] = (!s->measuring && s->feed_mm_min > 0) ? (float)s->feed_mm_min : -1.0f;
+    k->head = (k->head + 1) % k->cap;
+    k->n++;
+    k->last_t = s->t_s;
+    /* grid points before this sample can be classified now (their window and next sample are in) */
+    clf_classify_due(m, k, s->t_s, 0);
+    return TB_OK;
+}
+
+static double clf_ready(const tb_model *m, const clf_t *k)
+{
+    if (!k->have_t0) return -1e300;
+    return k->t0 + (double)k->g_next * (double)PV(m, m->off[O_BODY] + 1) - 1e-6;
+}
+
+static double clf_horizon(const tb_model *m) { return (double)PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S; }
+
+static double ready_s(const tb_model *m, const void *ks, double *horizon_s)
+{
+    if (horizon_s) *horizon_s = clf_horizon(m);
+    return clf_ready(m, (const clf_t *)ks);
+}
+
+int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label)
+{
+    const clf_t *k;
+    uint32_t i;
+    int32_t out = -1;
+    double best = -1e300;
+    if (!clf || !clf->state || clf->kind != TB_KIND_CLASSIFIER || !label) return TB_E_STATE;
+    k = (const clf_t *)((const tbi_state *)clf->state)->ks;
+    if (k->have_t0 && t_s > clf_ready(clf, k) + clf_horizon(clf)) return TB_E_NOTREADY;
+    if (k->lab_n == 0) {
+        *label = -1;
+        return k->have_t0 ? TB_OK : TB_E_NOTREADY;
+    }
+    for (i = 0; i < k->lab_n; i++) {
+        uint32_t at = (k->lab_head + 4u - 1u - i) % 4u;
+        if (k->lab_t[at] <= t_s + 1e-9 && k->lab_t[at] > best) {
+            best = k->lab_t[at];
+            out = k->lab[at];
+        }
+    }
+    if (best == -1e300) {
+        uint32_t oldest = (k->lab_head + 4u - k->lab_n) % 4u;
+        if (k->lab_n == 4) return TB_E_LATE;
+        out = t_s < k->lab_t[oldest] ? -1 : k->lab[oldest];
+    }
+    *label = out;
+    return TB_OK;
+}
+
+static int check(const tb_model *m, const void *ks, const tb_sample *s)
+{
+    const clf_t *k = (const clf_t *)ks;
+    (void)m;
+    if (k->have_t0 && !(s->t_s > k->last_t)) return TB_E_INPUT;
+    if (k->have_t0 && s->t_s - k->last_t > TB_MAX_GAP_S) return TB_E_SAMPLING;
+    return TB_OK;
+}
+
+static void finish(const tb_model *m, void *ks) { clf_classify_due(m, (clf_t *)ks, 0, 1); }
+
+int tbi_classifier_span(const tb_model *clf, double *t_first, double *t_last)
+{
+    const clf_t *k = (const clf_t *)((const tbi_state *)clf->state)->ks;
+    *t_first = k->t0;
+    *t_last = k->last_t;
+    return k->have_t0;
+}
+
+const tbi_kind tbi_kind_classifier = {
+    .kind = TB_KIND_CLASSIFIER, .max_version = 1, .pipeline = 0, .parse = parse, .carve = carve, .check = check,
+    .step = step, .finish = finish, .ready_s = ready_s,
+};

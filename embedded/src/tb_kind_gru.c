@@ -1,0 +1,159 @@
+/*
+ * tb_kind_gru.c - kind GRU: a PyTorch GRU cell (gates r, z, n) run over the dT history at K
+ * lags of step_s, then a linear head giving the curve coefficients of a polynomial in the
+ * standardised position. The history is a ring of dT at the sample period (the log must be
+ * uniformly sampled; missing samples are filled as numpy.interp would).
+ * dims [S, H, D, K]; body: step_s, seq_mean[S], seq_scale[S] (> 0), p_mean, p_scale (> 0),
+ * y_mean, y_scale (> 0); O_A W_ih (3H x S), O_B W_hh (3H x H), O_C b_ih, O_D b_hh,
+ * O_E head W ((D + 1) x H), O_F head b.
+ */
+#include "tb_internal.h"
+
+typedef struct { /* ring of dT at the sample period */
+    uint32_t cap, n, head;
+    double t_first; /* time of the oldest sample in the ring */
+    float *ring;    /* cap x S */
+} gru_t;
+
+static void parse(tbi_cur *c, tb_model *m, uint16_t version)
+{
+    uint32_t *d = m->dims, i, at;
+    uint32_t S = d[0], H = d[1], D = d[2], K = d[3];
+    (void)version;
+    if (S < 1 || S > TB_MAX_SENSORS || H < 1 || H > TB_MAX_GRU_HIDDEN || D > TB_MAX_POLY || K > TB_MAX_LAGS) {
+        c->err = TB_E_DIMS;
+        return;
+    }
+    if (!(PV(m, 0) > 0)) { c->err = TB_E_PAYLOAD; return; } /* needs the sample period */
+    tbi_parse_sensors(c, m, S);
+    tbi_parse_geom(c, m);
+    m->off[O_BODY] = c->pos;
+    tbi_take_val(c, 1e-3f, 1e7f, 0); /* step_s */
+    at = tbi_take(c, 2 * S);
+    for (i = 0; i < S && !c->err; i++)
+        if (!(PV(m, at + S + i) > 0)) c->err = TB_E_PAYLOAD;
+    tbi_take(c, 1);
+    tbi_take_val(c, 0, 1e30f, 1); /* p scale */
+    tbi_take(c, 1);
+    tbi_take_val(c, 0, 1e30f, 1); /* y scale */
+    m->off[O_A] = tbi_take(c, 3 * H * S);
+    m->off[O_B] = tbi_take(c, 3 * H * H);
+    m->off[O_C] = tbi_take(c, 3 * H);
+    m->off[O_D] = tbi_take(c, 3 * H);
+    m->off[O_E] = tbi_take(c, (D + 1) * H);
+    m->off[O_F] = tbi_take(c, D + 1);
+    if (!c->err && (double)K * (double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) > (double)TB_MAX_WINDOW)
+        c->err = TB_E_DIMS;
+    if (!c->err && (double)(K + 1) * 3.0 * (double)H * (double)(H + S) > 2e7) c->err = TB_E_DIMS; /* work per predict */
+}
+
+static void carve(const tb_model *m, tbi_arena *a, void **ks)
+{
+    gru_t *g = (gru_t *)tbi_carve(a, sizeof(gru_t));
+    /* the window's samples (+ 4) */
+    size_t cap = (size_t)ceil((double)m->dims[3] * (double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) - 1e-9) + 4u;
+    float *r = (float *)tbi_carve(a, sizeof(float) * cap * m->dims[0]);
+    if (a->p && !a->err) {
+        memset(g, 0, sizeof *g);
+        g->cap = (uint32_t)cap;
+        g->ring = r;
+    }
+    *ks = g;
+}
+
+static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_real *dT)
+{
+    gru_t *g = (gru_t *)ks;
+    double t = mo->t_s;
+    uint32_t S = m->dims[0], j;
+    double period = (double)PV(m, 0);
+    if (g->n > 0) { /* samples missing in between (a dropped or rejected one): the values numpy.interp gives */
+        uint32_t newest = (g->head + g->cap - 1) % g->cap, k, d;
+        double t_new = g->t_first + (double)(g->n - 1) * period;
+        d = (uint32_t)tbi_floor_clamp((t - t_new) / period + 0.5, 1, (int64_t)g->cap);
+        for (k = 1; k < d; k++) {
+            tb_real w = (tb_real)k / (tb_real)d;
+            for (j = 0; j < S; j++) {
+                tb_real v0 = (tb_real)g->ring[newest * S + j];
+                g->ring[g->head * S + j] = (float)(v0 + w * (dT[j] - v0));
+            }
+            g->head = (g->head + 1) % g->cap;
+            if (g->n < g->cap) g->n++;
+            else g->t_first += period;
+        }
+    }
+    if (g->n == 0) g->t_first = t;
+    for (j = 0; j < S; j++) g->ring[g->head * S + j] = (float)dT[j];
+    g->head = (g->head + 1) % g->cap;
+    if (g->n < g->cap) g->n++;
+    else g->t_first += period;
+}
+
+static int predict(const tb_model *m, const void *ks, double t, double axis_mm, tb_real *thermal)
+{
+    const gru_t *g = (const gru_t *)ks;
+    uint32_t S = m->dims[0], H = m->dims[1], D = m->dims[2], K = m->dims[3], j, i, k;
+    uint32_t body = m->off[O_BODY];
+    double step = (double)PV(m, body), period = (double)PV(m, 0);
+    tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], x[TB_MAX_SENSORS];
+    tb_real p, out = 0, pw = 1;
+    uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
+    double t_newest;
+    if (g->n == 0) return TB_E_NOTREADY;
+    t_newest = g->t_first + (double)(g->n - 1) * period;
+    for (j = 0; j < H; j++) h[j] = 0;
+    for (k = K + 1; k-- > 0;) { /* oldest lag first */
+        double tau = t - (double)k * step, pos;
+        uint32_t i0, i1;
+        double w;
+        if (tau < g->t_first && g->n == g->cap) return TB_E_LATE;
+        pos = (tau - g->t_first) / period;
+        if (pos <= 0) { i0 = i1 = 0; w = 0; }
+        else if (tau >= t_newest) { i0 = i1 = g->n - 1; w = 0; }
+        else {
+            i0 = (uint32_t)tbi_floor_clamp(pos, 0, (int64_t)g->n - 1);
+            if (i0 >= g->n - 1) i0 = g->n - 2;
+            i1 = i0 + 1;
+            w = pos - (double)i0;
+        }
+        for (j = 0; j < S; j++) {
+            tb_real v0 = (tb_real)g->ring[((oldest + i0) % g->cap) * S + j];
+            tb_real v1 = (tb_real)g->ring[((oldest + i1) % g->cap) * S + j];
+            tb_real v = v0 + (tb_real)w * (v1 - v0);
+            x[j] = (v - PV(m, body + 1 + j)) / PV(m, body + 1 + S + j);
+        }
+        /* PyTorch GRU cell, gates (r, z, n) */
+        for (i = 0; i < H; i++) {
+            tb_real gi[3], gh[3];
+            uint32_t gate;
+            for (gate = 0; gate < 3; gate++) {
+                uint32_t row = gate * H + i;
+                tb_real si = PV(m, m->off[O_C] + row), sh = PV(m, m->off[O_D] + row);
+                for (j = 0; j < S; j++) si += PV(m, m->off[O_A] + row * S + j) * x[j];
+                for (j = 0; j < H; j++) sh += PV(m, m->off[O_B] + row * H + j) * h[j];
+                gi[gate] = si;
+                gh[gate] = sh;
+            }
+            {
+                tb_real r = tbi_sigm(gi[0] + gh[0]), z = tbi_sigm(gi[1] + gh[1]);
+                tb_real nn = (tb_real)tanh((double)(gi[2] + r * gh[2]));
+                hn[i] = (1 - z) * nn + z * h[i];
+            }
+        }
+        for (i = 0; i < H; i++) h[i] = hn[i];
+    }
+    p = ((tb_real)axis_mm - PV(m, body + 1 + 2 * S)) / PV(m, body + 2 + 2 * S);
+    for (i = 0; i <= D; i++) {
+        tb_real c = PV(m, m->off[O_F] + i);
+        for (j = 0; j < H; j++) c += PV(m, m->off[O_E] + i * H + j) * h[j];
+        out += c * pw;
+        pw *= p;
+    }
+    *thermal = out * PV(m, body + 4 + 2 * S) + PV(m, body + 3 + 2 * S);
+    return TB_OK;
+}
+
+const tbi_kind tbi_kind_gru = {
+    .kind = TB_KIND_GRU, .max_version = 1, .pipeline = 1, .parse = parse, .carve = carve, .sample = sample,
+    .predict = predict,
+};
