@@ -36,7 +36,7 @@ from thermbench._atomic import write_text_atomic  # noqa: E402
 from thermbench.config import load_config  # noqa: E402
 from thermbench.data.io import load_dataset  # noqa: E402
 from thermbench.discrepancy import hidden  # noqa: E402
-from thermbench.discrepancy.search import CANDIDATES  # noqa: E402
+from thermbench.sim.effects import EFFECTS  # noqa: E402
 from thermbench.discrepancy.workflow import run_diagnosis, settings_from_config  # noqa: E402
 
 
@@ -142,7 +142,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--factors", default="1,2,4", help="strengths, multiples of the calibrated one")
-    ap.add_argument("--effects", default=",".join(CANDIDATES))
+    ap.add_argument("--effects", default=",".join(EFFECTS), help="canonical effects hidden one at a time")
     ap.add_argument("--clean", type=int, default=20, help="clean datasets for the false-positive rate")
     ap.add_argument("--runs", type=int, default=3, help="runs per dataset")
     ap.add_argument("--hours", type=float, default=2.0, help="hours per run")

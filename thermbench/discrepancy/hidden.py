@@ -255,6 +255,34 @@ class ScaleExpansion:
 
 
 @dataclass(frozen=True)
+class AmbientReferenced:
+    """Ambient drift whose axis expansion is referenced at ``p0_mm`` (e.g. the screw's fixed
+    end, where the scale or the structure is fixed) rather than at the axis origin: the world
+    runs ``ambient_drift`` (the screw follows the ambient, TEa = alpha dTa Px) and the
+    readings then carry alpha dTa (Px - P0) instead of alpha dTa Px. Not a canonical effect:
+    ``ambient_drift`` fixes P0 at 0."""
+
+    id: ClassVar[str] = "ambient_referenced"
+    amplitude_C: float = 1.0
+    period_s: float = 86400.0
+    phase_s: float = 0.0
+    rate_C_per_h: float = 0.3
+    p0_mm: float = 300.0
+
+    def drift(self) -> dict:
+        return {"ambient_drift": {"amplitude_C": self.amplitude_C, "period_s": self.period_s, "phase_s": self.phase_s,
+                                  "rate_C_per_h": self.rate_C_per_h}}  # fmt: skip
+
+    def delta_um(self, ds: Dataset, run: str, t_s: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        from ..sim.effects import AmbientDrift
+
+        t0 = float(ds.process_run(run)["t_s"].iloc[0])
+        amb = AmbientDrift(**self.drift()["ambient_drift"])
+        dta = amb.ambient_C(np.concatenate([[t0], t_s]), None, 0.0)[1:]  # the rise since the run began
+        return -ds.metadata.material.alpha_per_K * dta * self.p0_mm * 1e3
+
+
+@dataclass(frozen=True)
 class OutOfLibrary:
     """One out-of-library case: its class, the strength parameter a calibration scales, the
     wide physical ranges its parameters are drawn from (uniform, or log-uniform for
@@ -282,6 +310,10 @@ OUT_OF_LIBRARY = {
     "scale_expansion": OutOfLibrary(ScaleExpansion, "e_um_per_m_per_m_min",
                                     {"e_um_per_m_per_m_min": (1.0, 10.0), "tau_s": (0.5 * 3600, 3 * 3600),
                                      "p0_mm": (0.0, 1.0)}, "referenced_expansion"),
+    "ambient_referenced": OutOfLibrary(AmbientReferenced, "amplitude_C",
+                                       {"amplitude_C": (0.5, 3.0), "period_s": (6 * 3600, 24 * 3600),
+                                        "phase_s": (0.0, 6 * 3600), "rate_C_per_h": (-0.3, 0.3), "p0_mm": (0.0, 1.0)},
+                                       "referenced_expansion"),
 }  # fmt: skip
 
 
@@ -292,7 +324,7 @@ def simulate_out_of_library(world: World, name: str, params: dict, seed: int, cl
     obj = case.cls(**params)
     if isinstance(obj, Effect):
         return simulate(world, {}, seed, clean, extra_effects=[obj])
-    ds = simulate(world, {}, seed, clean)
+    ds = simulate(world, obj.drift() if hasattr(obj, "drift") else {}, seed, clean)
     err = ds.errors.copy()
     for run, g in err.groupby("run_id", sort=False):
         err.loc[g.index, "error_um"] += obj.delta_um(ds, str(run), g["t_s"].to_numpy(), g["target_mm"].to_numpy())
