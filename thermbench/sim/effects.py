@@ -120,7 +120,7 @@ class Effect:
         ValueError says why this effect's values cannot be exported."""
         raise ValueError(f"effect {self.id!r} has no C implementation")
 
-    def describe(self) -> str:
+    def describe(self, context: Mapping | None = None) -> str:
         """The identified effect in words and numbers (open terms say more)."""
         nums = ", ".join(f"{k} = {v:.4g}" for k, v in self.params().items() if isinstance(v, Real))
         return f"{self.id} ({nums})"
