@@ -302,14 +302,20 @@ def test_localise_finds_a_far_end_discrepancy_and_none_in_noise(clean_data):
 def test_decide_names_the_best_and_reports_ties():
     t = SignificanceTest(explained_x_floor=2.0, bic_min=10.0, tie_x_floor=1.0)
 
-    def rec(e, ho, sig, label=None, n=6, signal=None):
+    def rec(e, ho, sig, label=None, n=6, signal=None, bic=100.0):
         return {"effect": e, "heldout_rmse_um": ho, "significant": sig, "label": label or e, "n_params": n,
-                "variant": {"signal": signal} if signal else {}}  # fmt: skip
+                "variant": {"signal": signal} if signal else {}, "bic_gain": bic}  # fmt: skip
 
     best, ties = decide([rec("a", 0.5, True), rec("b", 2.0, True), rec("c", 0.4, False)], 0.3, t)
     assert best["effect"] == "a" and ties == []
     best, ties = decide([rec("a", 0.50, True), rec("b", 0.55, True)], 0.3, t)  # sqrt(.55^2-.5^2)=0.23 < 0.3
     assert best["effect"] == "a" and ties == ["b"]
+    # alike on held-out runs, but the best's BIC gain is 103 above the other's (> bic_min 10):
+    # the test's other half tells them apart
+    best, ties = decide([rec("a", 0.351, True, bic=1405.1), rec("b", 0.389, True, bic=1301.9)], 0.36, t)
+    assert best["effect"] == "a" and ties == []
+    best, ties = decide([rec("a", 0.351, True, bic=1405.1), rec("b", 0.389, True, bic=1398.0)], 0.36, t)
+    assert ties == ["b"]
     assert decide([rec("a", 0.5, False)], 0.3, t) == (None, [])
     # an open term that is a canonical effect within tolerance: the same physics, not a tie; the
     # one with fewer parameters is named even when the open term fits a little better

@@ -22,8 +22,9 @@ least ``explained_x_floor`` times the noise floor and its BIC gain exceeds
 ``bic_min`` (10: "very strong" evidence, Kass & Raftery 1995). The best
 significant candidate (lowest held-out RMSE) is named; another significant one
 *ties* with it when what the best explains beyond it, sqrt(RMSE_other^2 -
-RMSE_best^2), is below ``tie_x_floor`` times the floor: the data cannot tell
-them apart, and both names are reported instead of a guess. The named effect
+RMSE_best^2), is below ``tie_x_floor`` times the floor and the best's BIC gain
+does not exceed the other's by more than ``bic_min``: the data cannot tell them
+apart, and both names are reported instead of a guess. The named effect
 is added only when its proper leave-one-run-out score passes the same test.
 """
 
@@ -80,7 +81,7 @@ class SignificanceTest:
             f"named when the held-out error it explains, sqrt(RMSE_before^2 - RMSE_after^2), is >= "
             f"{self.explained_x_floor:g} x the noise floor and its BIC gain is > {self.bic_min:g}; "
             f"two significant candidates tie when the better explains < {self.tie_x_floor:g} x the noise "
-            f"floor beyond the other; a model explains the data (verdict none or found) only when its held-out "
+            f"floor beyond the other and its BIC gain is not > {self.bic_min:g} above the other's; a model explains the data (verdict none or found) only when its held-out "
             f"RMSE is <= {self.within_x_floor:g} x the noise floor"
         )
 
@@ -409,6 +410,10 @@ def say_record(rec: dict, settings) -> None:
 def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[dict | None, list[str]]:
     """The best significant candidate and the candidates it ties with.
 
+    Another significant candidate ties with the best when the best explains less than
+    ``tie_x_floor`` x the floor beyond it on held-out runs and does not beat its BIC gain by
+    more than ``bic_min``: neither half of the test tells them apart.
+
     Candidates whose identified forms are the same physics (the same ``label``: an open term
     within tolerance of a canonical effect) do not tie: the one with the fewest parameters is
     named. The same open term on other signals does not tie either: its form is named, and the
@@ -418,7 +423,10 @@ def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[
     if not sig:
         return None, []
     best = sig[0]
-    band = [c for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um]
+    # within the tie band by held-out error, unless the best's BIC gain beats the other's by more
+    # than bic_min: then the data tell them apart by the test's other half
+    band = [c for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um
+            and not best.get("bic_gain", 0.0) - c.get("bic_gain", 0.0) > test.bic_min]  # fmt: skip
     pick = min([best, *(c for c in band if c["label"] == best["label"])], key=lambda c: (c["n_params"], c["heldout_rmse_um"]))
     # the same open term on another signal: the form is found, its driver is not told apart
     pick = {**pick, "alike": [display(c) for c in band if c["label"] != best["label"] and c["effect"] == pick["effect"]]}
