@@ -321,6 +321,10 @@ def test_decide_names_the_best_and_reports_ties():
     # one with fewer parameters is named even when the open term fits a little better
     best, ties = decide([rec("heat_source", 0.50, True, label="motor_heat", n=9), rec("motor_heat", 0.52, True, n=7)], 0.3, t)
     assert best["effect"] == "motor_heat" and ties == []
+    # ... also when the canonical effect's own fit scored worse than the open term that is it
+    best, ties = decide([rec("nut_heat_power", 0.37, True, label="quadratic_friction_heat", n=8),
+                         rec("quadratic_friction_heat", 0.81, True, n=7)], 0.35, t)  # fmt: skip
+    assert best["effect"] == "quadratic_friction_heat" and ties == []
     # the same open term on two signals: its form is named, the other signal is listed as alike
     best, ties = decide([rec("driven_offset", 0.50, True, "driven_offset[speed]", signal="speed"),
                          rec("driven_offset", 0.53, True, "driven_offset[T_bed]", signal="T_bed")], 0.3, t)  # fmt: skip

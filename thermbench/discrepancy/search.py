@@ -415,8 +415,8 @@ def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[
     more than ``bic_min``: neither half of the test tells them apart.
 
     Candidates whose identified forms are the same physics (the same ``label``: an open term
-    within tolerance of a canonical effect) do not tie: the one with the fewest parameters is
-    named. The same open term on other signals does not tie either: its form is named, and the
+    within tolerance of a canonical effect) do not tie: of the significant ones with the best's
+    label, the one with the fewest parameters is named. The same open term on other signals does not tie either: its form is named, and the
     signals that drive it alike are listed (``alike``). Distinct physics within
     ``tie_x_floor`` of the best tie."""
     sig = sorted((c for c in cands if c.get("significant")), key=lambda c: c["heldout_rmse_um"])
@@ -427,7 +427,10 @@ def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[
     # than bic_min: then the data tell them apart by the test's other half
     band = [c for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um
             and not best.get("bic_gain", 0.0) - c.get("bic_gain", 0.0) > test.bic_min]  # fmt: skip
-    pick = min([best, *(c for c in band if c["label"] == best["label"])], key=lambda c: (c["n_params"], c["heldout_rmse_um"]))
+    # the same physics (one label): the fewest parameters, wherever it scored among the significant
+    # (a canonical effect whose fit scored worse than the open term that is it is an optimiser's miss,
+    # and the constrained form extrapolates to an unseen run's feed better)
+    pick = min([c for c in sig if c["label"] == best["label"]], key=lambda c: (c["n_params"], c["heldout_rmse_um"]))
     # the same open term on another signal: the form is found, its driver is not told apart
     pick = {**pick, "alike": [display(c) for c in band if c["label"] != best["label"] and c["effect"] == pick["effect"]]}
     ties = [display(c) for c in band if c["label"] != best["label"] and c["effect"] != pick["effect"]]
