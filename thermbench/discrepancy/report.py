@@ -10,6 +10,7 @@ import pandas as pd
 
 from ..report import _new_figure, _save, markdown_table
 from .localise import POSITION_WORDS
+from .search import display as _name  # a step's or candidate's name with its signal
 
 FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png")
 
@@ -84,11 +85,6 @@ def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[
     for k, scan in enumerate(d["scans"], 1):
         names.append(candidates_figure(scan, scan["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
     return names
-
-
-def _name(c: dict) -> str:
-    """A step's or candidate's name with its signal: ``driven_offset[T_bed]``."""
-    return c["effect"] + (f"[{next(iter(c['variant'].values()))}]" if c.get("variant") else "")
 
 
 def described(s: dict) -> str:
