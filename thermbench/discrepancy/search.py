@@ -234,14 +234,21 @@ def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitte
     return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
 
 
+def held_fit(effects, ds, runs, settings, warm: PhysicsModel | None, start: dict | None,
+             cache: FieldCache | None = None) -> PhysicsModel:  # fmt: skip
+    """``effects`` fitted with only the last one's own nonlinear parameters identified (with
+    every gain): the rest held at ``warm``'s values."""
+    model = make_model(effects, ds, settings, warm, start, cache)
+    model.set_params(identify=[f"{effects[-1]}.{p}" for p in own_params(effects[-1])])
+    return model.fit(ds, runs)
+
+
 def fit_screen(effect: str, current: Fitted, ds, runs, folds, settings, start: dict, cache: FieldCache) -> Fitted:
     """The screening fit of a candidate: the current model's nonlinear parameters held, the
     candidate's own identified with every gain (a lower bound on what the candidate can do)."""
     t0 = time.perf_counter()
     effects = [*current.effects, effect]
-    model = make_model(effects, ds, settings, current.model, start, cache)
-    model.set_params(identify=[f"{effect}.{p}" for p in own_params(effect)])
-    model.fit(ds, runs)
+    model = held_fit(effects, ds, runs, settings, current.model, start, cache)
     return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
 
 
@@ -262,9 +269,7 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
         if new_effect:
             start = screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant) or {new_effect: dict(variant or {})}
         if new_effect in OPEN_TERMS:  # as on all runs: then its own parameters with the rest held
-            held = make_model(effects, ds, settings, warm, start)
-            held.set_params(identify=[f"{new_effect}.{p}" for p in own_params(new_effect)])
-            start = {new_effect: dict(held.fit(ds, train).effects_[new_effect])}
+            start = {new_effect: dict(held_fit(effects, ds, train, settings, warm, start).effects_[new_effect])}
         m = make_model(effects, ds, settings, warm, start).fit(ds, train)
         models.append(m)
         for run in test:
