@@ -151,6 +151,54 @@ def test_a_prepared_run_serves_models_that_differ_in_heat_gains_only():
         other_pf.run_prepared(shared)
 
 
+def test_runs_integrated_together_match_each_alone_and_superpose():
+    """run_prepared_many integrates models that differ in heat gains in one pass (one
+    factorisation per step, the runs' substitutions interleaved): each history equals the
+    model run alone, and the field is linear in the gains (the heat equation with fixed
+    conductances), so zero, bearing-only and nut-only runs add up to the full one."""
+    from thermbench.sim.effects import make_effect
+    from thermbench.sim.model import run_prepared_many
+
+    _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+
+    def model(k3, k4, k_motor):
+        return ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k3_W_per_mm_min=k3, k4_W_per_mm_min=k4),
+                                 effects=[make_effect("motor_heat", k_motor_W_per_mm_min=k_motor)])  # fmt: skip
+
+    models = [model(0, 0, 0), model(1e-3, 0, 0), model(0, 1e-3, 0), model(0, 0, 1e-3), model(1e-3, 1e-3, 1e-3),
+              ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k1_W_m2K_per_mm_min=0.002))]  # fmt: skip
+    p = models[0].prepare(motion)
+    together = run_prepared_many(p, models)
+    for m, h in zip(models, together):
+        alone = ScrewThermalModel(m.screw, m.material, m.core, m.effects, m.numerics).run(motion)
+        np.testing.assert_array_equal(h.theta_C, alone.theta_C)
+        np.testing.assert_array_equal(h.convected_J, alone.convected_J)
+        for name in alone.housing_C:
+            np.testing.assert_array_equal(h.housing_C[name], alone.housing_C[name])
+    th = [h.theta_C for h in together]
+    assert th[4].max() > 1.0
+    np.testing.assert_allclose(th[4] - th[0], (th[1] - th[0]) + (th[2] - th[0]) + (th[3] - th[0]), atol=1e-9 * th[4].max())
+    # other conductances (k1) are another integration, not a column of the first
+    assert not np.allclose(th[5], th[4])
+
+
+def test_error_at_readings_equals_the_error_field_at_the_steps():
+    """error_um reads the elongation at the steps its readings fall between only; at the
+    steps themselves it equals the full error field (each step's elongation summed alone)."""
+    _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+    model = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=-0.05))
+    h = model.run(motion, ambient_C=20.0 + 0.4 * np.sin(motion.t_s / 1500.0))
+    grid = np.array([0.0, 120.0, 333.0, 500.0])
+    field = h.error_field_um(grid)
+    ks = np.array([0, 7, 8, 40, h.t_s.size - 1])
+    t = np.repeat(h.t_s[ks], grid.size)
+    x = np.tile(grid, ks.size)
+    np.testing.assert_allclose(h.error_um(t, x).reshape(ks.size, grid.size), field[ks], rtol=0, atol=1e-12)
+    # between two steps: linear in time
+    mid = 0.5 * (h.t_s[7] + h.t_s[8])
+    np.testing.assert_allclose(h.error_um(np.full(grid.size, mid), grid), 0.5 * (field[7] + field[8]), atol=1e-12)
+
+
 def test_paper_check_seed000_x_axis_table1_table3_table2():
     """seed 000 X axis (Table 1, Table 3) under Table 2 loading: max thermal error
     20-90 um, rising with feed (the paper measured up to 57 um)."""

@@ -36,7 +36,7 @@ from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
 from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
-from ..sim.model import Motion, ScrewThermalModel, ThermalHistory
+from ..sim.model import Motion, ScrewThermalModel, ThermalHistory, run_prepared_many
 from ..sim.parts import CoreParams, Material, Numerics, Screw
 from .base import Inputs, ModelError, ThermalErrorModel, derived, fallback, readings, require, sensor_series
 from .separation import cold_reference_geometric
@@ -310,30 +310,37 @@ class PhysicsModel(ThermalErrorModel):
         prepared = {} if prepared is None else prepared
         memo = FieldCache() if memo is None else memo
         free = {e for e in specs if getattr(effect_class(e), "field_free", False)}
+        actives = [None, *gains]
+        models, keys = [], []
+        for active in actives:
+            c = dict(core)
+            sp = {k: dict(v) for k, v in specs.items()}
+            for g, unit in gains.items():
+                self._set(c, sp, g, unit if g == active else 0.0)
+            models.append(self._build(ds, c, sp, ambient))
+            keys.append(None if active is not None and active.split(".", 1)[0] in free else
+                        (active, ambient, tuple(sorted(c.items())),
+                         tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items()) if e not in free)))  # fmt: skip
         out = []
         for rd in rds:
+            # the fields not in the cache, integrated together (they differ in the gains only)
+            hists = {i: memo.get((rd.run, *k)) for i, k in enumerate(keys) if k is not None}
+            todo = [i for i, h in hists.items() if h is None]
+            if todo:
+                p = prepared.get(rd.run)
+                if p is None or p.key != models[0].prepared_key():
+                    p = prepared[rd.run] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
+                                                             duration_s=rd.duration_s)  # fmt: skip
+                for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo])):
+                    hists[i] = memo.put((rd.run, *keys[i]), h)
             resp, h0 = [], None
-            for active in [None, *gains]:
-                c = dict(core)
-                sp = {k: dict(v) for k, v in specs.items()}
-                for g, unit in gains.items():
-                    self._set(c, sp, g, unit if g == active else 0.0)
-                model = self._build(ds, c, sp, ambient)
-                if active is not None and active.split(".", 1)[0] in free:
+            for i, model in enumerate(models):
+                if keys[i] is None:
                     hist = replace(h0, effects=model.effects)  # the same field, other offsets
                 else:
-                    key = (rd.run, active, ambient, tuple(sorted(c.items())),
-                           tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items()) if e not in free))  # fmt: skip
-                    hist = memo.get(key)
-                    if hist is None:
-                        p = prepared.get(rd.run)
-                        if p is None or p.key != model.prepared_key():
-                            p = prepared[rd.run] = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                                 duration_s=rd.duration_s)  # fmt: skip
-                        hist = memo.put(key, model.run_prepared(p))
-                    hist = replace(hist, effects=model.effects, signals={"speed": hist.signals["speed"],
-                                                                         **_signals_at(rd, hist.t_s)})  # fmt: skip
-                    if active is None:
+                    hist = replace(hists[i], effects=model.effects, signals={"speed": hists[i].signals["speed"],
+                                                                              **_signals_at(rd, hists[i].t_s)})  # fmt: skip
+                    if i == 0:
                         h0 = hist
                 e = hist.error_um(rd.t_s, rd.x_mm)
                 resp.append(e - e[rd.ref_idx])

@@ -111,67 +111,89 @@ def accumulate_cover(x_nut_m, weights, n_per_step, n_steps, n_nodes, dx_m, half_
 
 
 @njit(cache=True)
-def _solve_tridiag(diag, off, rhs, out, cprime):
-    """Thomas algorithm for a symmetric tridiagonal matrix with constant off-diagonal."""
-    n = diag.shape[0]
-    b0 = diag[0]
-    cprime[0] = off / b0
-    out[0] = rhs[0] / b0
-    for i in range(1, n):
-        m = diag[i] - off * cprime[i - 1]
-        cprime[i] = off / m
-        out[i] = (rhs[i] - off * out[i - 1]) / m
-    for i in range(n - 2, -1, -1):
-        out[i] -= cprime[i] * out[i + 1]
-
-
-@njit(cache=True)
 def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K):
-    """Advance the semi-discrete model over macro steps with SDIRK2.
+    """Advance the semi-discrete model over macro steps with SDIRK2, for one or several
+    heat inputs that share the conductances.
 
     Node equation: ``cap * dtheta_i/dt = cond*(theta_{i+1} - 2 theta_i + theta_{i-1})
     + q_i - g_i * (theta_i - dTa)`` with adiabatic left end and no conduction
-    beyond the right end (seed 000 §3.1). ``q_W`` and ``g_W_K`` are (n_steps,
-    n_nodes) step averages, ``dta_C`` the mean ambient change per step.
+    beyond the right end (seed 000 §3.1). ``q_W`` (n_rhs, n_steps, n_nodes) the step-average
+    heat inputs of ``n_rhs`` runs (each with its ``theta0`` row, (n_rhs, n_nodes)), ``g_W_K``
+    (n_steps, n_nodes) their common step-average convective conductances, ``dta_C`` the mean
+    ambient change per step. The runs share each step's matrix: it is factorised once per
+    step (the Thomas algorithm's pivots), so a further run costs the substitutions only,
+    with the same arithmetic as alone (identification's basis runs, variable projection).
 
-    Returns the states at the step boundaries, shape (n_steps + 1, n_nodes),
-    and the convected heat per step (J), consistent with the scheme.
+    Returns the states at the step boundaries, shape (n_rhs, n_steps + 1, n_nodes),
+    and the convected heat per step (J), (n_rhs, n_steps), consistent with the scheme.
     """
-    n_steps, n = q_W.shape
+    n_rhs, n_steps, n = q_W.shape
     gamma = 1.0 - np.sqrt(2.0) / 2.0
-    out = np.empty((n_steps + 1, n))
-    conv_J = np.empty(n_steps)
-    out[0, :] = theta0
-    y = theta0.copy()
-    diag = np.empty(n)
-    rhs = np.empty(n)
-    y1 = np.empty(n)
-    y2 = np.empty(n)
+    out = np.empty((n_rhs, n_steps + 1, n))
+    conv_J = np.empty((n_rhs, n_steps))
+    # node-major work arrays: the runs' independent substitutions interleave (one chain per run)
+    y = np.empty((n, n_rhs))
+    for r in range(n_rhs):
+        for i in range(n):
+            out[r, 0, i] = theta0[r, i]
+            y[i, r] = theta0[r, i]
+    piv = np.empty(n)
     cp = np.empty(n)
+    rhs = np.empty((n, n_rhs))
+    y1 = np.empty((n, n_rhs))
+    y2 = np.empty((n, n_rhs))
+    e = np.empty(n_rhs)
     gh = gamma * dt_s
     off = -gh * cond_W_K
+    c1 = (1.0 - gamma) / gamma
     for k in range(n_steps):
         ta = dta_C[k]
+        # the step's matrix (diagonal cap + gh (cond stencil + g), off-diagonal -gh cond), factorised
         for i in range(n):
             nb = 2.0
             if i == 0 or i == n - 1:
                 nb = 1.0
-            diag[i] = cap_J_K + gh * (nb * cond_W_K + g_W_K[k, i])
-            rhs[i] = cap_J_K * y[i] + gh * (q_W[k, i] + g_W_K[k, i] * ta)
-        _solve_tridiag(diag, off, rhs, y1, cp)
+            d = cap_J_K + gh * (nb * cond_W_K + g_W_K[k, i])
+            if i == 0:
+                piv[i] = d
+            else:
+                piv[i] = d - off * cp[i - 1]
+            cp[i] = off / piv[i]
+        for i in range(n):
+            for r in range(n_rhs):
+                rhs[i, r] = cap_J_K * y[i, r] + gh * (q_W[r, k, i] + g_W_K[k, i] * ta)
+        _substitute(piv, cp, off, rhs, y1)
         # f1 = (Y1 - y)/(gamma h): second stage y + (1-gamma) h f1 + gamma h f(Y2)
-        c1 = (1.0 - gamma) / gamma
         for i in range(n):
-            f1h = y1[i] - y[i]
-            rhs[i] = cap_J_K * (y[i] + c1 * f1h) + gh * (q_W[k, i] + g_W_K[k, i] * ta)
-        _solve_tridiag(diag, off, rhs, y2, cp)
-        e = 0.0
+            for r in range(n_rhs):
+                f1h = y1[i, r] - y[i, r]
+                rhs[i, r] = cap_J_K * (y[i, r] + c1 * f1h) + gh * (q_W[r, k, i] + g_W_K[k, i] * ta)
+        _substitute(piv, cp, off, rhs, y2)
+        e[:] = 0.0
         for i in range(n):
-            e += g_W_K[k, i] * ((1.0 - gamma) * (y1[i] - ta) + gamma * (y2[i] - ta))
-            y[i] = y2[i]
-            out[k + 1, i] = y2[i]
-        conv_J[k] = e * dt_s
+            for r in range(n_rhs):
+                e[r] += g_W_K[k, i] * ((1.0 - gamma) * (y1[i, r] - ta) + gamma * (y2[i, r] - ta))
+                y[i, r] = y2[i, r]
+                out[r, k + 1, i] = y2[i, r]
+        for r in range(n_rhs):
+            conv_J[r, k] = e[r] * dt_s
     return out, conv_J
+
+
+@njit(cache=True)
+def _substitute(piv, cp, off, rhs, out):
+    """Solve a symmetric tridiagonal system with constant off-diagonal ``off`` from its
+    Thomas pivots ``piv`` and ``cp = off / piv`` (forward, then back substitution), for
+    each column of ``rhs`` (n_nodes, n_rhs)."""
+    n, n_rhs = rhs.shape
+    for r in range(n_rhs):
+        out[0, r] = rhs[0, r] / piv[0]
+    for i in range(1, n):
+        for r in range(n_rhs):
+            out[i, r] = (rhs[i, r] - off * out[i - 1, r]) / piv[i]
+    for i in range(n - 2, -1, -1):
+        for r in range(n_rhs):
+            out[i, r] -= cp[i] * out[i + 1, r]
 
 
 @njit(cache=True)

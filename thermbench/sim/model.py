@@ -9,6 +9,7 @@ integrates the temperature field (seed 000 §3.1) and returns a
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -124,15 +125,17 @@ class ThermalHistory:
         return out
 
     # -- seed 000 §3.2 ------------------------------------------------------
-    def elongation_um(self) -> np.ndarray:
-        """TEm at the node faces x = 0, dx, ..., N dx, shape (n_t, N + 1) in um.
+    def elongation_um(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """TEm at the node faces x = 0, dx, ..., N dx, shape (n_t, N + 1) in um (``rows``: at
+        those steps only, (len(rows), N + 1)).
 
         E_n = alpha (T_n - Ta) dx, TEm(n dx) = sum_{i<=n} E_i, TEm(0) = 0
         (seed 000 §3.2), then the mounting/constraint effects.
         """
         g = self.geom
-        dta = (self.ambient_C - self.ta0_C)[:, None]
-        e = g.material.alpha_per_K * (self.theta_C - dta) * g.numerics.dx_m * 1e6
+        theta, amb = (self.theta_C, self.ambient_C) if rows is None else (self.theta_C[rows], self.ambient_C[rows])
+        dta = (amb - self.ta0_C)[:, None]
+        e = g.material.alpha_per_K * (theta - dta) * g.numerics.dx_m * 1e6
         u = np.concatenate([np.zeros((e.shape[0], 1)), np.cumsum(e, axis=1)], axis=1)
         for eff in self.effects:
             u = eff.adjust_elongation_um(u, g)
@@ -157,19 +160,24 @@ class ThermalHistory:
         """
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         px_mm = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
-        u = self.elongation_um()
-        return self._read(u, self.offset_um(), self.ambient_C, t, px_mm)
+        # the elongation at the steps the readings fall between only (a reading set is sparse in time)
+        k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
+        rows = np.unique(np.concatenate([k, k + 1]))
+        row_of = np.full(self.t_s.size, -1)
+        row_of[rows] = np.arange(rows.size)
+        return self._read(self.elongation_um(rows), self.offset_um(), self.ambient_C, t, px_mm, row_of)
 
-    def _read(self, u, off, amb, t, px_mm):
+    def _read(self, u, off, amb, t, px_mm, row_of=None):
         slope = self.slope_um_per_mm()
-        out = self._read_screw(u, off, amb, t, px_mm)
+        out = self._read_screw(u, off, amb, t, px_mm, row_of)
         if slope is None:
             return out
         k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
         w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
         return out + (slope[k] * (1 - w) + slope[k + 1] * w) * px_mm
 
-    def _read_screw(self, u, off, amb, t, px_mm):
+    def _read_screw(self, u, off, amb, t, px_mm, row_of=None):
+        """``u``: the elongation at every step, or (``row_of``: step -> row of ``u``) at some."""
         g = self.geom
         k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
         w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
@@ -179,8 +187,9 @@ class ThermalHistory:
         nodes = x / g.numerics.dx_m
         m = np.clip(np.floor(nodes).astype(int), 0, u.shape[1] - 2)
         f = nodes - m
-        u_k = u[k, m] * (1 - f) + u[k, m + 1] * f
-        u_k1 = u[k + 1, m] * (1 - f) + u[k + 1, m + 1] * f
+        rk, rk1 = (k, k + 1) if row_of is None else (row_of[k], row_of[k + 1])
+        u_k = u[rk, m] * (1 - f) + u[rk, m + 1] * f
+        u_k1 = u[rk1, m] * (1 - f) + u[rk1, m + 1] * f
         tem = u_k * (1 - w) + u_k1 * w
         dta = (amb[k] * (1 - w) + amb[k + 1] * w) - self.ta0_C
         tea = g.material.alpha_per_K * dta * px_mm * 1e-3 * 1e6
@@ -310,11 +319,14 @@ class ScrewThermalModel:
     def run_prepared(self, p: Prepared, theta0_C: np.ndarray | None = None, method: str | None = None) -> ThermalHistory:
         """:meth:`run` from a :meth:`prepare` result (of this model or of one with the same
         screw, numerics and Pf)."""
+        return run_prepared_many(p, [self], theta0_C, method)[0]
+
+    def _inputs(self, p: Prepared, theta0_C) -> "_Inputs":
+        """The heat inputs, conductances and ambient of a run over ``p`` (seed 000 §4.1 + effects)."""
         if p.key != self.prepared_key():
             raise ValueError("run_prepared: prepared for another screw, numerics or Pf; call prepare() with this model")
         g = self.geom
         num = self.numerics
-        method = method or num.method
         d = p.drive
         n = g.n_nodes
         m = num.per_step
@@ -326,23 +338,26 @@ class ScrewThermalModel:
         if drift is not None:
             amb_f = drift.ambient_C(d.t_s, p.measured_f_C, ta0)
             amb_b = drift.ambient_C(t_b, p.measured_b_C, ta0)
+            dta_f = amb_f - ta0
+            dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
         else:
-            amb_f = np.full(d.t_s.size, ta0)
             amb_b = np.full(t_b.size, ta0)
-        dta_f = amb_f - ta0
+            dta_f, dta_step = np.zeros(d.t_s.size), np.zeros(n_steps)
 
         # heat (seed 000 §4.1 + effects) -------------------------------------
         # h = k1 v + k2, QB = k3 v, QN = k4 v (+ the effects' nut heat): their step means are
-        # affine in the mean speed; the fine series only for the explicit scheme
+        # affine in the mean speed; the fine series only for the explicit scheme. An effect whose
+        # heat gains are all zero adds no heat (identification's basis runs): it is skipped
         c = self.core
         v_mean = p.v_mean
-        extras = [x for x in (eff.nut_heat_W(d) for eff in self.effects) if x is not None]
+        heating = [e for e in self.effects if not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
+        extras = [x for x in (eff.nut_heat_W(d) for eff in heating) if x is not None]
         extra = np.sum(extras, axis=0) if extras else None
         qb_mean = c.k3_W_per_mm_min * v_mean
         qn_mean = c.k4_W_per_mm_min * v_mean
         if extra is not None:
             qn_mean = qn_mean + extra.reshape(n_steps, m).mean(axis=1)
-        srcs = [s for eff in self.effects for s in eff.sources(g, d)]
+        srcs = [s for eff in heating for s in eff.sources(g, d)]
         if srcs:
             sw = np.stack([s[0] for s in srcs]).astype(float)
             sp = np.stack([np.broadcast_to(s[1], d.t_s.shape) for s in srcs]).astype(float)
@@ -350,7 +365,6 @@ class ScrewThermalModel:
             sw = np.zeros((0, n))
             sp = np.zeros((0, d.t_s.size))
 
-        cond = self.material_conductance(c.lambda_W_mK)
         th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
         half = self.screw.nut_length_m / 2.0
         nb = g.n_bearing
@@ -362,75 +376,156 @@ class ScrewThermalModel:
             extra_cov = kernels.accumulate_cover(d.x_screw_m, extra[None, :], m, n_steps, n, num.dx_m, half, nb)[1]
             q_nut = q_nut + per_node * extra_cov
         h_cov = c.k1_W_m2K_per_mm_min * p.v_cover + c.k2_W_m2K * p.cover
-        cov = p.cover
         q = q_nut
         if nb > 0:
             q = q.copy()
             q[:, :nb] += (qb_mean * num.dx_m / self.screw.fixed_bearing_length_m)[:, None]
         if srcs:
             q = q + (sp.reshape(len(srcs), n_steps, m).mean(axis=2).T @ sw)
-        heat_in = q.sum(axis=1) * num.macro_dt_s
-        conv_J = np.zeros(n_steps)
+        area = np.full(n, g.side_area_m2)
+        area[-1] += g.end_area_m2
+        area[:nb] = 0.0
+        h_mean = c.k1_W_m2K_per_mm_min * v_mean + c.k2_W_m2K
+        return _Inputs(
+            th0=th0, q=q, gk=(h_mean[:, None] - h_cov) * area[None, :], dta_f=dta_f,
+            dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
+            qn_mean=qn_mean, qb_mean=qb_mean, cond=self.material_conductance(c.lambda_W_mK),
+        )  # fmt: skip
 
-        if method == "explicit":
-            v = d.v_mm_min
-            h = c.k1_W_m2K_per_mm_min * v + c.k2_W_m2K
-            qb = c.k3_W_per_mm_min * v
-            qn = c.k4_W_per_mm_min * v + (0.0 if extra is None else extra)
-            theta = kernels.explicit_run(
-                th0, d.x_screw_m, qn, qb, h, dta_f, sw, sp, num.dt_s, m, num.dx_m, half,
-                self.screw.nut_length_m, nb, self.screw.fixed_bearing_length_m,
-                g.cap_J_K, cond, g.side_area_m2, g.end_area_m2,
-            )  # fmt: skip
-        else:
-            area = np.full(n, g.side_area_m2)
-            area[-1] += g.end_area_m2
-            area[:nb] = 0.0
-            h_mean = c.k1_W_m2K_per_mm_min * v_mean + c.k2_W_m2K
-            gk = (h_mean[:, None] - h_cov) * area[None, :]
-            dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
-            theta, conv_J = kernels.macro_run(th0, q, gk, dta_step, num.macro_dt_s, g.cap_J_K, cond)
+    def _explicit(self, p: Prepared, x: "_Inputs") -> np.ndarray:
+        """The seed 000 §3.1 iteration at the fine step (:func:`kernels.explicit_run`)."""
+        g, num, d, c = self.geom, self.numerics, p.drive, self.core
+        v = d.v_mm_min
+        h = c.k1_W_m2K_per_mm_min * v + c.k2_W_m2K
+        qb = c.k3_W_per_mm_min * v
+        qn = c.k4_W_per_mm_min * v + (0.0 if x.extra is None else x.extra)
+        return kernels.explicit_run(
+            x.th0, d.x_screw_m, qn, qb, h, x.dta_f, x.sw, x.sp, num.dt_s, num.per_step, num.dx_m,
+            self.screw.nut_length_m / 2.0, self.screw.nut_length_m, g.n_bearing, self.screw.fixed_bearing_length_m,
+            g.cap_J_K, x.cond, g.side_area_m2, g.end_area_m2,
+        )  # fmt: skip
 
-        housing = self._housings(d, theta, cov, amb_b, ta0, n_steps, m, qn_mean, qb_mean, v_mean)
+    def _history(self, p: Prepared, x: "_Inputs", theta: np.ndarray, conv_J: np.ndarray) -> ThermalHistory:
+        num = self.numerics
+        n_steps = p.drive.t_s.size // num.per_step
+        housing = _Housings(self, p, theta, x.amb_b, n_steps, x.qn_mean, x.qb_mean)
         return ThermalHistory(
-            t_s=t_b, theta_C=theta, ambient_C=amb_b, ta0_C=ta0, housing_C=housing, geom=g,
-            core=self.core, effects=self.effects, heat_in_J=heat_in, convected_J=conv_J,
-            signals={"speed": v_mean, **p.signals_b},
+            t_s=p.t_b_s, theta_C=theta, ambient_C=x.amb_b, ta0_C=p.ta0_C, housing_C=housing, geom=self.geom,
+            core=self.core, effects=self.effects, heat_in_J=x.q.sum(axis=1) * num.macro_dt_s, convected_J=conv_J,
+            signals={"speed": p.v_mean, **p.signals_b},
         )  # fmt: skip
 
     def material_conductance(self, lambda_W_mK: float) -> float:
         """lambda A_s / dx: the conductance between neighbouring nodes."""
         return lambda_W_mK * self.screw.area_m2 / self.numerics.dx_m
 
-    def _housings(self, d, theta, cov, amb_b, ta0, n_steps, m, qn_mean, qb_mean, v_step) -> dict[str, np.ndarray]:
-        """Lumped housing temperatures at the step boundaries (see :class:`Housing`);
-        ``qn_mean``, ``qb_mean``, ``v_step``: the nut and bearing heat and the speed, step means."""
-        fb = self.effect(FreeEndBearingHeat.id)
-        mean = lambda a: np.asarray(a).reshape(n_steps, m).mean(axis=1)  # noqa: E731
-        q_src = {
-            "nut": qn_mean,
-            "fixed_bearing": qb_mean,
-            "free_bearing": mean(fb.heat_W(d.v_mm_min)) if fb is not None else np.zeros(n_steps),
-            "none": np.zeros(n_steps),
-        }
-        th = theta[:-1]
-        covsum = cov.sum(axis=1)
-        nut_local = np.where(covsum > 0, (th * cov).sum(axis=1) / np.maximum(covsum, 1e-12), th.mean(axis=1))
-        local = {
-            "nut": nut_local,
-            "fixed_end": th[:, : max(1, self.geom.n_bearing)].mean(axis=1),
-            "free_end": th[:, -3:].mean(axis=1),
-            "none": np.zeros(n_steps),
-        }
-        out: dict[str, np.ndarray] = {}
-        for name, hs in self.housings.items():
-            if hs.source not in q_src or hs.screw_at not in local:
-                raise ValueError(
-                    f"housing {name!r}: source must be one of {sorted(q_src)} and screw_at one of {sorted(local)}"
-                )
-            u = hs.gain_K_per_W * q_src[hs.source] + hs.gain_K_per_mm_min * v_step
-            u = u + hs.screw_coupling * local[hs.screw_at] + (amb_b[:-1] - ta0)
-            y = first_order_lag(np.append(u, u[-1]), self.numerics.macro_dt_s, hs.tau_s)
-            out[name] = ta0 + y
-        out["ambient"] = amb_b.copy()
-        return out
+
+@dataclass
+class _Inputs:
+    """A run's heat inputs, conductances and ambient (:meth:`ScrewThermalModel._inputs`)."""
+
+    th0: np.ndarray
+    q: np.ndarray  # (n_steps, n_nodes) step-mean heat per node, W
+    gk: np.ndarray  # (n_steps, n_nodes) step-mean convective conductance, W/K
+    dta_f: np.ndarray  # ambient change on the fine grid
+    dta_step: np.ndarray  # ... its step means
+    amb_b: np.ndarray  # the ambient at the step boundaries
+    extra: np.ndarray | None  # the effects' extra nut heat on the fine grid
+    sw: np.ndarray  # the effects' heat sources: node weights (n_src, n_nodes) ...
+    sp: np.ndarray  # ... and powers on the fine grid (n_src, n_fine)
+    qn_mean: np.ndarray
+    qb_mean: np.ndarray
+    cond: float
+
+
+def run_prepared_many(
+    p: Prepared, models: list[ScrewThermalModel], theta0_C: np.ndarray | None = None, method: str | None = None
+) -> list[ThermalHistory]:
+    """:meth:`ScrewThermalModel.run_prepared` for several models over one run: those with the
+    same conductances, ambient and material (models that differ in heat gains only, as
+    identification's basis runs do) share one integration, each step's matrix factorised once
+    (:func:`kernels.macro_run`). The same numbers as one by one."""
+    out: list[ThermalHistory | None] = [None] * len(models)
+    groups: list[list[int]] = []
+    xs: list[_Inputs] = []
+    for i, model in enumerate(models):
+        how = method or model.numerics.method
+        x = model._inputs(p, theta0_C)
+        xs.append(x)
+        if how == "explicit":
+            out[i] = model._history(p, x, model._explicit(p, x), np.zeros(x.q.shape[0]))
+            continue
+        for idx in groups:
+            m0, x0 = models[idx[0]], xs[idx[0]]
+            if (m0.geom == model.geom and x0.cond == x.cond and np.array_equal(x0.gk, x.gk)
+                    and np.array_equal(x0.dta_step, x.dta_step)):  # fmt: skip
+                idx.append(i)
+                break
+        else:
+            groups.append([i])
+    for idx in groups:
+        m0, x0 = models[idx[0]], xs[idx[0]]
+        g = m0.geom
+        theta, conv_J = kernels.macro_run(
+            np.stack([xs[i].th0 for i in idx]), np.stack([xs[i].q for i in idx]), x0.gk, x0.dta_step,
+            m0.numerics.macro_dt_s, g.cap_J_K, x0.cond,
+        )  # fmt: skip
+        for r, i in enumerate(idx):
+            out[i] = models[i]._history(p, xs[i], theta[r], conv_J[r])
+    return out
+
+
+class _Housings(Mapping):
+    """Lumped housing temperatures at the step boundaries (see :class:`Housing`), each
+    computed when first read (most runs read none of them: identification's do not unless an
+    effect follows a housing)."""
+
+    def __init__(self, model: ScrewThermalModel, p: Prepared, theta, amb_b, n_steps, qn_mean, qb_mean) -> None:
+        self._model, self._p, self._theta, self._amb_b = model, p, theta, amb_b
+        self._n_steps, self._qn, self._qb = n_steps, qn_mean, qb_mean
+        self._names = [*model.housings, "ambient"]
+        self._done: dict[str, np.ndarray] = {}
+        for name, hs in model.housings.items():
+            if hs.source not in _SOURCES or hs.screw_at not in _SCREW_AT:
+                raise ValueError(f"housing {name!r}: source must be one of {sorted(_SOURCES)} and screw_at one of "
+                                 f"{sorted(_SCREW_AT)}")  # fmt: skip
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._done:
+            if name not in self._names:
+                raise KeyError(name)
+            self._done[name] = self._amb_b.copy() if name == "ambient" else self._one(name)
+        return self._done[name]
+
+    def _one(self, name: str) -> np.ndarray:
+        """``qn_mean``, ``qb_mean``, the speed: step means (seed 000 §4.1)."""
+        model, p, n_steps = self._model, self._p, self._n_steps
+        hs = model.housings[name]
+        m = model.numerics.per_step
+        ta0, th = p.ta0_C, self._theta[:-1]
+        if hs.source == "free_bearing":
+            fb = model.effect(FreeEndBearingHeat.id)
+            q = fb.heat_W(p.drive.v_mm_min).reshape(n_steps, m).mean(axis=1) if fb is not None else np.zeros(n_steps)
+        else:
+            q = {"nut": self._qn, "fixed_bearing": self._qb, "none": np.zeros(n_steps)}[hs.source]
+        if hs.screw_at == "nut":
+            cov = p.cover
+            covsum = cov.sum(axis=1)
+            local = np.where(covsum > 0, (th * cov).sum(axis=1) / np.maximum(covsum, 1e-12), th.mean(axis=1))
+        else:
+            local = {"fixed_end": lambda: th[:, : max(1, model.geom.n_bearing)].mean(axis=1),
+                     "free_end": lambda: th[:, -3:].mean(axis=1),
+                     "none": lambda: np.zeros(n_steps)}[hs.screw_at]()  # fmt: skip
+        u = hs.gain_K_per_W * q + hs.gain_K_per_mm_min * p.v_mean
+        u = u + hs.screw_coupling * local + (self._amb_b[:-1] - ta0)
+        return ta0 + first_order_lag(np.append(u, u[-1]), model.numerics.macro_dt_s, hs.tau_s)
+
+
+_SOURCES = ("nut", "fixed_bearing", "free_bearing", "none")
+_SCREW_AT = ("nut", "fixed_end", "free_end", "none")
