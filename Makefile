@@ -17,7 +17,7 @@ export PIP_DISABLE_PIP_VERSION_CHECK := 1
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: demo test install install-dev bench notebooks fuzz clean
+.PHONY: target-test demo test install install-dev bench notebooks fuzz clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -40,8 +40,13 @@ demo: $(VENV)/.installed
 # the real-time closed-loop tests (marker timing) run alone after the rest: on 2 cores a
 # neighbouring test would steal the cycles they measure
 test: $(VENV)/.installed-dev
-	$(BIN)/python -m pytest -n 2 -q -m "not timing"
+	$(BIN)/python -m pytest -n 2 -q -m "not timing and not target"
 	$(BIN)/python -m pytest -q -m timing
+
+# the C runtime cross-compiled for the Cortex-M4F and run on QEMU's mps2-an386 (marker target);
+# needs 'apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm' (.ci/run does)
+target-test: $(VENV)/.installed-dev
+	$(BIN)/python -m pytest -n 2 -q -m target
 
 notebooks: $(VENV)/.installed-dev
 	$(BIN)/python -m thermbench.nbrun

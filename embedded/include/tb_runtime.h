@@ -117,7 +117,8 @@ enum {
     TB_E_SAMPLING = -12, /* the log is not sampled at the model's period */
     TB_E_LATE = -13,    /* query older than the runtime still holds */
     TB_E_NOTREADY = -14, /* no state yet (before the first samples) */
-    TB_E_ARG = -15
+    TB_E_ARG = -15,
+    TB_E_ALIGN = -16 /* the model file does not start on a 4-byte boundary (tb_model_open) */
 };
 
 const char *tb_strerror(int code);

@@ -42,6 +42,7 @@ const char *tb_strerror(int code)
     case TB_E_LATE: return "query older than the state held";
     case TB_E_NOTREADY: return "no state yet";
     case TB_E_ARG: return "bad argument";
+    case TB_E_ALIGN: return "model file not 4-byte aligned";
     default: return "unknown error";
     }
 }
@@ -478,6 +479,9 @@ int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
     if (!m) return TB_E_ARG;
     memset(m, 0, sizeof *m);
     if (!file) return TB_E_ARG;
+    /* the file is read in place with 16- and 32-bit loads at their natural offsets (a compiler may
+       merge the byte reads into them): a file on a 4-byte boundary is never read unaligned */
+    if (((uintptr_t)file & 3u) != 0u) return TB_E_ALIGN;
     if (len < TB_HEADER_BYTES + 4u) return TB_E_SIZE;
     if (memcmp(file, TB_MAGIC, 4) != 0) return TB_E_MAGIC;
     version = tbi_rd_u16(file + 4);

@@ -199,6 +199,15 @@ def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: st
                exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
                lenient: bool = False) -> pd.DataFrame:  # fmt: skip
     """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory."""
+    files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
+    return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient)
+
+
+def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,
+                  samples: pd.DataFrame | None = None) -> tuple[list[Path], pd.DataFrame, list[str], bool]:  # fmt: skip
+    """What a replay of an export directory over ``run`` of ``ds`` feeds the runtime: the model
+    files (a bank: the classifier, then the members in class order), the process samples, the
+    columns after the motion (temperatures, then operating inputs) and whether it is a bank."""
     model_dir = Path(model_dir)
     man = manifest if manifest is not None else read_manifest(model_dir)
     temps = []
@@ -218,11 +227,11 @@ def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: st
         raise ExportError(f"{model_dir}: the model reads load_N, which run {run!r} of {ds.path} lacks")
     if man["kind"] == "bank":
         files = [model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
-        return runtime.replay(files, samples, temps, queries, bank=True, sanitize=sanitize, exe=exe, lenient=lenient)
+        return files, samples, temps, True
     f = man["files"].get(variant)
     if f is None:
         raise ExportError(f"{model_dir}: no file variant {variant!r}; it has {sorted(man['files'])}")
-    return runtime.replay([model_dir / f["file"]], samples, temps, queries, sanitize=sanitize, exe=exe, lenient=lenient)
+    return [model_dir / f["file"]], samples, temps, False
 
 
 def read_manifest(model_dir: Path) -> dict:

@@ -1,0 +1,242 @@
+/*
+ * tb_target_main - the firmware-style test harness of the thermbench runtime on a Cortex-M4F
+ * (QEMU mps2-an386, semihosting). The model files are linked into flash (models.S, written by
+ * thermbench.export.target); the process log and the queries are read from the host through
+ * semihosting, a line at a time (nothing of the stream is kept: RAM is 128 KB).
+ *
+ *   samples.txt   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   (tb_replay's records)
+ *   queries.txt   Q t_s axis_mm, times nondecreasing
+ *
+ * One file: a model. Several: a per-condition bank, the classifier first (members in class
+ * order). Every query is answered as soon as the runtime is ready for its time, the rest after
+ * finish. Output (semihosting stdout), one line per query as tb_replay's:
+ *   t_s axis_mm thermal_um total_um label rc
+ * then "END rc stack_bytes arena_bytes". Between TB_MARK_BEGIN and TB_MARK_END of each
+ * operation the harness calls tb_target_mark (an instruction-count marker for the budget runs).
+ */
+#include "tb_runtime.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#ifndef TB_ARENA_BYTES
+#define TB_ARENA_BYTES 16384
+#endif
+#define MAX_TEMPS 64
+
+extern const uint8_t *const tb_files[];
+extern const uint32_t tb_file_bytes[];
+extern const uint32_t tb_n_files;
+extern void initialise_monitor_handles(void);
+extern uint32_t tb_target_stack_used(void);
+
+static uint64_t arena[(TB_ARENA_BYTES + 7) / 8];
+static tb_model models[TB_MAX_CONDITIONS + 1];
+static tb_bank bank;
+static int use_bank;
+static size_t arena_used;
+
+/* ---- semihosting exit and fault report (startup_m4.c calls these) ---------------------- */
+static int semihost(int op, void *arg)
+{
+    register int r0 __asm("r0") = op;
+    register void *r1 __asm("r1") = arg;
+    __asm volatile("bkpt 0xAB" : "+r"(r0) : "r"(r1) : "memory");
+    return r0;
+}
+
+void tb_target_exit(int code)
+{
+    fflush(stdout);
+    /* SYS_EXIT: ADP_Stopped_ApplicationExit ends QEMU with status 0, any other reason with 1 */
+    semihost(0x18, (void *)(code == 0 ? 0x20026 : 0x20023));
+    for (;;) {
+    }
+}
+
+void tb_target_fault(const char *what)
+{
+    semihost(0x04, (void *)"tb_target: fault: ");
+    semihost(0x04, (void *)what);
+    semihost(0x04, (void *)"\n");
+    semihost(0x18, (void *)0x20023);
+    for (;;) {
+    }
+}
+
+/* a fault with the faulting instruction's address (the stacked pc) and the fault status */
+void tb_target_fault_at(const char *what, const uint32_t *frame)
+{
+    static char msg[96];
+    static const char hex[] = "0123456789abcdef";
+    uint32_t vals[2], v;
+    int i, k, n = 0;
+    vals[0] = frame[6];
+    vals[1] = *(volatile uint32_t *)0xE000ED28u; /* CFSR */
+    for (i = 0; what[i] && n < 40; i++) msg[n++] = what[i];
+    for (k = 0; k < 2; k++) {
+        const char *lab = k == 0 ? " pc=0x" : " cfsr=0x";
+        for (i = 0; lab[i]; i++) msg[n++] = lab[i];
+        for (i = 7; i >= 0; i--) {
+            v = (vals[k] >> (4 * i)) & 0xFu;
+            msg[n++] = hex[v];
+        }
+    }
+    msg[n] = 0;
+    tb_target_fault(msg);
+}
+
+/* an instruction-count marker: a call the counting plugin recognises by address (noinline) */
+__attribute__((noinline, used)) void tb_target_mark(int what) { __asm volatile("" ::"r"(what) : "memory"); }
+enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3 };
+
+/* With TB_TRAP_UNALIGNED, an unaligned halfword or word access faults (CCR.UNALIGN_TRP) inside
+   the runtime's calls: the alignment tests. Only there: newlib's own stdio reads unaligned. */
+static void rt_trap(int on)
+{
+#ifdef TB_TRAP_UNALIGNED
+    volatile uint32_t *ccr = (volatile uint32_t *)0xE000ED14u;
+    if (on) *ccr |= (1u << 3);
+    else *ccr &= ~(1u << 3);
+    __asm volatile("dsb\n\tisb" ::: "memory");
+#else
+    (void)on;
+#endif
+}
+
+static void rt_begin(int what)
+{
+    rt_trap(1);
+    tb_target_mark(what);
+}
+
+static void rt_end(void)
+{
+    tb_target_mark(MARK_END);
+    rt_trap(0);
+}
+
+/* ---- queries: read lazily, one ahead ---------------------------------------------------- */
+static FILE *qf;
+static int have_q;
+static double q_t, q_x;
+
+static int next_query(void)
+{
+    char line[256];
+    while (fgets(line, sizeof line, qf)) {
+        if (line[0] == 'Q' && sscanf(line + 1, "%lf %lf", &q_t, &q_x) == 2) return have_q = 1;
+    }
+    return have_q = 0;
+}
+
+static double ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
+
+static void answer(double upto, int all)
+{
+    while (have_q && (all || q_t <= upto)) {
+        double th = 0, tot = 0;
+        int32_t lab = -1;
+        int rc;
+        rt_begin(MARK_PREDICT);
+        if (use_bank) rc = tb_bank_predict(&bank, q_t, q_x, &th, &tot, &lab);
+        else rc = tb_model_predict(&models[0], q_t, q_x, &th, &tot);
+        rt_end();
+        printf("%.17g %.17g %.17g %.17g %d %d\n", q_t, q_x, th, tot, (int)lab, rc);
+        next_query();
+    }
+}
+
+static int open_start(uint32_t i)
+{
+    size_t need;
+    int rc;
+    rt_begin(MARK_OPEN);
+    rc = tb_model_open(&models[i], tb_files[i], tb_file_bytes[i]);
+    rt_end();
+    if (rc != TB_OK) {
+        printf("END %d 0 0 open %s\n", rc, tb_strerror(rc));
+        return rc;
+    }
+    need = tb_model_arena_bytes(&models[i]);
+    if (arena_used + need > sizeof arena) {
+        printf("END %d 0 %lu arena: the models need more than TB_ARENA_BYTES = %lu\n", TB_E_ARENA,
+               (unsigned long)(arena_used + need), (unsigned long)sizeof arena);
+        return TB_E_ARENA;
+    }
+    rt_begin(MARK_OPEN);
+    rc = tb_model_start(&models[i], (uint8_t *)arena + arena_used, need);
+    rt_end();
+    arena_used += (need + 7u) & ~(size_t)7u;
+    if (rc != TB_OK) printf("END %d 0 0 start %s\n", rc, tb_strerror(rc));
+    return rc;
+}
+
+int main(void)
+{
+    char line[1024];
+    FILE *sf;
+    uint32_t i;
+    int rc;
+    initialise_monitor_handles();
+    if (tb_n_files < 1 || tb_n_files > TB_MAX_CONDITIONS + 1) return 1;
+    for (i = 0; i < tb_n_files; i++)
+        if ((rc = open_start(i)) != TB_OK) return 0; /* reported on the END line */
+    if (tb_n_files > 1) {
+        tb_model *members[TB_MAX_CONDITIONS];
+        for (i = 1; i < tb_n_files; i++) members[i - 1] = &models[i];
+        use_bank = 1;
+        rt_begin(MARK_OPEN);
+        rc = tb_bank_init(&bank, &models[0], members, tb_n_files - 1);
+        rt_end();
+        if (rc != TB_OK) {
+            printf("END %d 0 0 bank %s\n", rc, tb_strerror(rc));
+            return 0;
+        }
+    }
+    sf = fopen("samples.txt", "r");
+    qf = fopen("queries.txt", "r");
+    if (!sf || !qf) {
+        printf("END -100 0 0 cannot open samples.txt / queries.txt\n");
+        return 1;
+    }
+    next_query();
+    while (fgets(line, sizeof line, sf)) {
+        tb_sample s;
+        double temps[MAX_TEMPS];
+        char *q = line + 1, *end;
+        int n = 0;
+        if (line[0] != 'S') continue;
+        s.t_s = strtod(q, &end); q = end;
+        s.axis_mm = strtod(q, &end); q = end;
+        s.feed_mm_min = strtod(q, &end); q = end;
+        s.load_N = strtod(q, &end); q = end;
+        s.measuring = (int)strtol(q, &end, 10); q = end;
+        for (;;) {
+            double v = strtod(q, &end);
+            if (end == q || n == MAX_TEMPS) break;
+            temps[n++] = v;
+            q = end;
+        }
+        s.temps_C = temps;
+        s.n_temps = (uint32_t)n;
+        rt_begin(MARK_STEP);
+        rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
+        rt_end();
+        if (rc != TB_OK) {
+            printf("END %d %lu %lu sample t=%.17g %s\n", rc, (unsigned long)tb_target_stack_used(),
+                   (unsigned long)arena_used, s.t_s, tb_strerror(rc));
+            return 0;
+        }
+        answer(ready(), 0);
+    }
+    rt_begin(MARK_STEP);
+    rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
+    rt_end();
+    answer(0, 1);
+    printf("END %d %lu %lu\n", rc, (unsigned long)tb_target_stack_used(), (unsigned long)arena_used);
+    fclose(sf);
+    fclose(qf);
+    return 0;
+}

@@ -1,0 +1,180 @@
+"""The C runtime on its target: a Cortex-M4F (seed 002's STM32F407) emulated by QEMU.
+
+:func:`build` cross-compiles the runtime (``embedded/src``), the start-up code and the
+firmware-style harness (``embedded/target``) with ``arm-none-eabi-gcc`` for the Cortex-M4F
+(``-mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16``) in double or single precision
+(``TB_REAL``), links the model files into flash (``.incbin``) and returns the firmware image;
+:func:`replay` runs it on QEMU's ``mps2-an386`` board with semihosting over a run's process log
+and returns the predictions, as :func:`thermbench.export.runtime.replay` does on the host.
+
+Needs Debian's ``gcc-arm-none-eabi``, ``libnewlib-arm-none-eabi`` and ``qemu-system-arm``
+(``.ci/run`` installs them); without them :class:`~.runtime.RuntimeUnavailable` says so.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import pandas as pd
+
+from .runtime import RuntimeFailed, RuntimeUnavailable, cache_dir, embedded_dir, runtime_sources, stream_text
+
+CC = "arm-none-eabi-gcc"
+QEMU = "qemu-system-arm"
+PACKAGES = "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
+CPU_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16")
+CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2", "-ffunction-sections", "-fdata-sections")
+PRECISIONS = {"double": (), "float": ("-DTB_REAL=float",)}
+
+
+def toolchain() -> tuple[str, str]:
+    """The cross compiler and the emulator, or :class:`RuntimeUnavailable` naming the packages."""
+    missing = [t for t in (CC, QEMU) if shutil.which(t) is None]
+    if missing:
+        raise RuntimeUnavailable(f"{' and '.join(missing)} not on PATH: the target build needs "
+                                 f"'apt-get install {PACKAGES}'")  # fmt: skip
+    return CC, QEMU
+
+
+@dataclass
+class Firmware:
+    """A linked image: its ELF and the flash and RAM it takes (``arm-none-eabi-size``)."""
+
+    elf: Path
+    text_bytes: int
+    data_bytes: int
+    bss_bytes: int
+
+    @property
+    def flash_bytes(self) -> int:
+        return self.text_bytes + self.data_bytes
+
+
+def _target_dir() -> Path:
+    return embedded_dir() / "target"
+
+
+def _hash(paths: Sequence[Path], *extra: str) -> str:
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    for e in extra:
+        h.update(e.encode())
+    return h.hexdigest()[:16]
+
+
+def _run(cmd: Sequence[str], what: str, cwd: Path | None = None) -> str:
+    res = subprocess.run(list(map(str, cmd)), capture_output=True, text=True, cwd=cwd)
+    if res.returncode != 0:
+        raise RuntimeFailed(f"{what} failed ({' '.join(map(str, cmd))}):\n{res.stderr.strip()[-3000:]}")
+    return res.stdout
+
+
+def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 16384, offset: int = 0,
+          trap_unaligned: bool = False) -> Firmware:  # fmt: skip
+    """The firmware image running ``files`` (one model, or a bank: the classifier then the
+    members in class order) from flash, in ``precision`` ("double" or "float"), with a static
+    arena of ``arena_bytes``. ``offset``: the first file starts this many bytes past an
+    8-byte boundary (the alignment tests); ``trap_unaligned``: unaligned accesses fault.
+    Cached by a hash of the sources, the model files and the options."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
+    cc, _ = toolchain()
+    d, t = embedded_dir(), _target_dir()
+    files = [Path(f) for f in files]
+    srcs = [*runtime_sources(), t / "tb_target_main.c", t / "startup_m4.c"]
+    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
+    defs = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else [])]
+    key = _hash([*srcs, *headers, t / "stm32f407.ld", *files], cc, *CPU_FLAGS, *CFLAGS, *defs, f"offset={offset}")
+    out_dir = cache_dir() / "target" / key
+    elf = out_dir / "firmware.elf"
+    if not elf.exists():
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=out_dir.parent))
+        try:
+            (work / "models.S").write_text(_models_asm(files, offset))
+            objs = []
+            for s in [*srcs, work / "models.S"]:
+                o = work / (s.stem + ".o")
+                _run([cc, *CPU_FLAGS, *CFLAGS, *defs, "-fstack-usage", f"-I{d / 'include'}", f"-I{d / 'src'}", "-c", s, "-o", o],
+                     f"compiling {s.name} for the Cortex-M4F", cwd=work)  # fmt: skip
+                objs.append(o)
+            _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", "--specs=rdimon.specs", "-u", "_printf_float",
+                  "-u", "_scanf_float", f"-T{t / 'stm32f407.ld'}", "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}",
+                  *objs, "-lm", "-o", work / "firmware.elf"], "linking the firmware", cwd=work)  # fmt: skip
+            os.replace(work, out_dir)
+        finally:
+            if work.exists():
+                shutil.rmtree(work)
+    return _sized(elf)
+
+
+def _models_asm(files: Sequence[Path], offset: int) -> str:
+    """The model files in flash (``.rodata``), each on an 8-byte boundary plus ``offset``."""
+    lines = ['    .section .rodata.tb_models,"a"']
+    for i, f in enumerate(files):
+        lines += ["    .balign 8", *([f"    .space {offset}"] if offset else []), f"tb_file_{i}:",
+                  f'    .incbin "{Path(f).resolve()}"', f"tb_file_{i}_end:"]  # fmt: skip
+    lines += ['    .section .rodata.tb_index,"a"', "    .balign 4", "    .global tb_files", "tb_files:",
+              *[f"    .word tb_file_{i}" for i in range(len(files))], "    .global tb_file_bytes", "tb_file_bytes:",
+              *[f"    .word tb_file_{i}_end - tb_file_{i}" for i in range(len(files))], "    .global tb_n_files",
+              "tb_n_files:", f"    .word {len(files)}", ""]  # fmt: skip
+    return "\n".join(lines)
+
+
+def _sized(elf: Path) -> Firmware:
+    out = _run(["arm-none-eabi-size", "-A", elf], "arm-none-eabi-size")
+    sec = {}
+    for ln in out.splitlines():
+        parts = ln.split()
+        if len(parts) >= 2 and parts[1].isdigit():
+            sec[parts[0]] = int(parts[1])
+    text = sec.get(".text", 0) + sec.get(".ARM.exidx", 0)
+    return Firmware(elf, text, sec.get(".data", 0), sec.get(".bss", 0))
+
+
+def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 600.0) -> tuple[list[str], str]:
+    """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F) with ``samples.txt`` and ``queries.txt`` in its
+    semihosting directory; returns (the query lines, the END line)."""
+    _, qemu = toolchain()
+    with tempfile.TemporaryDirectory(prefix="tb_target_") as tmp:
+        Path(tmp, "samples.txt").write_text(samples_text)
+        Path(tmp, "queries.txt").write_text(queries_text)
+        cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
+               "-semihosting-config", "enable=on,target=native", "-kernel", str(fw.elf)]  # fmt: skip
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeFailed(f"the firmware did not finish within {timeout_s:.0f} s on QEMU ({fw.elf})") from None
+    lines = res.stdout.splitlines()
+    end = next((ln for ln in reversed(lines) if ln.startswith("END ")), None)
+    if res.returncode != 0 or end is None:
+        raise RuntimeFailed(f"the firmware stopped (QEMU exit {res.returncode}): {(res.stdout + res.stderr).strip()[-2000:]}")
+    return [ln for ln in lines if ln and not ln.startswith("END ")], end
+
+
+def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
+           precision: str = "double", arena_bytes: int = 16384, **build_kw) -> tuple[pd.DataFrame, dict]:  # fmt: skip
+    """:func:`thermbench.export.runtime.replay` on the target: the predictions (``t_s``, ``axis_mm``,
+    ``thermal_um``, ``total_um``, ``label``, ``rc``) and what the run reports (``rc``,
+    ``stack_bytes``, ``arena_bytes``, ``flash_bytes``, ``ram_bytes``)."""
+    fw = build(files, precision, arena_bytes, **build_kw)
+    text = stream_text(samples, temps, queries)
+    q = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("Q"))
+    s = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("S"))
+    lines, end = run(fw, s, q)
+    parts = end.split()
+    rep = {"rc": int(parts[1]), "stack_bytes": int(parts[2]), "arena_bytes": int(parts[3]),
+           "flash_bytes": fw.flash_bytes, "ram_bytes": fw.data_bytes + fw.bss_bytes, "end": end}  # fmt: skip
+    rows = [ln.split() for ln in lines]
+    df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
+    df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})
+    return df, rep
