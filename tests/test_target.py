@@ -74,3 +74,16 @@ def test_an_arena_beyond_the_image_s_is_named(seed001_exports, ds, queries):
     files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, arena_bytes=1024)
     assert rep["rc"] == -9 and "TB_ARENA_BYTES" in rep["end"] and got.empty
+
+
+def test_instruction_counts_are_exact_and_repeatable(seed001_exports, ds, queries):
+    """Under -icount shift=0 the SysTick counts instructions in 40s: a loop of 50 000 × (subs, bne)
+    measures 100 000 instructions (± a tick and the marker calls); a second run counts every
+    runtime call the same (emulated instruction counts are deterministic, unlike host timings)."""
+    files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
+    _, a = target.replay(files, samples, temps, queries)
+    _, b = target.replay(files, samples, temps, queries)
+    assert a["calibrate_calls"] == 1 and abs(a["calibrate_insn_max"] - 100_000) <= 80
+    assert a["step_calls"] == len(samples) + 1 and a["predict_calls"] == len(queries)  # + finish
+    assert 0 < a["predict_insn_mean"] <= a["predict_insn_max"] and 0 < a["step_insn_mean"] <= a["step_insn_max"]
+    assert {k: v for k, v in a.items() if "insn" in k} == {k: v for k, v in b.items() if "insn" in k}

@@ -87,9 +87,64 @@ void tb_target_fault_at(const char *what, const uint32_t *frame)
     tb_target_fault(msg);
 }
 
-/* an instruction-count marker: a call the counting plugin recognises by address (noinline) */
-__attribute__((noinline, used)) void tb_target_mark(int what) { __asm volatile("" ::"r"(what) : "memory"); }
-enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3 };
+/* ---- instruction counts ---------------------------------------------------------------
+ * Under `qemu -icount shift=0` every instruction advances the virtual clock by 1 ns, so the
+ * SysTick counting the 25 MHz processor clock of the mps2-an386 ticks every 40 instructions:
+ * a deterministic instruction count of each runtime call, to 40 instructions. */
+#define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
+#define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
+#define SYST_CVR (*(volatile uint32_t *)0xE000E018u)
+#define INSN_PER_TICK 40u
+enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3, MARK_CALIBRATE = 4, N_MARKS = 5 };
+static const char *const mark_name[N_MARKS] = {"none", "step", "predict", "open", "calibrate"};
+static uint32_t mark_at, mark_what;
+static unsigned long mark_n[N_MARKS];
+static double mark_sum[N_MARKS]; /* newlib-nano prints no long long */
+static uint32_t mark_max[N_MARKS];
+
+static void count_init(void)
+{
+    SYST_RVR = 0x00FFFFFFu;
+    SYST_CVR = 0u;
+    SYST_CSR = 5u; /* enabled, processor clock, no interrupt */
+}
+
+__attribute__((noinline)) void tb_target_mark(int what)
+{
+    uint32_t now = SYST_CVR; /* counts down, 24 bits */
+    if (what != MARK_END) {
+        mark_what = (uint32_t)what;
+        mark_at = now;
+        return;
+    }
+    {
+        uint32_t ticks = (mark_at - now) & 0x00FFFFFFu, insn = ticks * INSN_PER_TICK;
+        mark_n[mark_what]++;
+        mark_sum[mark_what] += (double)insn;
+        if (insn > mark_max[mark_what]) mark_max[mark_what] = insn;
+    }
+}
+
+/* the counter's own check: a loop of known length, 2 instructions (subs, bne) per iteration */
+#define CALIBRATE_ITER 50000u
+__attribute__((noinline)) static void count_calibrate(void)
+{
+    uint32_t n = CALIBRATE_ITER;
+    tb_target_mark(MARK_CALIBRATE);
+    __asm volatile("1: subs %0, %0, #1\n\t"
+                   "bne 1b"
+                   : "+r"(n)
+                   :
+                   : "cc");
+    tb_target_mark(MARK_END);
+}
+
+static void count_report(void)
+{
+    int k;
+    for (k = 1; k < N_MARKS; k++)
+        printf("COUNT %s %lu %.0f %lu\n", mark_name[k], mark_n[k], mark_sum[k], (unsigned long)mark_max[k]);
+}
 
 /* With TB_TRAP_UNALIGNED, an unaligned halfword or word access faults (CCR.UNALIGN_TRP) inside
    the runtime's calls: the alignment tests. Only there: newlib's own stdio reads unaligned. */
@@ -180,6 +235,8 @@ int main(void)
     uint32_t i;
     int rc;
     initialise_monitor_handles();
+    count_init();
+    count_calibrate();
     if (tb_n_files < 1 || tb_n_files > TB_MAX_CONDITIONS + 1) return 1;
     for (i = 0; i < tb_n_files; i++)
         if ((rc = open_start(i)) != TB_OK) return 0; /* reported on the END line */
@@ -235,6 +292,7 @@ int main(void)
     rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
     rt_end();
     answer(0, 1);
+    count_report();
     printf("END %d %lu %lu\n", rc, (unsigned long)tb_target_stack_used(), (unsigned long)arena_used);
     fclose(sf);
     fclose(qf);

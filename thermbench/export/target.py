@@ -141,14 +141,15 @@ def _sized(elf: Path) -> Firmware:
     return Firmware(elf, text, sec.get(".data", 0), sec.get(".bss", 0))
 
 
-def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 600.0) -> tuple[list[str], str]:
-    """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F) with ``samples.txt`` and ``queries.txt`` in its
-    semihosting directory; returns (the query lines, the END line)."""
+def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 600.0) -> tuple[list[str], str, list[str]]:
+    """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F, ``-icount shift=0``: one instruction per virtual
+    ns) with ``samples.txt`` and ``queries.txt`` in its semihosting directory; returns (the query
+    lines, the END line, the COUNT lines: instructions per runtime call)."""
     _, qemu = toolchain()
     with tempfile.TemporaryDirectory(prefix="tb_target_") as tmp:
         Path(tmp, "samples.txt").write_text(samples_text)
         Path(tmp, "queries.txt").write_text(queries_text)
-        cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
+        cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none", "-icount", "shift=0",
                "-semihosting-config", "enable=on,target=native", "-kernel", str(fw.elf)]  # fmt: skip
         try:
             res = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, timeout=timeout_s)
@@ -158,7 +159,7 @@ def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 6
     end = next((ln for ln in reversed(lines) if ln.startswith("END ")), None)
     if res.returncode != 0 or end is None:
         raise RuntimeFailed(f"the firmware stopped (QEMU exit {res.returncode}): {(res.stdout + res.stderr).strip()[-2000:]}")
-    return [ln for ln in lines if ln and not ln.startswith("END ")], end
+    return [ln for ln in lines if ln and not ln.startswith(("END ", "COUNT "))], end, [ln for ln in lines if ln.startswith("COUNT ")]
 
 
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
@@ -170,10 +171,13 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
     text = stream_text(samples, temps, queries)
     q = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("Q"))
     s = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("S"))
-    lines, end = run(fw, s, q)
+    lines, end, counts = run(fw, s, q)
     parts = end.split()
     rep = {"rc": int(parts[1]), "stack_bytes": int(parts[2]), "arena_bytes": int(parts[3]),
            "flash_bytes": fw.flash_bytes, "ram_bytes": fw.data_bytes + fw.bss_bytes, "end": end}  # fmt: skip
+    for ln in counts:  # COUNT what n sum max: instructions per runtime call
+        _, what, n, total, most = ln.split()
+        rep[f"{what}_calls"], rep[f"{what}_insn_mean"], rep[f"{what}_insn_max"] = int(n), float(total) / max(int(n), 1), int(most)
     rows = [ln.split() for ln in lines]
     df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
     df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})

@@ -1,0 +1,99 @@
+"""Exported models on the target: the Cortex-M4F (seed 002's STM32F407) emulated by QEMU.
+
+For every export directory under EXPORTS (default ``exports/benchmark/``), in double and in
+float (``TB_REAL``): the firmware image with the model in flash replays the first ``--seconds``
+of the model's first held-out run (``manifest.json`` parity runs) and answers its readings on
+QEMU's mps2-an386 (``thermbench.export.target``). Printed per model and precision:
+
+* ``parity_um``: max |target − host| over the readings, the host being the x86-64 double runtime
+  that the export's parity check tied to Python;
+* instructions per control cycle (``tb_*_step``) and per prediction, mean and worst, counted on
+  the emulated M4 (``-icount shift=0``: the SysTick counts every 40 instructions, checked
+  against a loop of known length in every run); at 168 MHz and an assumed 1.25 cycles per
+  instruction, 100 000 instructions take 0.74 ms;
+* the arena the models took on the target, the deepest stack (painted at reset), the flash of
+  the whole test image (runtime, model, newlib stdio of the harness).
+
+Budgets (issue 21): float physics update <= 50 000 instructions, worst control cycle <= 100 000,
+prediction <= 200 000, arena <= 16 KB. Writes benchmarks/results/target.csv.
+
+    .venv/bin/python benchmarks/bench_target.py [EXPORTS] [--seconds 1800] [--only SUBSTRING]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from thermbench._atomic import write_text_atomic
+from thermbench.data.io import load_dataset
+from thermbench.export import read_manifest, runtime, target
+from thermbench.export.bundle import readings_queries, replay_inputs
+
+KB = 1024
+CYCLE_BUDGET, PRED_BUDGET, ARENA_BUDGET, SRAM = 100_000, 200_000, 16 * KB, 128 * KB
+
+
+def one(model_dir: Path, seconds: float, precision: str) -> dict:
+    man = read_manifest(model_dir)
+    ds = load_dataset(man["training"]["dataset"])
+    run = man.get("parity", {}).get("runs", [ds.run_ids[-1]])[0]
+    files, samples, temps, bank = replay_inputs(model_dir, ds, run, manifest=man)
+    samples = samples[samples["t_s"] <= samples["t_s"].iloc[0] + seconds].reset_index(drop=True)
+    q = readings_queries(ds, run)
+    q = q[q["t_s"] <= samples["t_s"].iloc[-1]].reset_index(drop=True)
+    row = {"model": man["name"], "kind": man["kind"], "precision": precision}
+    host_state = int(runtime.info(files)["state_bytes"].sum())  # x86-64: >= the 32-bit target's
+    arena = max(ARENA_BUDGET, host_state + 8 * len(files))
+    if arena > SRAM - 24 * KB:
+        return row | {"note": f"arena {host_state} B (host) does not fit the 128 KB SRAM"}
+    ref = runtime.replay(files, samples, temps, q, bank=bank)
+    got, rep = target.replay(files, samples, temps, q, precision=precision, arena_bytes=arena)
+    if rep["rc"] != 0:
+        return row | {"note": rep["end"]}
+    return row | {
+        "parity_um": float(np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy()))) if len(q) else np.nan,
+        "cycle_insn_mean": rep["step_insn_mean"], "cycle_insn_max": rep["step_insn_max"],
+        "pred_insn_mean": rep["predict_insn_mean"], "pred_insn_max": rep["predict_insn_max"],
+        "arena_bytes": rep["arena_bytes"], "stack_bytes": rep["stack_bytes"], "image_flash_bytes": rep["flash_bytes"],
+        "calibration_insn": rep["calibrate_insn_max"],
+    }  # fmt: skip
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("exports", nargs="?", default="exports/benchmark")
+    ap.add_argument("--seconds", type=float, default=1800.0, help="length of the replayed stream")
+    ap.add_argument("--only", default="", help="only export directories whose name contains this")
+    args = ap.parse_args(argv)
+    try:
+        target.toolchain()
+    except runtime.RuntimeUnavailable as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    dirs = sorted(p.parent for p in Path(args.exports).glob("*/manifest.json") if args.only in p.parent.name)
+    if not dirs:
+        print(f"no export directories under {args.exports}: run `thermbench export` first", file=sys.stderr)
+        return 2
+    rows = []
+    for d in dirs:
+        for precision in ("double", "float"):
+            rows.append(one(d, args.seconds, precision))
+            r = rows[-1]
+            print(f"{r['model']:<48s} {r['kind']:<12s} {precision:<6s} "
+                  + (r.get("note") or f"parity {r['parity_um']:.2g} um, cycle {r['cycle_insn_mean']:.0f}/{r['cycle_insn_max']} insn, "
+                     f"prediction {r['pred_insn_mean']:.0f}/{r['pred_insn_max']}, arena {r['arena_bytes']} B, "
+                     f"stack {r['stack_bytes']} B"), flush=True)  # fmt: skip
+    df = pd.DataFrame(rows)
+    out = Path(__file__).parent / "results" / "target.csv"
+    write_text_atomic(out, df.to_csv(index=False))
+    print(f"\nbudgets: cycle <= {CYCLE_BUDGET}, prediction <= {PRED_BUDGET} instructions, arena <= {ARENA_BUDGET} B -> {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
