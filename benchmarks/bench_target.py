@@ -1,8 +1,9 @@
 """Exported models on the target: the Cortex-M4F (seed 002's STM32F407) emulated by QEMU.
 
-For every export directory under EXPORTS (default ``exports/benchmark/``), in double and in
-float (``TB_REAL``): the firmware image with the model in flash replays the first ``--seconds``
-of the model's first held-out run (``manifest.json`` parity runs) and answers its readings on
+For every export directory under EXPORTS (default ``exports/benchmark/``; run from the directory
+the exports' dataset paths are relative to), in double and in float (``TB_REAL``): the firmware
+image with the model in flash replays the log up to ``--seconds``
+past the first reading of the model's first held-out run (``manifest.json`` parity runs) and answers its readings on
 QEMU's mps2-an386 (``thermbench.export.target``). Printed per model and precision:
 
 * ``parity_um``: max |target − host| over the readings, the host being the x86-64 double runtime
@@ -33,6 +34,7 @@ from thermbench._atomic import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest, runtime, target
 from thermbench.export.bundle import readings_queries, replay_inputs
+from thermbench.export.replay import _replay_view
 
 KB = 1024
 CYCLE_BUDGET, PRED_BUDGET, ARENA_BUDGET, SRAM = 100_000, 200_000, 16 * KB, 128 * KB
@@ -42,9 +44,13 @@ def one(model_dir: Path, seconds: float, precision: str) -> dict:
     man = read_manifest(model_dir)
     ds = load_dataset(man["training"]["dataset"])
     run = man.get("parity", {}).get("runs", [ds.run_ids[-1]])[0]
+    if ds.metadata.version == 2:  # the error channel and segments the model was trained on
+        ds = _replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, manifest=man)
-    samples = samples[samples["t_s"] <= samples["t_s"].iloc[0] + seconds].reset_index(drop=True)
     q = readings_queries(ds, run)
+    # the log up to --seconds past the first reading (a segment may keep its run's log from the start)
+    t_end = (q["t_s"].iloc[0] if len(q) else samples["t_s"].iloc[0]) + seconds
+    samples = samples[samples["t_s"] <= t_end].reset_index(drop=True)
     q = q[q["t_s"] <= samples["t_s"].iloc[-1]].reset_index(drop=True)
     row = {"model": man["name"], "kind": man["kind"], "precision": precision}
     host_state = int(runtime.info(files)["state_bytes"].sum())  # x86-64: >= the 32-bit target's

@@ -24,14 +24,12 @@ from thermbench.export import runtime
 from thermbench.export.bundle import readings_queries
 from thermbench.models.autoregressive import AutoRegressiveSeed003
 from thermbench.models.bank import ConditionBank
-from thermbench.models.lssvm import PSOLSSVM
-from thermbench.models.mlr import MLRSeed001, MLRSeed002, MLRSeed004
-from thermbench.models.neural import GRUModel, MLPModel
+from thermbench.models.mlr import MLRSeed002, MLRSeed004
 from thermbench.models.physics import PhysicsModel
 
+from .families import FAST_PHYSICS, HELDOUT, TRAIN, families as _families  # noqa: F401
+
 TOL_UM = 0.01  # the issue: the C runtime reproduces the Python models within 0.01 um
-TRAIN = ["state1", "state2", "state3", "state4", "state5"]
-HELDOUT = ["valid1", "valid3"]
 
 
 @pytest.fixture(scope="module")
@@ -47,22 +45,6 @@ def loaded_ds(ds):
     pr = ds.process.copy()
     pr["load_N"] = 800.0 + 0.05 * pr["feed_mm_min"] + 100.0 * np.sin(pr["t_s"] / 900.0)
     return Dataset(ds.metadata, pr, ds.errors.copy(), path=ds.path)
-
-
-FAST_PHYSICS = dict(identify=[], dx_m=0.02, dt_s=0.5, macro_dt_s=10.0)
-
-
-def _families():
-    return {
-        "mlr_seed002": MLRSeed002(),
-        "mlr_seed004": MLRSeed004(sensors=["T_nut", "T_bed"], geometric_degree=None),
-        "mlr_seed001": MLRSeed001(),
-        "lssvm": PSOLSSVM(gamma=100.0, sigma2=2.0, max_samples=400),
-        "mlp": MLPModel(hidden=[8, 8], activation="gelu", max_epochs=60, min_epochs=10, patience=20),
-        "gru": GRUModel(hidden_size=4, window_s=600.0, step_s=60.0, max_epochs=30, min_epochs=5, patience=10),
-        "physics": PhysicsModel(**FAST_PHYSICS),
-        "ar_seed003": AutoRegressiveSeed003(operating=["feed_mm_min", "feed_mm_min^2"]),
-    }
 
 
 @pytest.fixture(scope="module")

@@ -87,3 +87,37 @@ def test_instruction_counts_are_exact_and_repeatable(seed001_exports, ds, querie
     assert a["step_calls"] == len(samples) + 1 and a["predict_calls"] == len(queries)  # + finish
     assert 0 < a["predict_insn_mean"] <= a["predict_insn_max"] and 0 < a["step_insn_mean"] <= a["step_insn_max"]
     assert {k: v for k, v in a.items() if "insn" in k} == {k: v for k, v in b.items() if "insn" in k}
+
+
+@pytest.fixture(scope="module")
+def family_exports(ds, tmp_path_factory):
+    """Every family of the host parity tests (tests/families.py), fitted and exported."""
+    from thermbench.export import ExportOptions, export_model
+
+    from .families import HELDOUT, TRAIN, families
+
+    root = tmp_path_factory.mktemp("target_exports")
+    for name, model in families().items():
+        export_model(model.fit(ds, TRAIN), root / name, name, ds, HELDOUT, options=ExportOptions(lssvm_reduced_size=40))
+    return root
+
+
+# the families whose single-precision build is within FLOAT_UM today; the full LSSVM is not (its
+# large, cancelling weights): issue 21's open part, see docs/export.md "Known limits"
+FLOAT_OK = ["mlr_seed002", "mlr_seed004", "mlr_seed001", "mlp", "gru", "physics", "ar_seed003"]
+
+
+FAMILIES = ["mlr_seed002", "mlr_seed004", "mlr_seed001", "lssvm", "mlp", "gru", "physics", "ar_seed003"]
+
+
+@pytest.mark.parametrize("family,precision", [(f, "double") for f in FAMILIES] + [(f, "float") for f in FLOAT_OK])
+def test_every_family_runs_on_the_target(family_exports, ds, queries, family, precision):
+    """Each exported kind, from flash on the emulated M4 over the validation run: in double the
+    host's numbers (to 5e-10 µm: IEEE double on both, another compiler and libm); in float within
+    0.01 µm for the families listed in FLOAT_OK."""
+    files, samples, temps, _ = bundle.replay_inputs(family_exports / family, ds, RUN)
+    ref = bundle.replay_dir(family_exports / family, ds, RUN, queries)
+    got, rep = target.replay(files, samples, temps, queries, precision=precision)
+    assert rep["rc"] == 0 and len(got) == len(ref) and (got["rc"] == 0).all()
+    tol = 5e-10 if precision == "double" else FLOAT_UM
+    assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol

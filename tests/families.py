@@ -1,0 +1,30 @@
+"""The model families every export test fits on seed001_vmc_x (small, fast settings): the host
+parity tests (test_export.py) and the target tests (test_target.py) export the same set."""
+
+from __future__ import annotations
+
+from thermbench.models.autoregressive import AutoRegressiveSeed003
+from thermbench.models.lssvm import PSOLSSVM
+from thermbench.models.mlr import MLRSeed001, MLRSeed002, MLRSeed004
+from thermbench.models.neural import GRUModel, MLPModel
+from thermbench.models.physics import PhysicsModel
+
+TRAIN = ["state1", "state2", "state3", "state4", "state5"]
+HELDOUT = ["valid1", "valid3"]
+
+FAST_PHYSICS = dict(identify=[], dx_m=0.02, dt_s=0.5, macro_dt_s=10.0)
+
+
+def families():
+    return {
+        "mlr_seed002": MLRSeed002(),
+        "mlr_seed004": MLRSeed004(sensors=["T_nut", "T_bed"], geometric_degree=None),
+        "mlr_seed001": MLRSeed001(),
+        "lssvm": PSOLSSVM(gamma=100.0, sigma2=2.0, max_samples=400),
+        "mlp": MLPModel(hidden=[8, 8], activation="gelu", max_epochs=60, min_epochs=10, patience=20),
+        "gru": GRUModel(hidden_size=4, window_s=600.0, step_s=60.0, max_epochs=30, min_epochs=5, patience=10),
+        "physics": PhysicsModel(**FAST_PHYSICS),
+        "ar_seed003": AutoRegressiveSeed003(operating=["feed_mm_min", "feed_mm_min^2"]),
+    }
+
+
