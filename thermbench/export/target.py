@@ -90,31 +90,59 @@ def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 1
     cc, _ = toolchain()
     d, t = embedded_dir(), _target_dir()
     files = [Path(f) for f in files]
-    srcs = [*runtime_sources(), t / "tb_target_main.c", t / "startup_m4.c"]
-    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
-    defs = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else [])]
-    key = _hash([*srcs, *headers, t / "stm32f407.ld", *files], cc, *CPU_FLAGS, *CFLAGS, *defs, f"offset={offset}")
+    harness = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else [])]
+    objs = _objects(precision)  # the runtime and the start-up: one compilation per precision
+    key = _hash([t / "tb_target_main.c", t / "stm32f407.ld", *objs, *files], cc, *harness, f"offset={offset}")
     out_dir = cache_dir() / "target" / key
     elf = out_dir / "firmware.elf"
     if not elf.exists():
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=out_dir.parent))
         try:
             (work / "models.S").write_text(_models_asm(files, offset))
-            objs = []
-            for s in [*srcs, work / "models.S"]:
-                o = work / (s.stem + ".o")
-                _run([cc, *CPU_FLAGS, *CFLAGS, *defs, "-fstack-usage", f"-I{d / 'include'}", f"-I{d / 'src'}", "-c", s, "-o", o],
-                     f"compiling {s.name} for the Cortex-M4F", cwd=work)  # fmt: skip
-                objs.append(o)
+            own = []
+            for s in (t / "tb_target_main.c", work / "models.S"):
+                own.append(_compile(cc, s, work, harness))
             _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", "--specs=rdimon.specs", "-u", "_printf_float",
                   "-u", "_scanf_float", f"-T{t / 'stm32f407.ld'}", "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}",
-                  *objs, "-lm", "-o", work / "firmware.elf"], "linking the firmware", cwd=work)  # fmt: skip
+                  *objs, *own, "-lm", "-o", work / "firmware.elf"], "linking the firmware", cwd=work)  # fmt: skip
             os.replace(work, out_dir)
         finally:
             if work.exists():
                 shutil.rmtree(work)
     return _sized(elf)
+
+
+def _compile(cc: str, src: Path, work: Path, defs: Sequence[str]) -> Path:
+    d = embedded_dir()
+    o = work / (src.stem + ".o")
+    _run([cc, *CPU_FLAGS, *CFLAGS, *defs, "-fstack-usage", f"-I{d / 'include'}", f"-I{d / 'src'}", "-c", src, "-o", o],
+         f"compiling {src.name} for the Cortex-M4F", cwd=work)  # fmt: skip
+    return o
+
+
+def _objects(precision: str) -> list[Path]:
+    """The runtime's and the start-up's objects (with their ``.su`` stack-usage files) for
+    ``precision``, compiled once and cached by a hash of the sources, headers and flags."""
+    cc, _ = toolchain()
+    d, t = embedded_dir(), _target_dir()
+    srcs = [*runtime_sources(), t / "startup_m4.c"]
+    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
+    key = _hash([*srcs, *headers], cc, *CPU_FLAGS, *CFLAGS, *PRECISIONS[precision])
+    out_dir = cache_dir() / "target" / f"obj-{precision}-{key}"
+    if not out_dir.exists():
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".obj.{key}.", dir=out_dir.parent))
+        try:
+            for s in srcs:
+                _compile(cc, s, work, PRECISIONS[precision])
+            os.replace(work, out_dir)
+        except OSError:
+            if not out_dir.exists():  # another process made it first: theirs serves
+                raise
+        finally:
+            if work.exists():
+                shutil.rmtree(work)
+    return sorted(out_dir.glob("*.o"))
 
 
 def _models_asm(files: Sequence[Path], offset: int) -> str:
