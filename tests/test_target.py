@@ -121,3 +121,18 @@ def test_every_family_runs_on_the_target(family_exports, ds, queries, family, pr
     assert rep["rc"] == 0 and len(got) == len(ref) and (got["rc"] == 0).all()
     tol = 5e-10 if precision == "double" else FLOAT_UM
     assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
+
+
+def test_the_runtime_s_stack_depth_is_measured_per_model(family_exports, ds, queries):
+    """The harness paints the stack before each runtime call and reads how deep it went: for the
+    MLP at least its evaluation's own frame as gcc -fstack-usage reports it for the target (an
+    independent source), for MLR less than that frame (it never calls the MLP)."""
+    frames = target.stack_frames("double")
+    eval_frame = frames["tb_kind_mlp.c:eval"]
+    depth = {}
+    for family in ("mlp", "mlr_seed002"):
+        files, samples, temps, _ = bundle.replay_inputs(family_exports / family, ds, RUN)
+        _, rep = target.replay(files, samples, temps, queries)
+        depth[family] = rep["stack_bytes"]
+    assert eval_frame < depth["mlp"] < 8192
+    assert 0 < depth["mlr_seed002"] < eval_frame

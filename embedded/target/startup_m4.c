@@ -1,7 +1,7 @@
 /*
  * Minimal Cortex-M4F start-up for the thermbench target harness: the vector table, a reset
- * handler that copies .data, zeroes .bss, paints the stack (for the depth measurement),
- * enables the FPU and calls main, and fault handlers that report over semihosting and stop.
+ * handler that copies .data, zeroes .bss, enables the FPU and calls main; the stack painting that
+ * measures the runtime's depth, and fault handlers that report over semihosting and stop.
  */
 #include <stdint.h>
 
@@ -40,22 +40,27 @@ __attribute__((section(".isr_vector"), used)) void (*const tb_vectors[16])(void)
 void Reset_Handler(void)
 {
     uint32_t *src = &_sidata, *dst;
-    volatile uint32_t *sp_now;
     for (dst = &_sdata; dst < &_edata;) *dst++ = *src++;
     for (dst = &_sbss; dst < &_ebss;) *dst++ = 0;
-    /* paint the stack below the current frame: the untouched words tell the deepest use */
-    __asm volatile("mov %0, sp" : "=r"(sp_now));
-    for (dst = &_sstack; dst < (uint32_t *)sp_now - 16; dst++) *dst = STACK_PAINT;
     /* CP10 and CP11 full access: the FPU (fpv4-sp-d16) */
     *(volatile uint32_t *)0xE000ED88u |= (0xFu << 20);
     __asm volatile("dsb\n\tisb");
     tb_target_exit(main());
 }
 
-/* the deepest stack use so far, bytes (words below the frame that lost their paint) */
-uint32_t tb_target_stack_used(void)
+/* paint the stack below the caller's frame again; tb_target_stack_below(sp) then tells how deep
+   the calls in between went below that sp (the runtime's own use, without the harness's) */
+void tb_target_stack_repaint(void)
+{
+    uint32_t *dst;
+    volatile uint32_t *sp_now;
+    __asm volatile("mov %0, sp" : "=r"(sp_now));
+    for (dst = &_sstack; dst < (uint32_t *)sp_now - 16; dst++) *dst = STACK_PAINT;
+}
+
+uint32_t tb_target_stack_below(uint32_t sp)
 {
     uint32_t *p = &_sstack;
     while (p < &_estack && *p == STACK_PAINT) p++;
-    return (uint32_t)((uint8_t *)&_estack - (uint8_t *)p);
+    return (uint32_t)p < sp ? sp - (uint32_t)p : 0u;
 }

@@ -11,7 +11,8 @@
  * order). Every query is answered as soon as the runtime is ready for its time, the rest after
  * finish. Output (semihosting stdout), one line per query as tb_replay's:
  *   t_s axis_mm thermal_um total_um label rc
- * then "END rc stack_bytes arena_bytes". Between TB_MARK_BEGIN and TB_MARK_END of each
+ * then "END rc stack_bytes arena_bytes": the deepest stack of any runtime call (the stack is painted
+ * before each call and read after it) and the arena the models took. Between TB_MARK_BEGIN and TB_MARK_END of each
  * operation the harness calls tb_target_mark (an instruction-count marker for the budget runs).
  */
 #include "tb_runtime.h"
@@ -29,7 +30,8 @@ extern const uint8_t *const tb_files[];
 extern const uint32_t tb_file_bytes[];
 extern const uint32_t tb_n_files;
 extern void initialise_monitor_handles(void);
-extern uint32_t tb_target_stack_used(void);
+extern void tb_target_stack_repaint(void);
+extern uint32_t tb_target_stack_below(uint32_t sp);
 
 static uint64_t arena[(TB_ARENA_BYTES + 7) / 8];
 static tb_model models[TB_MAX_CONDITIONS + 1];
@@ -160,16 +162,26 @@ static void rt_trap(int on)
 #endif
 }
 
-static void rt_begin(int what)
+/* the runtime's own stack: the deepest any runtime call went below the harness's frame */
+static uint32_t rt_sp, rt_stack_max;
+
+__attribute__((noinline)) static void rt_begin(int what)
 {
+    uint32_t sp;
+    tb_target_stack_repaint();
+    __asm volatile("mov %0, sp" : "=r"(sp));
+    rt_sp = sp;
     rt_trap(1);
     tb_target_mark(what);
 }
 
-static void rt_end(void)
+__attribute__((noinline)) static void rt_end(void)
 {
+    uint32_t used;
     tb_target_mark(MARK_END);
     rt_trap(0);
+    used = tb_target_stack_below(rt_sp);
+    if (used > rt_stack_max) rt_stack_max = used;
 }
 
 /* ---- queries: read lazily, one ahead ---------------------------------------------------- */
@@ -282,7 +294,7 @@ int main(void)
         rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
         rt_end();
         if (rc != TB_OK) {
-            printf("END %d %lu %lu sample t=%.17g %s\n", rc, (unsigned long)tb_target_stack_used(),
+            printf("END %d %lu %lu sample t=%.17g %s\n", rc, (unsigned long)rt_stack_max,
                    (unsigned long)arena_used, s.t_s, tb_strerror(rc));
             return 0;
         }
@@ -293,7 +305,7 @@ int main(void)
     rt_end();
     answer(0, 1);
     count_report();
-    printf("END %d %lu %lu\n", rc, (unsigned long)tb_target_stack_used(), (unsigned long)arena_used);
+    printf("END %d %lu %lu\n", rc, (unsigned long)rt_stack_max, (unsigned long)arena_used);
     fclose(sf);
     fclose(qf);
     return 0;

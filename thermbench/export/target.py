@@ -145,6 +145,17 @@ def _objects(precision: str) -> list[Path]:
     return sorted(out_dir.glob("*.o"))
 
 
+def stack_frames(precision: str = "double") -> dict[str, int]:
+    """Each runtime function's own stack frame on the target, bytes, as gcc ``-fstack-usage``
+    reports it (``file.c:function``; the deepest call chain is what :func:`replay` measures)."""
+    out = {}
+    for su in sorted(_objects(precision)[0].parent.glob("*.su")):
+        for ln in su.read_text().splitlines():
+            where, size, _ = ln.rsplit("\t", 2)
+            out[f"{Path(where.split(':')[0]).name}:{where.rsplit(':', 1)[1]}"] = int(size)
+    return out
+
+
 def _models_asm(files: Sequence[Path], offset: int) -> str:
     """The model files in flash (``.rodata``), each on an 8-byte boundary plus ``offset``."""
     lines = ['    .section .rodata.tb_models,"a"']
