@@ -16,6 +16,7 @@
  * operation the harness calls tb_target_mark (an instruction-count marker for the budget runs).
  */
 #include "tb_runtime.h"
+#include "../tools/tb_stream.h"
 
 #include <stdio.h>
 #include <stdlib.h>
@@ -274,22 +275,7 @@ int main(void)
     while (fgets(line, sizeof line, sf)) {
         tb_sample s;
         double temps[MAX_TEMPS];
-        char *q = line + 1, *end;
-        int n = 0;
-        if (line[0] != 'S') continue;
-        s.t_s = strtod(q, &end); q = end;
-        s.axis_mm = strtod(q, &end); q = end;
-        s.feed_mm_min = strtod(q, &end); q = end;
-        s.load_N = strtod(q, &end); q = end;
-        s.measuring = (int)strtol(q, &end, 10); q = end;
-        for (;;) {
-            double v = strtod(q, &end);
-            if (end == q || n == MAX_TEMPS) break;
-            temps[n++] = v;
-            q = end;
-        }
-        s.temps_C = temps;
-        s.n_temps = (uint32_t)n;
+        if (!tb_parse_sample(line, &s, temps, MAX_TEMPS)) continue;
         rt_begin(MARK_STEP);
         rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
         rt_end();

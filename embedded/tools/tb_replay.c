@@ -16,6 +16,7 @@
  *   t_s axis_mm thermal_um total_um label rc
  */
 #include "tb_runtime.h"
+#include "tb_stream.h"
 
 #include <stdio.h>
 #include <stdlib.h>
@@ -168,23 +169,7 @@ int main(int argc, char **argv)
         for (p = lines_buf; p < lines_buf + used; p += strlen(p) + 1) {
             tb_sample s;
             double temps[MAX_TEMPS];
-            char *q = p + 1, *end;
-            int n = 0, meas;
-            if (p[0] != 'S') continue;
-            s.t_s = strtod(q, &end); q = end;
-            s.axis_mm = strtod(q, &end); q = end;
-            s.feed_mm_min = strtod(q, &end); q = end;
-            s.load_N = strtod(q, &end); q = end;
-            meas = (int)strtol(q, &end, 10); q = end;
-            for (;;) {
-                double v = strtod(q, &end);
-                if (end == q || n == MAX_TEMPS) break;
-                temps[n++] = v;
-                q = end;
-            }
-            s.measuring = meas;
-            s.temps_C = temps;
-            s.n_temps = (uint32_t)n;
+            if (!tb_parse_sample(p, &s, temps, MAX_TEMPS)) continue;
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
             if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
                 rejected++;

@@ -81,7 +81,8 @@ def _compile(stem: str, srcs: Sequence[Path], extra_flags: Sequence[str], saniti
     d = embedded_dir()
     flags = [*CFLAGS, *(SANITIZE if sanitize else ()), *extra_flags, f"-I{d / 'include'}"]
     h = hashlib.sha256()
-    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
+    headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h"),
+                      *(d / "tools").glob("*.h")])  # fmt: skip
     for p in [*srcs, *headers]:
         h.update(p.name.encode())
         h.update(p.read_bytes())

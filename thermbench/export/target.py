@@ -92,7 +92,8 @@ def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 1
     files = [Path(f) for f in files]
     harness = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else [])]
     objs = _objects(precision)  # the runtime and the start-up: one compilation per precision
-    key = _hash([t / "tb_target_main.c", t / "stm32f407.ld", *objs, *files], cc, *harness, f"offset={offset}")
+    key = _hash([t / "tb_target_main.c", d / "tools" / "tb_stream.h", t / "stm32f407.ld", *objs, *files], cc, *harness,
+                f"offset={offset}")  # fmt: skip
     out_dir = cache_dir() / "target" / key
     elf = out_dir / "firmware.elf"
     if not elf.exists():
