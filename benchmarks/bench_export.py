@@ -12,7 +12,10 @@ Budget (seed 002: 1 MB flash, 192 KB RAM, 168 MHz): every model <= 64 KB file an
 <= 16 KB RAM; MLR and the classifier <= 1 KB file; one physics update <= 50 000
 instructions. Prints a table and writes benchmarks/results/export_footprint.csv.
 
-    .venv/bin/python benchmarks/bench_export.py [EXPORTS] [--seconds 1800]
+    .venv/bin/python benchmarks/bench_export.py [EXPORTS] [--seconds 1800] [--target]
+
+``--target`` adds the float build's figures on the emulated Cortex-M4F (``m4f_*``: parity against
+the host, worst instructions per cycle and per prediction, arena, stack; bench_target.py).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from thermbench._atomic import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest
 from thermbench.export.bundle import process_samples
+from thermbench.export.replay import _replay_view
 from thermbench.export.runtime import build, info, stream_text
 
 KB = 1024
@@ -63,6 +67,8 @@ def one(model_dir: Path, seconds: float, exe: Path) -> dict:
     man = read_manifest(model_dir)
     ds = load_dataset(man["training"]["dataset"])
     run = man.get("parity", {}).get("runs", [ds.run_ids[-1]])[0]
+    if ds.metadata.version == 2:  # the error channel and segments the model was trained on
+        ds = _replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
     bank = man["kind"] == "bank"
     files = ([model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
              if bank else [model_dir / man["files"]["model"]["file"]])  # fmt: skip
@@ -110,6 +116,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("exports", nargs="?", default="exports/benchmark")
     ap.add_argument("--seconds", type=float, default=1800.0, help="length of the replayed stream")
+    ap.add_argument("--target", action="store_true",
+                    help="also the Cortex-M4F figures in float under QEMU (benchmarks/bench_target.py)")
     args = ap.parse_args(argv)
     if shutil.which("valgrind") is None:
         print("valgrind is needed (apt install valgrind)", file=sys.stderr)
@@ -120,6 +128,13 @@ def main(argv=None) -> int:
         return 2
     exe = build("tb_replay", extra_flags=["-g"])
     rows = [one(d, args.seconds, exe) for d in dirs]
+    if args.target:  # beside the host figures: the same stream on the emulated M4, float build
+        import bench_target
+
+        for row, d in zip(rows, dirs):
+            t = bench_target.one(d, args.seconds, "float")
+            row.update({f"m4f_{k}": t.get(k) for k in ("parity_um", "cycle_insn_max", "pred_insn_max", "arena_bytes",
+                                                         "stack_bytes", "note")})  # fmt: skip
     df = pd.DataFrame(rows)
     with pd.option_context("display.width", 200, "display.max_columns", 30, "display.float_format", "{:.0f}".format):
         print(df.to_string(index=False))
