@@ -7,6 +7,7 @@ compiler or QEMU they fail, naming the packages: CI installs them (``.ci/run``).
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from thermbench.datasets import load_benchmark
@@ -136,3 +137,37 @@ def test_the_runtime_s_stack_depth_is_measured_per_model(family_exports, ds, que
         depth[family] = rep["stack_bytes"]
     assert eval_frame < depth["mlp"] < 8192
     assert 0 < depth["mlr_seed002"] < eval_frame
+
+
+@pytest.fixture(scope="module")
+def lumped_export(tmp_path_factory):
+    """The spindle's lumped thermal network (LUMPED kind: ambient and sensor inputs, the limit
+    filter) on the synthetic spindle runs of the host lumped tests; run "h" held out."""
+    from thermbench.models.lumped import LumpedThermalNetwork
+
+    from .test_export_lumped import HISTORY_S, SPINDLE_META, _run, channel_view, export, load_dataset, write
+
+    rng = np.random.default_rng(0)
+    pa, ea = _run("a", [0, 3000, 6000, 1500, 0, 4500, 2000], rng)
+    ph, eh = _run("h", [4000, 0, 6000, 3000, 5000], rng, first_read_s=HISTORY_S)
+    root = write(tmp_path_factory.mktemp("spindle") / "ds", {**SPINDLE_META, "runs": {"a": {}, "h": {}}},
+                 pd.concat([pa, ph]), pd.concat([ea, eh]))  # fmt: skip
+    ds = channel_view(load_dataset(root), "Z")
+    model = LumpedThermalNetwork(n_starts=1, n_nodes=2, ambient_sensor="T_amb", sensors=["T_front", "T_amb"]).fit(ds, ["a"])
+    out = tmp_path_factory.mktemp("lumped") / "ambient_and_sensors"
+    export(model, out, ds, ["h"])
+    return ds, out
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_the_lumped_kind_runs_on_the_target(lumped_export, precision):
+    """The LUMPED kind (a spindle's thermal network with ambient and sensor inputs) from flash on
+    the emulated M4 over the held-out run: the host's numbers in double, within 0.01 µm in float."""
+    ds, model_dir = lumped_export
+    q = bundle.readings_queries(ds, "h")
+    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, "h")
+    ref = bundle.replay_dir(model_dir, ds, "h", q)
+    got, rep = target.replay(files, samples, temps, q, precision=precision)
+    assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > 10 and (got["rc"] == 0).all()
+    tol = 5e-10 if precision == "double" else FLOAT_UM
+    assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
