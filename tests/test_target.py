@@ -11,13 +11,15 @@ import pandas as pd
 import pytest
 
 from thermbench.datasets import load_benchmark
-from thermbench.export import bundle, target
+from thermbench.export import bundle, read_manifest, target
 from thermbench.export.native import TB_E_ALIGN
 
 pytestmark = pytest.mark.target
 
 RUN = "valid1"
 FLOAT_UM = 0.01  # issue 21: single-precision parity for every kind
+KIND_OF = {"MLR_CURVE": 1, "MLR_SEED001": 2, "LSSVM": 3, "MLP": 4, "GRU": 5, "PHYSICS": 6, "AR": 7, "CLASSIFIER": 8,
+           "LUMPED": 9}  # the manifest's kind -> TB_KIND_* of tb_runtime.h
 
 
 @pytest.fixture(scope="module")
@@ -171,3 +173,19 @@ def test_the_lumped_kind_runs_on_the_target(lumped_export, precision):
     assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > 10 and (got["rc"] == 0).all()
     tol = 5e-10 if precision == "double" else FLOAT_UM
     assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
+
+
+def test_a_one_kind_image_fits_64_kb_and_holds_only_its_kind(family_exports):
+    """The smallest firmware per family (runtime with the file's kind only, start-up, model in
+    flash, no stdio) in float: it boots on QEMU and opens its model (image() checks the exit
+    status), takes <= 64 KB of flash (issue 21's budget), and its symbol table has its own kind's
+    table and no other's (TB_REGISTRY restricts the kind table, --gc-sections drops the rest)."""
+    import subprocess
+
+    for family in ("mlr_seed002", "mlr_seed001", "lssvm", "mlp", "gru", "physics", "ar_seed003"):
+        man = read_manifest(family_exports / family)
+        fw = target.image(family_exports / family / man["files"]["model"]["file"], "float")
+        assert fw.flash_bytes <= 64 * 1024, (family, fw.flash_bytes)
+        syms = subprocess.run(["arm-none-eabi-nm", str(fw.elf)], capture_output=True, text=True, check=True).stdout
+        kinds = {ln.split()[-1] for ln in syms.splitlines() if " tbi_kind_" in ln}
+        assert kinds == {f"tbi_kind_{target.KIND_CODES[KIND_OF[man['kind']]]}"}, (family, kinds)

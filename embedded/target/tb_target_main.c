@@ -40,55 +40,8 @@ static tb_bank bank;
 static int use_bank;
 static size_t arena_used;
 
-/* ---- semihosting exit and fault report (startup_m4.c calls these) ---------------------- */
-static int semihost(int op, void *arg)
-{
-    register int r0 __asm("r0") = op;
-    register void *r1 __asm("r1") = arg;
-    __asm volatile("bkpt 0xAB" : "+r"(r0) : "r"(r1) : "memory");
-    return r0;
-}
-
-void tb_target_exit(int code)
-{
-    fflush(stdout);
-    /* SYS_EXIT: ADP_Stopped_ApplicationExit ends QEMU with status 0, any other reason with 1 */
-    semihost(0x18, (void *)(code == 0 ? 0x20026 : 0x20023));
-    for (;;) {
-    }
-}
-
-void tb_target_fault(const char *what)
-{
-    semihost(0x04, (void *)"tb_target: fault: ");
-    semihost(0x04, (void *)what);
-    semihost(0x04, (void *)"\n");
-    semihost(0x18, (void *)0x20023);
-    for (;;) {
-    }
-}
-
-/* a fault with the faulting instruction's address (the stacked pc) and the fault status */
-void tb_target_fault_at(const char *what, const uint32_t *frame)
-{
-    static char msg[96];
-    static const char hex[] = "0123456789abcdef";
-    uint32_t vals[2], v;
-    int i, k, n = 0;
-    vals[0] = frame[6];
-    vals[1] = *(volatile uint32_t *)0xE000ED28u; /* CFSR */
-    for (i = 0; what[i] && n < 40; i++) msg[n++] = what[i];
-    for (k = 0; k < 2; k++) {
-        const char *lab = k == 0 ? " pc=0x" : " cfsr=0x";
-        for (i = 0; lab[i]; i++) msg[n++] = lab[i];
-        for (i = 7; i >= 0; i--) {
-            v = (vals[k] >> (4 * i)) & 0xFu;
-            msg[n++] = hex[v];
-        }
-    }
-    msg[n] = 0;
-    tb_target_fault(msg);
-}
+/* semihosting exit and faults: tb_target_semihost.c; stdout is flushed before the exit */
+void tb_target_flush(void) { fflush(stdout); }
 
 /* ---- instruction counts ---------------------------------------------------------------
  * Under `qemu -icount shift=0` every instruction advances the virtual clock by 1 ns, so the

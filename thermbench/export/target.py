@@ -126,7 +126,7 @@ def _objects(precision: str) -> list[Path]:
     ``precision``, compiled once and cached by a hash of the sources, headers and flags."""
     cc, _ = toolchain()
     d, t = embedded_dir(), _target_dir()
-    srcs = [*runtime_sources(), t / "startup_m4.c"]
+    srcs = [*runtime_sources(), t / "startup_m4.c", t / "tb_target_semihost.c"]
     headers = sorted([*(d / "src").glob("*.h"), *(d / "src").glob("*.def"), *(d / "include").glob("*.h")])
     key = _hash([*srcs, *headers], cc, *CPU_FLAGS, *CFLAGS, *PRECISIONS[precision])
     out_dir = cache_dir() / "target" / f"obj-{precision}-{key}"
@@ -144,6 +144,53 @@ def _objects(precision: str) -> list[Path]:
             if work.exists():
                 shutil.rmtree(work)
     return sorted(out_dir.glob("*.o"))
+
+
+KIND_CODES = {1: "mlr_curve", 2: "mlr_seed001", 3: "lssvm", 4: "mlp", 5: "gru", 6: "physics", 7: "ar",
+              8: "classifier", 9: "lumped"}  # TB_KIND_* (tb_runtime.h) -> the kind's name in tb_registry.def
+
+
+def image(file: Path, precision: str = "float", arena_bytes: int = 16384) -> Firmware:
+    """The smallest firmware running one model ``file`` from flash (``embedded/target/tb_target_min.c``):
+    the runtime with only the file's kind in its table (``TB_REGISTRY``: the linker leaves the
+    other kinds out; a physics model keeps every effect), the start-up and no stdio. Its
+    ``flash_bytes`` is what a compensator's image needs at least for this model; it is run on
+    QEMU, which must exit 0 (the model opened and started)."""
+    cc, qemu = toolchain()
+    d, t = embedded_dir(), _target_dir()
+    file = Path(file)
+    kind = KIND_CODES.get(int.from_bytes(file.read_bytes()[6:8], "little"))
+    if kind is None:
+        raise ValueError(f"{file}: not a model file of a known kind")
+    reg = [ln for ln in (d / "src" / "tb_registry.def").read_text().splitlines()
+           if ln.startswith("TB_EFFECT(") or ln.startswith("TB_KIND(") and ln.rstrip(")").endswith(f", {kind}")]  # fmt: skip
+    defs = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}"]
+    objs = [o for o in _objects(precision) if o.stem not in ("tb_registry",)]
+    key = _hash([t / "tb_target_min.c", d / "src" / "tb_registry.c", t / "stm32f407.ld", *objs, file], cc, *defs, *reg)
+    out_dir = cache_dir() / "target" / f"min-{key}"
+    elf = out_dir / "firmware.elf"
+    if not elf.exists():
+        work = Path(tempfile.mkdtemp(prefix=f".min.{key}.", dir=out_dir.parent))
+        try:
+            (work / "models.S").write_text(_models_asm([file], 0))
+            (work / "one_kind.def").write_text("\n".join(reg) + "\n")
+            own = [_compile(cc, t / "tb_target_min.c", work, defs), _compile(cc, work / "models.S", work, defs),
+                   _compile(cc, d / "src" / "tb_registry.c", work, [*defs, f'-DTB_REGISTRY="{work / "one_kind.def"}"'])]  # fmt: skip
+            _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", "--specs=nosys.specs", f"-T{t / 'stm32f407.ld'}",
+                  "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}", *objs, *own, "-lm", "-o", work / "firmware.elf"],
+                 "linking the minimal firmware", cwd=work)  # fmt: skip
+            os.replace(work, out_dir)
+        finally:
+            if work.exists():
+                shutil.rmtree(work)
+    fw = _sized(elf)
+    res = subprocess.run([qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
+                          "-semihosting-config", "enable=on,target=native", "-kernel", str(elf)],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    if res.returncode != 0:
+        raise RuntimeFailed(f"the minimal firmware for {file} stopped (QEMU exit {res.returncode}): "
+                            f"{(res.stdout + res.stderr).strip()[-1000:]}")  # fmt: skip
+    return fw
 
 
 def stack_frames(precision: str = "double") -> dict[str, int]:
