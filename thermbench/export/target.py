@@ -94,23 +94,40 @@ def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 1
     objs = _objects(precision)  # the runtime and the start-up: one compilation per precision
     key = _hash([t / "tb_target_main.c", d / "tools" / "tb_stream.h", t / "stm32f407.ld", *objs, *files], cc, *harness,
                 f"offset={offset}")  # fmt: skip
+    own = lambda work: [_compile(cc, s, work, harness) for s in (t / "tb_target_main.c", work / "models.S")]  # noqa: E731
+    specs = ["--specs=rdimon.specs", "-u", "_printf_float", "-u", "_scanf_float"]  # semihosting stdio
+    return _sized(_linked(key, files, offset, objs, own, specs, "linking the firmware"))
+
+
+def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], own, specs: Sequence[str], what: str) -> Path:
+    """``<cache>/target/<key>/firmware.elf``: ``objs`` and the objects ``own(work)`` compiles (after
+    ``models.S`` holds ``files`` in flash) linked by the STM32F407 script with newlib-nano and
+    ``specs``; made in a temporary directory and renamed (reused when present)."""
+    cc, _ = toolchain()
     out_dir = cache_dir() / "target" / key
     elf = out_dir / "firmware.elf"
     if not elf.exists():
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=out_dir.parent))
         try:
             (work / "models.S").write_text(_models_asm(files, offset))
-            own = []
-            for s in (t / "tb_target_main.c", work / "models.S"):
-                own.append(_compile(cc, s, work, harness))
-            _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", "--specs=rdimon.specs", "-u", "_printf_float",
-                  "-u", "_scanf_float", f"-T{t / 'stm32f407.ld'}", "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}",
-                  *objs, *own, "-lm", "-o", work / "firmware.elf"], "linking the firmware", cwd=work)  # fmt: skip
+            _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", *specs, f"-T{_target_dir() / 'stm32f407.ld'}",
+                  "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}", *objs, *own(work), "-lm", "-o",
+                  work / "firmware.elf"], what, cwd=work)  # fmt: skip
             os.replace(work, out_dir)
         finally:
             if work.exists():
                 shutil.rmtree(work)
-    return _sized(elf)
+    return elf
+
+
+def _qemu(elf: Path, cwd: str | None = None, timeout_s: float = 600.0, icount: bool = False) -> subprocess.CompletedProcess:
+    """``elf`` on QEMU's mps2-an386 with semihosting (``icount``: one instruction per virtual ns)."""
+    _, qemu = toolchain()
+    cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
+           *(["-icount", "shift=0"] if icount else []), "-semihosting-config", "enable=on,target=native",
+           "-kernel", str(elf)]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, timeout=timeout_s)
 
 
 def _compile(cc: str, src: Path, work: Path, defs: Sequence[str]) -> Path:
@@ -156,7 +173,7 @@ def image(file: Path, precision: str = "float", arena_bytes: int = 16384) -> Fir
     other kinds out; a physics model keeps every effect), the start-up and no stdio. Its
     ``flash_bytes`` is what a compensator's image needs at least for this model; it is run on
     QEMU, which must exit 0 (the model opened and started)."""
-    cc, qemu = toolchain()
+    cc, _ = toolchain()
     d, t = embedded_dir(), _target_dir()
     file = Path(file)
     kind = KIND_CODES.get(int.from_bytes(file.read_bytes()[6:8], "little"))
@@ -167,30 +184,18 @@ def image(file: Path, precision: str = "float", arena_bytes: int = 16384) -> Fir
     defs = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}"]
     objs = [o for o in _objects(precision) if o.stem not in ("tb_registry",)]
     key = _hash([t / "tb_target_min.c", d / "src" / "tb_registry.c", t / "stm32f407.ld", *objs, file], cc, *defs, *reg)
-    out_dir = cache_dir() / "target" / f"min-{key}"
-    elf = out_dir / "firmware.elf"
-    if not elf.exists():
-        work = Path(tempfile.mkdtemp(prefix=f".min.{key}.", dir=out_dir.parent))
-        try:
-            (work / "models.S").write_text(_models_asm([file], 0))
-            (work / "one_kind.def").write_text("\n".join(reg) + "\n")
-            own = [_compile(cc, t / "tb_target_min.c", work, defs), _compile(cc, work / "models.S", work, defs),
-                   _compile(cc, d / "src" / "tb_registry.c", work, [*defs, f'-DTB_REGISTRY="{work / "one_kind.def"}"'])]  # fmt: skip
-            _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", "--specs=nosys.specs", f"-T{t / 'stm32f407.ld'}",
-                  "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}", *objs, *own, "-lm", "-o", work / "firmware.elf"],
-                 "linking the minimal firmware", cwd=work)  # fmt: skip
-            os.replace(work, out_dir)
-        finally:
-            if work.exists():
-                shutil.rmtree(work)
-    fw = _sized(elf)
-    res = subprocess.run([qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
-                          "-semihosting-config", "enable=on,target=native", "-kernel", str(elf)],
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+
+    def own(work: Path) -> list[Path]:
+        (work / "one_kind.def").write_text("\n".join(reg) + "\n")
+        return [_compile(cc, t / "tb_target_min.c", work, defs), _compile(cc, work / "models.S", work, defs),
+                _compile(cc, d / "src" / "tb_registry.c", work, [*defs, f'-DTB_REGISTRY="{work / "one_kind.def"}"'])]  # fmt: skip
+
+    elf = _linked(f"min-{key}", [file], 0, objs, own, ["--specs=nosys.specs"], "linking the minimal firmware")
+    res = _qemu(elf, timeout_s=120.0)
     if res.returncode != 0:
         raise RuntimeFailed(f"the minimal firmware for {file} stopped (QEMU exit {res.returncode}): "
                             f"{(res.stdout + res.stderr).strip()[-1000:]}")  # fmt: skip
-    return fw
+    return _sized(elf)
 
 
 def stack_frames(precision: str = "double") -> dict[str, int]:
@@ -232,14 +237,11 @@ def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 6
     """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F, ``-icount shift=0``: one instruction per virtual
     ns) with ``samples.txt`` and ``queries.txt`` in its semihosting directory; returns (the query
     lines, the END line, the COUNT lines: instructions per runtime call)."""
-    _, qemu = toolchain()
     with tempfile.TemporaryDirectory(prefix="tb_target_") as tmp:
         Path(tmp, "samples.txt").write_text(samples_text)
         Path(tmp, "queries.txt").write_text(queries_text)
-        cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none", "-icount", "shift=0",
-               "-semihosting-config", "enable=on,target=native", "-kernel", str(fw.elf)]  # fmt: skip
         try:
-            res = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, timeout=timeout_s)
+            res = _qemu(fw.elf, cwd=tmp, timeout_s=timeout_s, icount=True)
         except subprocess.TimeoutExpired:
             raise RuntimeFailed(f"the firmware did not finish within {timeout_s:.0f} s on QEMU ({fw.elf})") from None
     lines = res.stdout.splitlines()
