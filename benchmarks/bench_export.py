@@ -35,7 +35,7 @@ from thermbench._atomic import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest
 from thermbench.export.bundle import process_samples
-from thermbench.export.replay import _replay_view
+from thermbench.export.replay import replay_view
 from thermbench.export.runtime import build, info, stream_text
 
 KB = 1024
@@ -68,7 +68,7 @@ def one(model_dir: Path, seconds: float, exe: Path) -> dict:
     ds = load_dataset(man["training"]["dataset"])
     run = man.get("parity", {}).get("runs", [ds.run_ids[-1]])[0]
     if ds.metadata.version == 2:  # the error channel and segments the model was trained on
-        ds = _replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
+        ds = replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
     bank = man["kind"] == "bank"
     files = ([model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
              if bank else [model_dir / man["files"]["model"]["file"]])  # fmt: skip

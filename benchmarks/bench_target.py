@@ -36,7 +36,7 @@ from thermbench._atomic import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest, runtime, target
 from thermbench.export.bundle import readings_queries, replay_inputs
-from thermbench.export.replay import _replay_view
+from thermbench.export.replay import replay_view
 
 KB = 1024
 CYCLE_BUDGET, PRED_BUDGET, ARENA_BUDGET, SRAM = 100_000, 200_000, 16 * KB, 128 * KB
@@ -47,7 +47,7 @@ def one(model_dir: Path, seconds: float, precision: str) -> dict:
     ds = load_dataset(man["training"]["dataset"])
     run = man.get("parity", {}).get("runs", [ds.run_ids[-1]])[0]
     if ds.metadata.version == 2:  # the error channel and segments the model was trained on
-        ds = _replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
+        ds = replay_view(ds, man, run, None, Path(man["training"]["dataset"]))
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, manifest=man)
     q = readings_queries(ds, run)
     # the log up to --seconds past the first reading (a segment may keep its run's log from the start)

@@ -32,7 +32,7 @@ from .bundle import read_manifest, replay_dir
 from .encoding import ExportError
 
 
-def _replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
+def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     """A format 2 dataset as the model saw it: the error channel it was trained on (``--channel``,
     else the one in its manifest, else the only one) and, when ``run`` names a derived
     segment, the run split into its segments (with the log before each, when the model was
@@ -65,12 +65,12 @@ def _replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
 
 def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None) -> dict:
     """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``
-    (a format 2 dataset: the error ``channel`` the model predicts, see :func:`_replay_view`)."""
+    (a format 2 dataset: the error ``channel`` the model predicts, see :func:`replay_view`)."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
     if ds.metadata.version == 2:
-        ds = _replay_view(ds, man, run, channel, data_dir)
+        ds = replay_view(ds, man, run, channel, data_dir)
     elif channel is not None and channel not in ds.metadata.error_channels():
         raise ExportError(f"--channel {channel!r}: {data_dir} is a format 1 dataset with one channel; leave it out")
     if run not in ds.run_ids:
