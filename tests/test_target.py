@@ -59,6 +59,21 @@ def test_the_target_reproduces_the_host(seed001_exports, ds, queries, host, name
     assert 0 < rep["arena_bytes"] <= 16384 and 0 < rep["stack_bytes"] < 8192
 
 
+def test_the_single_precision_runtime_reaches_no_software_double_routine(seed001_exports, ds):
+    """The image's call graph (disassembly; the link map says which functions are the runtime's,
+    every kind and effect linked in): in single precision (-DTB_SINGLE) nothing the runtime can
+    call, down through newlib's libm, is a software double or 64-bit routine of libgcc or a double
+    <math.h> function; the same walk over the double build finds them (it can see them)."""
+    files, *_ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
+    single = target.build(files, "float")
+    assert target.soft_routines(single) == {}
+    reached = target.reached_routines(single)
+    assert {"expf", "tanhf", "powf", "floorf"} <= set(reached)  # the walk follows the float libm
+    double = target.soft_routines(target.build(files, "double"))
+    assert {"__aeabi_dmul", "__aeabi_ddiv", "exp", "tanh", "pow"} <= set(double)
+    assert "check_sample" in double["__aeabi_ddiv"]  # and names the runtime functions that reach each
+
+
 @pytest.mark.parametrize("offset", [0, 1, 2, 3])
 def test_a_model_file_off_a_4_byte_boundary_is_refused_not_faulted(seed001_exports, ds, queries, offset):
     """Under unaligned-access trapping (CCR.UNALIGN_TRP, set around every runtime call), the file

@@ -46,8 +46,17 @@
 extern "C" {
 #endif
 
+/* The precision of every number the runtime computes with and of its API (times, positions,
+ * temperatures, errors): double by default; -DTB_SINGLE for a single-precision FPU (Cortex-M4F),
+ * where the runtime then does no double and no 64-bit arithmetic at all. In single precision,
+ * times are float seconds: give them from a recent epoch (float holds whole and half seconds
+ * exactly up to 2^22 s, 48 days, and its step is 2^-7 s at 1.5 days) - thermbench's logs start
+ * at t = 0. */
+#ifdef TB_SINGLE
+#define TB_REAL float
+#endif
 #ifndef TB_REAL
-#define TB_REAL double /* -DTB_REAL=float for a single-precision FPU (Cortex-M4) */
+#define TB_REAL double
 #endif
 typedef TB_REAL tb_real;
 
@@ -70,21 +79,21 @@ typedef TB_REAL tb_real;
 #define TB_MAX_NODES 4096u
 #define TB_MAX_AR_ORDER 64u
 #define TB_MAX_LUMPED_NODES 8u   /* nodes of a lumped network's chain (thermbench fits 1..6) */
-#define TB_MIN_LUMPED_STEP_S 1.0 /* shortest grid step of a lumped network (its state ring is 60 s / step) */
+#define TB_MIN_LUMPED_STEP_S ((tb_real)1.0) /* shortest grid step of a lumped network (its state ring is 60 s / step) */
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
 #define TB_MAX_FEEDS 64u /* distinct feeds in one classifier window */
 #define TB_MAX_WINDOW 20000u /* samples in a classifier window or GRU history */
 #define TB_START_SAMPLES 5u /* the limit filter checks the first reading against the next 5 */
-#define TB_MAX_GAP_S 60.0   /* longest gap between samples (the contract logs at >= 1 Hz) */
+#define TB_MAX_GAP_S ((tb_real)60.0)   /* longest gap between samples (the contract logs at >= 1 Hz) */
 /* plausible inputs: anything beyond is refused (TB_E_INPUT), not computed with */
-#define TB_MAX_AXIS_MM 1e7
-#define TB_MAX_FEED_MM_MIN 1e6
-#define TB_MAX_LOAD_N 1e9
-#define TB_MAX_OPERATING 1e9 /* |operating input| of a lumped network (e.g. spindle_rpm) */
-#define TB_MAX_HEAT 1e30     /* (u/u_ref)^p beyond it is refused */
-#define TB_MIN_TEMP_C (-273.15)
-#define TB_MAX_TEMP_C 2000.0
+#define TB_MAX_AXIS_MM ((tb_real)1e7)
+#define TB_MAX_FEED_MM_MIN ((tb_real)1e6)
+#define TB_MAX_LOAD_N ((tb_real)1e9)
+#define TB_MAX_OPERATING ((tb_real)1e9) /* |operating input| of a lumped network (e.g. spindle_rpm) */
+#define TB_MAX_HEAT ((tb_real)1e30)     /* (u/u_ref)^p beyond it is refused */
+#define TB_MIN_TEMP_C ((tb_real)-273.15)
+#define TB_MAX_TEMP_C ((tb_real)2000.0)
 
 /* model kinds */
 enum {
@@ -125,14 +134,14 @@ const char *tb_strerror(int code);
 
 /* one control cycle: one process-log sample */
 typedef struct {
-    double t_s;
-    double axis_mm;
-    double feed_mm_min;
-    double load_N;
+    tb_real t_s;
+    tb_real axis_mm;
+    tb_real feed_mm_min;
+    tb_real load_N;
     /* the exported input channels, in manifest order: the temperature sensors (degC), then the
      * operating inputs that have no field here (manifest "operating", e.g. spindle_rpm of a
      * lumped network), each in its own unit */
-    const double *temps_C;
+    const tb_real *temps_C;
     uint32_t n_temps;
     int measuring; /* nonzero inside a measuring cycle (left out of the motion features) */
 } tb_sample;
@@ -157,13 +166,13 @@ size_t tb_model_arena_bytes(const tb_model *m);
 int tb_model_start(tb_model *m, void *arena, size_t arena_bytes);
 int tb_model_step(tb_model *m, const tb_sample *s);
 int tb_model_finish(tb_model *m);
-double tb_model_ready_s(const tb_model *m);
+tb_real tb_model_ready_s(const tb_model *m);
 /* thermal part and total (geometric + thermal) positioning error, um; compensation = -total */
-int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *thermal_um, double *total_um);
-double tb_model_geometric_um(const tb_model *m, double axis_mm);
+int tb_model_predict(const tb_model *m, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um);
+tb_real tb_model_geometric_um(const tb_model *m, tb_real axis_mm);
 
 /* classifier (kind TB_KIND_CLASSIFIER): the condition index in force at t (-1: none yet) */
-int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label);
+int tb_classifier_label_at(const tb_model *clf, tb_real t_s, int32_t *label);
 
 /* a per-condition bank (seed 002 §2.4-2.5): the classifier picks the member model */
 typedef struct {
@@ -178,8 +187,8 @@ int tb_bank_init(tb_bank *b, tb_model *classifier, tb_model *const *members, uin
 int tb_bank_set_member(tb_bank *b, uint32_t i, tb_model *member);
 int tb_bank_step(tb_bank *b, const tb_sample *s);
 int tb_bank_finish(tb_bank *b);
-double tb_bank_ready_s(const tb_bank *b);
-int tb_bank_predict(const tb_bank *b, double t_s, double axis_mm, double *thermal_um, double *total_um,
+tb_real tb_bank_ready_s(const tb_bank *b);
+int tb_bank_predict(const tb_bank *b, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um,
                     int32_t *label);
 
 #ifdef __cplusplus

@@ -20,7 +20,7 @@ int tb_bank_init(tb_bank *b, tb_model *classifier, tb_model *const *members, uin
 int tb_bank_set_member(tb_bank *b, uint32_t i, tb_model *member)
 {
     const tbi_common *c;
-    double k_first, k_last, c_first, c_last;
+    tb_real k_first, k_last, c_first, c_last;
     int k_started;
     if (!b || !b->classifier || i >= b->n_members) return TB_E_ARG;
     if (!member || !member->state || member->kind == TB_KIND_CLASSIFIER) return TB_E_STATE;
@@ -63,30 +63,30 @@ int tb_bank_finish(tb_bank *b)
     return rc;
 }
 
-double tb_bank_ready_s(const tb_bank *b)
+tb_real tb_bank_ready_s(const tb_bank *b)
 {
-    double r;
+    tb_real r;
     uint32_t i;
-    if (!b || !b->classifier) return -1e300;
+    if (!b || !b->classifier) return TBI_NO_TIME;
     r = tb_model_ready_s(b->classifier);
     for (i = 0; i < b->n_members; i++) {
-        double q = tb_model_ready_s(b->members[i]);
+        tb_real q = tb_model_ready_s(b->members[i]);
         if (q < r) r = q;
     }
     return r;
 }
 
-int tb_bank_predict(const tb_bank *b, double t_s, double axis_mm, double *thermal_um, double *total_um, int32_t *label)
+int tb_bank_predict(const tb_bank *b, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um, int32_t *label)
 {
     int32_t lab;
     uint32_t i;
-    double geo = 0, total = 0;
+    tb_real geo = 0, total = 0;
     int rc;
     if (!b || !b->classifier) return TB_E_STATE;
     rc = tb_classifier_label_at(b->classifier, t_s, &lab);
     if (rc != TB_OK) return rc;
     for (i = 0; i < b->n_members; i++) geo += tb_model_geometric_um(b->members[i], axis_mm);
-    geo /= (double)b->n_members;
+    geo /= (tb_real)b->n_members;
     if (lab < 0 || (uint32_t)lab >= b->n_members) {
         lab = -1;
         total = geo; /* no condition yet: a cold axis, geometric error only */

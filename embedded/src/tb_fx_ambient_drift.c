@@ -8,7 +8,7 @@
 #include "tb_physics.h"
 
 typedef struct {
-    double amp, w, ph, sin_ph, rate;
+    tb_real amp, w, ph, sin_ph, rate;
 } self_t;
 
 static int validate(const tb_model *m, uint32_t at)
@@ -20,17 +20,17 @@ static void init(void *self, const tb_model *m, uint32_t at, const tbi_phys_par 
 {
     self_t *s = (self_t *)self;
     (void)c;
-    s->amp = (double)PV(m, at);
-    s->w = 2.0 * 3.14159265358979323846 / (double)PV(m, at + 1);
-    s->ph = (double)PV(m, at + 2);
-    s->sin_ph = sin(s->w * s->ph);
-    s->rate = (double)PV(m, at + 3);
+    s->amp = PV(m, at);
+    s->w = TB_R(2.0 * 3.14159265358979323846) / PV(m, at + 1);
+    s->ph = PV(m, at + 2);
+    s->sin_ph = tbm_sin(s->w * s->ph);
+    s->rate = PV(m, at + 3);
 }
 
-static tb_real ambient_rise(const void *self, double tt)
+static tb_real ambient_rise(const void *self, tb_real tt)
 {
     const self_t *s = (const self_t *)self;
-    return (tb_real)(s->amp * (sin(s->w * (tt + s->ph)) - s->sin_ph) + s->rate * tt / 3600.0);
+    return s->amp * (tbm_sin(s->w * (tt + s->ph)) - s->sin_ph) + s->rate * tt / TB_R(3600.0);
 }
 
 const tbi_effect tbi_effect_ambient_drift = {

@@ -14,7 +14,7 @@ typedef struct {
 static int validate(const tb_model *m, uint32_t at)
 {
     tb_real k = PV(m, at + 1);
-    return k >= 1 && k <= (tb_real)m->dims[1] && k == floor(k) ? TB_OK : TB_E_PAYLOAD;
+    return k >= 1 && k <= (tb_real)m->dims[1] && k == tbm_floor(k) ? TB_OK : TB_E_PAYLOAD;
 }
 
 static void init(void *self, const tb_model *m, uint32_t at, const tbi_phys_par *c)

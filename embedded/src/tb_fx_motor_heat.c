@@ -17,7 +17,7 @@ static void init(void *self, const tb_model *m, uint32_t at, const tbi_phys_par 
 {
     self_t *s = (self_t *)self;
     s->k = PV(m, at);
-    s->a = (tb_real)exp(-c->dt / (double)PV(m, at + 1));
+    s->a = tbm_exp(-c->dt / PV(m, at + 1));
 }
 
 static void fine(void *self, const tb_real *v, uint32_t count)

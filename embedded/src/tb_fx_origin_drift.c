@@ -20,7 +20,7 @@ static void init(void *self, const tb_model *m, uint32_t at, const tbi_phys_par 
 {
     self_t *s = (self_t *)self;
     s->beta = PV(m, at);
-    s->a = (tb_real)exp(-c->macro / (double)PV(m, at + 1));
+    s->a = tbm_exp(-c->macro / PV(m, at + 1));
     s->gain_w = PV(m, at + 2);
     s->gain_v = PV(m, at + 3);
     s->coupling = PV(m, at + 4);

@@ -16,6 +16,42 @@
 #include <math.h>
 #include <string.h>
 
+/* -DTB_SINGLE: float throughout (tb_runtime.h); a float tb_real without it would keep 64-bit counters */
+#ifdef TB_SINGLE
+typedef int32_t tbi_int;    /* a whole number of steps or samples computed from a time */
+typedef uint32_t tbi_count; /* steps taken since the first sample */
+#define TBI_COUNT_MAX 0x7FFFFFFFu
+#else
+typedef int64_t tbi_int;
+typedef uint64_t tbi_count;
+#define TBI_COUNT_MAX ((uint64_t)1 << 40)
+#endif
+typedef char tbi_single_is_float_[(sizeof(tb_real) == 4) == (sizeof(tbi_int) == 4) ? 1 : -1]; /* use -DTB_SINGLE */
+
+/* a constant in the runtime's precision (a bare 1e-9 would make float arithmetic double) */
+#define TB_R(x) ((tb_real)(x))
+
+/* <math.h> in the runtime's precision: the float functions in TB_SINGLE */
+#ifdef TB_SINGLE
+#define tbm_exp expf
+#define tbm_floor floorf
+#define tbm_ceil ceilf
+#define tbm_fabs fabsf
+#define tbm_tanh tanhf
+#define tbm_pow powf
+#define tbm_sin sinf
+#define tbm_erf erff
+#else
+#define tbm_exp exp
+#define tbm_floor floor
+#define tbm_ceil ceil
+#define tbm_fabs fabs
+#define tbm_tanh tanh
+#define tbm_pow pow
+#define tbm_sin sin
+#define tbm_erf erf
+#endif
+
 /* ------------------------------------------------------------------ utils */
 static inline uint32_t tbi_rd_u32(const uint8_t *p)
 {
@@ -38,25 +74,25 @@ static inline float tbi_rd_f32(const uint8_t *p)
 #define PR(m, i) (PV(m, i) + PV(m, (i) + 1u))
 
 /* floor(v) as an integer clamped to [lo, hi] (NaN -> lo): no float-to-int overflow */
-static inline int64_t tbi_floor_clamp(double v, int64_t lo, int64_t hi)
+static inline tbi_int tbi_floor_clamp(tb_real v, tbi_int lo, tbi_int hi)
 {
-    if (!(v >= (double)lo)) return lo;
-    if (v >= (double)hi) return hi;
-    return (int64_t)floor(v);
+    if (!(v >= (tb_real)lo)) return lo;
+    if (v >= (tb_real)hi) return hi;
+    return (tbi_int)tbm_floor(v);
 }
 
 /* numpy.interp between two samples, clamped */
-static inline double tbi_interp1(double t, double t0, double t1, double v0, double v1)
+static inline tb_real tbi_interp1(tb_real t, tb_real t0, tb_real t1, tb_real v0, tb_real v1)
 {
     if (t <= t0 || t1 <= t0) return v0;
     if (t >= t1) return v1;
     return v0 + (t - t0) * ((v1 - v0) / (t1 - t0));
 }
 
-/* ceil(v - 1e-9) for v >= 0, at least 1, clamped to 2^40: the whole steps thermbench integrates */
-static inline uint64_t tbi_steps_ceil(double v)
+/* ceil(v - 1e-9) for v >= 0, at least 1, clamped to TBI_COUNT_MAX: the whole steps thermbench integrates */
+static inline tbi_count tbi_steps_ceil(tb_real v)
 {
-    uint64_t n = (uint64_t)-tbi_floor_clamp(-(v - 1e-9), -((int64_t)1 << 40), 0);
+    tbi_count n = (tbi_count)-tbi_floor_clamp(-(v - TB_R(1e-9)), -(tbi_int)TBI_COUNT_MAX, 0);
     return n < 1 ? 1 : n;
 }
 
@@ -71,7 +107,7 @@ typedef struct {
 uint32_t tbi_take(tbi_cur *c, uint32_t n);
 uint32_t tbi_take_int(tbi_cur *c, uint32_t lo, uint32_t hi); /* an integer-valued entry in [lo, hi] */
 tb_real tbi_take_val(tbi_cur *c, tb_real lo, tb_real hi, int strict_lo);
-tb_real tbi_take_pair(tbi_cur *c, double lo, double hi, int strict_lo); /* a (hi, lo) pair: a double */
+tb_real tbi_take_pair(tbi_cur *c, tb_real lo, tb_real hi, int strict_lo); /* a (hi, lo) pair: hi + lo */
 void tbi_parse_sensors(tbi_cur *c, tb_model *m, uint32_t S);      /* the sensor block of S sensors */
 void tbi_parse_geom(tbi_cur *c, tb_model *m);                     /* the geometric block */
 
@@ -97,8 +133,8 @@ void *tbi_carve(tbi_arena *a, size_t bytes); /* 8-byte aligned; 0 while sizing o
 /* --------------------------------------------------- the sensor pipeline */
 /* the samples after the startup buffer (tb_runtime.c) */
 typedef struct {
-    double t_s, axis_mm, feed_mm_min, load_N;
-    double op_u; /* the kind's operating input (tbi_kind.op_input; 0 without) */
+    tb_real t_s, axis_mm, feed_mm_min, load_N;
+    tb_real op_u; /* the kind's operating input (tbi_kind.op_input; 0 without) */
     int measuring;
 } tbi_motion;
 
@@ -111,11 +147,11 @@ typedef struct {
 } tbi_state;
 
 /* dT of every sensor at t, interpolated in the short history (numpy.interp over the log) */
-int tbi_hist_at(const tbi_common *c, double t, tb_real *out);
+int tbi_hist_at(const tbi_common *c, tb_real t, tb_real *out);
 /* is sample s acceptable to model m? (changes nothing; the bank checks every model first) */
 int tbi_check_sample(const tb_model *m, const tb_sample *s);
 /* the first and last sample accepted (0 before the first) */
-int tbi_common_span(const tbi_common *c, double *t_first, double *t_last);
+int tbi_common_span(const tbi_common *c, tb_real *t_first, tb_real *t_last);
 
 /* ------------------------------------------------------- the kind table */
 /* One model kind. The core calls these; 0 (NULL) entries take the default noted. */
@@ -132,7 +168,7 @@ typedef struct {
     /* is sample s acceptable beyond the common checks? (channels are checked); 0: yes */
     int (*check)(const tb_model *m, const void *ks, const tb_sample *s);
     /* the operating input a sample carries for the kind (tbi_motion.op_u); 0: none */
-    double (*op_input)(const tb_model *m, const tb_sample *s);
+    tb_real (*op_input)(const tb_model *m, const tb_sample *s);
     /* pipeline 0: one raw sample */
     int (*step)(const tb_model *m, void *ks, const tb_sample *s);
     /* pipeline 1: one processed sample, dT its sensors' rises; 0: nothing to do */
@@ -140,16 +176,19 @@ typedef struct {
     void (*finish)(const tb_model *m, void *ks);            /* end of the log; 0: nothing */
     /* the time up to which its values are final (tb_model_ready_s) and, when horizon_s is not 0, how
      * far past it a query may lie (the state held); 0: the newest sample in the history, TB_MAX_GAP_S */
-    double (*ready_s)(const tb_model *m, const void *ks, double *horizon_s);
+    tb_real (*ready_s)(const tb_model *m, const void *ks, tb_real *horizon_s);
     /* the thermal error: predict (a state of its own) or, when 0, eval on the dT history at t */
-    int (*predict)(const tb_model *m, const void *ks, double t_s, double axis_mm, tb_real *thermal);
-    tb_real (*eval)(const tb_model *m, const tb_real *dT, double axis_mm);
+    int (*predict)(const tb_model *m, const void *ks, tb_real t_s, tb_real axis_mm, tb_real *thermal);
+    tb_real (*eval)(const tb_model *m, const tb_real *dT, tb_real axis_mm);
 } tbi_kind;
 
 /* the highest payload version of any kind (tbi_kind.max_version) */
 #define TBI_MAX_VERSION 2u
 
-static inline tb_real tbi_sigm(tb_real x) { return (tb_real)(1.0 / (1.0 + exp(-(double)x))); }
+static inline tb_real tbi_sigm(tb_real x) { return 1 / (1 + tbm_exp(-x)); }
+
+/* "no time yet" (tb_model_ready_s before the first samples) */
+#define TBI_NO_TIME TB_R(-1e30)
 
 /* the kind table, indexed by TB_KIND_* (tb_registry.c); 0: no such kind (TB_E_KIND) */
 extern const tbi_kind *const tbi_kinds[TB_KIND_MAX + 1];
@@ -157,6 +196,6 @@ extern const tbi_kind *const tbi_kinds[TB_KIND_MAX + 1];
 static inline const tbi_kind *tbi_kind_of(uint32_t kind) { return kind <= TB_KIND_MAX ? tbi_kinds[kind] : 0; }
 
 /* classifier internals the bank needs (tb_kind_classifier.c): 1 once stepped, with its span */
-int tbi_classifier_span(const tb_model *clf, double *t_first, double *t_last);
+int tbi_classifier_span(const tb_model *clf, tb_real *t_first, tb_real *t_last);
 
 #endif /* TB_INTERNAL_H */

@@ -9,16 +9,16 @@
 #include "tb_internal.h"
 
 typedef struct {
-    double t0, edge_lo; /* current interval [edge_lo, edge_hi) */
-    uint64_t k;        /* intervals closed */
+    tb_real t0, edge_lo; /* current interval [edge_lo, edge_hi) */
+    tbi_count k;         /* intervals closed */
     int started;
     tb_real *usum;     /* nu */
     uint32_t ucount;
-    double last_t;
+    tb_real last_t;
     tb_real *last_v;   /* nu */
     tb_real *c_hist;   /* (na + 1) x (D + 1): c(k), c(k-1), ... newest first */
     tb_real *u_hist;   /* nb x nu: u(k), u(k-1), ... newest first */
-    double g_t[2];
+    tb_real g_t[2];
     tb_real *g_c;      /* 2 x (D + 1): c at the last two grid points */
     int g_n, g_cur;
 } ar_t;
@@ -71,8 +71,8 @@ static int check(const tb_model *m, const void *ks, const tb_sample *s)
     (void)ks;
     for (j = 0; j < m->dims[3]; j++) {
         tb_real code = PV(m, m->off[O_A] + 2 * j), power = PV(m, m->off[O_A] + 2 * j + 1);
-        double v = code == 0 ? s->feed_mm_min : s->load_N;
-        if (v < 0 && power != floor(power)) return TB_E_INPUT;
+        tb_real v = code == 0 ? s->feed_mm_min : s->load_N;
+        if (v < 0 && power != tbm_floor(power)) return TB_E_INPUT;
     }
     return TB_OK;
 }
@@ -80,8 +80,8 @@ static int check(const tb_model *m, const void *ks, const tb_sample *s)
 static tb_real ar_term(const tb_model *m, uint32_t i, const tbi_motion *mo)
 {
     tb_real code = PV(m, m->off[O_A] + 2 * i), power = PV(m, m->off[O_A] + 2 * i + 1);
-    tb_real v = code == 0 ? (tb_real)mo->feed_mm_min : (tb_real)mo->load_N;
-    return power == 1 ? v : (tb_real)pow((double)v, (double)power);
+    tb_real v = code == 0 ? mo->feed_mm_min : mo->load_N;
+    return power == 1 ? v : tbm_pow(v, power);
 }
 
 static void ar_close(const tb_model *m, ar_t *r, const tb_real *u)
@@ -98,7 +98,7 @@ static void ar_close(const tb_model *m, ar_t *r, const tb_real *u)
         for (a = 0; a < na; a++) /* c(k-1-a): c_hist row a (newest first) */
             acc += PV(m, m->off[O_B] + i * na + a) * r->c_hist[a * D1 + i];
         for (b = 0; b < nb; b++)
-            if (r->k >= (uint64_t)b + 1)
+            if (r->k >= (tbi_count)b + 1)
                 for (q = 0; q < nu; q++) acc += PV(m, m->off[O_C] + (i * nb + b) * nu + q) * r->u_hist[b * nu + q];
         cnew[i] = acc;
     }
@@ -107,7 +107,7 @@ static void ar_close(const tb_model *m, ar_t *r, const tb_real *u)
     if (na > 0)
         for (i = 0; i < D1; i++) r->c_hist[i] = cnew[i];
     r->g_cur = 1 - r->g_cur;
-    r->g_t[r->g_cur] = r->t0 + (double)r->k * (double)PV(m, m->off[O_BODY] + 1);
+    r->g_t[r->g_cur] = r->t0 + (tb_real)r->k * PV(m, m->off[O_BODY] + 1);
     for (i = 0; i < D1; i++) r->g_c[r->g_cur * D1 + i] = cnew[i];
     if (r->g_n < 2) r->g_n++;
 }
@@ -115,11 +115,11 @@ static void ar_close(const tb_model *m, ar_t *r, const tb_real *u)
 static void ar_sample(const tb_model *m, ar_t *r, const tbi_motion *mo, int final)
 {
     uint32_t nu = m->dims[3], q;
-    double dt = (double)PV(m, m->off[O_BODY] + 1);
+    tb_real dt = PV(m, m->off[O_BODY] + 1);
     tb_real v[8] = {0}, u[8] = {0};
     if (final) {
         /* thermbench simulates ceil(span / sample_s) intervals; the last one may be partial */
-        uint64_t total;
+        tbi_count total;
         if (!r->started) return;
         total = tbi_steps_ceil((r->last_t - r->t0) / dt);
         while (r->k < total) {
@@ -139,13 +139,13 @@ static void ar_sample(const tb_model *m, ar_t *r, const tbi_motion *mo, int fina
     }
     for (q = 0; q < nu; q++) v[q] = ar_term(m, q, mo);
     for (;;) { /* close every interval [t0 + k dt, t0 + (k+1) dt) that this sample is past */
-        double hi = r->t0 + (double)(r->k + 1) * dt;
+        tb_real hi = r->t0 + (tb_real)(r->k + 1) * dt;
         if (mo->t_s < hi) break;
         if (r->ucount > 0) {
             for (q = 0; q < nu; q++) u[q] = r->usum[q] / (tb_real)r->ucount;
         } else { /* no sample inside: the value interpolated at its middle */
-            double mid = r->t0 + ((double)r->k + 0.5) * dt;
-            for (q = 0; q < nu; q++) u[q] = (tb_real)tbi_interp1(mid, r->last_t, mo->t_s, r->last_v[q], v[q]);
+            tb_real mid = r->t0 + ((tb_real)r->k + TB_R(0.5)) * dt;
+            for (q = 0; q < nu; q++) u[q] = tbi_interp1(mid, r->last_t, mo->t_s, r->last_v[q], v[q]);
         }
         ar_close(m, r, u);
         for (q = 0; q < nu; q++) r->usum[q] = 0;
@@ -159,18 +159,18 @@ static void ar_sample(const tb_model *m, ar_t *r, const tbi_motion *mo, int fina
     r->last_t = mo->t_s;
 }
 
-static int predict(const tb_model *m, const void *ks, double t, double axis_mm, tb_real *thermal)
+static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
 {
     const ar_t *r = (const ar_t *)ks;
     uint32_t D1 = m->dims[0] + 1, i;
     int a, b;
-    tb_real acc = 0, pw = 1, x = (tb_real)axis_mm - PV(m, m->off[O_BODY]);
+    tb_real acc = 0, pw = 1, x = axis_mm - PV(m, m->off[O_BODY]);
     if (!r->started) return TB_E_NOTREADY;
     b = r->g_cur;
     a = r->g_n == 2 ? 1 - b : b;
     if (r->g_n == 2 && t < r->g_t[a]) return TB_E_LATE;
     for (i = 0; i < D1; i++) {
-        tb_real c = (tb_real)tbi_interp1(t, r->g_t[a], r->g_t[b], r->g_c[a * D1 + i], r->g_c[b * D1 + i]);
+        tb_real c = tbi_interp1(t, r->g_t[a], r->g_t[b], r->g_c[a * D1 + i], r->g_c[b * D1 + i]);
         acc += c * pw;
         pw *= x;
     }
@@ -186,11 +186,11 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
 
 static void finish(const tb_model *m, void *ks) { ar_sample(m, (ar_t *)ks, 0, 1); }
 
-static double ready_s(const tb_model *m, const void *ks, double *horizon_s)
+static tb_real ready_s(const tb_model *m, const void *ks, tb_real *horizon_s)
 {
     const ar_t *r = (const ar_t *)ks;
-    if (horizon_s) *horizon_s = (double)PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S;
-    return r->started ? r->g_t[r->g_cur] : -1e300;
+    if (horizon_s) *horizon_s = PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S;
+    return r->started ? r->g_t[r->g_cur] : TBI_NO_TIME;
 }
 
 const tbi_kind tbi_kind_ar = {

@@ -12,13 +12,13 @@
 typedef struct {
     uint32_t cap, n, head; /* ring of samples: t (float, relative), x, f (<0: not moving) */
     float *rt, *rx, *rf;
-    double t0;
+    tb_real t0;
     int have_t0;
-    uint64_t g_next;       /* next grid index to classify */
-    double last_t, period;
+    tbi_count g_next;      /* next grid index to classify */
+    tb_real last_t, period;
     int have_prev;
     /* labels of the last grid points (held) */
-    double lab_t[4];
+    tb_real lab_t[4];
     int32_t lab[4];
     uint32_t lab_n, lab_head;
     int32_t held;
@@ -59,7 +59,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 static void carve(const tb_model *m, tbi_arena *a, void **ks)
 {
     clf_t *k = (clf_t *)tbi_carve(a, sizeof(clf_t));
-    size_t cap = (size_t)ceil((double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) - 1e-9) + 4u; /* the window's samples */
+    size_t cap = (size_t)tbm_ceil(PV(m, m->off[O_BODY]) / PV(m, 0) - TB_R(1e-9)) + 4u; /* the window's samples */
     float *arr = (float *)tbi_carve(a, sizeof(float) * (3u * cap + 2u * TB_MAX_FEEDS));
     if (a->p && !a->err) {
         memset(k, 0, sizeof *k);
@@ -79,10 +79,10 @@ static void clf_levels_prob(const tb_model *m, uint32_t at, uint32_t nl, tb_real
     tb_real mx = 0, tot = 0;
     int hit = 0;
     for (i = 0; i < nl; i++)
-        if (fabs((double)PV(m, at + i)) > (double)mx) mx = (tb_real)fabs((double)PV(m, at + i));
+        if (tbm_fabs(PV(m, at + i)) > mx) mx = tbm_fabs(PV(m, at + i));
     if (mx < 1) mx = 1;
     for (i = 0; i < nl; i++) {
-        tb_real d = (tb_real)fabs((double)(v - PV(m, at + i)));
+        tb_real d = tbm_fabs(v - PV(m, at + i));
         if (d <= (tb_real)1e-9 * mx) {
             p[i] = 1;
             hit = 1;
@@ -91,7 +91,7 @@ static void clf_levels_prob(const tb_model *m, uint32_t at, uint32_t nl, tb_real
         }
     }
     for (i = 0; i < nl; i++) {
-        tb_real d = (tb_real)fabs((double)(v - PV(m, at + i)));
+        tb_real d = tbm_fabs(v - PV(m, at + i));
         if (hit) p[i] = d <= (tb_real)1e-9 * mx ? 1 : 0;
         else tot += p[i];
     }
@@ -124,10 +124,10 @@ static int32_t clf_predict_one(const tb_model *m, tb_real A, tb_real B, tb_real 
 
 /* features of the window (T - window, T] (thermbench.classify.window_features, with the feed
  * levels clustered over the window and its two neighbour samples); returns the raw label or -1 */
-static int32_t clf_window(const tb_model *m, clf_t *k, double T)
+static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
 {
     uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo = (uint32_t)-1, hi = 0, a, b;
-    double window = (double)PV(m, body), min_moving = (double)PV(m, body + 2), period = k->period;
+    tb_real window = PV(m, body), min_moving = PV(m, body + 2), period = k->period;
     float *u = k->scratch, *lev = k->scratch + TB_MAX_FEEDS;
     tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], x0 = 0, x1 = 0, total = 0;
     uint32_t dom = 0;
@@ -136,7 +136,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T)
     memset(feed_in, 0, sizeof feed_in);
     if (k->n == 0) return -1;
     for (i = 0; i < k->n; i++) {
-        double t = k->t0 + (double)k->rt[RI(k, i)];
+        tb_real t = k->t0 + (tb_real)k->rt[RI(k, i)];
         if (t > T - window && t <= T) {
             if (lo == (uint32_t)-1) lo = i;
             hi = i + 1;
@@ -171,23 +171,23 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T)
     for (i = 0; i < nlev; i++) time_in[i] = feed_in[i] = 0;
     for (i = lo; i < hi; i++) {
         float f = k->rf[RI(k, i)];
-        double w;
+        tb_real w;
         int32_t c;
         if (!(f > 0)) continue;
-        if (i + 1 < k->n) w = (double)k->rt[RI(k, i + 1)] - (double)k->rt[RI(k, i)];
+        if (i + 1 < k->n) w = (tb_real)k->rt[RI(k, i + 1)] - (tb_real)k->rt[RI(k, i)];
         else w = period;
         {
             uint32_t j;
             for (j = 0; j < nu && u[j] != f; j++) {}
             c = (int32_t)lev[j];
         }
-        time_in[c] += (tb_real)w;
-        feed_in[c] += (tb_real)(w * (double)f);
-        total += (tb_real)w;
+        time_in[c] += w;
+        feed_in[c] += w * (tb_real)f;
+        total += w;
     }
     for (i = 1; i < nlev; i++)
         if (time_in[i] > time_in[dom]) dom = i;
-    if (!((double)total >= min_moving) || !(time_in[dom] > 0)) return -1;
+    if (!(total >= min_moving) || !(time_in[dom] > 0)) return -1;
     /* stroke range at the dominant feed */
     for (i = lo; i < hi; i++) {
         float f = k->rf[RI(k, i)];
@@ -206,13 +206,13 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T)
         int32_t cprev, c0, c1n, c2;
         {
             tb_real mx = 1;
-            if (fabs((double)x0) > (double)mx) mx = (tb_real)fabs((double)x0);
-            if (fabs((double)x1) > (double)mx) mx = (tb_real)fabs((double)x1);
+            if (tbm_fabs(x0) > mx) mx = tbm_fabs(x0);
+            if (tbm_fabs(x1) > mx) mx = tbm_fabs(x1);
             tol = (tb_real)1e-6 * mx;
         }
         for (i = lo; i + 1 < hi; i++) {
             float fa = k->rf[RI(k, i)];
-            double dt, L, gap;
+            tb_real dt, L, gap;
             tb_real xa, xb, top, bot;
             int t_in, b_in;
             uint32_t j;
@@ -233,15 +233,15 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T)
             if (i + 2 < k->n) LEVEL(i + 2, c2);
             else c2 = -100;
             if (!(cprev == c0 && c1n == c0 && c2 == c1n)) continue;
-            dt = (double)k->rt[RI(k, i + 1)] - (double)k->rt[RI(k, i)];
-            if (!(dt <= 1.5 * period)) continue;
+            dt = (tb_real)k->rt[RI(k, i + 1)] - (tb_real)k->rt[RI(k, i)];
+            if (!(dt <= TB_R(1.5) * period)) continue;
             xa = (tb_real)k->rx[RI(k, i)];
             xb = (tb_real)k->rx[RI(k, i + 1)];
-            L = (double)fa / 60.0 * dt;
-            gap = L - fabs((double)(xb - xa));
-            if (!(gap > 0.02 * L + 0.1)) continue;
-            top = (xa + xb + (tb_real)L) / 2;
-            bot = (xa + xb - (tb_real)L) / 2;
+            L = (tb_real)fa / TB_R(60.0) * dt;
+            gap = L - tbm_fabs(xb - xa);
+            if (!(gap > TB_R(0.02) * L + TB_R(0.1))) continue;
+            top = (xa + xb + L) / 2;
+            bot = (xa + xb - L) / 2;
             t_in = top < x1 - tol;
             b_in = bot > x0 + tol;
             if (b_in && !t_in && top > up) up = top;
@@ -253,7 +253,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, double T)
     return clf_predict_one(m, x1 - x0, x0 + x1, feed_in[dom] / time_in[dom]);
 }
 
-static void clf_label_push(clf_t *k, double T, int32_t raw)
+static void clf_label_push(clf_t *k, tb_real T, int32_t raw)
 {
     if (raw >= 0) k->held = raw;
     k->lab_t[k->lab_head] = T;
@@ -262,14 +262,14 @@ static void clf_label_push(clf_t *k, double T, int32_t raw)
     if (k->lab_n < 4) k->lab_n++;
 }
 
-static void clf_classify_due(const tb_model *m, clf_t *k, double t_now, int final)
+static void clf_classify_due(const tb_model *m, clf_t *k, tb_real t_now, int final)
 {
-    double step = (double)PV(m, m->off[O_BODY] + 1);
+    tb_real step = PV(m, m->off[O_BODY] + 1);
     if (!k->have_t0) return;
     for (;;) {
-        double T = k->t0 + (double)k->g_next * step;
+        tb_real T = k->t0 + (tb_real)k->g_next * step;
         if (!final && !(T < t_now)) break;
-        if (final && T > k->last_t + 1e-9) break;
+        if (final && T > k->last_t + TB_R(1e-9)) break;
         clf_label_push(k, T, clf_window(m, k, T));
         k->g_next++;
     }
@@ -282,7 +282,7 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
     if (!k->have_t0) {
         k->have_t0 = 1;
         k->t0 = s->t_s;
-        k->period = (double)PV(m, 0);
+        k->period = PV(m, 0);
     }
     if (k->n == k->cap) { /* drop the oldest */
         k->n--;
@@ -299,26 +299,26 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
     return TB_OK;
 }
 
-static double clf_ready(const tb_model *m, const clf_t *k)
+static tb_real clf_ready(const tb_model *m, const clf_t *k)
 {
-    if (!k->have_t0) return -1e300;
-    return k->t0 + (double)k->g_next * (double)PV(m, m->off[O_BODY] + 1) - 1e-6;
+    if (!k->have_t0) return TBI_NO_TIME;
+    return k->t0 + (tb_real)k->g_next * PV(m, m->off[O_BODY] + 1) - TB_R(1e-6);
 }
 
-static double clf_horizon(const tb_model *m) { return (double)PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S; }
+static tb_real clf_horizon(const tb_model *m) { return PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S; }
 
-static double ready_s(const tb_model *m, const void *ks, double *horizon_s)
+static tb_real ready_s(const tb_model *m, const void *ks, tb_real *horizon_s)
 {
     if (horizon_s) *horizon_s = clf_horizon(m);
     return clf_ready(m, (const clf_t *)ks);
 }
 
-int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label)
+int tb_classifier_label_at(const tb_model *clf, tb_real t_s, int32_t *label)
 {
     const clf_t *k;
     uint32_t i;
     int32_t out = -1;
-    double best = -1e300;
+    tb_real best = TBI_NO_TIME;
     if (!clf || !clf->state || clf->kind != TB_KIND_CLASSIFIER || !label) return TB_E_STATE;
     k = (const clf_t *)((const tbi_state *)clf->state)->ks;
     if (k->have_t0 && t_s > clf_ready(clf, k) + clf_horizon(clf)) return TB_E_NOTREADY;
@@ -328,12 +328,12 @@ int tb_classifier_label_at(const tb_model *clf, double t_s, int32_t *label)
     }
     for (i = 0; i < k->lab_n; i++) {
         uint32_t at = (k->lab_head + 4u - 1u - i) % 4u;
-        if (k->lab_t[at] <= t_s + 1e-9 && k->lab_t[at] > best) {
+        if (k->lab_t[at] <= t_s + TB_R(1e-9) && k->lab_t[at] > best) {
             best = k->lab_t[at];
             out = k->lab[at];
         }
     }
-    if (best == -1e300) {
+    if (best == TBI_NO_TIME) {
         uint32_t oldest = (k->lab_head + 4u - k->lab_n) % 4u;
         if (k->lab_n == 4) return TB_E_LATE;
         out = t_s < k->lab_t[oldest] ? -1 : k->lab[oldest];
@@ -353,7 +353,7 @@ static int check(const tb_model *m, const void *ks, const tb_sample *s)
 
 static void finish(const tb_model *m, void *ks) { clf_classify_due(m, (clf_t *)ks, 0, 1); }
 
-int tbi_classifier_span(const tb_model *clf, double *t_first, double *t_last)
+int tbi_classifier_span(const tb_model *clf, tb_real *t_first, tb_real *t_last)
 {
     const clf_t *k = (const clf_t *)((const tbi_state *)clf->state)->ks;
     *t_first = k->t0;

@@ -11,7 +11,7 @@
 
 typedef struct { /* ring of dT at the sample period */
     uint32_t cap, n, head;
-    double t_first; /* time of the oldest sample in the ring */
+    tb_real t_first; /* time of the oldest sample in the ring */
     float *ring;    /* cap x S */
 } gru_t;
 
@@ -42,16 +42,16 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
     m->off[O_D] = tbi_take(c, 3 * H);
     m->off[O_E] = tbi_take(c, (D + 1) * H);
     m->off[O_F] = tbi_take(c, D + 1);
-    if (!c->err && (double)K * (double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) > (double)TB_MAX_WINDOW)
+    if (!c->err && (tb_real)K * PV(m, m->off[O_BODY]) / PV(m, 0) > (tb_real)TB_MAX_WINDOW)
         c->err = TB_E_DIMS;
-    if (!c->err && (double)(K + 1) * 3.0 * (double)H * (double)(H + S) > 2e7) c->err = TB_E_DIMS; /* work per predict */
+    if (!c->err && (K + 1u) * 3u * H * (H + S) > 20000000u) c->err = TB_E_DIMS; /* work per predict */
 }
 
 static void carve(const tb_model *m, tbi_arena *a, void **ks)
 {
     gru_t *g = (gru_t *)tbi_carve(a, sizeof(gru_t));
     /* the window's samples (+ 4) */
-    size_t cap = (size_t)ceil((double)m->dims[3] * (double)PV(m, m->off[O_BODY]) / (double)PV(m, 0) - 1e-9) + 4u;
+    size_t cap = (size_t)tbm_ceil((tb_real)m->dims[3] * PV(m, m->off[O_BODY]) / PV(m, 0) - TB_R(1e-9)) + 4u;
     float *r = (float *)tbi_carve(a, sizeof(float) * cap * m->dims[0]);
     if (a->p && !a->err) {
         memset(g, 0, sizeof *g);
@@ -64,13 +64,13 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
 static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_real *dT)
 {
     gru_t *g = (gru_t *)ks;
-    double t = mo->t_s;
+    tb_real t = mo->t_s;
     uint32_t S = m->dims[0], j;
-    double period = (double)PV(m, 0);
+    tb_real period = PV(m, 0);
     if (g->n > 0) { /* samples missing in between (a dropped or rejected one): the values numpy.interp gives */
         uint32_t newest = (g->head + g->cap - 1) % g->cap, k, d;
-        double t_new = g->t_first + (double)(g->n - 1) * period;
-        d = (uint32_t)tbi_floor_clamp((t - t_new) / period + 0.5, 1, (int64_t)g->cap);
+        tb_real t_new = g->t_first + (tb_real)(g->n - 1) * period;
+        d = (uint32_t)tbi_floor_clamp((t - t_new) / period + TB_R(0.5), 1, (tbi_int)g->cap);
         for (k = 1; k < d; k++) {
             tb_real w = (tb_real)k / (tb_real)d;
             for (j = 0; j < S; j++) {
@@ -89,37 +89,37 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     else g->t_first += period;
 }
 
-static int predict(const tb_model *m, const void *ks, double t, double axis_mm, tb_real *thermal)
+static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
 {
     const gru_t *g = (const gru_t *)ks;
     uint32_t S = m->dims[0], H = m->dims[1], D = m->dims[2], K = m->dims[3], j, i, k;
     uint32_t body = m->off[O_BODY];
-    double step = (double)PV(m, body), period = (double)PV(m, 0);
+    tb_real step = PV(m, body), period = PV(m, 0);
     tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], x[TB_MAX_SENSORS];
     tb_real p, out = 0, pw = 1;
     uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
-    double t_newest;
+    tb_real t_newest;
     if (g->n == 0) return TB_E_NOTREADY;
-    t_newest = g->t_first + (double)(g->n - 1) * period;
+    t_newest = g->t_first + (tb_real)(g->n - 1) * period;
     for (j = 0; j < H; j++) h[j] = 0;
     for (k = K + 1; k-- > 0;) { /* oldest lag first */
-        double tau = t - (double)k * step, pos;
+        tb_real tau = t - (tb_real)k * step, pos;
         uint32_t i0, i1;
-        double w;
+        tb_real w;
         if (tau < g->t_first && g->n == g->cap) return TB_E_LATE;
         pos = (tau - g->t_first) / period;
         if (pos <= 0) { i0 = i1 = 0; w = 0; }
         else if (tau >= t_newest) { i0 = i1 = g->n - 1; w = 0; }
         else {
-            i0 = (uint32_t)tbi_floor_clamp(pos, 0, (int64_t)g->n - 1);
+            i0 = (uint32_t)tbi_floor_clamp(pos, 0, (tbi_int)g->n - 1);
             if (i0 >= g->n - 1) i0 = g->n - 2;
             i1 = i0 + 1;
-            w = pos - (double)i0;
+            w = pos - (tb_real)i0;
         }
         for (j = 0; j < S; j++) {
             tb_real v0 = (tb_real)g->ring[((oldest + i0) % g->cap) * S + j];
             tb_real v1 = (tb_real)g->ring[((oldest + i1) % g->cap) * S + j];
-            tb_real v = v0 + (tb_real)w * (v1 - v0);
+            tb_real v = v0 + w * (v1 - v0);
             x[j] = (v - PV(m, body + 1 + j)) / PV(m, body + 1 + S + j);
         }
         /* PyTorch GRU cell, gates (r, z, n) */
@@ -136,13 +136,13 @@ static int predict(const tb_model *m, const void *ks, double t, double axis_mm, 
             }
             {
                 tb_real r = tbi_sigm(gi[0] + gh[0]), z = tbi_sigm(gi[1] + gh[1]);
-                tb_real nn = (tb_real)tanh((double)(gi[2] + r * gh[2]));
+                tb_real nn = tbm_tanh(gi[2] + r * gh[2]);
                 hn[i] = (1 - z) * nn + z * h[i];
             }
         }
         for (i = 0; i < H; i++) h[i] = hn[i];
     }
-    p = ((tb_real)axis_mm - PV(m, body + 1 + 2 * S)) / PV(m, body + 2 + 2 * S);
+    p = (axis_mm - PV(m, body + 1 + 2 * S)) / PV(m, body + 2 + 2 * S);
     for (i = 0; i <= D; i++) {
         tb_real c = PV(m, m->off[O_F] + i);
         for (j = 0; j < H; j++) c += PV(m, m->off[O_E] + i * H + j) * h[j];

@@ -22,11 +22,11 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
     m->off[O_B] = tbi_take(c, d[1] * (d[0] + 1));
 }
 
-static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
+static tb_real eval(const tb_model *m, const tb_real *dT, tb_real axis_mm)
 {
     uint32_t S = m->dims[0], N = m->dims[1], d = S + 1, body = m->off[O_BODY], i, j;
     tb_real z[TB_MAX_SENSORS + 1], sigma2 = PV(m, body + 2 * d);
-    tb_real acc = PV(m, body + 2 * d + 1) + PV(m, body + 2 * d + 2);
+    tb_real acc = PV(m, body + 2 * d + 1), comp = PV(m, body + 2 * d + 2); /* b: hi, lo */
     tb_real inv2s = (tb_real)1 / (2 * sigma2);
     for (j = 0; j < S; j++) z[j] = (dT[j] - PV(m, body + j)) / PV(m, body + d + j);
     z[S] = ((tb_real)axis_mm - PV(m, body + S)) / PV(m, body + d + S);
@@ -37,9 +37,15 @@ static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
             tb_real e = z[j] - PV(m, at + j);
             d2 += e * e;
         }
-        acc += (PV(m, m->off[O_A] + i) + PV(m, m->off[O_A] + N + i)) * (tb_real)exp(-(double)(d2 * inv2s));
+        {
+            /* Neumaier's compensated sum: the terms are large and cancel (a full LSSVM's alphas) */
+            tb_real k = tbm_exp(-(d2 * inv2s));
+            tb_real term = PV(m, m->off[O_A] + i) * k, t = acc + term;
+            comp += (tbm_fabs(acc) >= tbm_fabs(term) ? (acc - t) + term : (term - t) + acc) + PV(m, m->off[O_A] + N + i) * k;
+            acc = t;
+        }
     }
-    return acc;
+    return acc + comp;
 }
 
 const tbi_kind tbi_kind_lssvm = {

@@ -22,34 +22,34 @@
  *   O_E     K sensor indices, then their K gains, um/degC, R
  *   O_F     offset d, um, R */
 enum { LU_SRC_FEED = 0, LU_SRC_AXIS, LU_SRC_LOAD, LU_SRC_CHANNEL };
-#define LU_STEP(m) ((double)PV(m, (m)->off[O_BODY] + 3u) + (double)PV(m, (m)->off[O_BODY] + 4u))
+#define LU_STEP(m) PR(m, (m)->off[O_BODY] + 3u)
 
 /* grid states kept: every grid point one sample may close (a gap of up to TB_MAX_GAP_S), plus the
  * two a query interpolates between */
 static uint32_t lump_grid_cap(const tb_model *m)
 {
-    return (uint32_t)tbi_floor_clamp(ceil(TB_MAX_GAP_S / LU_STEP(m) - 1e-9), 0, 1 << 20) + 3u;
+    return (uint32_t)tbi_floor_clamp(tbm_ceil(TB_MAX_GAP_S / LU_STEP(m) - TB_R(1e-9)), 0, 1 << 20) + 3u;
 }
 
 /* samples of the sensor terms kept: those since the oldest grid point kept (the samples lie on the
  * period's grid) and the one before it; 0 without sensor terms */
-static double lump_hist_samples(const tb_model *m)
+static tb_real lump_hist_samples(const tb_model *m)
 {
     if (m->dims[2] == 0) return 0;
-    return ceil((double)lump_grid_cap(m) * LU_STEP(m) / (double)PV(m, 0)) + 3.0;
+    return tbm_ceil((tb_real)lump_grid_cap(m) * LU_STEP(m) / PV(m, 0)) + 3;
 }
 
 typedef struct { /* lumped network (docs/concepts.md, physics_spindle) */
     uint32_t ns;           /* states per grid point: n nodes (+ 1: the lagged ambient rise) */
     uint32_t g_cap, r_cap; /* grid points kept; sensor-term samples kept */
     int started;
-    double t0;             /* the grid starts at the run's first process sample */
-    double acc_t;          /* the current interval [t0 + k step, ...) is integrated up to acc_t */
-    uint64_t k;            /* intervals closed: the newest grid state is the one at t0 + k step */
+    tb_real t0;            /* the grid starts at the run's first process sample */
+    tb_real acc_t;         /* the current interval [t0 + k step, ...) is integrated up to acc_t */
+    tbi_count k;           /* intervals closed: the newest grid state is the one at t0 + k step */
     tb_real acc_q, acc_a;  /* integrals of the heat and of the ambient rise since t0 + k step */
     tb_real last_q, last_a; /* the last sample's heat and ambient rise, held to the next sample */
     tb_real *g;            /* g_cap x ns: grid state j in slot j % g_cap */
-    double *r_t;           /* r_cap ring: sample times */
+    tb_real *r_t;          /* r_cap ring: sample times */
     tb_real *r_v;          /* r_cap ring: sum_j s_j dT_j at the sample (the unlagged sensor terms) */
     uint32_t r_n, r_head;
 } lump_t;
@@ -70,8 +70,8 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
     src = tbi_take_int(c, 0, LU_SRC_CHANNEL);
     ch = tbi_take_int(c, 0, TB_MAX_SENSORS * 4u);
     tbi_take_int(c, 0, 1);                          /* u_nonneg */
-    tbi_take_pair(c, TB_MIN_LUMPED_STEP_S, 1e6, 0); /* step_s */
-    tbi_take_pair(c, 0, 1e30, 1);                   /* u_ref > 0 */
+    tbi_take_pair(c, TB_MIN_LUMPED_STEP_S, TB_R(1e6), 0); /* step_s */
+    tbi_take_pair(c, 0, TB_R(1e30), 1);                   /* u_ref > 0 */
     tbi_take_pair(c, 0, 16, 1);                     /* exponent > 0 */
     m->off[O_A] = c->pos;
     for (i = 0; i < n && !c->err; i++) {
@@ -97,7 +97,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
             if ((uint32_t)PV(m, m->off[O_SENS] + j) == ch) c->err = TB_E_PAYLOAD;
         if (ch + 1u > m->max_channel) m->max_channel = ch + 1u;
     }
-    if (!c->err && lump_hist_samples(m) > (double)TB_MAX_WINDOW) c->err = TB_E_DIMS;
+    if (!c->err && lump_hist_samples(m) > (tb_real)TB_MAX_WINDOW) c->err = TB_E_DIMS;
 }
 
 static void carve(const tb_model *m, tbi_arena *a, void **ks)
@@ -106,7 +106,7 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
     uint32_t ns = d[0] + d[3], gcap = lump_grid_cap(m), rcap = (uint32_t)lump_hist_samples(m);
     lump_t *L = (lump_t *)tbi_carve(a, sizeof(lump_t));
     tb_real *g = (tb_real *)tbi_carve(a, sizeof(tb_real) * gcap * ns);
-    double *rt = (double *)tbi_carve(a, sizeof(double) * (rcap ? rcap : 1u));
+    tb_real *rt = (tb_real *)tbi_carve(a, sizeof(tb_real) * (rcap ? rcap : 1u));
     tb_real *rv = (tb_real *)tbi_carve(a, sizeof(tb_real) * (rcap ? rcap : 1u));
     if (a->p && !a->err) {
         memset(L, 0, sizeof *L);
@@ -128,7 +128,7 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
  * interpolates the grid states linearly in time and adds the unlagged sensor terms at its time. */
 typedef struct {
     uint32_t n, A, K, amb;
-    double h;
+    tb_real h;
     tb_real u_ref, p, a_amb;
     tb_real ad[TB_MAX_LUMPED_NODES * (TB_MAX_LUMPED_NODES + 1u) / 2u], bd[TB_MAX_LUMPED_NODES];
 } lump_par_t;
@@ -150,7 +150,7 @@ static void lump_params(const tb_model *m, lump_par_t *c)
 }
 
 /* the operating input of a sample (the core has made sure its channel is there) */
-static double op_input(const tb_model *m, const tb_sample *s)
+static tb_real op_input(const tb_model *m, const tb_sample *s)
 {
     uint32_t b = m->off[O_BODY];
     switch ((uint32_t)PV(m, b)) {
@@ -166,14 +166,14 @@ static double op_input(const tb_model *m, const tb_sample *s)
 static int check(const tb_model *m, const void *ks, const tb_sample *s)
 {
     uint32_t b = m->off[O_BODY];
-    double u = op_input(m, s);
-    double u_ref = (double)PV(m, b + 5u) + (double)PV(m, b + 6u);
-    double p = (double)PV(m, b + 7u) + (double)PV(m, b + 8u), q;
+    tb_real u = op_input(m, s);
+    tb_real u_ref = PR(m, b + 5u);
+    tb_real p = PR(m, b + 7u), q;
     (void)ks;
-    if (!isfinite(u) || fabs(u) > TB_MAX_OPERATING) return TB_E_INPUT;
-    if (u < 0 && (PV(m, b + 2u) != 0 || p != floor(p))) return TB_E_INPUT;
-    q = pow(u / u_ref, p);
-    if (!isfinite(q) || fabs(q) > TB_MAX_HEAT) return TB_E_INPUT;
+    if (!isfinite(u) || tbm_fabs(u) > TB_MAX_OPERATING) return TB_E_INPUT;
+    if (u < 0 && (PV(m, b + 2u) != 0 || p != tbm_floor(p))) return TB_E_INPUT;
+    q = tbm_pow(u / u_ref, p);
+    if (!isfinite(q) || tbm_fabs(q) > TB_MAX_HEAT) return TB_E_INPUT;
     return TB_OK;
 }
 
@@ -193,20 +193,20 @@ static void lump_advance(const lump_par_t *c, const tb_real *x, tb_real q, tb_re
 #define LU_SLOT(L, j) ((L)->g + (size_t)((j) % (L)->g_cap) * (L)->ns)
 
 /* the held last sample integrated up to t, closing every interval that ends at or before t */
-static void lump_integrate(const lump_par_t *c, lump_t *L, double t)
+static void lump_integrate(const lump_par_t *c, lump_t *L, tb_real t)
 {
     for (;;) {
-        double edge = L->t0 + (double)(L->k + 1u) * c->h;
+        tb_real edge = L->t0 + (tb_real)(L->k + 1u) * c->h;
         if (t < edge) break;
-        L->acc_q += L->last_q * (tb_real)(edge - L->acc_t);
-        L->acc_a += L->last_a * (tb_real)(edge - L->acc_t);
-        lump_advance(c, LU_SLOT(L, L->k), L->acc_q / (tb_real)c->h, L->acc_a / (tb_real)c->h, LU_SLOT(L, L->k + 1u));
+        L->acc_q += L->last_q * (edge - L->acc_t);
+        L->acc_a += L->last_a * (edge - L->acc_t);
+        lump_advance(c, LU_SLOT(L, L->k), L->acc_q / c->h, L->acc_a / c->h, LU_SLOT(L, L->k + 1u));
         L->k++;
         L->acc_q = L->acc_a = 0;
         L->acc_t = edge;
     }
-    L->acc_q += L->last_q * (tb_real)(t - L->acc_t);
-    L->acc_a += L->last_a * (tb_real)(t - L->acc_t);
+    L->acc_q += L->last_q * (t - L->acc_t);
+    L->acc_a += L->last_a * (t - L->acc_t);
     L->acc_t = t;
 }
 
@@ -226,7 +226,7 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     } else {
         lump_integrate(&c, L, mo->t_s);
     }
-    L->last_q = (tb_real)pow((double)((tb_real)mo->op_u / c.u_ref), (double)c.p);
+    L->last_q = tbm_pow(mo->op_u / c.u_ref, c.p);
     L->last_a = c.A ? dT[c.amb] : 0;
     if (L->r_cap) {
         L->r_t[L->r_head] = mo->t_s;
@@ -241,23 +241,23 @@ static void finish(const tb_model *m, void *ks)
     lump_t *L = (lump_t *)ks;
     /* thermbench simulates ceil(span / step) whole intervals (at least one), the last value held */
     lump_par_t c;
-    uint64_t total;
+    tbi_count total;
     if (!L->started) return;
     lump_params(m, &c);
     total = tbi_steps_ceil((L->acc_t - L->t0) / c.h);
-    if (L->k < total) lump_integrate(&c, L, L->t0 + (double)total * c.h);
+    if (L->k < total) lump_integrate(&c, L, L->t0 + (tb_real)total * c.h);
 }
 
 /* grid state k + ahead (ahead >= 1), before the samples that decide it: the current interval
  * completed with the last sample held, the later ones held throughout (exact once the log ended) */
-static void lump_ahead(const lump_par_t *c, const lump_t *L, uint64_t ahead, tb_real *out)
+static void lump_ahead(const lump_par_t *c, const lump_t *L, tbi_count ahead, tb_real *out)
 {
     tb_real x[TB_MAX_LUMPED_NODES + 1u];
-    double edge = L->t0 + (double)(L->k + 1u) * c->h;
-    uint64_t i;
+    tb_real edge = L->t0 + (tb_real)(L->k + 1u) * c->h;
+    tbi_count i;
     uint32_t j;
-    tb_real q = (L->acc_q + L->last_q * (tb_real)(edge - L->acc_t)) / (tb_real)c->h;
-    tb_real ra = (L->acc_a + L->last_a * (tb_real)(edge - L->acc_t)) / (tb_real)c->h;
+    tb_real q = (L->acc_q + L->last_q * (edge - L->acc_t)) / c->h;
+    tb_real ra = (L->acc_a + L->last_a * (edge - L->acc_t)) / c->h;
     lump_advance(c, LU_SLOT(L, L->k), q, ra, out);
     for (i = 1; i < ahead; i++) {
         for (j = 0; j < L->ns; j++) x[j] = out[j];
@@ -266,7 +266,7 @@ static void lump_ahead(const lump_par_t *c, const lump_t *L, uint64_t ahead, tb_
 }
 
 /* the unlagged sensor terms at t, interpolated over the samples (numpy.interp over the log) */
-static int lump_terms_at(const lump_t *L, double t, tb_real *out)
+static int lump_terms_at(const lump_t *L, tb_real t, tb_real *out)
 {
     uint32_t oldest, lo, hi, cap = L->r_cap;
     if (L->r_n == 0) return TB_E_NOTREADY;
@@ -288,28 +288,28 @@ static int lump_terms_at(const lump_t *L, double t, tb_real *out)
         if (L->r_t[LU_R(mid)] <= t) lo = mid;
         else hi = mid;
     }
-    *out = (tb_real)tbi_interp1(t, L->r_t[LU_R(lo)], L->r_t[LU_R(hi)], L->r_v[LU_R(lo)], L->r_v[LU_R(hi)]);
+    *out = tbi_interp1(t, L->r_t[LU_R(lo)], L->r_t[LU_R(hi)], L->r_v[LU_R(lo)], L->r_v[LU_R(hi)]);
 #undef LU_R
     return TB_OK;
 }
 
-static int predict(const tb_model *m, const void *ks, double t, double axis_mm, tb_real *thermal)
+static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
 {
     const lump_t *L = (const lump_t *)ks;
     lump_par_t c;
     tb_real xa[TB_MAX_LUMPED_NODES + 1u], xb[TB_MAX_LUMPED_NODES + 1u], out = 0, terms = 0;
-    double pos;
+    tb_real pos;
     tb_real w;
-    uint64_t kq, oldest;
+    tbi_count kq, oldest;
     uint32_t i, gains = m->off[O_C];
     (void)axis_mm; /* a spindle: the same error at every position (the geometric block aside) */
     if (!L->started) return TB_E_NOTREADY;
     lump_params(m, &c);
     pos = (t - L->t0) / c.h;
     if (pos < 0) pos = 0; /* before the log: at rest (thermbench clips the grid position) */
-    if (pos >= (double)L->k + (double)L->g_cap) return TB_E_NOTREADY;
-    kq = (uint64_t)floor(pos);
-    w = (tb_real)(pos - (double)kq);
+    if (pos >= (tb_real)L->k + (tb_real)L->g_cap) return TB_E_NOTREADY;
+    kq = (tbi_count)tbm_floor(pos);
+    w = pos - (tb_real)kq;
     oldest = L->k + 1u > L->g_cap ? L->k + 1u - L->g_cap : 0;
     if (kq < oldest) return TB_E_LATE;
     if (L->r_cap) {
@@ -327,11 +327,11 @@ static int predict(const tb_model *m, const void *ks, double t, double axis_mm, 
 }
 
 /* the newest grid state: every value up to it is final */
-static double ready_s(const tb_model *m, const void *ks, double *horizon_s)
+static tb_real ready_s(const tb_model *m, const void *ks, tb_real *horizon_s)
 {
     const lump_t *L = (const lump_t *)ks;
     if (horizon_s) *horizon_s = LU_STEP(m) + TB_MAX_GAP_S;
-    return L->started ? L->t0 + (double)L->k * LU_STEP(m) : -1e300;
+    return L->started ? L->t0 + (tb_real)L->k * LU_STEP(m) : TBI_NO_TIME;
 }
 
 const tbi_kind tbi_kind_lumped = {

@@ -38,20 +38,20 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 static tb_real act(uint32_t code, tb_real x)
 {
     switch (code) {
-    case ACT_TANH: return (tb_real)tanh((double)x);
+    case ACT_TANH: return tbm_tanh(x);
     case ACT_RELU: return x > 0 ? x : 0;
-    case ACT_GELU: return (tb_real)(0.5 * (double)x * (1.0 + erf((double)x / sqrt(2.0))));
+    case ACT_GELU: return TB_R(0.5) * x * (1 + tbm_erf(x / TB_R(1.41421356237309504880)));
     case ACT_SILU: return x * tbi_sigm(x);
     default: return tbi_sigm(x);
     }
 }
 
-static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
+static tb_real eval(const tb_model *m, const tb_real *dT, tb_real axis_mm)
 {
     uint32_t S = m->dims[0], L = m->dims[1], body = m->off[O_BODY], l, i, j, width = S + 1, at = m->off[O_B];
     tb_real a[TB_MAX_WIDTH], b[TB_MAX_WIDTH];
     for (j = 0; j < S; j++) a[j] = (dT[j] - PV(m, body + j)) / PV(m, body + S + 1 + j);
-    a[S] = ((tb_real)axis_mm - PV(m, body + S)) / PV(m, body + 2 * S + 1);
+    a[S] = (axis_mm - PV(m, body + S)) / PV(m, body + 2 * S + 1);
     for (l = 0; l < L; l++) {
         uint32_t w = (uint32_t)PV(m, m->off[O_A] + l);
         for (i = 0; i < w; i++) {

@@ -15,10 +15,10 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
     m->off[O_BODY] = tbi_take(c, 1 + (d[1] + 1) * (d[0] + 1));
 }
 
-static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
+static tb_real eval(const tb_model *m, const tb_real *dT, tb_real axis_mm)
 {
     uint32_t S = m->dims[0], D = m->dims[1], body = m->off[O_BODY], i, j;
-    tb_real x = (tb_real)axis_mm - PV(m, body), pw = 1, out = 0;
+    tb_real x = axis_mm - PV(m, body), pw = 1, out = 0;
     for (i = 0; i <= D; i++) {
         uint32_t row = body + 1 + i * (S + 1);
         tb_real c = PV(m, row);

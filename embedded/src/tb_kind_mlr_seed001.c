@@ -15,7 +15,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
     m->off[O_BODY] = tbi_take(c, 1 + d[1] + 2);
 }
 
-static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
+static tb_real eval(const tb_model *m, const tb_real *dT, tb_real axis_mm)
 {
     uint32_t deg = m->dims[1], body = m->off[O_BODY], i;
     tb_real s = 0, pw = 1;
@@ -24,7 +24,7 @@ static tb_real eval(const tb_model *m, const tb_real *dT, double axis_mm)
         s += PV(m, body + i) * pw;
     }
     s += PV(m, body + deg + 1) * dT[1] + PV(m, body + deg + 2);
-    return s * ((tb_real)axis_mm - PV(m, body));
+    return s * (axis_mm - PV(m, body));
 }
 
 const tbi_kind tbi_kind_mlr_seed001 = {

@@ -85,13 +85,13 @@ static int core_ok(const tb_model *m, uint32_t at)
     uint32_t n = m->dims[1];
     tb_real dx = PV(m, at + P_DX), dt = PV(m, at + P_DT);
     return !(!(dx > 0) || !(dt > 0) || PV(m, at + P_NODES) != (tb_real)n || !(PV(m, at + P_PER_STEP) >= 1) ||
-             PV(m, at + P_PER_STEP) != floor(PV(m, at + P_PER_STEP)) || PV(m, at + P_PER_STEP) > 1e6 ||
-             !(PV(m, at + P_MACRO) / PV(m, at + P_PER_STEP) >= (tb_real)1e-3) || PV(m, at + P_MACRO) > 1e5 ||
-             PV(m, at + P_MACRO) < (tb_real)0.1 || (double)n * (double)PV(m, at + P_PER_STEP) > 4e6 ||
-             !(fabs((double)(PV(m, at + P_L) / dx) - (double)n) <= 0.5 + 1e-6 * (double)n ||
-               (n == 2 && (double)(PV(m, at + P_L) / dx) < 2.5)) ||
+             PV(m, at + P_PER_STEP) != tbm_floor(PV(m, at + P_PER_STEP)) || PV(m, at + P_PER_STEP) > TB_R(1e6) ||
+             !(PV(m, at + P_MACRO) / PV(m, at + P_PER_STEP) >= (tb_real)1e-3) || PV(m, at + P_MACRO) > TB_R(1e5) ||
+             PV(m, at + P_MACRO) < (tb_real)0.1 || (tb_real)n * PV(m, at + P_PER_STEP) > TB_R(4e6) ||
+             !(tbm_fabs(PV(m, at + P_L) / dx - (tb_real)n) <= TB_R(0.5) + TB_R(1e-6) * (tb_real)n ||
+               (n == 2 && PV(m, at + P_L) / dx < TB_R(2.5))) ||
              !(PV(m, at + P_NB) >= 0) || PV(m, at + P_NB) > (tb_real)n ||
-             PV(m, at + P_NB) != floor(PV(m, at + P_NB)) || !(PV(m, at + P_NUT_LEN) > 0) ||
+             PV(m, at + P_NB) != tbm_floor(PV(m, at + P_NB)) || !(PV(m, at + P_NUT_LEN) > 0) ||
              !(PV(m, at + P_L) > 0) || !(PV(m, at + P_CAP) > 0) || !(PV(m, at + P_COND) >= 0) ||
              (PV(m, at + P_NB) > 0 && !(PV(m, at + P_BEAR_LEN) > 0)));
 }
@@ -100,8 +100,8 @@ static int core_ok(const tb_model *m, uint32_t at)
 static int v1_ok(const tb_model *m, uint32_t at)
 {
     tb_real mode = PV(m, at + V1_AMB_MODE), k = PV(m, at + V1_FREE_K);
-    return !(mode < 0 || mode != floor(mode) || mode > 2 || (mode == 1) != (m->dims[0] == 1) || !(k >= 0) ||
-             k > (tb_real)m->dims[1] || k != floor(k));
+    return !(mode < 0 || mode != tbm_floor(mode) || mode > 2 || (mode == 1) != (m->dims[0] == 1) || !(k >= 0) ||
+             k > (tb_real)m->dims[1] || k != tbm_floor(k));
 }
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
@@ -144,8 +144,8 @@ static void phys_params(const tb_model *m, uint32_t n, uint32_t per_step, tbi_ph
 {
     q->n = n;
     q->nb = (uint32_t)PP(m, P_NB);
-    q->macro = (double)PP(m, P_MACRO);
-    q->dt = q->macro / (double)per_step; /* as dt_s in Python */
+    q->macro = PP(m, P_MACRO);
+    q->dt = q->macro / (tb_real)per_step; /* as dt_s in Python */
     q->dx = PP(m, P_DX);
     q->half = PP(m, P_NUT_LEN) / 2;
     q->L = PP(m, P_L);
@@ -208,7 +208,7 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
 }
 
 /* ------------------------------------------------------------ update */
-static void phys_snapshot(const tb_model *m, tbi_phys *p, double t_b, tb_real dta_b)
+static void phys_snapshot(const tb_model *m, tbi_phys *p, tb_real t_b, tb_real dta_b)
 {
     uint32_t i, n = p->n, e;
     int s = p->n_snap == 0 ? 0 : 1 - p->snap_cur, any = 0;
@@ -288,7 +288,7 @@ static void phys_macro(const tbi_phys_par *c, tbi_phys *p)
 }
 
 /* the ambient's rise at t: the measured one (an ambient sensor), an effect's, or none */
-static tb_real phys_ambient_rise(const tb_model *m, const tbi_phys *p, double t, tb_real meas_rise)
+static tb_real phys_ambient_rise(const tb_model *m, const tbi_phys *p, tb_real t, tb_real meas_rise)
 {
     if (m->dims[0] == 1) return meas_rise;
     if (p->amb) return p->amb->fx->ambient_rise(p->amb->self, t - p->t0);
@@ -296,7 +296,7 @@ static tb_real phys_ambient_rise(const tb_model *m, const tbi_phys *p, double t,
 }
 
 /* add value x cover to the difference array d (thermbench.sim.kernels._add_cover) */
-static void add_cover(tb_real *d, int64_t lo, int64_t hi, tb_real w_lo, tb_real w_hi, tb_real v)
+static void add_cover(tb_real *d, tbi_int lo, tbi_int hi, tb_real w_lo, tb_real w_hi, tb_real v)
 {
     d[lo] += v;
     d[hi + 1] -= v;
@@ -313,41 +313,41 @@ static void add_cover(tb_real *d, int64_t lo, int64_t hi, tb_real w_lo, tb_real 
  * at most PHYS_RUN within one macro step: their inputs first, then the effects' per-step hooks
  * once per run (the same arithmetic, step by step, as one call per step) */
 #define PHYS_RUN 16u
-static void phys_fine(const tb_model *m, tbi_phys *p, double t_hi, tb_real x1, tb_real f1, tb_real l1, tb_real a1,
-                      uint64_t j_stop)
+static void phys_fine(const tb_model *m, tbi_phys *p, tb_real t_hi, tb_real x1, tb_real f1, tb_real l1, tb_real a1,
+                      tbi_count j_stop)
 {
     tbi_phys_par c;
-    double span = t_hi - p->prev_t;
+    tb_real span = t_hi - p->prev_t;
     tb_real sx, sf, sl, sa;
     tb_real r_axis[PHYS_RUN], r_v[PHYS_RUN], r_load[PHYS_RUN], r_amb[PHYS_RUN], r_qn[PHYS_RUN];
     int measured = m->dims[0] == 1;
     phys_params(m, p->n, p->per_step, &c);
     /* the slopes of numpy.interp between the previous sample and this one, computed once */
-    sx = span > 0 ? (x1 - p->prev_x) / (tb_real)span : 0;
-    sf = span > 0 ? (f1 - p->prev_f) / (tb_real)span : 0;
-    sl = span > 0 ? (l1 - p->prev_load) / (tb_real)span : 0;
-    sa = span > 0 ? (a1 - p->prev_amb) / (tb_real)span : 0;
+    sx = span > 0 ? (x1 - p->prev_x) / span : 0;
+    sf = span > 0 ? (f1 - p->prev_f) / span : 0;
+    sl = span > 0 ? (l1 - p->prev_load) / span : 0;
+    sa = span > 0 ? (a1 - p->prev_amb) / span : 0;
     for (;;) {
         uint32_t r, cnt = 0, e;
         if (p->pending_snap) break; /* the boundary ambient is not known yet */
         while (cnt < PHYS_RUN) { /* the run's inputs */
-            uint64_t j = p->j + cnt;
-            double tf = p->t0 + (double)j * c.dt;
+            tbi_count j = p->j + cnt;
+            tb_real tf = p->t0 + (tb_real)j * c.dt;
             tb_real u, amb;
             if (j >= j_stop || tf > t_hi) break;
             if (tf <= p->prev_t || span <= 0) {
                 u = 0;
             } else {
-                u = (tb_real)(tf - p->prev_t);
+                u = tf - p->prev_t;
             }
             if (tf >= t_hi && span > 0) {
                 r_axis[cnt] = x1;
-                r_v[cnt] = (tb_real)fabs((double)f1);
+                r_v[cnt] = tbm_fabs(f1);
                 r_load[cnt] = l1;
                 amb = a1;
             } else {
                 r_axis[cnt] = p->prev_x + u * sx;
-                r_v[cnt] = (tb_real)fabs((double)(p->prev_f + u * sf));
+                r_v[cnt] = tbm_fabs(p->prev_f + u * sf);
                 r_load[cnt] = p->prev_load + u * sl;
                 amb = p->prev_amb + u * sa;
             }
@@ -379,8 +379,8 @@ static void phys_fine(const tb_model *m, tbi_phys *p, double t_hi, tb_real x1, t
             if (a < (tb_real)c.nb * c.dx) a = (tb_real)c.nb * c.dx;
             if (b > (tb_real)c.n * c.dx) b = (tb_real)c.n * c.dx;
             if (b > a) {
-                int64_t lo = tbi_floor_clamp((double)(a / c.dx), 0, (int64_t)c.n - 1);
-                int64_t hi = tbi_floor_clamp((double)(b / c.dx), 0, (int64_t)c.n - 1);
+                tbi_int lo = tbi_floor_clamp(a / c.dx, 0, (tbi_int)c.n - 1);
+                tbi_int hi = tbi_floor_clamp(b / c.dx, 0, (tbi_int)c.n - 1);
                 tb_real w_lo, w_hi;
                 if (lo == hi) {
                     w_lo = w_hi = (b - a) / c.dx;
@@ -406,9 +406,9 @@ static void phys_fine(const tb_model *m, tbi_phys *p, double t_hi, tb_real x1, t
             p->pending_snap = 1;
         }
         if (p->pending_snap) {
-            double t_b = p->t0 + (double)p->k * c.macro;
+            tb_real t_b = p->t0 + (tb_real)p->k * c.macro;
             if (t_b <= t_hi) {
-                tb_real amb_b = phys_ambient_rise(m, p, t_b, (tb_real)tbi_interp1(t_b, p->prev_t, t_hi, p->prev_amb, a1));
+                tb_real amb_b = phys_ambient_rise(m, p, t_b, tbi_interp1(t_b, p->prev_t, t_hi, p->prev_amb, a1));
                 phys_snapshot(m, p, t_b, amb_b);
                 p->pending_snap = 0;
             }
@@ -424,27 +424,26 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
         p->have_t0 = 1;
         p->t0 = mo->t_s;
         p->prev_t = mo->t_s;
-        p->prev_x = (tb_real)mo->axis_mm;
-        p->prev_f = (tb_real)mo->feed_mm_min;
-        p->prev_load = (tb_real)mo->load_N;
+        p->prev_x = mo->axis_mm;
+        p->prev_f = mo->feed_mm_min;
+        p->prev_load = mo->load_N;
         p->prev_amb = amb;
         phys_snapshot(m, p, mo->t_s, phys_ambient_rise(m, p, mo->t_s, amb)); /* theta = 0 at t0 */
     }
     if (p->pending_snap) { /* the boundary of the last step lies before this sample */
-        double t_b = p->t0 + (double)p->k * (double)PP(m, P_MACRO);
+        tb_real t_b = p->t0 + (tb_real)p->k * PP(m, P_MACRO);
         if (t_b <= mo->t_s) {
             tb_real amb_b = phys_ambient_rise(
-                m, p, t_b, (tb_real)tbi_interp1(t_b, p->prev_t, mo->t_s, p->prev_amb, amb));
+                m, p, t_b, tbi_interp1(t_b, p->prev_t, mo->t_s, p->prev_amb, amb));
             phys_snapshot(m, p, t_b, amb_b);
             p->pending_snap = 0;
         }
     }
-    phys_fine(m, p, mo->t_s, (tb_real)mo->axis_mm, (tb_real)mo->feed_mm_min, (tb_real)mo->load_N, amb,
-              (uint64_t)-1);
+    phys_fine(m, p, mo->t_s, mo->axis_mm, mo->feed_mm_min, mo->load_N, amb, (tbi_count)-1);
     p->prev_t = mo->t_s;
-    p->prev_x = (tb_real)mo->axis_mm;
-    p->prev_f = (tb_real)mo->feed_mm_min;
-    p->prev_load = (tb_real)mo->load_N;
+    p->prev_x = mo->axis_mm;
+    p->prev_f = mo->feed_mm_min;
+    p->prev_load = mo->load_N;
     p->prev_amb = amb;
 }
 
@@ -452,14 +451,14 @@ static void finish(const tb_model *m, void *ks)
 {
     /* thermbench integrates ceil(span / macro) whole steps, the log's last values held */
     tbi_phys *p = (tbi_phys *)ks;
-    double macro = (double)PP(m, P_MACRO);
-    uint64_t j_stop;
+    tb_real macro = PP(m, P_MACRO);
+    tbi_count j_stop;
     if (!p->have_t0) return;
     j_stop = tbi_steps_ceil((p->prev_t - p->t0) / macro) * p->per_step;
     while ((p->j < j_stop && !p->pending_snap) || p->pending_snap) {
-        double t_far = p->t0 + (double)(p->j + 1) * (macro / (double)p->per_step) + macro;
+        tb_real t_far = p->t0 + (tb_real)(p->j + 1) * (macro / (tb_real)p->per_step) + macro;
         if (p->pending_snap) {
-            double t_b = p->t0 + (double)p->k * macro;
+            tb_real t_b = p->t0 + (tb_real)p->k * macro;
             phys_snapshot(m, p, t_b, phys_ambient_rise(m, p, t_b, p->prev_amb));
             p->pending_snap = 0;
             continue;
@@ -470,46 +469,46 @@ static void finish(const tb_model *m, void *ks)
     }
 }
 
-static int predict(const tb_model *m, const void *ks, double t, double axis_mm, tb_real *thermal)
+static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
 {
     const tbi_phys *p = (const tbi_phys *)ks;
     int a, b;
-    double w;
+    tb_real w;
     tb_real pf = PP(m, P_PF), sign = pf <= 0 ? 1 : -1, L = PP(m, P_L), dx = PP(m, P_DX);
     tb_real x, nodes, f, tem, dta, tea, off;
-    int64_t mi;
+    tbi_int mi;
     const tb_real *ua, *ub;
     uint32_t n = p->n;
     if (p->n_snap == 0) return TB_E_NOTREADY;
     b = p->snap_cur;
     a = p->n_snap == 2 ? 1 - b : b;
     if (p->n_snap == 2 && t < p->snap_t[a]) return TB_E_LATE;
-    w = (p->n_snap == 2 && p->snap_t[b] > p->snap_t[a]) ? (t - p->snap_t[a]) / (p->snap_t[b] - p->snap_t[a]) : 1.0;
+    w = (p->n_snap == 2 && p->snap_t[b] > p->snap_t[a]) ? (t - p->snap_t[a]) / (p->snap_t[b] - p->snap_t[a]) : 1;
     if (w < 0) w = 0;
     if (w > 1) w = 1;
-    x = sign * ((tb_real)axis_mm / (tb_real)1000 - pf);
+    x = sign * (axis_mm / (tb_real)1000 - pf);
     if (x < 0) x = 0;
     if (x > L) x = L;
     nodes = x / dx;
-    mi = tbi_floor_clamp((double)nodes, 0, (int64_t)n - 1);
+    mi = tbi_floor_clamp(nodes, 0, (tbi_int)n - 1);
     if (mi < 0) mi = 0;
-    if (mi > (int64_t)n - 1) mi = (int64_t)n - 1;
+    if (mi > (tbi_int)n - 1) mi = (tbi_int)n - 1;
     f = nodes - (tb_real)mi;
     ua = p->snap_u + (size_t)a * (n + 1);
     ub = p->snap_u + (size_t)b * (n + 1);
-    tem = (ua[mi] * (1 - f) + ua[mi + 1] * f) * (tb_real)(1 - w) + (ub[mi] * (1 - f) + ub[mi + 1] * f) * (tb_real)w;
-    dta = p->snap_amb[a] * (tb_real)(1 - w) + p->snap_amb[b] * (tb_real)w;
-    tea = PP(m, P_ALPHA) * dta * (tb_real)axis_mm * (tb_real)1e-3 * (tb_real)1e6;
-    off = p->snap_off[a] * (tb_real)(1 - w) + p->snap_off[b] * (tb_real)w;
+    tem = (ua[mi] * (1 - f) + ua[mi + 1] * f) * (1 - w) + (ub[mi] * (1 - f) + ub[mi + 1] * f) * w;
+    dta = p->snap_amb[a] * (1 - w) + p->snap_amb[b] * w;
+    tea = PP(m, P_ALPHA) * dta * axis_mm * (tb_real)1e-3 * (tb_real)1e6;
+    off = p->snap_off[a] * (1 - w) + p->snap_off[b] * w;
     *thermal = sign * (tem + tea) + off;
     return TB_OK;
 }
 
-static double ready_s(const tb_model *m, const void *ks, double *horizon_s)
+static tb_real ready_s(const tb_model *m, const void *ks, tb_real *horizon_s)
 {
     const tbi_phys *p = (const tbi_phys *)ks;
-    if (horizon_s) *horizon_s = (double)PP(m, P_MACRO) + TB_MAX_GAP_S;
-    return p->n_snap ? p->snap_t[p->snap_cur] : -1e300;
+    if (horizon_s) *horizon_s = PP(m, P_MACRO) + TB_MAX_GAP_S;
+    return p->n_snap ? p->snap_t[p->snap_cur] : TBI_NO_TIME;
 }
 
 const tbi_kind tbi_kind_physics = {

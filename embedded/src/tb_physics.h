@@ -18,7 +18,7 @@
  * by the compiler: the payload is bytes, which may alias the state) */
 typedef struct {
     uint32_t n, nb;    /* slices; fixed-bearing slices */
-    double dt, macro;  /* fine step, macro step (s) */
+    tb_real dt, macro; /* fine step, macro step (s) */
     tb_real dx, half, L, pf, sign, per_node, k1, k2, k3, k4;
     tb_real cap, cond, side, end, bear_len;
 } tbi_phys_par;
@@ -34,15 +34,15 @@ typedef struct {
 typedef struct {
     uint32_t n, per_step;
     int have_t0, pending_snap;
-    double t0, prev_t;
+    tb_real t0, prev_t;
     tb_real prev_x, prev_f, prev_load, prev_amb; /* previous sample (filtered ambient rise) */
-    uint64_t j;        /* next fine step */
-    uint64_t k;        /* macro steps done */
+    tbi_count j; /* next fine step */
+    tbi_count k; /* macro steps done */
     tb_real *theta, *q_nut, *h_cov, *diag, *rhs, *y1, *y2, *cp;
     tb_real h_sum, qb_sum, dta_sum, v_sum; /* sums over the fine steps of the macro step */
     /* snapshots of the compensation table (seed 000 §4.3) at the last two step boundaries */
     int n_snap;
-    double snap_t[2];
+    tb_real snap_t[2];
     tb_real snap_amb[2], snap_off[2];
     tb_real *snap_u; /* 2 x (n + 1) */
     int snap_cur;
@@ -65,7 +65,7 @@ struct tbi_effect {
     void (*init)(void *self, const tb_model *m, uint32_t at, const tbi_phys_par *c);
     /* the ambient's rise tt s after the first sample, when no ambient sensor is read
      * (Effect.ambient_C; the first effect with it is used) */
-    tb_real (*ambient_rise)(const void *self, double tt);
+    tb_real (*ambient_rise)(const void *self, tb_real tt);
     /* per fine step, for a run of count consecutive fine steps of one macro step (in time order):
      * v[i] >= 0 the speed (mm/min), load[i] the axial load (N) */
     void (*nut_heat)(const void *self, const tb_real *v, const tb_real *load, tb_real *qn, uint32_t count);

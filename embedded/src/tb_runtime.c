@@ -81,25 +81,25 @@ uint32_t tbi_take_int(tbi_cur *c, uint32_t lo, uint32_t hi)
     tb_real v;
     if (c->err) return 0;
     v = PV(c->m, at);
-    if (!(v >= (tb_real)lo && v <= (tb_real)hi) || v != floor(v)) {
+    if (!(v >= (tb_real)lo && v <= (tb_real)hi) || v != tbm_floor(v)) {
         c->err = TB_E_PAYLOAD;
         return 0;
     }
     return (uint32_t)v;
 }
 
-/* a float32 (hi, lo) pair: a double-precision value (hi + lo) in [lo, hi] ((lo, hi] if strict_lo) */
-tb_real tbi_take_pair(tbi_cur *c, double lo, double hi, int strict_lo)
+/* a float32 (hi, lo) pair: a double-precision value (hi + lo, rounded to tb_real) in [lo, hi] ((lo, hi] if strict_lo) */
+tb_real tbi_take_pair(tbi_cur *c, tb_real lo, tb_real hi, int strict_lo)
 {
     uint32_t at = tbi_take(c, 2);
-    double v;
+    tb_real v;
     if (c->err) return 0;
-    v = (double)tbi_rd_f32(c->m->payload + 4u * at) + (double)tbi_rd_f32(c->m->payload + 4u * (at + 1u));
+    v = PR(c->m, at);
     if ((strict_lo ? !(v > lo) : !(v >= lo)) || !(v <= hi)) {
         c->err = TB_E_PAYLOAD;
         return 0;
     }
-    return (tb_real)v;
+    return v;
 }
 
 tb_real tbi_take_val(tbi_cur *c, tb_real lo, tb_real hi, int strict_lo)
@@ -142,7 +142,7 @@ void tbi_parse_sensors(tbi_cur *c, tb_model *m, uint32_t S)
                 continue;
             }
             if (type == 1) { /* limit: limit_C > 0, max_hold >= 0 integer (0: none) */
-                if (!(p1 > 0) || !(p2 >= 0) || p2 != floor(p2) || p2 > 1e9) c->err = TB_E_PAYLOAD;
+                if (!(p1 > 0) || !(p2 >= 0) || p2 != tbm_floor(p2) || p2 > TB_R(1e9)) c->err = TB_E_PAYLOAD;
             } else if (type == 2) { /* Kalman: R > 0, Q > 0 */
                 if (!(p1 > 0) || !(p2 > 0)) c->err = TB_E_PAYLOAD;
             } else {
@@ -187,10 +187,10 @@ static tb_real poly_eval(const tb_model *m, uint32_t at, uint32_t n, tb_real u)
 }
 
 /* the geometric block at axis_mm (a model with the block) */
-static inline double geometric_um(const tb_model *m, double axis_mm)
+static inline tb_real geometric_um(const tb_model *m, tb_real axis_mm)
 {
     uint32_t g, gtype, n, extra, base;
-    tb_real out = 0, x = (tb_real)axis_mm;
+    tb_real out = 0, x = axis_mm;
     g = m->off[O_GEOM];
     gtype = (uint32_t)PV(m, g);
     n = (uint32_t)PV(m, g + 1);
@@ -206,19 +206,19 @@ static inline double geometric_um(const tb_model *m, double axis_mm)
                 uint32_t mid = (lo + hi) / 2;
                 if (PV(m, base + mid) <= x) lo = mid; else hi = mid;
             }
-            out = (tb_real)tbi_interp1(x, PV(m, base + lo), PV(m, base + hi), PV(m, base + n + lo),
+            out = tbi_interp1(x, PV(m, base + lo), PV(m, base + hi), PV(m, base + n + lo),
                                    PV(m, base + n + hi));
         }
     }
     base += gtype == 2 ? 2 * n : (gtype == 1 ? n : 0);
     extra = (uint32_t)PV(m, base);
     if (extra) out += poly_eval(m, base + 2, extra, x - PV(m, base + 1));
-    return (double)out;
+    return out;
 }
 
-double tb_model_geometric_um(const tb_model *m, double axis_mm)
+tb_real tb_model_geometric_um(const tb_model *m, tb_real axis_mm)
 {
-    if (!m || !m->payload || !m->off[O_GEOM]) return 0.0; /* no geometric block (the classifier) */
+    if (!m || !m->payload || !m->off[O_GEOM]) return 0; /* no geometric block (the classifier) */
     return geometric_um(m, axis_mm);
 }
 
@@ -253,15 +253,15 @@ struct tbi_common {
     uint32_t S, n_steps; /* channels; filter steps allocated per channel */
     uint32_t n_in;      /* samples received */
     uint32_t started;   /* startup buffer flushed */
-    double period_s;
-    double t_first, t_last; /* first and last accepted sample */
+    tb_real period_s;
+    tb_real t_first, t_last; /* first and last accepted sample */
     tbi_motion buf[NBUF];
     tb_real *buf_T;     /* NBUF x S raw temperatures */
     fstate_t *fs;       /* S x TB_MAX_FILTER_STEPS */
     tb_real *T0;        /* first filtered value per channel */
     /* history of processed samples */
     uint32_t h_n, h_head;
-    double h_t[NHIST];
+    tb_real h_t[NHIST];
     tb_real *h_dT;      /* NHIST x S */
 };
 
@@ -307,13 +307,13 @@ static tb_real fstep_apply(const tb_model *m, uint32_t at, fstate_t *f, tb_real 
             f->prev = z;
             return z;
         }
-        if (fabs((double)(z - f->prev)) <= (double)p1) {
+        if (tbm_fabs(z - f->prev) <= p1) {
             f->prev = z;
             f->run = 0;
             return z;
         }
         if (max_hold > 0) {
-            f->run = (f->run && fabs((double)(z - f->last_rej)) <= (double)p1) ? f->run + 1 : 1;
+            f->run = (f->run && tbm_fabs(z - f->last_rej) <= p1) ? f->run + 1 : 1;
             f->last_rej = z;
             if (f->run > max_hold) {
                 f->prev = z;
@@ -369,8 +369,8 @@ static void chain_batch(const tb_model *m, tbi_common *c, uint32_t j, tb_real *v
                 if (v[i] < lo) lo = v[i];
                 if (v[i] > hi) hi = v[i];
             }
-            double limit = (double)(PV(m, at + 1) + PV(m, at + 2));
-            if (fabs((double)(v[0] - med)) > limit && (double)(hi - lo) <= limit)
+            tb_real limit = PV(m, at + 1) + PV(m, at + 2);
+            if (tbm_fabs(v[0] - med) > limit && hi - lo <= limit)
                 v[0] = med;
         }
         for (i = 0; i < n; i++) v[i] = fstep_apply(m, at, f, v[i]);
@@ -389,7 +389,7 @@ static tb_real chain_one(const tb_model *m, tbi_common *c, uint32_t j, tb_real z
 /* dT of channel j at history slot h */
 #define HDT(c, h, j) ((c)->h_dT[(h) * (c)->S + (j)])
 
-static void hist_push(tbi_common *c, double t, const tb_real *dT)
+static void hist_push(tbi_common *c, tb_real t, const tb_real *dT)
 {
     uint32_t j, h = c->h_head;
     c->h_t[h] = t;
@@ -399,7 +399,7 @@ static void hist_push(tbi_common *c, double t, const tb_real *dT)
 }
 
 /* dT of every channel at t, interpolated in the history (numpy.interp over the log) */
-int tbi_hist_at(const tbi_common *c, double t, tb_real *out)
+int tbi_hist_at(const tbi_common *c, tb_real t, tb_real *out)
 {
     uint32_t j, i, newest, oldest, a, b;
     if (c->h_n == 0) return TB_E_NOTREADY;
@@ -421,7 +421,7 @@ int tbi_hist_at(const tbi_common *c, double t, tb_real *out)
         a = (b + NHIST - 1) % NHIST;
         if (c->h_t[a] <= t) {
             for (j = 0; j < c->S; j++)
-                out[j] = (tb_real)tbi_interp1(t, c->h_t[a], c->h_t[b], HDT(c, a, j), HDT(c, b, j));
+                out[j] = tbi_interp1(t, c->h_t[a], c->h_t[b], HDT(c, a, j), HDT(c, b, j));
             return TB_OK;
         }
         b = a;
@@ -430,7 +430,7 @@ int tbi_hist_at(const tbi_common *c, double t, tb_real *out)
     return TB_OK;
 }
 
-int tbi_common_span(const tbi_common *c, double *t_first, double *t_last)
+int tbi_common_span(const tbi_common *c, tb_real *t_first, tb_real *t_last)
 {
     *t_first = c->t_first;
     *t_last = c->t_last;
@@ -541,7 +541,7 @@ static size_t layout(const tb_model *m, void *arena, size_t bytes, tbi_state **s
     st = (tbi_state *)tbi_carve(&a, sizeof(tbi_state));
     if (ops->pipeline) {
         common_carve(m, &a, &cm, m->n_sensors);
-        if (arena && !a.err) cm->period_s = (double)PV(m, 0);
+        if (arena && !a.err) cm->period_s = PV(m, 0);
     }
     if (ops->carve) ops->carve(m, &a, &ks);
     if (a.err) return 0;
@@ -584,7 +584,7 @@ static int check_sample(const tbi_kind *ops, const tb_model *m, const tb_sample 
     int rc;
     if (st->finished) return TB_E_STATE;
     if (!s || !isfinite(s->t_s) || !isfinite(s->axis_mm) || !isfinite(s->feed_mm_min) || !isfinite(s->load_N) ||
-        fabs(s->axis_mm) > TB_MAX_AXIS_MM || fabs(s->feed_mm_min) > TB_MAX_FEED_MM_MIN || fabs(s->load_N) > TB_MAX_LOAD_N)
+        tbm_fabs(s->axis_mm) > TB_MAX_AXIS_MM || tbm_fabs(s->feed_mm_min) > TB_MAX_FEED_MM_MIN || tbm_fabs(s->load_N) > TB_MAX_LOAD_N)
         return TB_E_INPUT;
     if (m->max_channel > 0 && (!s->temps_C || s->n_temps < m->max_channel)) return TB_E_INPUT;
     if (ops->check && (rc = ops->check(m, st->ks, s)) != TB_OK) return rc;
@@ -594,12 +594,12 @@ static int check_sample(const tbi_kind *ops, const tb_model *m, const tb_sample 
         if (!(s->t_s > c->t_last)) return TB_E_INPUT;
         if (s->t_s - c->t_last > TB_MAX_GAP_S) return TB_E_SAMPLING;
         if (c->period_s > 0) { /* on the period's grid from the first sample (samples may be missing) */
-            double k = floor((s->t_s - c->t_first) / c->period_s + 0.5);
-            if (fabs(s->t_s - (c->t_first + k * c->period_s)) > 1e-3 * c->period_s) return TB_E_SAMPLING;
+            tb_real k = tbm_floor((s->t_s - c->t_first) / c->period_s + TB_R(0.5));
+            if (tbm_fabs(s->t_s - (c->t_first + k * c->period_s)) > TB_R(1e-3) * c->period_s) return TB_E_SAMPLING;
         }
     }
     for (j = 0; j < c->S; j++) {
-        double v = s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
+        tb_real v = s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
         if (!isfinite(v) || v < TB_MIN_TEMP_C || v > TB_MAX_TEMP_C) return TB_E_INPUT;
     }
     return TB_OK;
@@ -627,14 +627,14 @@ int tb_model_step(tb_model *m, const tb_sample *s)
     st = (tbi_state *)m->state;
     if (!ops->pipeline) return ops->step(m, st->ks, s);
     c = st->cm;
-    for (j = 0; j < c->S; j++) raw[j] = (tb_real)s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
+    for (j = 0; j < c->S; j++) raw[j] = s->temps_C[(uint32_t)PV(m, m->off[O_SENS] + j)];
     if (c->n_in == 0) c->t_first = s->t_s;
     c->t_last = s->t_s;
     mo.t_s = s->t_s;
     mo.axis_mm = s->axis_mm;
     mo.feed_mm_min = s->feed_mm_min;
     mo.load_N = s->load_N;
-    mo.op_u = ops->op_input ? ops->op_input(m, s) : 0.0;
+    mo.op_u = ops->op_input ? ops->op_input(m, s) : 0;
     mo.measuring = s->measuring;
     if (!c->started) {
         c->buf[c->n_in] = mo;
@@ -665,28 +665,28 @@ int tb_model_finish(tb_model *m)
 
 /* ------------------------------------------------------------ queries */
 /* tb_model_ready_s, and how far past it a query may lie (the state is held, in real time) */
-static double ready_s(const tbi_kind *ops, const tb_model *m, double *horizon_s)
+static tb_real ready_s(const tbi_kind *ops, const tb_model *m, tb_real *horizon_s)
 {
     const tbi_state *st = (const tbi_state *)m->state;
     const tbi_common *c;
     if (ops->ready_s) return ops->ready_s(m, st->ks, horizon_s);
     if (horizon_s) *horizon_s = TB_MAX_GAP_S;
     c = st->cm;
-    return c->h_n ? c->h_t[(c->h_head + NHIST - 1) % NHIST] : -1e300;
+    return c->h_n ? c->h_t[(c->h_head + NHIST - 1) % NHIST] : TBI_NO_TIME;
 }
 
-double tb_model_ready_s(const tb_model *m)
+tb_real tb_model_ready_s(const tb_model *m)
 {
     const tbi_kind *ops = m && m->state ? tbi_kind_of(m->kind) : 0;
-    return ops ? ready_s(ops, m, 0) : -1e300;
+    return ops ? ready_s(ops, m, 0) : TBI_NO_TIME;
 }
 
-int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *thermal_um, double *total_um)
+int tb_model_predict(const tb_model *m, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um)
 {
     const tbi_kind *ops;
     const tbi_state *st;
     tb_real th = 0;
-    double total, horizon = 0;
+    tb_real total, horizon = 0;
     int rc;
     ops = m && m->state ? tbi_kind_of(m->kind) : 0;
     if (!ops || (!ops->predict && !ops->eval)) return TB_E_STATE; /* the classifier: tb_classifier_label_at */
@@ -701,9 +701,9 @@ int tb_model_predict(const tb_model *m, double t_s, double axis_mm, double *ther
         if (rc == TB_OK) th = ops->eval(m, dT, axis_mm);
     }
     if (rc != TB_OK) return rc;
-    total = (double)th + geometric_um(m, axis_mm);
+    total = th + geometric_um(m, axis_mm);
     if (!isfinite(total)) return TB_E_INPUT; /* only hostile inputs get here */
-    if (thermal_um) *thermal_um = (double)th;
+    if (thermal_um) *thermal_um = th;
     if (total_um) *total_um = total;
     return TB_OK;
 }

@@ -152,19 +152,19 @@ static int next_query(void)
     return have_q = 0;
 }
 
-static double ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
+static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
 static void answer(double upto, int all)
 {
     while (have_q && (all || q_t <= upto)) {
-        double th = 0, tot = 0;
+        tb_real th = 0, tot = 0;
         int32_t lab = -1;
         int rc;
         rt_begin(MARK_PREDICT);
-        if (use_bank) rc = tb_bank_predict(&bank, q_t, q_x, &th, &tot, &lab);
-        else rc = tb_model_predict(&models[0], q_t, q_x, &th, &tot);
+        if (use_bank) rc = tb_bank_predict(&bank, (tb_real)q_t, (tb_real)q_x, &th, &tot, &lab);
+        else rc = tb_model_predict(&models[0], (tb_real)q_t, (tb_real)q_x, &th, &tot);
         rt_end();
-        printf("%.17g %.17g %.17g %.17g %d %d\n", q_t, q_x, th, tot, (int)lab, rc);
+        printf("%.17g %.17g %.17g %.17g %d %d\n", q_t, q_x, (double)th, (double)tot, (int)lab, rc);
         next_query();
     }
 }
@@ -227,14 +227,14 @@ int main(void)
     next_query();
     while (fgets(line, sizeof line, sf)) {
         tb_sample s;
-        double temps[MAX_TEMPS];
+        tb_real temps[MAX_TEMPS];
         if (!tb_parse_sample(line, &s, temps, MAX_TEMPS)) continue;
         rt_begin(MARK_STEP);
         rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
         rt_end();
         if (rc != TB_OK) {
             printf("END %d %lu %lu sample t=%.17g %s\n", rc, (unsigned long)rt_stack_max,
-                   (unsigned long)arena_used, s.t_s, tb_strerror(rc));
+                   (unsigned long)arena_used, (double)s.t_s, tb_strerror(rc));
             return 0;
         }
         answer(ready(), 0);

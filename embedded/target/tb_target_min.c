@@ -22,13 +22,13 @@ extern const uint32_t tb_file_bytes[];
 
 static uint64_t arena[(TB_ARENA_BYTES + 7) / 8];
 static tb_model model;
-volatile double tb_min_out; /* kept: the prediction is used */
+volatile tb_real tb_min_out; /* kept: the prediction is used */
 
 int main(void)
 {
-    double temps[TB_MAX_SENSORS];
+    tb_real temps[TB_MAX_SENSORS];
     tb_sample s;
-    double th = 0, tot = 0;
+    tb_real th = 0, tot = 0;
     int rc, i;
     rc = tb_model_open(&model, tb_files[0], tb_file_bytes[0]);
     if (rc != TB_OK) return 1;

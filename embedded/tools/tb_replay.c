@@ -79,17 +79,17 @@ static tb_bank bank;
 static int use_bank, lenient;
 static unsigned long rejected;
 
-static double ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
+static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
 static void answer(double upto, int all)
 {
     while (q_done < n_q && (all || queries[q_done].t <= upto)) {
-        double th = 0, tot = 0;
+        tb_real th = 0, tot = 0;
         int32_t lab = -1;
         int rc;
-        if (use_bank) rc = tb_bank_predict(&bank, queries[q_done].t, queries[q_done].x, &th, &tot, &lab);
-        else rc = tb_model_predict(&models[0], queries[q_done].t, queries[q_done].x, &th, &tot);
-        printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, th, tot, (int)lab, rc);
+        if (use_bank) rc = tb_bank_predict(&bank, (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot, &lab);
+        else rc = tb_model_predict(&models[0], (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot);
+        printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
         q_done++;
     }
 }
@@ -168,7 +168,7 @@ int main(int argc, char **argv)
         }
         for (p = lines_buf; p < lines_buf + used; p += strlen(p) + 1) {
             tb_sample s;
-            double temps[MAX_TEMPS];
+            tb_real temps[MAX_TEMPS];
             if (!tb_parse_sample(p, &s, temps, MAX_TEMPS)) continue;
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
             if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
@@ -176,7 +176,7 @@ int main(int argc, char **argv)
                 continue;
             }
             if (rc != TB_OK) {
-                fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", s.t_s, rc, tb_strerror(rc));
+                fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", (double)s.t_s, rc, tb_strerror(rc));
                 return 8;
             }
             answer(ready(), 0);

@@ -13,20 +13,20 @@
 
 /* Parse an 'S' line into s (temperatures into temps, at most max_temps); 0 when line is not a
    sample. s->temps_C points at temps. */
-static int tb_parse_sample(const char *line, tb_sample *s, double *temps, int max_temps)
+static int tb_parse_sample(const char *line, tb_sample *s, tb_real *temps, int max_temps)
 {
     char *q = (char *)line + 1, *end;
     int n = 0;
     if (line[0] != 'S') return 0;
-    s->t_s = strtod(q, &end); q = end;
-    s->axis_mm = strtod(q, &end); q = end;
-    s->feed_mm_min = strtod(q, &end); q = end;
-    s->load_N = strtod(q, &end); q = end;
+    s->t_s = (tb_real)strtod(q, &end); q = end;
+    s->axis_mm = (tb_real)strtod(q, &end); q = end;
+    s->feed_mm_min = (tb_real)strtod(q, &end); q = end;
+    s->load_N = (tb_real)strtod(q, &end); q = end;
     s->measuring = (int)strtol(q, &end, 10); q = end;
     for (;;) {
         double v = strtod(q, &end);
         if (end == q || n == max_temps) break;
-        temps[n++] = v;
+        temps[n++] = (tb_real)v;
         q = end;
     }
     s->temps_C = temps;

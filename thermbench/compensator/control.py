@@ -353,7 +353,7 @@ class CycleLogic:
 
     def _predict(self, c: Cycle, t: float) -> Cycle:
         ready = self.model.ready_s
-        if not ready > -1e299:  # the runtime says -1e300 (or NaN) before its first state
+        if not ready > -1e29:  # the runtime says -1e30 (or NaN) before its first state
             return self._held_from(c, Flags.NOT_READY)
         x = c.inputs["axis_mm"]
         rc, _, total, label = self.model.predict(ready, x)

@@ -45,14 +45,18 @@ FORMAT = "thermbench-export/1"
 @dataclass
 class ExportOptions:
     """What to write besides the model file. ``lssvm_reduced_size``: also write a reduced-set
-    LSSVM with that many centres; ``verify``: run the C runtime on the dataset's held-out
-    runs and fail above ``parity_tol_um``; ``onnx``: ONNX for the neural families."""
+    LSSVM with that many centres; ``verify``: run the C runtime (double and single precision) on
+    the dataset's held-out runs and fail when the build of ``precision`` differs from Python by
+    more than ``parity_tol_um``; ``onnx``: ONNX for the neural families."""
 
     lssvm_reduced_size: int | None = None
     seed: int = 0
     onnx: bool = True
     verify: bool = True
     parity_tol_um: float = 0.01
+    #: the C runtime build the export is for: "double", or "float" (``-DTB_SINGLE``, a single-precision
+    #: FPU such as the Cortex-M4F): the verification then holds that build to ``parity_tol_um``
+    precision: str = "double"
 
 
 # ----------------------------------------------------------------- inputs ---
@@ -321,6 +325,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
             if opts.onnx and isinstance(model, (MLPModel, GRUModel)):
                 man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
         man["needs_load"] = any(e.needs_load for e in encs.values())
+        man["precision"] = opts.precision  # the C runtime build the export is for (verified when verify is on)
         man["sample_period_s"] = period
         man["sample_period_from"] = period_note
         man["temperatures"] = temps
@@ -347,7 +352,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         if opts.verify and ds is not None:
             # parity on held-out runs; when every run trained the model, on those (parity, not accuracy)
             runs = heldout or list(model.train_runs_)
-            man["parity"] = _verify(tmp, man, models_py, ds, runs, opts.parity_tol_um, name)
+            man["parity"] = _verify(tmp, man, models_py, ds, runs, opts.parity_tol_um, name, opts.precision)
             man["parity"]["runs_are_training_runs"] = not heldout
         (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
@@ -398,27 +403,50 @@ def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: 
     return out
 
 
-def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str) -> dict:
-    """C runtime vs the Python model at every reading of ``runs`` (parity), per file variant."""
-    out: dict[str, Any] = {"runs": list(runs), "tolerance_um": tol_um}
-    exe = runtime.build("tb_replay")
+#: the C runtime in single precision (tb_runtime.h), as the Cortex-M4F target builds it
+SINGLE_FLAGS = ("-DTB_SINGLE",)
+
+
+def _float_hint(model) -> str:
+    """Why single precision may not be enough for ``model``, and what to do instead."""
+    from ..models.lssvm import PSOLSSVM
+
+    lssvms = [model] if isinstance(model, PSOLSSVM) else [m for m in getattr(model, "models_", {}).values()
+                                                           if isinstance(m, PSOLSSVM)]  # fmt: skip
+    if lssvms:
+        return (": an LSSVM's kernel weights are large and cancel, and float32 keeps 7 digits of each term; "
+                "export the reduced set (export.lssvm_reduced_size) or another family for a float target, "
+                "or build the runtime in double")  # fmt: skip
+    return ": build the runtime in double for this model (export.precision=double)"
+
+
+def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str,
+            precision: str = "double") -> dict:  # fmt: skip
+    """C runtime vs the Python model at every reading of ``runs`` (parity), per file variant, in
+    double and in single precision (``-DTB_SINGLE``); the build of ``precision`` must be within ``tol_um``."""
+    out: dict[str, Any] = {"runs": list(runs), "tolerance_um": tol_um, "precision": precision}
+    exes = {"double": runtime.build("tb_replay"), "float": runtime.build("tb_replay", SINGLE_FLAGS)}
     for variant, model in models_py.items():
-        worst, n, err_c, err_py = 0.0, 0, [], []
+        worst, n, err_c, err_py = {"double": 0.0, "float": 0.0}, 0, [], []
         for run in runs:
             q = readings_queries(ds, run)
-            c = replay_dir(tmp, ds, run, q, "model" if variant == "bank" else variant, exe=exe, manifest=man)
             py = python_predictions(model, ds, run, q)
-            worst = max(worst, float(np.max(np.abs(c["total_um"].to_numpy() - py))))
+            for prec, exe in exes.items():
+                c = replay_dir(tmp, ds, run, q, "model" if variant == "bank" else variant, exe=exe, manifest=man)
+                worst[prec] = max(worst[prec], float(np.max(np.abs(c["total_um"].to_numpy() - py))))
+                if prec == precision:
+                    err_c.append(q["error_um"].to_numpy() - c["total_um"].to_numpy())
             n += len(q)
-            err_c.append(q["error_um"].to_numpy() - c["total_um"].to_numpy())
             err_py.append(q["error_um"].to_numpy() - py)
         key = "model" if variant == "bank" else variant
-        out[key] = {"max_abs_diff_um": worst, "n_readings": n,
+        out[key] = {"max_abs_diff_um": worst["double"], "float_max_abs_diff_um": worst["float"], "n_readings": n,
                     "heldout_rmse_um_c": float(np.sqrt(np.mean(np.concatenate(err_c) ** 2))),
                     "heldout_rmse_um_python": float(np.sqrt(np.mean(np.concatenate(err_py) ** 2)))}  # fmt: skip
-        if worst > tol_um:
-            raise ExportError(f"{name} ({variant}): the C runtime differs from the Python model by {worst:.4g} um on "
-                              f"held-out runs {list(runs)}, above parity_tol_um={tol_um}")  # fmt: skip
+        if worst[precision] > tol_um:
+            build = "" if precision == "double" else " in single precision (-DTB_SINGLE)"
+            raise ExportError(f"{name} ({variant}): the C runtime{build} differs from the Python model by "
+                              f"{worst[precision]:.4g} um on held-out runs {list(runs)}, above parity_tol_um={tol_um}"
+                              f"{_float_hint(model) if precision == 'float' else ''}")  # fmt: skip
     if "reduced" in out:
         out["reduced_cost_um"] = out["reduced"]["heldout_rmse_um_python"] - out["model"]["heldout_rmse_um_python"]
     return out

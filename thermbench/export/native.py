@@ -204,7 +204,7 @@ class LiveModel:
 
     @property
     def ready_s(self) -> float:
-        """The time up to which the runtime's values are final (-1e300 before the first ones)."""
+        """The time up to which the runtime's values are final (-1e30 before the first ones)."""
         if self.is_bank:
             return self._lib.tb_bank_ready_s(ctypes.byref(self._bank))
         return self._lib.tb_model_ready_s(ctypes.byref(self._models[0]))

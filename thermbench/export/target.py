@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -31,7 +32,7 @@ QEMU = "qemu-system-arm"
 PACKAGES = "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
 CPU_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16")
 CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2", "-ffunction-sections", "-fdata-sections")
-PRECISIONS = {"double": (), "float": ("-DTB_REAL=float",)}
+PRECISIONS = {"double": (), "float": ("-DTB_SINGLE", "-Wdouble-promotion")}  # single: no double arithmetic (tb_runtime.h)
 
 
 def toolchain() -> tuple[str, str]:
@@ -207,6 +208,55 @@ def stack_frames(precision: str = "double") -> dict[str, int]:
             where, size, _ = ln.rsplit("\t", 2)
             out[f"{Path(where.split(':')[0]).name}:{where.rsplit(':', 1)[1]}"] = int(size)
     return out
+
+
+#: libgcc's software double-precision and 64-bit routines (the Cortex-M4F's FPU is single only) and
+#: newlib's double-precision <math.h>: none may be reachable from the runtime in single precision
+SOFT_ROUTINE = re.compile(r"^(__aeabi_(d\w+|[a-z]*2d|f2d|[lu]*l2f|f2u?lz|u?ldivmod|lmul)|__(add|sub|mul|div)df3|"
+                          r"__(eq|ne|lt|le|gt|ge|un|cmp)df2|__extendsfdf2|__truncdfsf2|__fix\w*df\w*|__float\w*df|__u?(divmod|div|mod)di[34]|"
+                          r"__ieee754_(?!\w*f$)\w+|(exp|expm1|log|log1p|pow|sqrt|sin|cos|tan|tanh|sinh|cosh|erf|erfc|"
+                          r"floor|ceil|fabs|fmod|round|trunc|ldexp|frexp|scalbn|modf|copysign)(_r)?)$")
+
+
+def reached_routines(fw: Firmware) -> dict[str, list[str]]:
+    """Every function outside the runtime that the runtime's code can reach in ``fw`` (direct calls
+    and tail branches, followed through the libraries; the runtime's own indirect calls go to
+    runtime functions, all of which are roots): routine name -> the runtime functions that reach
+    it. From the image's disassembly and its link map (which input object each function came from)."""
+    own = {}  # address -> name of a function compiled from embedded/src
+    for m in re.finditer(r"^ \.text\.(\S+)\s+0x([0-9a-f]+)\s+0x[0-9a-f]+ (\S+)$",
+                         (fw.elf.parent / "firmware.map").read_text(), re.M):  # fmt: skip
+        if Path(m.group(3)).stem in {Path(s).stem for s in runtime_sources()}:
+            own[int(m.group(2), 16)] = m.group(1)
+    dis = _run(["arm-none-eabi-objdump", "-d", "--no-show-raw-insn", fw.elf], "arm-none-eabi-objdump")
+    names, calls, cur = {}, {}, None
+    for ln in dis.splitlines():
+        head = re.match(r"^([0-9a-f]+) <([^>]+)>:$", ln)
+        if head:
+            cur = int(head.group(1), 16)
+            names[cur] = head.group(2)
+            calls[cur] = set()
+            continue
+        br = re.search(r"\s(?:bl|b|b\.n|b\.w|blx)(?:\.w)?\s+([0-9a-f]+) <([^>+]+)>$", ln)
+        if br and cur is not None and int(br.group(1), 16) != cur:
+            calls[cur].add(int(br.group(1), 16))
+    out: dict[str, list[str]] = {}
+    for root in own:
+        seen, todo = {root}, [root]
+        while todo:
+            for nxt in calls.get(todo.pop(), ()):
+                if nxt not in seen and nxt not in own:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        for a in seen - {root}:
+            out.setdefault(names.get(a, hex(a)), []).append(own[root])
+    return {k: sorted(set(v)) for k, v in sorted(out.items())}
+
+
+def soft_routines(fw: Firmware) -> dict[str, list[str]]:
+    """The software double-precision and 64-bit routines (:data:`SOFT_ROUTINE`) the runtime in ``fw``
+    reaches, each with the runtime functions that reach it; empty for a single-precision build."""
+    return {k: v for k, v in reached_routines(fw).items() if SOFT_ROUTINE.match(k)}
 
 
 def _models_asm(files: Sequence[Path], offset: int) -> str:
