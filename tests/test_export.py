@@ -242,6 +242,45 @@ def test_reduced_set_lssvm_is_smaller_and_reports_its_cost(exported, ds):
     assert abs((res[1] - res[0]) - par["reduced_cost_um"]) < 1e-3
 
 
+def test_an_export_for_the_cortex_m4f_holds_the_float_build_to_the_tolerance(exported, ds, tmp_path):
+    """export.target=cortex-m4f: the single-precision runtime (-DTB_SINGLE) is verified against
+    Python. A well-conditioned MLR passes and says so. An LSSVM with a large penalty and a wide
+    kernel (cond(K) large: weights of thousands that cancel to micrometres) is within 0.01 µm
+    in double but not in float32 (7 digits per term): that export is refused, with the reason
+    and what to do, and nothing is left in its directory; for the host it is exported."""
+    from thermbench.export import ExportError
+    from thermbench.models.lssvm import PSOLSSVM
+
+    mlr, _, _ = exported["mlr_seed002"]
+    man = export_model(mlr, tmp_path / "mlr", "mlr", ds, HELDOUT, options=ExportOptions(target="cortex-m4f"))
+    assert man["target"]["name"] == "cortex-m4f" and man["parity"]["precision"] == "float"
+    assert man["parity"]["model"]["float_max_abs_diff_um"] <= TOL_UM
+    assert 0 < man["target"]["footprint"]["arena_bytes"] <= 16 * 1024
+    ill = PSOLSSVM(gamma=1e4, sigma2=5.0, max_samples=400).fit(ds, TRAIN)
+    host = export_model(ill, tmp_path / "host", "ill", ds, HELDOUT, options=ExportOptions())
+    assert host["parity"]["model"]["max_abs_diff_um"] <= TOL_UM < host["parity"]["model"]["float_max_abs_diff_um"]
+    with pytest.raises(ExportError, match=r"ill \(model\): the C runtime in single precision \(-DTB_SINGLE\) differs .*"
+                                          r"kernel weights are large and cancel.*reduced set"):  # fmt: skip
+        export_model(ill, tmp_path / "m4", "ill", ds, HELDOUT, options=ExportOptions(target="cortex-m4f"))
+    assert not (tmp_path / "m4").exists()
+
+
+def test_an_export_whose_state_does_not_fit_the_cortex_m4f_is_refused(ds, tmp_path):
+    """A GRU's state is its dT history over window_s at the sample period: 2 sensors × 3604
+    samples × 4 B = 28.8 KB for a one-hour window at 1 Hz, over the target's 16 KB: refused for
+    the Cortex-M4F (naming the arena and the way out), exported for the host."""
+    from thermbench.export import ExportError
+    from thermbench.models.neural import GRUModel
+
+    gru = GRUModel(hidden_size=2, window_s=3600.0, step_s=600.0, max_epochs=2, min_epochs=1).fit(ds, TRAIN)
+    with pytest.raises(ExportError, match=r"gru: does not fit the cortex-m4f target: \d+ B of state arena, above "
+                                          r"the target's 16384 B \(its state arena\).*shorter window_s"):  # fmt: skip
+        export_model(gru, tmp_path / "m4", "gru", ds, HELDOUT, options=ExportOptions(target="cortex-m4f", onnx=False))
+    assert not (tmp_path / "m4").exists()
+    man = export_model(gru, tmp_path / "host", "gru", ds, HELDOUT, options=ExportOptions(onnx=False, verify=False))
+    assert man["footprint"]["ram_bytes"] > 2 * 3604 * 4
+
+
 def test_manifest_lists_inputs_units_preprocessing_and_training(exported, ds):
     _, model_dir, man = exported["mlr_seed002"]
     disk = read_manifest(model_dir)

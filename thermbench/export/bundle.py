@@ -42,21 +42,34 @@ MANIFEST = "manifest.json"
 FORMAT = "thermbench-export/1"
 
 
+#: the compensators an export is for: the C runtime's precision there, and the budget it is refused
+#: beyond (None: reported in the manifest's footprint only). cortex-m4f: seed 002's STM32F407
+#: (Cortex-M4F, single-precision FPU, 1 MB flash, 128 KB main SRAM), thermbench.export.target
+TARGETS = {
+    "host": {"precision": "double", "budget": None},
+    "cortex-m4f": {"precision": "float", "budget": {"ram_bytes": 16 * 1024, "file_bytes": 64 * 1024}},
+}
+
+
 @dataclass
 class ExportOptions:
     """What to write besides the model file. ``lssvm_reduced_size``: also write a reduced-set
     LSSVM with that many centres; ``verify``: run the C runtime (double and single precision) on
-    the dataset's held-out runs and fail when the build of ``precision`` differs from Python by
-    more than ``parity_tol_um``; ``onnx``: ONNX for the neural families."""
+    the dataset's held-out runs and fail when the build ``target`` runs differs from Python by
+    more than ``parity_tol_um``; ``onnx``: ONNX for the neural families; ``target``: the
+    compensator the files are for (:data:`TARGETS`)."""
 
     lssvm_reduced_size: int | None = None
     seed: int = 0
     onnx: bool = True
     verify: bool = True
     parity_tol_um: float = 0.01
-    #: the C runtime build the export is for: "double", or "float" (``-DTB_SINGLE``, a single-precision
-    #: FPU such as the Cortex-M4F): the verification then holds that build to ``parity_tol_um``
-    precision: str = "double"
+    target: str = "host"
+
+    @property
+    def precision(self) -> str:
+        """The C runtime build of the target: "double", or "float" (``-DTB_SINGLE``)."""
+        return TARGETS[self.target]["precision"]
 
 
 # ----------------------------------------------------------------- inputs ---
@@ -325,7 +338,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
             if opts.onnx and isinstance(model, (MLPModel, GRUModel)):
                 man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
         man["needs_load"] = any(e.needs_load for e in encs.values())
-        man["precision"] = opts.precision  # the C runtime build the export is for (verified when verify is on)
+        man["target"] = {"name": opts.target, **TARGETS[opts.target]}  # what the export is for (checked below)
         man["sample_period_s"] = period
         man["sample_period_from"] = period_note
         man["temperatures"] = temps
@@ -349,6 +362,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
         man["footprint"] = footprint(tmp, man)
+        if TARGETS[opts.target]["budget"]:
+            man["target"]["footprint"] = _check_target(tmp, man, opts.target, name)
         if opts.verify and ds is not None:
             # parity on held-out runs; when every run trained the model, on those (parity, not accuracy)
             runs = heldout or list(model.train_runs_)
@@ -386,6 +401,25 @@ def footprint(model_dir: Path, man: dict) -> dict:
             "within_budget": not over, "over_budget": over}  # fmt: skip
 
 
+def _check_target(model_dir: Path, man: dict, target: str, name: str) -> dict:
+    """The export's files and state arenas in the target's build (the host's 64-bit pointers make
+    the arenas a little larger than on a 32-bit target), refused beyond the target's budget."""
+    budget = TARGETS[target]["budget"]
+    files = ([man["bank"]["classifier"], *[m["file"] for m in man["bank"]["members"]]] if man["kind"] == "bank"
+             else [f["file"] for f in man["files"].values()])  # fmt: skip
+    inf = runtime.info([Path(model_dir) / f for f in files], SINGLE_FLAGS if TARGETS[target]["precision"] == "float" else ())
+    arena = int(inf["state_bytes"].sum()) if man["kind"] == "bank" else int(inf["state_bytes"].max())
+    over = [f"{f}: {b} B file" for f, b in zip(files, inf["file_bytes"]) if b > budget["file_bytes"]]
+    if arena > budget["ram_bytes"]:
+        why = (f"the bank's {len(files) - 1} members each keep their own state ({', '.join(map(str, inf['state_bytes'][1:]))} B)"
+               if man["kind"] == "bank" else f"its state arena")  # fmt: skip
+        over.append(f"{arena} B of state arena, above the target's {budget['ram_bytes']} B ({why})")
+    if over:
+        raise ExportError(f"{name}: does not fit the {target} target: {'; '.join(over)}. Export a smaller model "
+                          f"(a global model instead of a bank, a shorter window_s for a GRU) or for export.target=host")  # fmt: skip
+    return {"arena_bytes": arena, "file_bytes": [int(b) for b in inf["file_bytes"]], "budget": budget}
+
+
 def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: Sequence[str] = ()) -> list[dict]:
     out = [{"name": "t_s", "unit": "s", "what": "time of the process sample (uniform period)"},
            {"name": "axis_mm", "unit": "mm", "what": "axis position"},
@@ -417,7 +451,7 @@ def _float_hint(model) -> str:
         return (": an LSSVM's kernel weights are large and cancel, and float32 keeps 7 digits of each term; "
                 "export the reduced set (export.lssvm_reduced_size) or another family for a float target, "
                 "or build the runtime in double")  # fmt: skip
-    return ": build the runtime in double for this model (export.precision=double)"
+    return ": run this model on a double-precision build (export.target=host)"
 
 
 def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str,

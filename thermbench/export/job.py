@@ -27,11 +27,11 @@ from omegaconf import DictConfig, OmegaConf
 from .. import datasets
 from ..config import ConfigError
 from ..outputs import check_output_dir, output_dir
-from .bundle import ExportOptions, export_model
+from .bundle import TARGETS, ExportOptions, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",
-        "verify", "parity_tol_um", "precision", "seed", "force", "n_jobs"}  # fmt: skip
+        "verify", "parity_tol_um", "target", "seed", "force", "n_jobs"}  # fmt: skip
 
 
 def _options(e: dict) -> ExportOptions:
@@ -47,10 +47,10 @@ def _options(e: dict) -> ExportOptions:
     seed = e.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"config key 'export.seed': expected an integer, got {seed!r}")
-    precision = e.get("precision", "double")
-    if precision not in ("double", "float"):
-        raise ConfigError(f"config key 'export.precision': expected double or float, got {precision!r}")
-    return ExportOptions(size, seed, bool(e.get("onnx", True)), bool(e.get("verify", True)), float(tol), precision)
+    target = e.get("target", "host")
+    if target not in TARGETS:
+        raise ConfigError(f"config key 'export.target': expected one of {sorted(TARGETS)}, got {target!r}")
+    return ExportOptions(size, seed, bool(e.get("onnx", True)), bool(e.get("verify", True)), float(tol), target)
 
 
 def _dataset_names() -> list[str]:

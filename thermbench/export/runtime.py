@@ -145,10 +145,11 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
     return df
 
 
-def info(files: Sequence[Path]) -> pd.DataFrame:
-    """Per file, as the runtime sees it: ``kind``, ``file_bytes``, ``state_bytes`` (the arena its
-    running state needs) and ``model_bytes`` (the ``tb_model`` handle)."""
-    out = run_tool(build("tb_replay"), ["--info", *map(str, files)])
+def info(files: Sequence[Path], extra_flags: Sequence[str] = ()) -> pd.DataFrame:
+    """Per file, as the runtime (built with ``extra_flags``, e.g. ``-DTB_SINGLE``) sees it: ``kind``,
+    ``file_bytes``, ``state_bytes`` (the arena its running state needs) and ``model_bytes`` (the
+    ``tb_model`` handle)."""
+    out = run_tool(build("tb_replay", extra_flags), ["--info", *map(str, files)])
     rows = [ln.split() for ln in out.splitlines() if ln.strip()]
     df = pd.DataFrame(rows, columns=["file", "kind", "file_bytes", "state_bytes", "model_bytes"])
     return df.astype({"kind": int, "file_bytes": int, "state_bytes": int, "model_bytes": int})
