@@ -33,11 +33,11 @@ typedef char tbi_single_is_float_[(sizeof(tb_real) == 4) == (sizeof(tbi_int) == 
 
 /* <math.h> in the runtime's precision: the float functions in TB_SINGLE */
 #ifdef TB_SINGLE
-#define tbm_exp expf
+#define tbm_exp tbi_expf /* below: newlib's expf (fdlibm's, with errno) costs ~100 instructions */
 #define tbm_floor floorf
 #define tbm_ceil ceilf
 #define tbm_fabs fabsf
-#define tbm_tanh tanhf
+#define tbm_tanh tbi_tanhf /* below: one expf, as the sigmoid (newlib's tanhf costs several times more) */
 #define tbm_pow powf
 #define tbm_sin sinf
 #define tbm_erf erff
@@ -53,12 +53,30 @@ typedef char tbi_single_is_float_[(sizeof(tb_real) == 4) == (sizeof(tbi_int) == 
 #endif
 
 /* ------------------------------------------------------------------ utils */
+/* little-endian reads of the model file; on a little-endian machine one load each (the file is on a
+ * 4-byte boundary, tb_model_open checks it, so every value is read aligned) */
+#if defined(__BYTE_ORDER__) && defined(__ORDER_LITTLE_ENDIAN__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+static inline uint32_t tbi_rd_u32(const uint8_t *p)
+{
+    uint32_t u;
+    memcpy(&u, p, sizeof u);
+    return u;
+}
+
+static inline uint16_t tbi_rd_u16(const uint8_t *p)
+{
+    uint16_t u;
+    memcpy(&u, p, sizeof u);
+    return u;
+}
+#else
 static inline uint32_t tbi_rd_u32(const uint8_t *p)
 {
     return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
 }
 
 static inline uint16_t tbi_rd_u16(const uint8_t *p) { return (uint16_t)(p[0] | (p[1] << 8)); }
+#endif
 
 static inline float tbi_rd_f32(const uint8_t *p)
 {
@@ -66,6 +84,33 @@ static inline float tbi_rd_f32(const uint8_t *p)
     float f;
     memcpy(&f, &u, sizeof f);
     return f;
+}
+
+/* float32 values of the payload read in place, as floats (gcc and clang: the type may alias the
+ * file's bytes; the file is on a 4-byte boundary, checked at open): a dot product's weights load
+ * straight into FPU registers. Elsewhere, or on a big-endian machine, through tbi_rd_f32. */
+#if defined(__GNUC__) && defined(__BYTE_ORDER__) && defined(__ORDER_LITTLE_ENDIAN__) && \
+    __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+typedef float __attribute__((__may_alias__)) tbi_f32;
+#define TBI_W(w, j) ((tb_real)((const tbi_f32 *)(const void *)(w))[j])
+#else
+#define TBI_W(w, j) ((tb_real)tbi_rd_f32((w) + 4u * (uint32_t)(j)))
+#endif
+
+/* sum_j w[j] h[j] over n float32 weights w of the payload: four running sums, added at the end
+ * ((s0 + s1) + (s2 + s3)), so the M4 overlaps their loads and multiplies */
+static inline tb_real tbi_dot(const uint8_t *w, const tb_real *h, uint32_t n)
+{
+    tb_real s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+    uint32_t j = 0;
+    for (; j + 4u <= n; j += 4u) {
+        s0 += TBI_W(w, j) * h[j];
+        s1 += TBI_W(w, j + 1u) * h[j + 1u];
+        s2 += TBI_W(w, j + 2u) * h[j + 2u];
+        s3 += TBI_W(w, j + 3u) * h[j + 3u];
+    }
+    for (; j < n; j++) s0 += TBI_W(w, j) * h[j];
+    return (s0 + s1) + (s2 + s3);
 }
 
 /* payload value i of a model (float32 -> tb_real) */
@@ -185,7 +230,34 @@ typedef struct {
 /* the highest payload version of any kind (tbi_kind.max_version) */
 #define TBI_MAX_VERSION 2u
 
+#ifdef TB_SINGLE
+/* e^x in float for the kernels and activations: x = n ln2 + r (n = round(x / ln2), ln2 in two parts
+ * as Cody and Waite, |r| <= ln2 / 2), e^r by its Taylor polynomial of degree 7 (remainder below
+ * 3e-9 relative), 2^n put into the exponent field; below -87.3 the result (< FLT_MIN) is 0, above
+ * 88.7 infinity, NaN stays NaN. Within 2 float32 ulps of e^x, in about 30 instructions. */
+static inline float tbi_expf(float x)
+{
+    union { float f; uint32_t u; } s;
+    float n, r, p;
+    if (!(x < 88.72f)) return x != x ? x : HUGE_VALF;
+    if (x < -87.33f) return 0.0f;
+    n = (float)(int32_t)(x * 1.44269504f + (x >= 0.0f ? 0.5f : -0.5f));
+    if (n > 127.0f) n = 127.0f; /* x in [88.03, 88.72): r up to 0.7, still within ~10 ulps */
+    r = (x - n * 0.693145752f) - n * 1.42860677e-6f;
+    p = 1.0f + r * (1.0f + r * (0.5f + r * (1.66666667e-1f + r * (4.16666667e-2f + r * (8.33333333e-3f +
+        r * (1.38888889e-3f + r * 1.98412698e-4f)))))); /* fmt: the Taylor coefficients 1/k! */
+    s.u = (uint32_t)((int32_t)n + 127) << 23;
+    return p * s.f;
+}
+#endif
+
 static inline tb_real tbi_sigm(tb_real x) { return 1 / (1 + tbm_exp(-x)); }
+
+#ifdef TB_SINGLE
+/* tanh x = 1 - 2 / (1 + e^(2x)): within a few float32 ulps of 1 absolute (what a network's
+ * activations need), saturating cleanly (e^(2x) = inf gives 1, 0 gives -1) */
+static inline float tbi_tanhf(float x) { return 1.0f - 2.0f / (1.0f + tbi_expf(2.0f * x)); }
+#endif
 
 /* "no time yet" (tb_model_ready_s before the first samples) */
 #define TBI_NO_TIME TB_R(-1e30)

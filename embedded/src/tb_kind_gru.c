@@ -128,9 +128,10 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
             uint32_t gate;
             for (gate = 0; gate < 3; gate++) {
                 uint32_t row = gate * H + i;
+                const uint8_t *wi = m->payload + 4u * (m->off[O_A] + row * S), *wh = m->payload + 4u * (m->off[O_B] + row * H);
                 tb_real si = PV(m, m->off[O_C] + row), sh = PV(m, m->off[O_D] + row);
-                for (j = 0; j < S; j++) si += PV(m, m->off[O_A] + row * S + j) * x[j];
-                for (j = 0; j < H; j++) sh += PV(m, m->off[O_B] + row * H + j) * h[j];
+                si += tbi_dot(wi, x, S);
+                sh += tbi_dot(wh, h, H);
                 gi[gate] = si;
                 gh[gate] = sh;
             }
