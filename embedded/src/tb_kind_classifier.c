@@ -11,6 +11,7 @@
 
 typedef struct {
     uint32_t cap, n, head; /* ring of samples: t (float, relative), x, f (<0: not moving) */
+    uint32_t oldest;       /* its oldest slot */
     float *rt, *rx, *rf;
     tb_real t0;
     int have_t0;
@@ -23,6 +24,7 @@ typedef struct {
     uint32_t lab_n, lab_head;
     int32_t held;
     float *scratch;        /* 2 x TB_MAX_FEEDS: distinct feeds of the window and their levels */
+    int8_t *lvl;           /* cap: the feed level of each sample of the window being classified (-1: not moving) */
 } clf_t;
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
@@ -61,8 +63,10 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
     clf_t *k = (clf_t *)tbi_carve(a, sizeof(clf_t));
     size_t cap = (size_t)tbm_ceil(PV(m, m->off[O_BODY]) / PV(m, 0) - TB_R(1e-9)) + 4u; /* the window's samples */
     float *arr = (float *)tbi_carve(a, sizeof(float) * (3u * cap + 2u * TB_MAX_FEEDS));
+    int8_t *lvl = (int8_t *)tbi_carve(a, cap);
     if (a->p && !a->err) {
         memset(k, 0, sizeof *k);
+        k->lvl = lvl;
         k->cap = (uint32_t)cap;
         k->rt = arr;
         k->rx = arr + cap;
@@ -119,14 +123,38 @@ static int32_t clf_predict_one(const tb_model *m, tb_real A, tb_real B, tb_real 
     return arg;
 }
 
+/* the first j with u[j] >= f in the increasing u[0..nu) (nu if none) */
+static uint32_t feed_pos(const float *u, uint32_t nu, float f)
+{
+    uint32_t lo = 0, hi = nu;
+    while (lo < hi) {
+        uint32_t mid = (lo + hi) / 2u;
+        if (u[mid] < f) lo = mid + 1u;
+        else hi = mid;
+    }
+    return lo;
+}
+
 /* ring index i (0 = oldest) */
-#define RI(k, i) (((k)->head + (k)->cap - (k)->n + (i)) % (k)->cap)
+#define RI(k, i) ((k)->oldest + (i) < (k)->cap ? (k)->oldest + (i) : (k)->oldest + (i) - (k)->cap)
+
+/* the first ring position whose time is after T (n if none) */
+static uint32_t clf_first_after(const clf_t *k, tb_real T)
+{
+    uint32_t lo = 0, hi = k->n;
+    while (lo < hi) {
+        uint32_t mid = (lo + hi) / 2u;
+        if (k->t0 + (tb_real)k->rt[RI(k, mid)] <= T) lo = mid + 1u;
+        else hi = mid;
+    }
+    return lo;
+}
 
 /* features of the window (T - window, T] (thermbench.classify.window_features, with the feed
  * levels clustered over the window and its two neighbour samples); returns the raw label or -1 */
 static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
 {
-    uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo = (uint32_t)-1, hi = 0, a, b;
+    uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo, hi, a, b, ri, rp, cap = k->cap;
     tb_real window = PV(m, body), min_moving = PV(m, body + 2), period = k->period;
     float *u = k->scratch, *lev = k->scratch + TB_MAX_FEEDS;
     tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], x0 = 0, x1 = 0, total = 0;
@@ -135,22 +163,19 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
     memset(time_in, 0, sizeof time_in);
     memset(feed_in, 0, sizeof feed_in);
     if (k->n == 0) return -1;
-    for (i = 0; i < k->n; i++) {
-        tb_real t = k->t0 + (tb_real)k->rt[RI(k, i)];
-        if (t > T - window && t <= T) {
-            if (lo == (uint32_t)-1) lo = i;
-            hi = i + 1;
-        }
-    }
-    if (lo == (uint32_t)-1) return -1;
+#define NX(r) ((r) + 1u == cap ? 0u : (r) + 1u) /* the next ring slot */
+    /* the samples in (T - window, T]: [lo, hi) (the ring's times increase) */
+    lo = clf_first_after(k, T - window);
+    hi = clf_first_after(k, T);
+    if (lo >= hi) return -1;
     /* distinct moving feeds of the window and its neighbours, sorted */
     a = lo > 0 ? lo - 1 : lo;
     b = hi < k->n ? hi + 1 : hi;
-    for (i = a; i < b; i++) {
-        float f = k->rf[RI(k, i)];
+    for (i = a, ri = RI(k, a), rp = ri; i < b; i++, rp = ri, ri = NX(ri)) {
+        float f = k->rf[ri];
         uint32_t j, q;
-        if (!(f > 0)) continue;
-        for (j = 0; j < nu && u[j] < f; j++) {}
+        if (!(f > 0) || (i > a && f == k->rf[rp])) continue; /* not moving, or the feed just seen */
+        j = feed_pos(u, nu, f);
         if (j < nu && u[j] == f) continue;
         if (nu == TB_MAX_FEEDS) return -2; /* more distinct feeds than the runtime clusters */
         for (q = nu; q > j; q--) u[q] = u[q - 1];
@@ -168,34 +193,31 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
         }
         nlev++;
     }
+    for (i = a, ri = RI(k, a), rp = ri; i < b; i++, rp = ri, ri = NX(ri)) { /* each sample's level, once */
+        float f = k->rf[ri];
+        k->lvl[i - a] = (int8_t)(!(f > 0) ? -1 : (i > a && f == k->rf[rp]) ? k->lvl[i - a - 1]
+                                                                                  : (int32_t)lev[feed_pos(u, nu, f)]);
+    }
+#define LVL(idx) ((int32_t)k->lvl[(idx) - a])
     for (i = 0; i < nlev; i++) time_in[i] = feed_in[i] = 0;
-    for (i = lo; i < hi; i++) {
-        float f = k->rf[RI(k, i)];
+    for (i = lo, ri = RI(k, lo); i < hi; i++, ri = NX(ri)) {
+        int32_t c = LVL(i);
         tb_real w;
-        int32_t c;
-        if (!(f > 0)) continue;
-        if (i + 1 < k->n) w = (tb_real)k->rt[RI(k, i + 1)] - (tb_real)k->rt[RI(k, i)];
+        if (c < 0) continue; /* not moving */
+        if (i + 1 < k->n) w = (tb_real)k->rt[NX(ri)] - (tb_real)k->rt[ri];
         else w = period;
-        {
-            uint32_t j;
-            for (j = 0; j < nu && u[j] != f; j++) {}
-            c = (int32_t)lev[j];
-        }
         time_in[c] += w;
-        feed_in[c] += w * (tb_real)f;
+        feed_in[c] += w * (tb_real)k->rf[ri];
         total += w;
     }
     for (i = 1; i < nlev; i++)
         if (time_in[i] > time_in[dom]) dom = i;
     if (!(total >= min_moving) || !(time_in[dom] > 0)) return -1;
     /* stroke range at the dominant feed */
-    for (i = lo; i < hi; i++) {
-        float f = k->rf[RI(k, i)];
-        uint32_t j;
-        tb_real x = (tb_real)k->rx[RI(k, i)];
-        if (!(f > 0)) continue;
-        for (j = 0; j < nu && u[j] != f; j++) {}
-        if ((uint32_t)lev[j] != dom) continue;
+    for (i = lo, ri = RI(k, lo); i < hi; i++, ri = NX(ri)) {
+        tb_real x;
+        if (LVL(i) != (int32_t)dom) continue;
+        x = (tb_real)k->rx[ri];
         if (!found) { x0 = x1 = x; found = 1; }
         if (x < x0) x0 = x;
         if (x > x1) x1 = x;
@@ -210,33 +232,25 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
             if (tbm_fabs(x1) > mx) mx = tbm_fabs(x1);
             tol = (tb_real)1e-6 * mx;
         }
-        for (i = lo; i + 1 < hi; i++) {
-            float fa = k->rf[RI(k, i)];
+        for (i = lo, ri = RI(k, lo); i + 1 < hi; i++, ri = NX(ri)) {
+            uint32_t rn = NX(ri);
+            float fa;
             tb_real dt, L, gap;
             tb_real xa, xb, top, bot;
             int t_in, b_in;
-            uint32_t j;
-#define LEVEL(idx, out)                                                                                                \
-    do {                                                                                                               \
-        float ff = k->rf[RI(k, (idx))];                                                                                \
-        out = -1;                                                                                                      \
-        if (ff > 0) {                                                                                                  \
-            for (j = 0; j < nu && u[j] != ff; j++) {}                                                                  \
-            out = j < nu ? (int32_t)lev[j] : -9;                                                                       \
-        }                                                                                                              \
-    } while (0)
-            LEVEL(i, c0);
+            c0 = LVL(i);
             if (c0 != (int32_t)dom) continue;
+            fa = k->rf[ri];
             if (i == 0) continue; /* run start (same[0] is False) or the sample before it left the ring */
-            LEVEL(i - 1, cprev);
-            LEVEL(i + 1, c1n);
-            if (i + 2 < k->n) LEVEL(i + 2, c2);
+            cprev = LVL(i - 1);
+            c1n = LVL(i + 1);
+            if (i + 2 < k->n) c2 = LVL(i + 2);
             else c2 = -100;
             if (!(cprev == c0 && c1n == c0 && c2 == c1n)) continue;
-            dt = (tb_real)k->rt[RI(k, i + 1)] - (tb_real)k->rt[RI(k, i)];
+            dt = (tb_real)k->rt[rn] - (tb_real)k->rt[ri];
             if (!(dt <= TB_R(1.5) * period)) continue;
-            xa = (tb_real)k->rx[RI(k, i)];
-            xb = (tb_real)k->rx[RI(k, i + 1)];
+            xa = (tb_real)k->rx[ri];
+            xb = (tb_real)k->rx[rn];
             L = (tb_real)fa / TB_R(60.0) * dt;
             gap = L - tbm_fabs(xb - xa);
             if (!(gap > TB_R(0.02) * L + TB_R(0.1))) continue;
@@ -250,6 +264,8 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
         x0 = down;
         x1 = up;
     }
+#undef LVL
+#undef NX
     return clf_predict_one(m, x1 - x0, x0 + x1, feed_in[dom] / time_in[dom]);
 }
 
@@ -293,6 +309,7 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
     k->rf[at] = (!s->measuring && s->feed_mm_min > 0) ? (float)s->feed_mm_min : -1.0f;
     k->head = (k->head + 1) % k->cap;
     k->n++;
+    k->oldest = (k->head + k->cap - k->n) % k->cap;
     k->last_t = s->t_s;
     /* grid points before this sample can be classified now (their window and next sample are in) */
     clf_classify_due(m, k, s->t_s, 0);
