@@ -95,7 +95,8 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
     uint32_t S = m->dims[0], H = m->dims[1], D = m->dims[2], K = m->dims[3], j, i, k;
     uint32_t body = m->off[O_BODY];
     tb_real step = PV(m, body), period = PV(m, 0);
-    tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], x[TB_MAX_SENSORS];
+    tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], rr[TB_MAX_GRU_HIDDEN], x[TB_MAX_SENSORS];
+    uint32_t gate;
     tb_real p, out = 0, pw = 1;
     uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
     tb_real t_newest;
@@ -122,23 +123,17 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
             tb_real v = v0 + w * (v1 - v0);
             x[j] = (v - PV(m, body + 1 + j)) / PV(m, body + 1 + S + j);
         }
-        /* PyTorch GRU cell, gates (r, z, n) */
-        for (i = 0; i < H; i++) {
-            tb_real gi[3], gh[3];
-            uint32_t gate;
-            for (gate = 0; gate < 3; gate++) {
-                uint32_t row = gate * H + i;
-                const uint8_t *wi = m->payload + 4u * (m->off[O_A] + row * S), *wh = m->payload + 4u * (m->off[O_B] + row * H);
-                tb_real si = PV(m, m->off[O_C] + row), sh = PV(m, m->off[O_D] + row);
-                si += tbi_dot(wi, x, S);
-                sh += tbi_dot(wh, h, H);
-                gi[gate] = si;
-                gh[gate] = sh;
-            }
-            {
-                tb_real r = tbi_sigm(gi[0] + gh[0]), z = tbi_sigm(gi[1] + gh[1]);
-                tb_real nn = tbm_tanh(gi[2] + r * gh[2]);
-                hn[i] = (1 - z) * nn + z * h[i];
+        /* PyTorch GRU cell, gates (r, z, n), a gate's rows in one pass: r into rr, z into hn, then
+         * hn = (1 - z) n + z h with n = tanh(W_in x + b_in + r (W_hn h + b_hn)) */
+        for (gate = 0; gate < 3; gate++) {
+            const uint8_t *wi = m->payload + 4u * (m->off[O_A] + gate * H * S);
+            const uint8_t *wh = m->payload + 4u * (m->off[O_B] + gate * H * H);
+            const uint8_t *bi = m->payload + 4u * (m->off[O_C] + gate * H), *bh = m->payload + 4u * (m->off[O_D] + gate * H);
+            for (i = 0; i < H; i++, wi += 4u * S, wh += 4u * H) {
+                tb_real si = TBI_W(bi, i) + tbi_dot(wi, x, S), sh = TBI_W(bh, i) + tbi_dot(wh, h, H);
+                if (gate == 0) rr[i] = tbi_sigm(si + sh);
+                else if (gate == 1) hn[i] = tbi_sigm(si + sh);
+                else hn[i] = (1 - hn[i]) * tbm_tanh(si + rr[i] * sh) + hn[i] * h[i];
             }
         }
         for (i = 0; i < H; i++) h[i] = hn[i];

@@ -32,7 +32,7 @@ QEMU = "qemu-system-arm"
 PACKAGES = "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
 CPU_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16")
 CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2", "-ffunction-sections", "-fdata-sections")
-PRECISIONS = {"double": (), "float": ("-DTB_SINGLE", "-Wdouble-promotion")}  # single: no double arithmetic (tb_runtime.h)
+PRECISIONS = {"double": (), "float": ("-DTB_SINGLE", "-Wdouble-promotion", "-ffp-contract=fast")}  # single: no double arithmetic (tb_runtime.h)
 
 
 def toolchain() -> tuple[str, str]:
