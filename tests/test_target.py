@@ -114,31 +114,41 @@ def family_exports(ds, tmp_path_factory):
 
     from .families import HELDOUT, TRAIN, families
 
+    from thermbench.models.bank import ConditionBank
+    from thermbench.models.lssvm import PSOLSSVM
+    from thermbench.models.neural import GRUModel
+
     root = tmp_path_factory.mktemp("target_exports")
-    for name, model in families().items():
+    banks = {"gru_bank": ConditionBank(GRUModel(hidden_size=4, window_s=120.0, step_s=30.0, max_epochs=10, min_epochs=3,
+                                                patience=5)),
+             "lssvm_bank": ConditionBank(PSOLSSVM(gamma=100.0, sigma2=2.0, max_samples=200))}  # fmt: skip
+    for name, model in {**families(), **banks}.items():
         export_model(model.fit(ds, TRAIN), root / name, name, ds, HELDOUT, options=ExportOptions(lssvm_reduced_size=40))
     return root
 
 
-# the families whose single-precision build is within FLOAT_UM today; the full LSSVM is not (its
-# large, cancelling weights): issue 21's open part, see docs/export.md "Known limits"
-FLOAT_OK = ["mlr_seed002", "mlr_seed004", "mlr_seed001", "mlp", "gru", "physics", "ar_seed003"]
+# every family, the reduced-set LSSVM and the banks of the two families with state of their own
+VARIANTS = [("mlr_seed002", "model"), ("mlr_seed004", "model"), ("mlr_seed001", "model"), ("lssvm", "model"),
+            ("lssvm", "reduced"), ("mlp", "model"), ("gru", "model"), ("physics", "model"), ("ar_seed003", "model"),
+            ("gru_bank", "model"), ("lssvm_bank", "model")]  # fmt: skip
 
 
-FAMILIES = ["mlr_seed002", "mlr_seed004", "mlr_seed001", "lssvm", "mlp", "gru", "physics", "ar_seed003"]
-
-
-@pytest.mark.parametrize("family,precision", [(f, "double") for f in FAMILIES] + [(f, "float") for f in FLOAT_OK])
-def test_every_family_runs_on_the_target(family_exports, ds, queries, family, precision):
-    """Each exported kind, from flash on the emulated M4 over the validation run: in double the
-    host's numbers (to 5e-10 µm: IEEE double on both, another compiler and libm); in float within
-    0.01 µm for the families listed in FLOAT_OK."""
-    files, samples, temps, _ = bundle.replay_inputs(family_exports / family, ds, RUN)
-    ref = bundle.replay_dir(family_exports / family, ds, RUN, queries)
-    got, rep = target.replay(files, samples, temps, queries, precision=precision)
+@pytest.mark.parametrize("precision", ["double", "float"])
+@pytest.mark.parametrize("family,variant", VARIANTS)
+def test_every_family_runs_on_the_target(family_exports, ds, queries, family, variant, precision):
+    """Each exported kind (and the reduced LSSVM, and GRU and LSSVM banks), from flash on the
+    emulated M4 over the validation run: in double the host's numbers (to 5e-10 µm: IEEE double
+    on both, another compiler and libm); in float (-DTB_SINGLE) within 0.01 µm of them. In float
+    a bank's state (every member's) fits the 16 KB arena; the banks pick the host's condition."""
+    files, samples, temps, bank = bundle.replay_inputs(family_exports / family, ds, RUN, variant)
+    ref = bundle.replay_dir(family_exports / family, ds, RUN, queries, variant)
+    arena = 16384 if precision == "float" else 32768  # the budget is the float build's (double arrays are twice)
+    got, rep = target.replay(files, samples, temps, queries, precision=precision, arena_bytes=arena)
     assert rep["rc"] == 0 and len(got) == len(ref) and (got["rc"] == 0).all()
+    assert 0 < rep["arena_bytes"] <= arena
     tol = 5e-10 if precision == "double" else FLOAT_UM
     assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
+    assert got["label"].tolist() == ref["label"].tolist() and ((got["label"] >= 0).any() if bank else True)
 
 
 def test_the_runtime_s_stack_depth_is_measured_per_model(family_exports, ds, queries):
