@@ -40,6 +40,23 @@ from thermbench.export.replay import replay_view
 
 KB = 1024
 CYCLE_BUDGET, PRED_BUDGET, ARENA_BUDGET, SRAM = 100_000, 200_000, 16 * KB, 128 * KB
+PHYS_BUDGET, IMAGE_BUDGET = 50_000, 64 * KB  # float: one physics update; one model kind's firmware
+MHZ, CPI = 168, 1.25  # seed 002's STM32F407; cycles per instruction assumed (not measured: QEMU counts instructions)
+
+
+def over_budget(row: dict) -> list[str]:
+    """The float build's figures of ``row`` beyond issue 21's budgets (empty: within)."""
+    if row.get("note"):
+        return [row["note"]]
+    cyc = PHYS_BUDGET if row["kind"] == "PHYSICS" else CYCLE_BUDGET
+    checks = [("cycle", row["cycle_insn_max"], cyc), ("prediction", row["pred_insn_max"], PRED_BUDGET),
+              ("arena", row["arena_bytes"], ARENA_BUDGET), ("one-kind image", row.get("min_image_flash_bytes") or 0, IMAGE_BUDGET)]  # fmt: skip
+    return [f"{what} {v} > {lim}" for what, v, lim in checks if v > lim]
+
+
+def ms(insn: float) -> float:
+    """Milliseconds at MHZ with CPI cycles per instruction."""
+    return insn * CPI / (MHZ * 1e3)
 
 
 def one(model_dir: Path, seconds: float, precision: str) -> dict:
@@ -94,14 +111,21 @@ def main(argv=None) -> int:
         for precision in ("double", "float"):
             rows.append(one(d, args.seconds, precision))
             r = rows[-1]
+            if precision == "float":
+                r["over_budget"] = "; ".join(over_budget(r))
             print(f"{r['model']:<48s} {r['kind']:<12s} {precision:<6s} "
-                  + (r.get("note") or f"parity {r['parity_um']:.2g} um, cycle {r['cycle_insn_mean']:.0f}/{r['cycle_insn_max']} insn, "
-                     f"prediction {r['pred_insn_mean']:.0f}/{r['pred_insn_max']}, arena {r['arena_bytes']} B, "
-                     f"stack {r['stack_bytes']} B, min image {r['min_image_flash_bytes']} B"), flush=True)  # fmt: skip
+                  + (r.get("note") or f"parity {r['parity_um']:.2g} um, cycle {r['cycle_insn_mean']:.0f}/{r['cycle_insn_max']} insn "
+                     f"({ms(r['cycle_insn_max']):.2f} ms), prediction {r['pred_insn_mean']:.0f}/{r['pred_insn_max']} "
+                     f"({ms(r['pred_insn_max']):.2f} ms), arena {r['arena_bytes']} B, stack {r['stack_bytes']} B, "
+                     f"min image {r['min_image_flash_bytes']} B")
+                  + (f"  OVER: {r['over_budget']}" if r.get("over_budget") else ""), flush=True)  # fmt: skip
     df = pd.DataFrame(rows)
     out = Path(__file__).parent / "results" / "target.csv"
     write_text_atomic(out, df.to_csv(index=False))
-    print(f"\nbudgets: cycle <= {CYCLE_BUDGET}, prediction <= {PRED_BUDGET} instructions, arena <= {ARENA_BUDGET} B -> {out}")
+    fl = df[df["precision"] == "float"]
+    print(f"\nbudgets (float): cycle <= {CYCLE_BUDGET} (physics update <= {PHYS_BUDGET}), prediction <= {PRED_BUDGET} "
+          f"instructions, arena <= {ARENA_BUDGET} B, one-kind image <= {IMAGE_BUDGET} B; {int((fl['over_budget'] == '').sum())}"
+          f"/{len(fl)} within. Milliseconds at {MHZ} MHz assuming {CPI} cycles per instruction -> {out}")  # fmt: skip
     return 0
 
 
