@@ -281,6 +281,40 @@ def test_an_export_whose_state_does_not_fit_the_cortex_m4f_is_refused(ds, tmp_pa
     assert man["footprint"]["ram_bytes"] > 2 * 3604 * 4
 
 
+def test_exporting_a_model_directory_for_the_cortex_m4f_skips_what_does_not_fit(exported, seed001_data_root, tmp_path,
+                                                                               monkeypatch, capsys):  # fmt: skip
+    """thermbench export export.target=cortex-m4f over a model directory (select all): the model that
+    fits is exported for the target, the one whose state is over 16 KB is skipped with one line
+    naming it and why; with only that one, the export says nothing meets the target. A bad target
+    value is a config error naming the key and the choices."""
+    from thermbench.config import ConfigError, load_config
+    from thermbench.experiment import save_models
+    from thermbench.export import ExportError
+    from thermbench.export.job import run_export
+    from thermbench.models.neural import GRUModel
+
+    monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))
+    ds = load_benchmark("seed001_vmc_x", seed001_data_root)
+    gru = GRUModel(hidden_size=2, window_s=3600.0, step_s=600.0, max_epochs=2, min_epochs=1).fit(ds, TRAIN)
+    models = {"seed001_vmc_x__mlr_seed001__global": exported["mlr_seed001"][0], "seed001_vmc_x__gru__global": gru}
+    save_models(models, tmp_path / "models", extra={k: {"dataset": "seed001_vmc_x"} for k in models})
+    cfg = load_config("export", [f"export.source={tmp_path / 'models'}", f"export.out_dir={tmp_path / 'out'}",
+                                 "export.target=cortex-m4f", "export.onnx=false", "export.n_jobs=1"])  # fmt: skip
+    table, _ = run_export(cfg)
+    assert table["model"].tolist() == ["seed001_vmc_x__mlr_seed001__global"]
+    assert read_manifest(tmp_path / "out" / table["model"].iloc[0])["target"]["name"] == "cortex-m4f"
+    assert not (tmp_path / "out" / "seed001_vmc_x__gru__global").exists()
+    err = capsys.readouterr().err
+    assert "skipped seed001_vmc_x__gru__global: seed001_vmc_x__gru__global: does not fit the cortex-m4f target" in err
+    save_models({"seed001_vmc_x__gru__global": gru}, tmp_path / "only_gru", extra={"seed001_vmc_x__gru__global": {"dataset": "seed001_vmc_x"}})
+    cfg = load_config("export", [f"export.source={tmp_path / 'only_gru'}", f"export.out_dir={tmp_path / 'o2'}",
+                                 "export.target=cortex-m4f", "export.onnx=false"])  # fmt: skip
+    with pytest.raises(ExportError, match="does not fit the cortex-m4f target"):
+        run_export(cfg)
+    with pytest.raises(ConfigError, match=r"export.target.*'cortex-m4f', 'host'.*'m4'"):
+        run_export(load_config("export", [f"export.source={tmp_path / 'models'}", "export.target=m4"]))
+
+
 def test_manifest_lists_inputs_units_preprocessing_and_training(exported, ds):
     _, model_dir, man = exported["mlr_seed002"]
     disk = read_manifest(model_dir)

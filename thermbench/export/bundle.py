@@ -42,6 +42,10 @@ MANIFEST = "manifest.json"
 FORMAT = "thermbench-export/1"
 
 
+class TargetRefused(ExportError):
+    """The model does not meet its export target (:data:`TARGETS`): precision or budget."""
+
+
 #: the compensators an export is for: the C runtime's precision there, and the budget it is refused
 #: beyond (None: reported in the manifest's footprint only). cortex-m4f: seed 002's STM32F407
 #: (Cortex-M4F, single-precision FPU, 1 MB flash, 128 KB main SRAM), thermbench.export.target
@@ -415,7 +419,7 @@ def _check_target(model_dir: Path, man: dict, target: str, name: str) -> dict:
                if man["kind"] == "bank" else f"its state arena")  # fmt: skip
         over.append(f"{arena} B of state arena, above the target's {budget['ram_bytes']} B ({why})")
     if over:
-        raise ExportError(f"{name}: does not fit the {target} target: {'; '.join(over)}. Export a smaller model "
+        raise TargetRefused(f"{name}: does not fit the {target} target: {'; '.join(over)}. Export a smaller model "
                           f"(a global model instead of a bank, a shorter window_s for a GRU) or for export.target=host")  # fmt: skip
     return {"arena_bytes": arena, "file_bytes": [int(b) for b in inf["file_bytes"]], "budget": budget}
 
@@ -477,10 +481,10 @@ def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_
                     "heldout_rmse_um_c": float(np.sqrt(np.mean(np.concatenate(err_c) ** 2))),
                     "heldout_rmse_um_python": float(np.sqrt(np.mean(np.concatenate(err_py) ** 2)))}  # fmt: skip
         if worst[precision] > tol_um:
-            build = "" if precision == "double" else " in single precision (-DTB_SINGLE)"
-            raise ExportError(f"{name} ({variant}): the C runtime{build} differs from the Python model by "
-                              f"{worst[precision]:.4g} um on held-out runs {list(runs)}, above parity_tol_um={tol_um}"
-                              f"{_float_hint(model) if precision == 'float' else ''}")  # fmt: skip
+            build, err = ("", ExportError) if precision == "double" else (" in single precision (-DTB_SINGLE)", TargetRefused)
+            raise err(f"{name} ({variant}): the C runtime{build} differs from the Python model by {worst[precision]:.4g} um "
+                      f"on held-out runs {list(runs)}, above parity_tol_um={tol_um}"
+                      f"{_float_hint(model) if precision == 'float' else ''}")  # fmt: skip
     if "reduced" in out:
         out["reduced_cost_um"] = out["reduced"]["heldout_rmse_um_python"] - out["model"]["heldout_rmse_um_python"]
     return out

@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import datasets
 from ..config import ConfigError
 from ..outputs import check_output_dir, output_dir
-from .bundle import TARGETS, ExportOptions, export_model
+from .bundle import TARGETS, ExportOptions, TargetRefused, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",
@@ -237,15 +237,21 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
     if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0 or n_jobs < -1:
         raise ConfigError(f"config key 'export.n_jobs': expected an integer >= 1 (or -1: every core), got {n_jobs!r}")
     if n_jobs == 1 or len(todo) == 1:
-        return [_export_one(*t, opts, stage, out_root) for t in todo]
-    import joblib
+        rows = [_export_one(*t, opts, stage, out_root, every) for t in todo]
+    else:
+        import joblib
 
-    return joblib.Parallel(n_jobs=n_jobs)(joblib.delayed(_export_one)(*t, opts, stage, out_root) for t in todo)
+        rows = joblib.Parallel(n_jobs=n_jobs)(joblib.delayed(_export_one)(*t, opts, stage, out_root, every) for t in todo)
+    rows = [r for r in rows if r is not None]
+    if not rows:
+        raise ExportError(f"nothing to export: no model meets export.target={opts.target} (the lines above say why)")
+    return rows
 
 
 def _export_one(key: str, model, info: dict, dname: str | None, dcfg: dict | None, opts: ExportOptions, stage: Path,
-                out_root: Path) -> dict:  # fmt: skip
-    """One model to ``stage/key``; its row of the summary table."""
+                out_root: Path, skip_refused: bool = False) -> dict | None:  # fmt: skip
+    """One model to ``stage/key``; its row of the summary table (None: refused by the export target
+    and ``skip_refused``, said on stderr)."""
     ds, heldout, sp = None, [], None
     if dcfg is not None:
         sp = _load_split_cached(dcfg)
@@ -255,7 +261,13 @@ def _export_one(key: str, model, info: dict, dname: str | None, dcfg: dict | Non
         heldout = [r for r in sp.validation if r not in train] or [r for r in ds.run_ids if r not in train]
     training = {"dataset_name": dname, **({"history": True} if sp is not None and sp.history else {})}
     source = {**info, "training": training} if dname else info
-    man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
+    try:
+        man = export_model(model, stage / key, key, ds, heldout, source=source, options=opts)
+    except TargetRefused as exc:
+        if not skip_refused:
+            raise
+        print(f"thermbench export: skipped {key}: {exc}", file=sys.stderr)
+        return None
     files = ([man["bank"]["classifier_file"], *man["bank"]["members"]] if man["kind"] == "bank"
              else list(man["files"].values()))  # fmt: skip
     par = man.get("parity", {}).get("model", {})
