@@ -171,3 +171,45 @@ def test_the_single_precision_exp_is_within_two_ulps_of_exp(tmp_path):
     n, worst, nan, inf, zero, one = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()
     assert int(n) > 1_000_000 and float(worst) <= 2.0
     assert (nan, inf, zero, float(one)) == ("1", "1", "1", 1.0)
+
+
+def test_the_classifier_s_feed_table_gives_what_a_pass_over_the_window_gives(exported, ds):
+    """The classifier keeps a table of the ring's distinct moving feeds (at most 64) as samples come
+    and go, so a window needs no pass to find its feeds. Against the runtime built to make that
+    pass every time (-DTBI_CLF_SCAN=1, the earlier code): the same condition at every query of a
+    log of three loading states (20 min each) with, after the first, 80 feeds in a scrambled order
+    (the table overflows: those windows found by the pass) and 40 feeds 5 % apart visited unevenly
+    (the table's, inserted anywhere in its order, dropped as they leave the ring)."""
+    import pandas as pd
+
+    parts, t = [], 0.0
+    for i, run in enumerate(("state1", "state3", "state5")):
+        seg = process_samples(ds, run).iloc[:1200].copy()
+        seg["t_s"] = seg["t_s"] - seg["t_s"].iloc[0] + t
+        parts.append(seg)
+        t = float(seg["t_s"].iloc[-1]) + 1.0
+        if i == 0:  # the feed stretch
+            k = np.arange(700)
+            mid = pd.DataFrame({c: np.repeat(seg[c].iloc[-1:].to_numpy(), len(k)) for c in seg.columns})
+            mid["t_s"] = t + k
+            mid["axis_mm"] = 100.0 + 40.0 * (k % 2)
+            j = np.where(k < 350, (37 * k) % 80, np.floor(40 * ((0.618 * k) % 1.0) ** 2))  # scrambled, then uneven
+            mid["feed_mm_min"] = np.where(k < 350, 800.0 + 10.0 * j, 500.0 * 1.05**j)
+            if "measuring" in mid:
+                mid["measuring"] = 0
+            parts.append(mid)
+            t += len(k)
+    log = pd.concat(parts, ignore_index=True)
+    q = pd.DataFrame({"t_s": np.arange(30.0, log["t_s"].iloc[-1], 30.0), "axis_mm": 100.0})
+    files, _, temps, _ = bundle_inputs(exported / "bank", ds)
+    table = runtime.replay(files, log, temps, q, bank=True)
+    scan = runtime.replay(files, log, temps, q, bank=True, exe=runtime.build("tb_replay", ["-DTBI_CLF_SCAN=1"]))
+    assert (table["rc"] == 0).all() and len(table) == len(q)
+    assert table["label"].tolist() == scan["label"].tolist()
+    assert table.loc[table["label"] >= 0, "label"].nunique() >= 3  # the states are told apart
+
+
+def bundle_inputs(model_dir, ds):
+    from thermbench.export.bundle import replay_inputs
+
+    return replay_inputs(model_dir, ds, RUN)

@@ -119,7 +119,7 @@ def family_exports(ds, tmp_path_factory):
     from thermbench.models.neural import GRUModel
 
     root = tmp_path_factory.mktemp("target_exports")
-    banks = {"gru_bank": ConditionBank(GRUModel(hidden_size=4, window_s=120.0, step_s=30.0, max_epochs=10, min_epochs=3,
+    banks = {"gru_bank": ConditionBank(GRUModel(hidden_size=4, window_s=90.0, step_s=30.0, max_epochs=10, min_epochs=3,
                                                 patience=5)),
              "lssvm_bank": ConditionBank(PSOLSSVM(gamma=100.0, sigma2=2.0, max_samples=200))}  # fmt: skip
     for name, model in {**families(), **banks}.items():

@@ -25,6 +25,13 @@ typedef struct {
     int32_t held;
     float *scratch;        /* 2 x TB_MAX_FEEDS: distinct feeds of the window and their levels */
     int8_t *lvl;           /* cap: the feed level of each sample of the window being classified (-1: not moving) */
+    /* the distinct moving feeds in the ring, increasing, with how many samples have each (kept as
+     * samples come and go: a window's feeds without a pass over it); ftr[slot] = 1 when the slot's
+     * feed is counted there, untracked the samples that did not fit the table (then: a pass) */
+    float *fv;
+    uint16_t *fc;
+    uint8_t *ftr;
+    uint32_t nfv, untracked;
 } clf_t;
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
@@ -64,9 +71,15 @@ static void carve(const tb_model *m, tbi_arena *a, void **ks)
     size_t cap = (size_t)tbm_ceil(PV(m, m->off[O_BODY]) / PV(m, 0) - TB_R(1e-9)) + 4u; /* the window's samples */
     float *arr = (float *)tbi_carve(a, sizeof(float) * (3u * cap + 2u * TB_MAX_FEEDS));
     int8_t *lvl = (int8_t *)tbi_carve(a, cap);
+    float *fv = (float *)tbi_carve(a, sizeof(float) * TB_MAX_FEEDS);
+    uint16_t *fc = (uint16_t *)tbi_carve(a, sizeof(uint16_t) * TB_MAX_FEEDS);
+    uint8_t *ftr = (uint8_t *)tbi_carve(a, cap);
     if (a->p && !a->err) {
         memset(k, 0, sizeof *k);
         k->lvl = lvl;
+        k->fv = fv;
+        k->fc = fc;
+        k->ftr = ftr;
         k->cap = (uint32_t)cap;
         k->rt = arr;
         k->rx = arr + cap;
@@ -135,6 +148,47 @@ static uint32_t feed_pos(const float *u, uint32_t nu, float f)
     return lo;
 }
 
+/* -DTBI_CLF_SCAN=1: every window's feeds by a pass over it, never from the table (the tests compare) */
+#ifndef TBI_CLF_SCAN
+#define TBI_CLF_SCAN 0
+#endif
+
+/* the sample in ring slot r enters (+1) or leaves (-1) the ring's table of distinct moving feeds */
+static void clf_feed_count(clf_t *k, uint32_t r, int d)
+{
+    float f = k->rf[r];
+    uint32_t j, q;
+    if (!(f > 0)) return;
+    if (d < 0 && !k->ftr[r]) {
+        k->untracked--;
+        return;
+    }
+    j = feed_pos(k->fv, k->nfv, f);
+    if (j < k->nfv && k->fv[j] == f) {
+        if (d > 0) k->fc[j]++;
+        else if (--k->fc[j] == 0) { /* the feed's last sample left */
+            for (q = j; q + 1u < k->nfv; q++) {
+                k->fv[q] = k->fv[q + 1u];
+                k->fc[q] = k->fc[q + 1u];
+            }
+            k->nfv--;
+        }
+    } else if (k->nfv < TB_MAX_FEEDS) {
+        for (q = k->nfv; q > j; q--) {
+            k->fv[q] = k->fv[q - 1u];
+            k->fc[q] = k->fc[q - 1u];
+        }
+        k->fv[j] = f;
+        k->fc[j] = 1;
+        k->nfv++;
+    } else {
+        k->ftr[r] = 0;
+        k->untracked++;
+        return;
+    }
+    if (d > 0) k->ftr[r] = 1;
+}
+
 /* ring index i (0 = oldest) */
 #define RI(k, i) ((k)->oldest + (i) < (k)->cap ? (k)->oldest + (i) : (k)->oldest + (i) - (k)->cap)
 
@@ -157,21 +211,33 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
     uint32_t body = m->off[O_BODY], i, nlev = 0, nu = 0, lo, hi, a, b, ri, rp, cap = k->cap;
     tb_real window = PV(m, body), min_moving = PV(m, body + 2), period = k->period;
     float *u = k->scratch, *lev = k->scratch + TB_MAX_FEEDS;
-    tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], x0 = 0, x1 = 0, total = 0;
+    tb_real time_in[TB_MAX_FEEDS], feed_in[TB_MAX_FEEDS], xs_lo[TB_MAX_FEEDS], xs_hi[TB_MAX_FEEDS], x0, x1, total = 0;
     uint32_t dom = 0;
-    int found = 0;
-    memset(time_in, 0, sizeof time_in);
-    memset(feed_in, 0, sizeof feed_in);
     if (k->n == 0) return -1;
 #define NX(r) ((r) + 1u == cap ? 0u : (r) + 1u) /* the next ring slot */
     /* the samples in (T - window, T]: [lo, hi) (the ring's times increase) */
     lo = clf_first_after(k, T - window);
     hi = clf_first_after(k, T);
     if (lo >= hi) return -1;
-    /* distinct moving feeds of the window and its neighbours, sorted */
+    /* distinct moving feeds of the window and its neighbours, sorted: the ring's, less the few
+     * samples of the ring outside [a, b); a pass over the window when the ring's did not fit */
     a = lo > 0 ? lo - 1 : lo;
     b = hi < k->n ? hi + 1 : hi;
-    for (i = a, ri = RI(k, a), rp = ri; i < b; i++, rp = ri, ri = NX(ri)) {
+    if (!k->untracked && !TBI_CLF_SCAN) {
+        uint16_t cnt[TB_MAX_FEEDS];
+        uint32_t j;
+        memcpy(u, k->fv, sizeof(float) * k->nfv);
+        memcpy(cnt, k->fc, sizeof(uint16_t) * k->nfv);
+        for (i = 0; i < k->n; i = i + 1u == a ? b : i + 1u) { /* [0, a) and [b, n) */
+            float f;
+            if (i >= a && i < b) continue; /* a = 0: the window starts the ring */
+            f = k->rf[RI(k, i)];
+            if (f > 0) cnt[feed_pos(u, k->nfv, f)]--;
+        }
+        for (j = 0; j < k->nfv; j++)
+            if (cnt[j]) u[nu++] = u[j];
+    }
+    for (i = a, ri = RI(k, a), rp = ri; i < b && (k->untracked || TBI_CLF_SCAN); i++, rp = ri, ri = NX(ri)) {
         float f = k->rf[ri];
         uint32_t j, q;
         if (!(f > 0) || (i > a && f == k->rf[rp])) continue; /* not moving, or the feed just seen */
@@ -193,35 +259,33 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
         }
         nlev++;
     }
-    for (i = a, ri = RI(k, a), rp = ri; i < b; i++, rp = ri, ri = NX(ri)) { /* each sample's level, once */
-        float f = k->rf[ri];
-        k->lvl[i - a] = (int8_t)(!(f > 0) ? -1 : (i > a && f == k->rf[rp]) ? k->lvl[i - a - 1]
-                                                                                  : (int32_t)lev[feed_pos(u, nu, f)]);
+    for (i = 0; i < nlev; i++) {
+        time_in[i] = feed_in[i] = 0;
+        xs_lo[i] = TB_R(1e30); /* |axis_mm| <= TB_MAX_AXIS_MM */
+        xs_hi[i] = -TB_R(1e30);
     }
-#define LVL(idx) ((int32_t)k->lvl[(idx) - a])
-    for (i = 0; i < nlev; i++) time_in[i] = feed_in[i] = 0;
-    for (i = lo, ri = RI(k, lo); i < hi; i++, ri = NX(ri)) {
-        int32_t c = LVL(i);
-        tb_real w;
-        if (c < 0) continue; /* not moving */
-        if (i + 1 < k->n) w = (tb_real)k->rt[NX(ri)] - (tb_real)k->rt[ri];
-        else w = period;
+    /* one pass: each sample's level (kept: the turning points read it again); over the window, the
+     * time and feed-time at each level and each level's stroke range */
+    for (i = a, ri = RI(k, a), rp = ri; i < b; i++, rp = ri, ri = NX(ri)) {
+        float f = k->rf[ri];
+        int32_t c = !(f > 0) ? -1 : (i > a && f == k->rf[rp]) ? (int32_t)k->lvl[i - a - 1] : (int32_t)lev[feed_pos(u, nu, f)];
+        tb_real w, x;
+        k->lvl[i - a] = (int8_t)c;
+        if (c < 0 || i < lo || i >= hi) continue; /* not moving, or a neighbour of the window */
+        w = i + 1 < k->n ? (tb_real)k->rt[NX(ri)] - (tb_real)k->rt[ri] : period;
+        x = (tb_real)k->rx[ri];
+        if (x < xs_lo[c]) xs_lo[c] = x;
+        if (x > xs_hi[c]) xs_hi[c] = x;
         time_in[c] += w;
-        feed_in[c] += w * (tb_real)k->rf[ri];
+        feed_in[c] += w * (tb_real)f;
         total += w;
     }
+#define LVL(idx) ((int32_t)k->lvl[(idx) - a])
     for (i = 1; i < nlev; i++)
         if (time_in[i] > time_in[dom]) dom = i;
     if (!(total >= min_moving) || !(time_in[dom] > 0)) return -1;
-    /* stroke range at the dominant feed */
-    for (i = lo, ri = RI(k, lo); i < hi; i++, ri = NX(ri)) {
-        tb_real x;
-        if (LVL(i) != (int32_t)dom) continue;
-        x = (tb_real)k->rx[ri];
-        if (!found) { x0 = x1 = x; found = 1; }
-        if (x < x0) x0 = x;
-        if (x > x1) x1 = x;
-    }
+    x0 = xs_lo[dom]; /* the stroke range at the dominant feed */
+    x1 = xs_hi[dom];
     {
         /* turning points between samples (1 Hz aliasing), see window_features */
         tb_real up = x1, down = x0, tol = (tb_real)1e-6;
@@ -300,13 +364,15 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
         k->t0 = s->t_s;
         k->period = PV(m, 0);
     }
-    if (k->n == k->cap) { /* drop the oldest */
+    if (k->n == k->cap) { /* drop the oldest (the slot written next) */
+        clf_feed_count(k, k->head, -1);
         k->n--;
     }
     at = k->head;
     k->rt[at] = (float)(s->t_s - k->t0);
     k->rx[at] = (float)s->axis_mm;
     k->rf[at] = (!s->measuring && s->feed_mm_min > 0) ? (float)s->feed_mm_min : -1.0f;
+    clf_feed_count(k, at, 1);
     k->head = (k->head + 1) % k->cap;
     k->n++;
     k->oldest = (k->head + k->cap - k->n) % k->cap;
