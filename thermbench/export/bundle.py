@@ -452,9 +452,9 @@ def _float_hint(model) -> str:
     lssvms = [model] if isinstance(model, PSOLSSVM) else [m for m in getattr(model, "models_", {}).values()
                                                            if isinstance(m, PSOLSSVM)]  # fmt: skip
     if lssvms:
-        return (": an LSSVM's kernel weights are large and cancel, and float32 keeps 7 digits of each term; "
-                "export the reduced set (export.lssvm_reduced_size) or another family for a float target, "
-                "or build the runtime in double")  # fmt: skip
+        return (": an LSSVM's kernel weights are large and cancel, and float32 keeps 7 digits of each term; for a "
+                "float target fit it on fewer samples (max_samples: fewer support vectors) or with a smaller penalty "
+                "(gamma), or choose another family, or run the runtime in double (export.target=host)")  # fmt: skip
     return ": run this model on a double-precision build (export.target=host)"
 
 
