@@ -11,8 +11,11 @@ import pandas as pd
 import pytest
 
 from thermbench.datasets import load_benchmark
-from thermbench.export import bundle, read_manifest, target
+from thermbench.export import ExportOptions, bundle, export_model, read_manifest, target
 from thermbench.export.native import TB_E_ALIGN
+from thermbench.models.mlr import MLRSeed001, MLRSeed002
+
+from .families import HELDOUT, TRAIN
 
 pytestmark = pytest.mark.target
 
@@ -74,6 +77,97 @@ def test_the_single_precision_runtime_reaches_no_software_double_routine(seed001
     assert "check_sample" in double["__aeabi_ddiv"]  # and names the runtime functions that reach each
 
 
+def test_an_export_for_the_cortex_m4f_holds_the_float_build_to_the_tolerance(ds, tmp_path):
+    """export.target=cortex-m4f: the single-precision runtime (-DTB_SINGLE) is verified against
+    Python. A well-conditioned MLR passes and says so. An LSSVM with a large penalty and a wide
+    kernel (cond(K) large: weights of thousands that cancel to micrometres) is within 0.01 µm
+    in double but not in float32 (7 digits per term): that export is refused, with the reason
+    and what to do, and nothing is left in its directory; for the host it is exported."""
+    from thermbench.export import ExportError
+    from thermbench.models.lssvm import PSOLSSVM
+
+    mlr = MLRSeed002().fit(ds, TRAIN)
+    man = export_model(mlr, tmp_path / "mlr", "mlr", ds, HELDOUT, options=ExportOptions(target="cortex-m4f"))
+    assert man["target"]["name"] == "cortex-m4f" and man["parity"]["precision"] == "float"
+    assert man["parity"]["model"]["float_max_abs_diff_um"] <= FLOAT_UM
+    assert 0 < man["target"]["footprint"]["arena_bytes"] <= 16 * 1024
+    # and measured on the emulated M4 against the budgets
+    got = man["target"]["measured"]["model"]
+    assert 0 < got["cycle_insn_max"] <= 100_000 and 0 < got["prediction_insn_max"] <= 200_000
+    assert 0 < got["arena_bytes"] <= 16 * 1024 and 0 < got["image_bytes"] <= 64 * 1024
+    ill = PSOLSSVM(gamma=1e4, sigma2=5.0, max_samples=400).fit(ds, TRAIN)
+    host = export_model(ill, tmp_path / "host", "ill", ds, HELDOUT, options=ExportOptions())
+    assert host["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM < host["parity"]["model"]["float_max_abs_diff_um"]
+    with pytest.raises(ExportError, match=r"ill \(model\): the C runtime in single precision \(-DTB_SINGLE\) differs .*"
+                                          r"kernel weights are large and cancel.*max_samples"):  # fmt: skip
+        export_model(ill, tmp_path / "m4", "ill", ds, HELDOUT, options=ExportOptions(target="cortex-m4f"))
+    assert not (tmp_path / "m4").exists()
+
+
+def test_an_export_whose_state_does_not_fit_the_cortex_m4f_is_refused(ds, tmp_path):
+    """A GRU's state is its dT history over window_s at the sample period: 2 sensors × 3604
+    samples × 4 B = 28.8 KB for a one-hour window at 1 Hz, over the target's 16 KB: refused for
+    the Cortex-M4F (naming the arena and the way out), exported for the host."""
+    from thermbench.export import ExportError
+    from thermbench.models.neural import GRUModel
+
+    gru = GRUModel(hidden_size=2, window_s=3600.0, step_s=600.0, max_epochs=2, min_epochs=1).fit(ds, TRAIN)
+    with pytest.raises(ExportError, match=r"gru: does not fit the cortex-m4f target: \d+ B of state arena, above "
+                                          r"the target's 16384 B \(its state arena\).*shorter window_s"):  # fmt: skip
+        export_model(gru, tmp_path / "m4", "gru", ds, HELDOUT, options=ExportOptions(target="cortex-m4f", onnx=False))
+    assert not (tmp_path / "m4").exists()
+    man = export_model(gru, tmp_path / "host", "gru", ds, HELDOUT, options=ExportOptions(onnx=False, verify=False))
+    assert man["footprint"]["ram_bytes"] > 2 * 3604 * 4
+
+
+def test_exporting_a_model_directory_for_the_cortex_m4f_skips_what_does_not_fit(seed001_data_root, tmp_path, monkeypatch,
+                                                                               capsys):  # fmt: skip
+    """thermbench export export.target=cortex-m4f over a model directory (select all): the model that
+    fits is exported for the target, the one whose state is over 16 KB is skipped with one line
+    naming it and why; with only that one, the export says nothing meets the target. A bad target
+    value is a config error naming the key and the choices."""
+    from thermbench.config import ConfigError, load_config
+    from thermbench.experiment import save_models
+    from thermbench.export import ExportError
+    from thermbench.export.job import run_export
+    from thermbench.models.neural import GRUModel
+
+    monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))
+    ds = load_benchmark("seed001_vmc_x", seed001_data_root)
+    gru = GRUModel(hidden_size=2, window_s=3600.0, step_s=600.0, max_epochs=2, min_epochs=1).fit(ds, TRAIN)
+    models = {"seed001_vmc_x__mlr_seed001__global": MLRSeed001().fit(ds, TRAIN), "seed001_vmc_x__gru__global": gru}
+    save_models(models, tmp_path / "models", extra={k: {"dataset": "seed001_vmc_x"} for k in models})
+    cfg = load_config("export", [f"export.source={tmp_path / 'models'}", f"export.out_dir={tmp_path / 'out'}",
+                                 "export.target=cortex-m4f", "export.onnx=false", "export.n_jobs=1"])  # fmt: skip
+    table, _ = run_export(cfg)
+    assert table["model"].tolist() == ["seed001_vmc_x__mlr_seed001__global"]
+    assert read_manifest(tmp_path / "out" / table["model"].iloc[0])["target"]["name"] == "cortex-m4f"
+    assert not (tmp_path / "out" / "seed001_vmc_x__gru__global").exists()
+    err = capsys.readouterr().err
+    assert "skipped seed001_vmc_x__gru__global: seed001_vmc_x__gru__global: does not fit the cortex-m4f target" in err
+    save_models({"seed001_vmc_x__gru__global": gru}, tmp_path / "only_gru", extra={"seed001_vmc_x__gru__global": {"dataset": "seed001_vmc_x"}})
+    cfg = load_config("export", [f"export.source={tmp_path / 'only_gru'}", f"export.out_dir={tmp_path / 'o2'}",
+                                 "export.target=cortex-m4f", "export.onnx=false"])  # fmt: skip
+    with pytest.raises(ExportError, match="does not fit the cortex-m4f target"):
+        run_export(cfg)
+    with pytest.raises(ConfigError, match=r"export.target.*'cortex-m4f', 'host'.*'m4'"):
+        run_export(load_config("export", [f"export.source={tmp_path / 'models'}", "export.target=m4"]))
+
+
+def test_a_gru_over_the_prediction_budget_is_refused_with_its_measured_cost(ds, tmp_path):
+    """export.target=cortex-m4f measures every model on the emulated M4 in float: a GRU of 16 hidden
+    units over 31 lags (the benchmark's size) fits the arena but costs more than 200 000
+    instructions per prediction; the export is refused with the count and what to change."""
+    from thermbench.export import ExportError
+    from thermbench.models.neural import GRUModel
+
+    gru = GRUModel(hidden_size=16, window_s=1800.0, step_s=60.0, max_epochs=1, min_epochs=1).fit(ds, TRAIN)
+    with pytest.raises(ExportError, match=r"gru: over the cortex-m4f budget, measured on the emulated M4 in float: "
+                                          r"model: prediction \d{6} instructions > 200000.*fewer lags or hidden units"):  # fmt: skip
+        export_model(gru, tmp_path / "m4", "gru", ds, HELDOUT, options=ExportOptions(target="cortex-m4f", onnx=False))
+    assert not (tmp_path / "m4").exists()
+
+
 @pytest.mark.parametrize("offset", [0, 1, 2, 3])
 def test_a_model_file_off_a_4_byte_boundary_is_refused_not_faulted(seed001_exports, ds, queries, offset):
     """Under unaligned-access trapping (CCR.UNALIGN_TRP, set around every runtime call), the file
@@ -112,7 +206,7 @@ def family_exports(ds, tmp_path_factory):
     """Every family of the host parity tests (tests/families.py), fitted and exported."""
     from thermbench.export import ExportOptions, export_model
 
-    from .families import HELDOUT, TRAIN, families
+    from .families import families
 
     from thermbench.models.bank import ConditionBank
     from thermbench.models.lssvm import PSOLSSVM

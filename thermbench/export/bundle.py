@@ -51,8 +51,12 @@ class TargetRefused(ExportError):
 #: (Cortex-M4F, single-precision FPU, 1 MB flash, 128 KB main SRAM), thermbench.export.target
 TARGETS = {
     "host": {"precision": "double", "budget": None},
-    "cortex-m4f": {"precision": "float", "budget": {"ram_bytes": 16 * 1024, "file_bytes": 64 * 1024}},
+    "cortex-m4f": {"precision": "float", "budget": {"ram_bytes": 16 * 1024, "file_bytes": 64 * 1024,
+                                                     "cycle_insn": 100_000, "physics_update_insn": 50_000,
+                                                     "prediction_insn": 200_000, "image_bytes": 64 * 1024}},
 }
+#: how much of a held-out run the emulated target replays to measure the budgets (from its first reading)
+TARGET_MEASURE_S = 1800.0
 
 
 @dataclass
@@ -373,6 +377,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
             runs = heldout or list(model.train_runs_)
             man["parity"] = _verify(tmp, man, models_py, ds, runs, opts.parity_tol_um, name, opts.precision)
             man["parity"]["runs_are_training_runs"] = not heldout
+            if opts.target == "cortex-m4f":
+                man["target"]["measured"] = _measure_on_target(tmp, man, ds, runs[0], name)
         (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
 
@@ -422,6 +428,48 @@ def _check_target(model_dir: Path, man: dict, target: str, name: str) -> dict:
         raise TargetRefused(f"{name}: does not fit the {target} target: {'; '.join(over)}. Export a smaller model "
                           f"(a global model instead of a bank, a shorter window_s for a GRU) or for export.target=host")  # fmt: skip
     return {"arena_bytes": arena, "file_bytes": [int(b) for b in inf["file_bytes"]], "budget": budget}
+
+
+def _measure_on_target(model_dir: Path, man: dict, ds, run: str, name: str) -> dict:
+    """Each file variant in single precision on the emulated Cortex-M4F (:mod:`.target`, QEMU) over
+    the first :data:`TARGET_MEASURE_S` of ``run`` after its first reading: instructions per control
+    cycle and per prediction, arena, stack and the one-kind image's flash, refused beyond the
+    budget (one physics update: ``physics_update_insn``)."""
+    from . import target as tgt
+
+    budget = TARGETS["cortex-m4f"]["budget"]
+    try:
+        tgt.toolchain()
+    except runtime.RuntimeUnavailable as exc:
+        raise ExportError(f"{name}: export.target=cortex-m4f measures the model on the emulated M4: {exc}") from None
+    out = {"run": run, "seconds": TARGET_MEASURE_S}
+    over = []
+    for variant in (["model"] if man["kind"] == "bank" else list(man["files"])):
+        files, samples, temps, _ = replay_inputs(model_dir, ds, run, variant, man)
+        q = readings_queries(ds, run)
+        t_end = (q["t_s"].iloc[0] if len(q) else samples["t_s"].iloc[0]) + TARGET_MEASURE_S
+        samples = samples[samples["t_s"] <= t_end].reset_index(drop=True)
+        q = q[q["t_s"] <= samples["t_s"].iloc[-1]].reset_index(drop=True)
+        _, rep = tgt.replay(files, samples, temps, q, precision="float", arena_bytes=budget["ram_bytes"])
+        if rep["rc"] != 0:
+            over.append(f"{variant}: the firmware stopped ({rep['end']})")
+            continue
+        kind = man["kind"] if man["kind"] == "bank" else man["files"][variant]["kind"]
+        cyc = budget["physics_update_insn"] if kind == "PHYSICS" else budget["cycle_insn"]
+        m = {"cycle_insn_max": rep.get("step_insn_max", 0), "prediction_insn_max": rep.get("predict_insn_max", 0),
+             "arena_bytes": rep["arena_bytes"], "stack_bytes": rep["stack_bytes"],
+             "image_bytes": None if man["kind"] == "bank" else tgt.image(files[0], "float").flash_bytes}  # fmt: skip
+        out[variant] = m
+        for what, v, lim in (("control cycle", m["cycle_insn_max"], cyc), ("prediction", m["prediction_insn_max"],
+                             budget["prediction_insn"]), ("one-kind image", m["image_bytes"] or 0, budget["image_bytes"])):  # fmt: skip
+            if v > lim:
+                over.append(f"{variant}: {what} {v} {'B' if what.endswith('image') else 'instructions'} > {lim}")
+    if over:
+        hint = (" (a GRU's prediction runs window_s / step_s + 1 lags of 3 x hidden x (hidden + sensors) "
+                "multiply-adds: fewer lags or hidden units)" if '"GRU"' in json.dumps([man.get("files"), man.get("bank")]) else "")  # fmt: skip
+        raise TargetRefused(f"{name}: over the cortex-m4f budget, measured on the emulated M4 in float: "
+                            f"{'; '.join(over)}{hint}")  # fmt: skip
+    return out
 
 
 def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: Sequence[str] = ()) -> list[dict]:
