@@ -15,6 +15,28 @@ typedef struct { /* ring of dT at the sample period */
     float *ring;    /* cap x S */
 } gru_t;
 
+/* y[i] = b[i] + sum_j W[i][j] v[j] for the rows i < H of W (H x n float32 of the payload, row-major):
+ * four rows at a time, so each v[j] is loaded once for four multiply-adds */
+static void gru_rows(const uint8_t *w, const uint8_t *b, const tb_real *v, uint32_t n, uint32_t H, tb_real *y)
+{
+    uint32_t i = 0, j;
+    for (; i + 4u <= H; i += 4u, w += 16u * n) {
+        tb_real s0 = TBI_W(b, i), s1 = TBI_W(b, i + 1u), s2 = TBI_W(b, i + 2u), s3 = TBI_W(b, i + 3u);
+        for (j = 0; j < n; j++) {
+            tb_real vj = v[j];
+            s0 += TBI_W(w, j) * vj;
+            s1 += TBI_W(w, n + j) * vj;
+            s2 += TBI_W(w, 2u * n + j) * vj;
+            s3 += TBI_W(w, 3u * n + j) * vj;
+        }
+        y[i] = s0;
+        y[i + 1u] = s1;
+        y[i + 2u] = s2;
+        y[i + 3u] = s3;
+    }
+    for (; i < H; i++, w += 4u * n) y[i] = TBI_W(b, i) + tbi_dot(w, v, n);
+}
+
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 {
     uint32_t *d = m->dims, i, at;
@@ -95,7 +117,8 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
     uint32_t S = m->dims[0], H = m->dims[1], D = m->dims[2], K = m->dims[3], j, i, k;
     uint32_t body = m->off[O_BODY];
     tb_real step = PV(m, body), period = PV(m, 0);
-    tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], rr[TB_MAX_GRU_HIDDEN], x[TB_MAX_SENSORS];
+    tb_real h[TB_MAX_GRU_HIDDEN], hn[TB_MAX_GRU_HIDDEN], rr[TB_MAX_GRU_HIDDEN], si[TB_MAX_GRU_HIDDEN], sh[TB_MAX_GRU_HIDDEN];
+    tb_real x[TB_MAX_SENSORS];
     uint32_t gate;
     tb_real p, out = 0, pw = 1;
     uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
@@ -123,18 +146,18 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
             tb_real v = v0 + w * (v1 - v0);
             x[j] = (v - PV(m, body + 1 + j)) / PV(m, body + 1 + S + j);
         }
-        /* PyTorch GRU cell, gates (r, z, n), a gate's rows in one pass: r into rr, z into hn, then
-         * hn = (1 - z) n + z h with n = tanh(W_in x + b_in + r (W_hn h + b_hn)) */
+        /* PyTorch GRU cell, gates (r, z, n), a gate at a time: its input and hidden sums for every
+         * unit (gru_rows), then r into rr, z into hn, then hn = (1 - z) n + z h with
+         * n = tanh(W_in x + b_in + r (W_hn h + b_hn)) */
         for (gate = 0; gate < 3; gate++) {
-            const uint8_t *wi = m->payload + 4u * (m->off[O_A] + gate * H * S);
-            const uint8_t *wh = m->payload + 4u * (m->off[O_B] + gate * H * H);
-            const uint8_t *bi = m->payload + 4u * (m->off[O_C] + gate * H), *bh = m->payload + 4u * (m->off[O_D] + gate * H);
-            for (i = 0; i < H; i++, wi += 4u * S, wh += 4u * H) {
-                tb_real si = TBI_W(bi, i) + tbi_dot(wi, x, S), sh = TBI_W(bh, i) + tbi_dot(wh, h, H);
-                if (gate == 0) rr[i] = tbi_sigm(si + sh);
-                else if (gate == 1) hn[i] = tbi_sigm(si + sh);
-                else hn[i] = (1 - hn[i]) * tbm_tanh(si + rr[i] * sh) + hn[i] * h[i];
-            }
+            gru_rows(m->payload + 4u * (m->off[O_A] + gate * H * S), m->payload + 4u * (m->off[O_C] + gate * H), x, S, H, si);
+            gru_rows(m->payload + 4u * (m->off[O_B] + gate * H * H), m->payload + 4u * (m->off[O_D] + gate * H), h, H, H, sh);
+            if (gate == 0)
+                for (i = 0; i < H; i++) rr[i] = tbi_sigm(si[i] + sh[i]);
+            else if (gate == 1)
+                for (i = 0; i < H; i++) hn[i] = tbi_sigm(si[i] + sh[i]);
+            else
+                for (i = 0; i < H; i++) hn[i] = (1 - hn[i]) * tbm_tanh(si[i] + rr[i] * sh[i]) + hn[i] * h[i];
         }
         for (i = 0; i < H; i++) h[i] = hn[i];
     }
