@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import sys
 import warnings
 import zlib
 from dataclasses import dataclass
@@ -145,11 +146,12 @@ def write_onnx(model, path: Path, ds=None, runs: Sequence[str] = ()) -> dict:
     run by onnxruntime against the Python model; returns the check's figures."""
     import io
 
-    import onnxruntime as ort
-    import torch
-    from torch import nn
+    from ..extras import require
+    from ..models.neural import GRUModel, torch
 
-    from ..models.neural import GRUModel
+    nn = torch.nn
+    ort = require("onnxruntime", "the ONNX export of a neural model (or set export.onnx=false)")
+    require("onnx", "the ONNX export of a neural model (or set export.onnx=false)")
 
     gru = isinstance(model, GRUModel)
     means = [torch.tensor(np.asarray(m, dtype=np.float32)) for m in model.input_mean_]
@@ -283,9 +285,10 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                  source: dict | None = None, options: ExportOptions | None = None, force: bool = False) -> dict:  # fmt: skip
     """Write the export directory of one fitted model (see the module docstring); returns the manifest."""
     from ..models.lssvm import PSOLSSVM
-    from ..models.neural import GRUModel, MLPModel
     from ..models.physics import PhysicsModel
 
+    neural = sys.modules.get("thermbench.models.neural")  # not imported: the model is not a neural one
+    neural_classes = (neural.MLPModel, neural.GRUModel) if neural is not None else ()
     opts = options or ExportOptions()
     if not isinstance(model, ThermalErrorModel) or not hasattr(model, "train_runs_"):
         raise ExportError(f"{name}: expected a fitted thermbench model, got {type(model).__name__}")
@@ -343,7 +346,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                   "n_nodes": model.model_.geom.n_nodes, "effects": [e.id for e in model.model_.effects],
                                   "params": {k: float(v) for k, v in model.params_.items()},
                                   "ref": "seed 000 §3.1-3.2, §4.1; compensation table §4.3"}  # fmt: skip
-            if opts.onnx and isinstance(model, (MLPModel, GRUModel)):
+            if opts.onnx and isinstance(model, neural_classes):
                 man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
         man["needs_load"] = any(e.needs_load for e in encs.values())
         man["target"] = {"name": opts.target, **TARGETS[opts.target]}  # what the export is for (checked below)

@@ -60,10 +60,12 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
-import torch
-from torch import nn
 
 from ..data.io import Dataset
+from ..extras import require
+
+torch = require("torch", "the neural families (MLP, GRU)")
+nn = torch.nn
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .separation import line_separated_geometric, shape_degree
 
