@@ -1,11 +1,14 @@
 # Two commands do all set-up on a fresh machine:
-#   make demo   create .venv, install thermbench, run the main job (the robustness benchmark)
-#               and export its models for the embedded compensator (exports/benchmark/, C runtime checked)
-#   make test   create/update .venv with dev extras, run the whole test suite
+#   make demo   create .venv, install thermbench with the extras the demo uses (neural, onnx), run the
+#               main job (the robustness benchmark) and export its models for the embedded compensator
+#               (exports/benchmark/, C runtime checked)
+#   make test   create/update .venv with the dev extras (every extra the tests exercise), run the whole suite
+#   make core-check  the core install alone (.venv-core, no torch): simulate, validate, train an MLR, export
 #   make notebooks  run every notebook with full settings -> outputs/notebooks/*.ipynb (with outputs)
 #   make fuzz   libFuzzer on the C runtime's model-file loader (needs clang; FUZZ_SECONDS=300)
-# torch is pinned to the CPU build 2.13.0 through constraints.txt, so pip never
-# resolves a multi-GB CUDA build.
+# torch (the neural extra) is pinned to 2.13.0 through constraints.txt. On the machines this project is
+# built on, pip finds that version as a local CPU-build wheel; from PyPI, Linux torch wheels are CUDA
+# builds (several GB). For the CPU build elsewhere: make test TORCH_INDEX=https://download.pytorch.org/whl/cpu
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -14,19 +17,28 @@ PIP    := $(BIN)/python -m pip
 export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 
+# where torch comes from: empty = the package index pip is configured with; e.g. the PyTorch CPU index
+TORCH_INDEX ?=
+CORE_VENV   ?= .venv-core
+
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: target-test demo test install install-dev bench notebooks fuzz clean
+.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-$(VENV)/.installed: pyproject.toml constraints.txt | $(BIN)/python
-	$(PIP) install -c constraints.txt -e .
+# torch first, from TORCH_INDEX when given (the CPU build), so the extras below find it installed
+$(VENV)/.torch: constraints.txt | $(BIN)/python
+	$(PIP) install -c constraints.txt $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) torch
 	touch $@
 
-$(VENV)/.installed-dev: pyproject.toml constraints.txt | $(BIN)/python
+$(VENV)/.installed: pyproject.toml constraints.txt $(VENV)/.torch
+	$(PIP) install -c constraints.txt -e '.[neural,onnx]'
+	touch $@
+
+$(VENV)/.installed-dev: pyproject.toml constraints.txt $(VENV)/.torch
 	$(PIP) install -c constraints.txt -e '.[dev]'
 	touch $@ $(VENV)/.installed
 
@@ -36,6 +48,12 @@ install-dev: $(VENV)/.installed-dev
 demo: $(VENV)/.installed
 	$(BIN)/thermbench benchmark
 	$(BIN)/thermbench export
+
+# the core alone, in its own venv: installs without torch, and the main commands run on it
+core-check:
+	$(PYTHON) -m venv $(CORE_VENV)
+	$(CORE_VENV)/bin/python -m pip install -q -c constraints.txt -e .
+	$(CORE_VENV)/bin/python tests/core_check.py
 
 # the real-time closed-loop tests (marker timing) run alone after the rest: on 2 cores a
 # neighbouring test would steal the cycles they measure
@@ -70,4 +88,4 @@ fuzz:
 	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus embedded/fuzz/corpus
 
 clean:
-	rm -rf $(VENV) data/ .pytest_cache build/
+	rm -rf $(VENV) $(CORE_VENV) data/ .pytest_cache build/

@@ -77,6 +77,14 @@ def summary_rows(stdout: str) -> list[str]:
     return lines[1:]
 
 
+def summary_rows_of(stdout: str) -> list[str]:
+    """The rows of the sweep summary table, whatever the swept keys (header dropped)."""
+    assert "[sweep] summary" in stdout, stdout[-2000:]
+    lines = [ln for ln in stdout.split("[sweep] summary", 1)[1].splitlines() if ln.strip()]
+    assert lines[0].split()[0] == "job", lines[0]
+    return lines[1:]
+
+
 def expected_keys(models=MODELS, states=STATES) -> set[str]:
     return {f"model={m} train={s}" for m, s in product(models, states)}
 
@@ -174,6 +182,72 @@ def test_interrupted_sweep_resumes_without_duplicates(tmp_path, env):
     per_hash = Counter(r.data.tags["thermbench.config_hash"] for r in runs)
     assert len(per_hash) == 4 and set(per_hash.values()) == {1}
     assert {r.info.run_id for r in runs} == {r["mlflow_run_id"] for r in results.values()}
+
+
+def test_submitit_local_sweep_runs_each_job_in_its_own_process_and_resumes(tmp_path, env):
+    """A real 2-job sweep through Hydra's submitit launcher in its local mode (what
+    ``hydra/launcher=cluster`` does on SLURM, with the local executor): each job is a separate
+    process started by submitit from its pickled job file, tracked in MLflow. Ctrl-C (SIGINT to
+    the whole process group, as a terminal sends it) after job 0 finished stops the sweep with
+    exit 130; the same command again resumes it: job 0 is skipped (its MLflow run reused) and
+    job 1 runs to the end. Job 1 is the same LSSVM with 1500 PSO iterations instead of 1
+    (about 10 s more of fitting), so it is still running when job 0 is done."""
+    args = ["train", "-m", "hydra/launcher=submitit_local", "model=lssvm", "model.iters=1,1500", "model.n_particles=5",
+            "train=state2", *store_overrides(tmp_path)]  # fmt: skip
+    sweep = tmp_path / "sweep"
+    with open(tmp_path / "out1.txt", "w") as out, open(tmp_path / "err1.txt", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "thermbench.cli", *args], cwd=tmp_path, env=env, stdout=out,
+                                stderr=err, start_new_session=True)  # fmt: skip
+        try:
+            deadline = time.monotonic() + 240
+            while not (sweep / "0" / "result.json").exists():
+                assert proc.poll() is None, f"sweep ended before job 0 finished:\n{(tmp_path / 'err1.txt').read_text()}"
+                assert time.monotonic() < deadline, "job 0 did not finish in 240 s"
+                time.sleep(0.02)
+            assert not (sweep / "1" / "result.json").exists(), "job 1 finished as early as job 0: make it slower"
+            os.killpg(proc.pid, signal.SIGINT)
+            rc = proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    err1 = (tmp_path / "err1.txt").read_text()
+    assert rc == 130, err1[-3000:]
+    assert "thermbench train: interrupted" in err1
+    assert "Submitit 'local' sweep output dir" in (tmp_path / "out1.txt").read_text()
+
+    # submitit's job files: one folder per job (its local job id is the job's pid), the pickled job
+    # submitted, and each job's own logs
+    jobs = sorted((sweep / ".submitit").glob("[0-9]*/*_submitted.pkl"))
+    assert len(jobs) == 2
+    ids = {p.parent.name for p in jobs}
+    assert len(ids) == 2 and str(proc.pid) not in ids  # two processes, neither the launcher
+    logs = "".join(p.read_text() for p in (sweep / ".submitit").glob("*/*_log.*"))
+    assert "[train] lssvm uses sensors" in logs  # the jobs' own output went to submitit's logs
+
+    done_before = finished_runs(tmp_path)
+    assert len(done_before) == 1 and done_before[0].data.params["model.iters"] == "1"
+    job0 = json.loads((sweep / "0" / "result.json").read_text())
+    assert job0["mlflow_run_id"] == done_before[0].info.run_id
+
+    proc2 = cli(args, tmp_path, env)  # the same command: resume
+    assert proc2.returncode == 0, proc2.stderr[-3000:]
+    assert len(summary_rows_of(proc2.stdout)) == 2
+    r0 = json.loads((sweep / "0" / "result.json").read_text())
+    r1 = json.loads((sweep / "1" / "result.json").read_text())
+    assert r0["skipped"] and r0["mlflow_run_id"] == done_before[0].info.run_id
+    assert not r1["skipped"]
+    assert len({p.parent.name for p in (sweep / ".submitit").glob("[0-9]*/*_submitted.pkl")}) == 4  # 2 more jobs
+    assert len(list((sweep / ".submitit").glob("[0-9]*/*_result.pkl"))) >= 2  # submitit's results of the resumed jobs
+
+    runs = finished_runs(tmp_path)
+    assert sorted(r.data.params["model.iters"] for r in runs) == ["1", "1500"]
+    assert len({r.data.tags["thermbench.config_hash"] for r in runs}) == 2
+    assert {r.info.run_id for r in runs} == {r0["mlflow_run_id"], r1["mlflow_run_id"]}
+    c = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db")
+    exp = c.get_experiment_by_name("thermbench")
+    statuses = Counter(r.info.status for r in c.search_runs([exp.experiment_id], max_results=100))
+    assert statuses["FINISHED"] == 2 and statuses["RUNNING"] == 0  # the interrupted attempt is closed, not left running
 
 
 def test_unreachable_server_stops_a_sweep_before_any_job(tmp_path, env):

@@ -231,10 +231,18 @@ def _compose(name: str, overrides: list[str], **paths):
     return OmegaConf.to_container(cfg, resolve=True)
 
 
+def _require_opcua(command: str) -> None:
+    """The OPC UA commands need the ``opcua`` extra (asyncua): one line naming it if missing."""
+    from .extras import require
+
+    require("asyncua", command)
+
+
 def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[str]) -> int:
     import asyncio
 
     cfg = _compose("compensator", overrides)  # first: a mistake is reported before asyncua loads
+    _require_opcua("thermbench compensator")
     from .compensator.client import Compensator, format_summary
 
     _quiet_asyncua()
@@ -257,6 +265,7 @@ def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
     import asyncio
 
     cfg = _compose("sim_cnc", overrides, endpoint=endpoint)  # first: a mistake is reported before asyncua loads
+    _require_opcua("thermbench sim-cnc")
     from .compensator.simcnc import build_machine, format_figures, serve
 
     _quiet_asyncua()
@@ -268,6 +277,7 @@ def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
 
 
 def cmd_certs(out_dir: str, days: int, host: str | None) -> int:
+    _require_opcua("thermbench certs")
     from .compensator.certs import make_certificates
 
     for role, path in make_certificates(out_dir, days=days, host=host).items():

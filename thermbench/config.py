@@ -64,6 +64,16 @@ def load_config(name: str = "simulate", overrides: Sequence[str] = (), return_hy
             raise ConfigError(_Composer(name).explain(exc, overrides)) from None
 
 
+def _has_submitit() -> bool:
+    """Whether Hydra's submitit launcher plugin (the ``cluster`` extra) is installed."""
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is not None
+    except ModuleNotFoundError:
+        return False
+
+
 def compose_checked(
     name: str,
     overrides: Sequence[str] = (),
@@ -430,6 +440,11 @@ class _Composer:
                 return str(mine)
         if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and "/" in str(exc.missing_cfg_file):
             group, _, option = str(exc.missing_cfg_file).rpartition("/")
+            if group == "hydra/launcher" and option.startswith("submitit_") and not _has_submitit():
+                from .extras import install_hint
+
+                return (f"hydra/launcher={option} comes from hydra-submitit-launcher, which is not installed; "
+                        f"the 'cluster' extra installs it: {install_hint('cluster')}")
             options = list(exc.options or []) or self._options(group)
             return self._unknown_option(group, option, options)
         msg = str(exc).strip() or str(exc.__cause__ or "").strip()
