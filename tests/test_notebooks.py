@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from thermbench import nbrun
+from tools import nbrun
 
 NOTEBOOKS = nbrun.notebook_paths()
 EXPECTED = ["01_quickstart", "02_robustness", "03_discrepancy", "04_export_replay", "05_your_measurements"]

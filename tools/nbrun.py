@@ -5,8 +5,8 @@ code cell tagged ``parameters`` (the papermill convention) that sets its default
 False`` among them; ``run_notebook`` inserts a cell right after it with the caller's values, so
 the test suite runs every notebook with ``QUICK=True`` (small settings) and a scratch ``OUT_DIR``.
 
-    python -m thermbench.nbrun                 # all notebooks, full settings -> outputs/notebooks/*.ipynb
-    python -m thermbench.nbrun --quick 01 03   # two of them, small settings
+    python -m tools.nbrun                 # all notebooks, full settings -> outputs/notebooks/*.ipynb
+    python -m tools.nbrun --quick 01 03   # two of them, small settings
 
 Needs the ``dev`` (or ``notebooks``) extras: jupytext, nbclient, ipykernel.
 """
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-from .outputs import OutputRefused, check_output_file, output_file
+from thermbench.outputs import OutputRefused, check_output_file, output_file
 
 PARAMETERS_TAG = "parameters"
 
@@ -30,7 +30,7 @@ class NotebookError(ValueError):
 
 
 def notebooks_dir() -> Path:
-    """``notebooks/`` of the source tree this package was installed from (editable install)."""
+    """``notebooks/`` of the source tree that holds ``tools/``."""
     return Path(__file__).resolve().parent.parent / "notebooks"
 
 
@@ -114,7 +114,7 @@ def save_executed(nb, out: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m thermbench.nbrun", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m tools.nbrun", description=__doc__.split("\n\n")[0])
     ap.add_argument("names", nargs="*", help="notebook numbers or names (default: all)")
     ap.add_argument("--quick", action="store_true", help="small settings (QUICK=True), as the test suite runs them")
     ap.add_argument("--out", default=None, help="where the executed .ipynb go (default: outputs/notebooks/ beside notebooks/)")
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     folder = Path(a.notebooks) if a.notebooks else notebooks_dir()
     every = notebook_paths(folder)
     if not every:
-        print(f"no NN_*.py notebooks in {folder} (thermbench.nbrun needs the source tree: pip install -e .)", file=sys.stderr)
+        print(f"no NN_*.py notebooks in {folder} (give the folder with --notebooks)", file=sys.stderr)
         return 2
     wanted = [n.removesuffix(".py") for n in a.names]
     paths = [p for p in every if not wanted or any(p.stem.startswith(n) for n in wanted)]
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         for p in paths:
             check_output_file(out / f"{p.stem}.ipynb", "notebook")
     except OutputRefused as exc:
-        print(f"python -m thermbench.nbrun: error: {exc}", file=sys.stderr)
+        print(f"python -m tools.nbrun: error: {exc}", file=sys.stderr)
         return 2
     failed = []
     for p in paths:
