@@ -1,32 +1,53 @@
-"""Run the guided notebooks in ``notebooks/`` headless: read, parameterise, execute.
+"""Run the guided notebooks in ``notebooks/`` headless with papermill: read, parameterise, execute.
 
-The notebooks are jupytext percent-format ``.py`` files (``notebooks/NN_name.py``). Each has one
-code cell tagged ``parameters`` (the papermill convention) that sets its defaults, ``QUICK =
-False`` among them; ``run_notebook`` inserts a cell right after it with the caller's values, so
-the test suite runs every notebook with ``QUICK=True`` (small settings) and a scratch ``OUT_DIR``.
+The notebooks are jupytext percent-format ``.py`` files (``notebooks/NN_name.py``), read with
+jupytext. Each has one code cell tagged ``parameters`` (papermill's convention) that sets its
+defaults, ``QUICK = False`` among them; papermill inserts a cell tagged ``injected-parameters``
+right after it with the caller's values and executes the notebook, so the test suite runs every
+notebook with ``QUICK=True`` (small settings) and a scratch ``OUT_DIR``.
 
     python -m tools.nbrun                 # all notebooks, full settings -> outputs/notebooks/*.ipynb
     python -m tools.nbrun --quick 01 03   # two of them, small settings
 
-Needs the ``dev`` (or ``notebooks``) extras: jupytext, nbclient, ipykernel.
+Run from the project root. Needs the ``dev`` extras: papermill, jupytext, ipykernel.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
+import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Mapping
+from typing import Iterator, Mapping
 
 from thermbench.outputs import OutputRefused, check_output_file, output_file
 
 PARAMETERS_TAG = "parameters"
+INJECTED_TAG = "injected-parameters"  # the tag of the cell papermill inserts
+KERNEL = "python3"
+KERNELSPEC = {"name": KERNEL, "language": "python", "display_name": "Python 3"}  # for inspecting a cell
+INLINE_BACKEND = "module://matplotlib_inline.backend_inline"
 
 
 class NotebookError(ValueError):
     """A notebook that cannot be parameterised (names the file and what is missing)."""
+
+
+class NotebookFailed(RuntimeError):
+    """A run that stopped (a failing cell, a cell timeout, a dead kernel); the cause is chained.
+
+    ``nb`` is the notebook as far as it ran (papermill marks the failing cell), ``elapsed_s``
+    the time until it stopped.
+    """
+
+    def __init__(self, message: str, nb, elapsed_s: float):
+        super().__init__(message)
+        self.nb = nb
+        self.elapsed_s = elapsed_s
 
 
 def notebooks_dir() -> Path:
@@ -43,10 +64,10 @@ def _libs():
     try:
         import jupytext
         import nbformat
-        from nbclient import NotebookClient
+        import papermill
     except ImportError as exc:  # pragma: no cover - message for a user without the extras
-        raise SystemExit(f"running notebooks needs jupytext, nbclient and ipykernel: pip install -e '.[dev]' ({exc})")
-    return jupytext, nbformat, NotebookClient
+        raise SystemExit(f"running notebooks needs papermill, jupytext and ipykernel: pip install -e '.[dev]' ({exc})")
+    return jupytext, nbformat, papermill
 
 
 def read_notebook(path: str | Path):
@@ -56,49 +77,73 @@ def read_notebook(path: str | Path):
     return jupytext.read(Path(path))
 
 
-def with_parameters(nb, params: Mapping[str, object], name: str = "notebook"):
-    """``nb`` with a cell assigning ``params`` inserted after its ``parameters``-tagged cell.
-
-    Only names the parameters cell already assigns may be overridden, so a typo fails here
-    instead of being silently ignored by the notebook.
-    """
-    _, nbformat, _ = _libs()
-    idx = [i for i, c in enumerate(nb.cells) if PARAMETERS_TAG in c.get("metadata", {}).get("tags", [])]
-    if len(idx) != 1:
-        raise NotebookError(f"{name}: expected exactly one code cell tagged {PARAMETERS_TAG!r}, found {len(idx)}")
-    src = nb.cells[idx[0]].source
-    unknown = [k for k in params if not any(line.split("=")[0].strip() == k for line in src.splitlines() if "=" in line)]
+def check_parameters(nb, params: Mapping[str, object], name: str = "notebook") -> None:
+    """Raise :class:`NotebookError` unless ``nb`` has exactly one cell tagged ``parameters`` and
+    papermill finds every name of ``params`` assigned in it (papermill itself only logs a warning
+    for an unknown name and runs on, so a typo would be silently ignored)."""
+    _, nbformat, papermill = _libs()
+    cells = [c for c in nb.cells if PARAMETERS_TAG in c.get("metadata", {}).get("tags", [])]
+    if len(cells) != 1:
+        raise NotebookError(f"{name}: expected exactly one code cell tagged {PARAMETERS_TAG!r}, found {len(cells)}")
+    probe = nbformat.v4.new_notebook(cells=cells, metadata={"kernelspec": KERNELSPEC})
+    known = papermill.inspect_notebook(probe)  # the names papermill's Python translator reads off the cell
+    unknown = [k for k in params if k not in known]
     if unknown:
-        raise NotebookError(f"{name}: parameters {unknown} are not set in its parameters cell:\n{src}")
-    if params:
-        lines = [f"{k} = {v!r}" for k, v in params.items()]
-        cell = nbformat.v4.new_code_cell("# injected parameters\n" + "\n".join(lines))
-        cell.metadata["tags"] = ["injected-parameters"]
-        nb.cells.insert(idx[0] + 1, cell)
+        raise NotebookError(f"{name}: parameters {unknown} are not set in its parameters cell:\n{cells[0].source}")
+
+
+@contextmanager
+def _environ(**values: str) -> Iterator[None]:
+    """``os.environ`` with ``values`` for a while: papermill passes no environment to the kernel,
+    which inherits this process's."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _provenance(nb, path: Path):
+    """``nb`` with papermill's ``input_path`` naming the ``.py`` file (papermill stores an input
+    notebook node there whole)."""
+    if "papermill" in nb.metadata:
+        nb.metadata.papermill["input_path"] = str(path)
+        nb.metadata.papermill["output_path"] = None
     return nb
 
 
-INLINE_BACKEND = "module://matplotlib_inline.backend_inline"
-
-
-def run_notebook(path: str | Path, params: Mapping[str, object] | None = None, cell_timeout_s: float | None = 120.0,
-                 nb=None):  # fmt: skip
-    """Execute the notebook at ``path`` (working directory: its folder) with ``params``.
+def run_notebook(path: str | Path, params: Mapping[str, object] | None = None, cell_timeout_s: float | None = 120.0):
+    """Execute the notebook at ``path`` with papermill (working directory: its folder), ``params``
+    injected after its ``parameters`` cell (checked first by :func:`check_parameters`).
 
     ``cell_timeout_s`` None: no limit per cell. The kernel draws inline whatever ``MPLBACKEND``
     the caller has set (ipykernel keeps a backend it finds there, and the figures would be lost).
-    ``nb``: execute this already-read notebook instead (it is filled in place, so a caller keeps
-    the cells that ran when one fails). Returns ``(executed notebook, elapsed_s)``; a failing
-    cell raises nbclient's ``CellExecutionError`` with the cell's traceback.
+    Returns ``(executed notebook, elapsed_s)``. A run that stops raises :class:`NotebookFailed`
+    with the cells that ran, chained to papermill's ``PapermillExecutionError`` (the failing
+    cell's traceback) or nbclient's ``CellTimeoutError``.
     """
-    _, _, NotebookClient = _libs()
+    _, nbformat, papermill = _libs()
     path = Path(path)
-    nb = with_parameters(nb if nb is not None else read_notebook(path), dict(params or {}), path.name)
-    client = NotebookClient(nb, timeout=None if cell_timeout_s is None else int(cell_timeout_s), kernel_name="python3",
-                            resources={"metadata": {"path": str(path.parent)}})  # fmt: skip
-    t0 = time.perf_counter()
-    client.execute(env={**os.environ, "MPLBACKEND": INLINE_BACKEND})
-    return nb, time.perf_counter() - t0
+    params = dict(params or {})
+    nb = read_notebook(path)
+    check_parameters(nb, params, path.name)
+    timeout = None if cell_timeout_s is None else max(1, math.ceil(cell_timeout_s))
+    with tempfile.TemporaryDirectory(prefix="nbrun-") as tmp, _environ(MPLBACKEND=INLINE_BACKEND):
+        scratch = Path(tmp) / f"{path.stem}.ipynb"  # papermill saves the notebook there after each cell
+        t0 = time.perf_counter()
+        try:
+            nb = papermill.execute_notebook(nb, str(scratch), parameters=params, kernel_name=KERNEL, language="python",
+                                            progress_bar=False, cwd=str(path.parent), execution_timeout=timeout)  # fmt: skip
+        except Exception as exc:
+            elapsed = time.perf_counter() - t0
+            ran = nbformat.read(scratch, as_version=4) if scratch.exists() else nb
+            raise NotebookFailed(f"{path.name}: {exc}", _provenance(ran, path), elapsed) from exc
+        return _provenance(nb, path), time.perf_counter() - t0
 
 
 def images(nb) -> int:
@@ -107,10 +152,19 @@ def images(nb) -> int:
 
 
 def save_executed(nb, out: Path) -> Path:
+    """Write ``nb`` to ``out`` atomically, never over a notebook thermbench did not write."""
     _, nbformat, _ = _libs()
-    with output_file(out, "notebook") as tmp:  # never over a notebook thermbench did not write
+    if "papermill" in nb.metadata:
+        nb.metadata.papermill["output_path"] = str(out)
+    with output_file(out, "notebook") as tmp:
         tmp.write_bytes(nbformat.writes(nb).encode("utf-8"))
     return out
+
+
+def _summary(exc: BaseException) -> str:
+    """One line of ``exc``: a traceback's last line, a :class:`NotebookError`'s first."""
+    lines = str(exc).strip().splitlines() or [""]
+    return lines[0 if isinstance(exc, NotebookError) else -1][:200]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -140,13 +194,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     failed = []
     for p in paths:
-        nb = read_notebook(p)
         try:
-            _, dt = run_notebook(p, {"QUICK": True} if a.quick else {}, a.timeout, nb=nb)
+            nb, dt = run_notebook(p, {"QUICK": True} if a.quick else {}, a.timeout)
             status = f"{dt:6.1f} s"
-        except Exception as exc:  # a failing cell (or a timeout): keep what ran, go on with the others
+        except Exception as exc:  # a failing cell, a timeout, a bad parameters cell: keep what ran, go on
             failed.append(p.name)
-            status = f"FAILED ({type(exc).__name__}: {str(exc).strip().splitlines()[-1][:200] if str(exc).strip() else ''})"
+            nb = exc.nb if isinstance(exc, NotebookFailed) else read_notebook(p)
+            cause = exc.__cause__ if isinstance(exc, NotebookFailed) and exc.__cause__ is not None else exc
+            status = f"FAILED ({type(cause).__name__}: {_summary(cause)})"
         saved = save_executed(nb, out / f"{p.stem}.ipynb")
         print(f"{p.name}: {status}, {images(nb)} figures -> {saved}", flush=True)
     if failed:
