@@ -67,7 +67,7 @@ target-test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q -m target
 
 notebooks: $(VENV)/.installed-dev
-	$(BIN)/python -m thermbench.nbrun
+	$(BIN)/python -m tools.nbrun
 
 bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/bench_simulator.py

@@ -1,4 +1,4 @@
-"""docs/configuration.md is generated from conf/ (thermbench.confref) and must never go stale."""
+"""docs/configuration.md is generated from conf/ (tools.confref) and must never go stale."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from thermbench import confref
+from tools import confref
 from thermbench.config import config_dir
 
 CONF = config_dir()
@@ -24,11 +24,11 @@ def _rows(text: str) -> set[str]:
 
 
 def test_committed_reference_is_current(generated):
-    # (a) regenerate with: python -m thermbench.confref
-    assert DOC.exists(), "docs/configuration.md is missing: run python -m thermbench.confref"
-    stale = "docs/configuration.md is stale: run python -m thermbench.confref"
+    # (a) regenerate with: python -m tools.confref
+    assert DOC.exists(), "docs/configuration.md is missing: run python -m tools.confref"
+    stale = "docs/configuration.md is stale: run python -m tools.confref"
     assert DOC.read_text(encoding="utf-8") == generated, stale
-    assert generated.splitlines()[2].startswith("*Generated from `conf/` by `python -m thermbench.confref`")
+    assert generated.splitlines()[2].startswith("*Generated from `conf/` by `python -m tools.confref`")
 
 
 def test_every_conf_file_has_a_section(generated):
@@ -170,7 +170,7 @@ def test_tiny_conf_renders_expected_lines(tiny_conf):
     lines = text.splitlines()
     for line in [
         "### `tiny.yaml`",
-        "Used by: not known to `thermbench.confref` (add it to `COMMANDS`).",
+        "Used by: not known to `tools.confref` (add it to `COMMANDS`).",
         "tiny: a primary config for the test.",
         "thermbench tiny size_mm=4",
         "- `colour: red` → [`colour/red.yaml`](#colourredyaml) — the default colour",
@@ -208,4 +208,4 @@ def test_check_and_write(tiny_conf, tmp_path, capsys):
     out.write_text(out.read_text(encoding="utf-8") + "edited by hand\n", encoding="utf-8")
     assert confref.main(["--conf-dir", str(tiny_conf), "--out", str(out), "--check"]) == 1
     err = capsys.readouterr().err.strip()
-    assert "is stale" in err and "python -m thermbench.confref" in err and "\n" not in err
+    assert "is stale" in err and "python -m tools.confref" in err and "\n" not in err

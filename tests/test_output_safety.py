@@ -187,7 +187,7 @@ def test_sim_cnc_and_compensator_refuse_before_serving(campaign, tmp_path, seed0
 
 # --------------------------------------------------------- notebooks, certs ---
 def test_notebook_runner_refuses_a_users_notebook_before_running(campaign, tmp_path, capsys):
-    from thermbench import nbrun
+    from tools import nbrun
 
     before = _digest(tmp_path / "campaign")
     (tmp_path / "nb").mkdir()

@@ -1,7 +1,7 @@
 """The configuration reference (``docs/configuration.md``), generated from ``conf/``.
 
-    python -m thermbench.confref                 # (re)write docs/configuration.md
-    python -m thermbench.confref --check         # exit 1 if the committed file is stale
+    python -m tools.confref                 # (re)write docs/configuration.md
+    python -m tools.confref --check         # exit 1 if the committed file is stale
 
 One section per primary config (``conf/*.yaml``: the command that composes it, its defaults
 list, every key with its default and its comment), then one per config group (every directory
@@ -41,14 +41,14 @@ from ruamel.yaml.comments import CommentedMap, CommentedSeq
 from ruamel.yaml.tokens import CommentToken
 
 #: the command that regenerates the reference (stated in its first line)
-COMMAND = "python -m thermbench.confref"
+COMMAND = "python -m tools.confref"
 #: the reference's place, relative to the project root (the parent of conf/)
 DEFAULT_OUT = Path("docs") / "configuration.md"
 #: a flow value (list or mapping) rendered longer than this is shortened: "[a, b, … (12 items)]"
 MAX_VALUE_CHARS = 100
 
 #: primary config (conf/<name>.yaml) -> how it is used; the order is the reference's order.
-#: A primary config missing here is listed as "not known to thermbench.confref" (a test fails).
+#: A primary config missing here is listed as "not known to tools.confref" (a test fails).
 COMMANDS: dict[str, str] = {
     "simulate": "`thermbench simulate [overrides]` (`thermbench.cli`); also the base of every standard "
     "benchmark dataset (`thermbench.datasets`)",
@@ -65,7 +65,7 @@ COMMANDS: dict[str, str] = {
     "(`thermbench.compensator.client`)",
     "sim_cnc": "`thermbench sim-cnc [--endpoint URL] [overrides]` (`thermbench.compensator.simcnc`)",
 }
-UNKNOWN_COMMAND = "not known to `thermbench.confref` (add it to `COMMANDS`)"
+UNKNOWN_COMMAND = "not known to `tools.confref` (add it to `COMMANDS`)"
 
 INTRO = """\
 The configuration is [Hydra](https://hydra.cc)'s: a *primary config* (`conf/<name>.yaml`) composes
@@ -539,7 +539,7 @@ def _package_prefix(package: str | None, group: str) -> str:
 def reference_markdown(conf_dir: str | Path | None = None) -> str:
     """The configuration reference of ``conf_dir`` (default: ``thermbench.config.config_dir()``)."""
     if conf_dir is None:
-        from .config import config_dir
+        from thermbench.config import config_dir
 
         conf_dir = config_dir()
     conf = Path(conf_dir)
@@ -625,10 +625,10 @@ def reference_markdown(conf_dir: str | Path | None = None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ._atomic import write_text_atomic
-    from .config import config_dir
+    from thermbench._atomic import write_text_atomic
+    from thermbench.config import config_dir
 
-    parser = argparse.ArgumentParser(prog="python -m thermbench.confref", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=None, help=f"the Markdown file (default: <project>/{DEFAULT_OUT.as_posix()})")
     parser.add_argument("--check", action="store_true",
                         help="write nothing; exit 1 if --out differs from the generated text")
