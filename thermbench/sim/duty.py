@@ -65,6 +65,8 @@ class Trajectory:
     x_mm: list[float] = field(default_factory=list)
     load_N: list[float] = field(default_factory=lambda: [0.0])
     readings: list[tuple[float, float]] = field(default_factory=list)  # (t_s, target_mm)
+    # (phase index, wall-clock start, end) of each stretch of a phase between measuring cycles
+    spans: list[tuple[int, float, float]] = field(default_factory=list)
 
     @property
     def now(self) -> float:
@@ -135,7 +137,8 @@ def _measure(tr: Trajectory, meas: Measuring) -> None:
 
 def build_run(phases: list[Phase], meas: Measuring, start_mm: float | None = None) -> Trajectory:
     """The trajectory of a run: reference measurement, phases with measuring
-    cycles every ``meas.every_s`` of duty time, closing measurement."""
+    cycles every ``meas.every_s`` of duty time, closing measurement. ``spans`` records
+    when each phase ran (wall-clock stretches between measuring cycles)."""
     tr = Trajectory()
     tr.x_mm.append(float(meas.targets_mm[0] if start_mm is None else start_mm))
     for _ in range(max(1, meas.reference_repeats)):
@@ -143,12 +146,14 @@ def build_run(phases: list[Phase], meas: Measuring, start_mm: float | None = Non
     duty_clock = 0.0
     next_meas = meas.every_s
     measured_last = True
-    for ph in phases:
+    for index, ph in enumerate(phases):
         left = ph.duration_s
         state: dict = {}
         while left > 1e-9:
             chunk = min(left, next_meas - duty_clock)
+            t0 = tr.now
             _reciprocate(tr, ph, chunk, state)
+            tr.spans.append((index, t0, tr.now))
             measured_last = False
             duty_clock += chunk
             left -= chunk
