@@ -20,7 +20,7 @@ from pathlib import Path
 
 BIN = Path(sys.executable).parent
 ABSENT = {"torch": "neural", "onnx": "onnx", "onnxruntime": "onnx", "asyncua": "opcua", "submitit": "cluster",
-          "papermill": "notebooks", "psycopg2": "postgres"}  # fmt: skip
+          "papermill": "notebooks", "psycopg": "postgres"}  # fmt: skip
 
 
 def run(args: list[str], cwd: Path, expect: int = 0) -> str:

@@ -11,13 +11,14 @@ extra          installs                             needed by
 ``onnx``       onnx, onnxruntime                    ONNX export of the neural families
 ``opcua``      asyncua                              ``thermbench compensate``, ``sim-cnc``
 ``cluster``    hydra-submitit-launcher (submitit)   ``hydra/launcher=submitit_local``/``cluster``
+``postgres``   psycopg 3                            an MLflow tracking server on PostgreSQL
 ``notebooks``  jupyterlab, jupytext, papermill      the guided notebooks
 ``all``        every extra above
 =============  ===================================  =========================================
 
 :func:`require` imports an optional module and, when it is missing, raises
 :class:`MissingExtra` (a :class:`~thermbench.errors.UserError`: one line, exit 2) naming the
-extra to install. ``what`` is said with "needs": ``require("torch", "the neural family MLP/GRU")``.
+extra to install. ``what`` names who needs it: ``require("torch", "the neural families MLP and GRU")``.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ EXTRAS = {
     "cryptography": "opcua",
     "submitit": "cluster",
     "hydra_plugins.hydra_submitit_launcher": "cluster",
+    "psycopg": "postgres",
     "papermill": "notebooks",
     "jupytext": "notebooks",
     "nbclient": "notebooks",
@@ -65,5 +67,5 @@ def require(module: str, what: str) -> ModuleType:
         extra = EXTRAS.get(module) or EXTRAS.get(top)
         if extra is None:
             raise
-        raise MissingExtra(f"{top} is not installed and {what} needs it; the '{extra}' extra installs it: "
+        raise MissingExtra(f"{top} is not installed (needed by {what}); the '{extra}' extra installs it: "
                            f"{install_hint(extra)}") from None

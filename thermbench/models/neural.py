@@ -64,7 +64,7 @@ import pandas as pd
 from ..data.io import Dataset
 from ..extras import require
 
-torch = require("torch", "the neural families (MLP, GRU)")
+torch = require("torch", "the neural families MLP and GRU")
 nn = torch.nn
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .separation import line_separated_geometric, shape_degree
