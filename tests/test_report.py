@@ -187,12 +187,20 @@ def test_approach_comparison_names_best_and_worst_training_state(results):
 def test_markdown_table_formats_rates_and_micrometres():
     df = pd.DataFrame({"name": ["a|b", "c"], "compensation_rate": [0.8531, -1.5], "x_um": [3.456, np.nan]})
     text = markdown_table(df, index=False)
-    assert text.splitlines() == [
-        "| name | compensation_rate | x_um |",
-        "| --- | ---: | ---: |",
-        "| a\\|b | 85.3% | 3.46 |",
-        "| c | -150.0% | — |",
-    ]
+    lines = text.splitlines()
+    assert len(lines) == 4 and all(ln.startswith("|") and ln.endswith("|") for ln in lines)
+
+    def cells(line: str) -> list[str]:  # split on unescaped pipes
+        return [c.strip().replace("\x00", "\\|") for c in line.replace("\\|", "\x00").strip("|").split("|")]
+
+    assert cells(lines[0]) == ["name", "compensation_rate", "x_um"]
+    # GitHub alignment row: text left, numbers right
+    align = cells(lines[1])
+    assert align[0].startswith(":") and not align[0].endswith(":")
+    assert all(a.endswith(":") and not a.startswith(":") for a in align[1:]) and all(set(a) <= {"-", ":"} for a in align)
+    assert cells(lines[2]) == ["a\\|b", "85.3%", "3.46"]
+    assert cells(lines[3]) == ["c", "-150.0%", "—"]
+    assert len({len(ln) for ln in lines}) == 1  # padded to one width: readable as plain text too
 
 
 # ----------------------------------------------------------------------------- terminal
@@ -280,6 +288,18 @@ def test_negative_rate_is_red_and_printed_true():
 # ----------------------------------------------------------------------------- report
 
 
+def compact(text: str) -> str:
+    """``text`` with its markdown table rows written with one space around each cell: the rows
+    compare as cells, whatever padding the table writer adds for plain-text readability."""
+    out = []
+    for line in text.splitlines():
+        if line.startswith("|") and line.endswith("|"):
+            cells = [c.strip().replace("\x00", "\\|") for c in line.replace("\\|", "\x00")[1:-1].split("|")]
+            line = "| " + " | ".join(cells) + " |"
+        out.append(line)
+    return "\n".join(out)
+
+
 def _referenced_pngs(text):
     return re.findall(r"\]\((figures/[^)]+\.png)\)", text)
 
@@ -288,7 +308,7 @@ def test_write_report_layout_values_and_figures(results, tmp_path):
     meta = {"command": "thermbench robustness --all", "git_commit": "abc1234", "wall_time_s": "12.3"}
     path = write_report(results, _curves(), tmp_path / "out", meta=meta)
     assert path == tmp_path / "out" / "report.md"
-    text = path.read_text(encoding="utf-8")
+    text = compact(path.read_text(encoding="utf-8"))
     assert "`thermbench robustness --all`" in text and "abc1234" in text
     assert "How to read this report" in text
     # dsA mlr single headline row, hand-computed above, formatted % (1 decimal) and µm (2 decimals)
@@ -500,7 +520,7 @@ def test_validation_by_channel_and_best_match_hand_computation():
     t = report.validation_by_channel(spin[~gone], "spin")
     assert t.at[("fam", "single"), "ch2"] == pytest.approx(9.0)
     assert t.attrs["n_models"].at[("fam", "single"), "ch2"] == 1
-    md = report._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True)
+    md = compact(report._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True))
     assert "| fam | single (mean) | 4.00 | 9.00 (1/2) |" in md
 
 
@@ -529,7 +549,7 @@ def test_results_csv_columns_and_values(spin_report):
 
 def test_channel_table_best_and_baseline_lines(spin_report):
     out, _, _ = spin_report
-    text = (out / "report.md").read_text(encoding="utf-8")
+    text = compact((out / "report.md").read_text(encoding="utf-8"))
     assert "### spin (2 error channels: ch1, ch2)" in text
     assert "| family | approach | ch1 | ch2 |" in text
     assert "| base (baseline) | single (mean) | 6.00 | **3.00** |" in text
@@ -551,7 +571,7 @@ def test_channel_table_best_and_baseline_lines(spin_report):
 
 def test_channel_figures_exist_are_listed_and_hold_the_right_cells(spin_report):
     out, _, captured = spin_report
-    text = (out / "report.md").read_text(encoding="utf-8")
+    text = compact((out / "report.md").read_text(encoding="utf-8"))
     refs = _referenced_pngs(text)
     spin_figs = ["figures/rmse_bars__spin.png", "figures/rmse_matrix__spin__base.png",
                  "figures/rmse_matrix__spin__fam.png", "figures/best_curves__spin.png"]
@@ -574,7 +594,7 @@ def test_channel_figures_exist_are_listed_and_hold_the_right_cells(spin_report):
 
 def test_baselines_are_marked(spin_report):
     out, mixed, _ = spin_report
-    text = (out / "report.md").read_text(encoding="utf-8")
+    text = compact((out / "report.md").read_text(encoding="utf-8"))
     assert "#### base (baseline)" in text and "#### fam\n" in text
     assert "**Baselines**" in text
     summary = terminal_summary(mixed, reference=["base"])

@@ -533,23 +533,24 @@ def markdown_table(
     index: bool = True,
     headers: Mapping[str, str] | None = None,
 ) -> str:
-    """``df`` as a GitHub markdown table (``DataFrame.to_markdown`` needs tabulate).
+    """``df`` as a GitHub markdown table (``DataFrame.to_markdown``, tabulate's ``pipe`` format).
 
     ``formats`` maps a column to a value -> str callable; by default columns
     ending in ``_um`` get two decimals, columns containing ``rate`` a percentage
     with one decimal. ``headers`` renames columns for display. Index levels
-    become leading columns. Numeric columns are right-aligned."""
+    become leading columns. Numeric columns are right-aligned. Cells are shown as
+    formatted (tabulate's number parsing is off); a ``|`` in a cell is escaped."""
     formats = dict(formats or {})
     headers = dict(headers or {})
     frame = df.reset_index() if index else df
     cols = list(frame.columns)
-    head = [_md_escape(headers.get(c, c)) for c in cols]
-    align = ["---:" if pd.api.types.is_numeric_dtype(frame[c]) and frame[c].dtype != bool else "---" for c in cols]
-    lines = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
     fns = [formats.get(c, _passing_strings(_default_format(c))) for c in cols]
-    for values in frame.itertuples(index=False, name=None):
-        lines.append("| " + " | ".join(_md_escape(f(v)) for f, v in zip(fns, values)) + " |")
-    return "\n".join(lines)
+    cells = [[_md_escape(f(v)) for v in frame.iloc[:, i]] for i, f in enumerate(fns)]
+    shown = pd.DataFrame(dict(enumerate(cells)), columns=range(len(cols)), dtype=object)
+    right = [pd.api.types.is_numeric_dtype(frame.iloc[:, i]) and frame.iloc[:, i].dtype != bool for i in range(len(cols))]
+    return shown.to_markdown(index=False, tablefmt="pipe", disable_numparse=True,
+                             headers=[_md_escape(headers.get(c, c)) for c in cols],
+                             colalign=["right" if r else "left" for r in right])  # fmt: skip
 
 
 # --------------------------------------------------------------------------- terminal
