@@ -10,7 +10,7 @@ Three layers:
   (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` after the paper's ``gam``/``sig2``;
   the kernel is eq. 14's exp(-d²/(2σ²)), whereas LS-SVMlab's RBF is exp(-d²/sig2): the
   paper's sig2 = 0.01 is σ² = 0.005 here), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
-* :func:`tune_lssvm`: particle-swarm search (``pyswarms.single.GlobalBestPSO``) of
+* :func:`tune_lssvm`: particle-swarm search (global-best PSO, :func:`global_best_pso`) of
   (log10 γ, log10 σ²) minimising the RMSE on a hold-out set (seed 002 Fig. 14:
   "iterative adaptive particles screen the parameters of the kernel function and
   penalty coefficients").
@@ -27,7 +27,7 @@ import contextlib
 import math
 from dataclasses import dataclass, field
 from numbers import Integral, Real
-from typing import Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -178,31 +178,53 @@ def _bounds(value, name: str) -> tuple[float, float]:
     return lo, hi
 
 
-@contextlib.contextmanager
-def _pyswarms_quiet_and_seeded(seed: int):
-    """Yield ``pyswarms.single.GlobalBestPSO`` with numpy's global RNG (which pyswarms
-    draws from) seeded with ``seed``; the RNG state is restored afterwards.
+def global_best_pso(
+    cost: Callable[[np.ndarray], np.ndarray],
+    init_pos: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    iters: int,
+    options: Mapping[str, float],
+    rng: np.random.RandomState,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Global-best particle swarm minimisation of ``cost`` (one cost per row of positions).
 
-    pyswarms builds a ``Reporter`` at import and in every optimiser/handler/topology
-    constructor, and each one calls ``logging.config.dictConfig`` on the ROOT logger
-    (a stream handler plus a ``report.log`` file created in the working directory).
-    That call is disabled while pyswarms is imported and the optimiser is built and
-    run, so using this module leaves the application's logging and the working
-    directory untouched.
+    The algorithm of ``pyswarms.single.GlobalBestPSO`` (pyswarms 1.3: star topology,
+    positions clipped to ``bounds`` ("nearest"), velocities unclamped, initial velocities
+    uniform in [0, 1), constant ``options`` c1, c2, w), step for step and draw for draw,
+    from the generator ``rng`` instead of numpy's global one: with
+    ``np.random.RandomState(seed)`` it gives the numbers pyswarms gives after
+    ``np.random.seed(seed)`` (tests/test_lssvm.py checks it against pyswarms). pyswarms
+    itself is not called because it draws from numpy's global generator and reconfigures
+    the root logger (``logging.config.dictConfig``) whenever it is imported or builds an
+    optimiser; this touches neither.
+
+    Every iteration: evaluate the swarm, update the personal and the global best, then
+    ``v = w v + c1 r1 (pbest - x) + c2 r2 (gbest - x)`` (r1, r2 uniform per particle and
+    dimension) and ``x = clip(x + v)``. Returns (best cost, best position, the best cost
+    after each iteration).
     """
-    import logging.config
-
-    saved_dict_config = logging.config.dictConfig
-    saved_rng = np.random.get_state()
-    logging.config.dictConfig = lambda config: None
-    try:
-        import pyswarms.single.global_best as gb
-
-        np.random.seed(seed)
-        yield gb.GlobalBestPSO
-    finally:
-        logging.config.dictConfig = saved_dict_config
-        np.random.set_state(saved_rng)
+    lb, ub = bounds
+    c1, c2, w = options["c1"], options["c2"], options["w"]
+    pos = np.asarray(init_pos, dtype=float)
+    rng.random_sample(size=pos.shape)  # pyswarms builds its swarm twice (both constructors reset()):
+    vel = rng.random_sample(size=pos.shape)  # the initial velocities are the second draw
+    pbest_pos, pbest_cost = pos, np.full(pos.shape[0], np.inf)
+    best_pos, best_cost = pos[0], np.inf  # replaced by the first finite cost (pyswarms: empty, fails without one)
+    history = []
+    for _ in range(int(iters)):
+        current = cost(pos)
+        better = current < pbest_cost
+        pbest_pos = np.where(better[:, None], pos, pbest_pos)
+        pbest_cost = np.where(better, current, pbest_cost)
+        if np.min(pbest_cost) < best_cost:
+            best_pos, best_cost = pbest_pos[np.argmin(pbest_cost)], np.min(pbest_cost)
+        history.append(best_cost)
+        cognitive = c1 * rng.uniform(0, 1, pos.shape) * (pbest_pos - pos)
+        social = c2 * rng.uniform(0, 1, pos.shape) * (best_pos - pos)
+        vel = (w * vel) + cognitive + social
+        moved = pos + vel
+        pos = np.where(moved > ub, ub, np.where(moved < lb, lb, moved))
+    return float(best_cost), pbest_pos[pbest_cost.argmin()].copy(), np.asarray(history, dtype=float)
 
 
 def tune_lssvm(
@@ -227,13 +249,13 @@ def tune_lssvm(
     The inputs are standardised with the training rows' statistics, as the final
     LSSVM would be.
 
-    Swarm: ``pyswarms.single.GlobalBestPSO`` with ``options`` (default
-    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds ("nearest"). The
-    first particles start at the four corners and the centre of the (log) box, the
-    rest uniformly at random, so the result is never worse than those five points.
-    A pair of equal bounds fixes that parameter (only the other is searched).
-    Deterministic: numpy's global RNG (used by pyswarms) is seeded with ``seed`` and
-    restored afterwards.
+    Swarm: :func:`global_best_pso` (pyswarms' GlobalBestPSO) with ``options`` (default
+    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds. The first particles
+    start at the four corners and the centre of the (log) box, the rest uniformly at
+    random, so the result is never worse than those five points. A pair of equal bounds
+    fixes that parameter (only the other is searched). Deterministic: every random draw
+    comes from ``np.random.RandomState(seed)``; numpy's global generator is neither used
+    nor changed.
     """
     glo, ghi = _bounds(gamma_bounds, "gamma_bounds")
     slo, shi = _bounds(sigma2_bounds, "sigma2_bounds")
@@ -294,26 +316,19 @@ def tune_lssvm(
         return TuneResult(glo, slo, r, np.array([r]), val)
 
     flo, fhi = lo[free], hi[free]
+    rng = np.random.RandomState(int(seed))  # the PSO's own generator
+    corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
+    starts = np.vstack([corners, (flo + fhi) / 2])[:n_particles]
+    rand = flo + (fhi - flo) * rng.random_sample((n_particles - len(starts), free.size))
+    init = np.clip(np.vstack([starts, rand]), flo, fhi)
     # hundreds of small factorisations: BLAS threads cost more than they gain there
     blas = threadpool_limits(limits=1, user_api="blas") if yt.size < 1000 else contextlib.nullcontext()
-    with blas, _pyswarms_quiet_and_seeded(int(seed)) as GlobalBestPSO:
-        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
-        starts = np.vstack([corners, (flo + fhi) / 2])[:n_particles]
-        rand = flo + (fhi - flo) * np.random.random_sample((n_particles - len(starts), free.size))
-        init = np.clip(np.vstack([starts, rand]), flo, fhi)
-        opt = GlobalBestPSO(
-            n_particles=int(n_particles),
-            dimensions=int(free.size),
-            options=opts,
-            bounds=(flo, fhi),
-            bh_strategy="nearest",
-            init_pos=init,
+    with blas:
+        best_cost, best_pos, history = global_best_pso(
+            lambda P: np.array([rmse(*params(q)) for q in P]), init, (flo, fhi), int(iters), opts, rng
         )
-        best_cost, best_pos = opt.optimize(
-            lambda P: np.array([rmse(*params(p)) for p in P]), iters=int(iters), verbose=False
-        )
-    g, s = params(np.asarray(best_pos, dtype=float))
-    return TuneResult(float(g), float(s), float(best_cost), np.asarray(opt.cost_history, dtype=float), val)
+    g, s = params(best_pos)
+    return TuneResult(float(g), float(s), best_cost, history, val)
 
 
 # ---------------------------------------------------------------------------
