@@ -209,8 +209,16 @@ def test_pso_fixed_parameter_and_bad_bounds(series):
         tune_lssvm(X, y, sigma2_bounds=(0.0, 1.0))
     with pytest.raises(ModelError, match="val_fraction"):
         tune_lssvm(X, y, val_fraction=1.0)
-    with pytest.raises(ModelError, match="options"):
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.options: expected None or a mapping with the numbers c1, c2 "
+                                         r"and w, got \{'c1': 1\.0\}$"):
         tune_lssvm(X, y, options={"c1": 1.0})
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.n_particles: expected an integer >= 1, got True$"):
+        tune_lssvm(X, y, n_particles=True)
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.seed: expected an integer 0\.\.4294967295, got -1$"):
+        tune_lssvm(X, y, seed=-1)
+    # equal bounds fix a parameter here (gamma_bounds above); val_fraction is unused with a val_mask
+    mask = np.arange(len(y)) >= 70
+    assert tune_lssvm(X, y, n_particles=3, iters=2, val_fraction=None, val_mask=mask).val_mask.sum() == 20
 
 
 # --------------------------------------------------------------------------- thermal model
@@ -374,8 +382,9 @@ def test_bad_inputs(clean_ds):
         ({"gamma": -3.0}, "gamma"),
         ({"val_fraction": 1.5}, "val_fraction"),
         ({"n_particles": 0}, "n_particles"),
+        ({"seed": -1}, "seed"),  # numpy's generators take 0..2**32-1
     ]:
-        with pytest.raises(ModelError, match=name):
+        with pytest.raises(ModelError, match=rf"^PSOLSSVM\.{name}: expected "):
             PSOLSSVM(sensors=["T1"], **bad).fit(clean_ds, "r1")
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from abc import abstractmethod
 import warnings
-from typing import Annotated, Any, Optional, Sequence, Union
+from typing import Annotated, Any, Optional, Sequence
 
 import numpy as np
 import pandas as pd
@@ -45,7 +45,7 @@ from .base import (
     sensors_by_location,
     temperatures_at,
 )
-from .params import Degree, Expect, Int, Number, Params, Selection, check_params
+from .params import Degree, Int, Number, Params, Selection, SensorNames, check_params
 from .separation import cold_reference_geometric, curve_at, cycle_curves, geometric_from_residuals, shape_degree
 
 __all__ = ["MLRSeed001", "MLRSeed002", "MLRSeed004", "lstsq_fit"]
@@ -54,10 +54,6 @@ SEED004_LOCATIONS = ("fixed_bearing_housing", "nut_housing", "free_bearing_housi
 
 
 # -------------------------------------------------------------- parameters ---
-#: a sensor name or a list of them (a lone name is one sensor)
-SensorNames = Annotated[Union[str, Sequence[str]], Expect("a sensor name or a list of sensor names")]
-
-
 class MLRSeed001Params(Params):
     degree: Annotated[Int, Ge(1), Le(4)]  # seed 001 §3: m <= 4
     nut_sensor: Optional[str]

@@ -36,11 +36,13 @@ __all__ = [
     "Degree",
     "Expect",
     "Int",
+    "Limit",
     "Number",
     "Params",
     "PositiveNumber",
     "Seed",
     "Selection",
+    "SensorNames",
     "check_params",
     "expected",
     "pair_bounds",
@@ -71,9 +73,20 @@ Number = Annotated[float, Strict(), AllowInfNan(False), BeforeValidator(_plain)]
 #: true or false (not 0/1, not "yes")
 Bool = Annotated[bool, Strict(), BeforeValidator(_plain)]
 
+
+def _not_nan(x: float) -> float:
+    if x != x:
+        raise ValueError("NaN")
+    return x
+
+
+#: a bound of a search: a number, or -inf/inf for none (not NaN)
+Limit = Annotated[float, Strict(), BeforeValidator(_plain), AfterValidator(_not_nan)]
 PositiveNumber = Annotated[Number, Gt(0)]
 Degree = Annotated[Int, Ge(0)]  # a polynomial degree
 Seed = Annotated[Int, Ge(0), Le(2**32 - 1)]  # what numpy's and torch's generators take
+#: a sensor name or a list of them (a lone name is one sensor)
+SensorNames = Annotated[Union[str, Sequence[str]], Expect("a sensor name or a list of sensor names")]
 #: options of the sensitive-point selection (thermbench.models.base.choose_sensors)
 Selection = Annotated[Optional[Mapping[str, Any]], Expect("None or a mapping of selection options")]
 
