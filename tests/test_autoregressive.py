@@ -187,7 +187,7 @@ def test_bad_input(data):
         AutoRegressiveSeed003(nb=0).fit(ds, "train1")
     with pytest.raises(ModelError, match="sample_s"):
         AutoRegressiveSeed003(sample_s=0.0).fit(ds, "train1")
-    with pytest.raises(ModelError, match=r"^criterion must be one of \['equation', 'output'\], got 'free'$"):
+    with pytest.raises(ModelError, match=r"^AutoRegressiveSeed003\.criterion: expected one of \['equation', 'output'\], got 'free'$"):
         AutoRegressiveSeed003(criterion="free").fit(ds, "train1")
     with pytest.raises(ModelError, match="mounting"):
         AutoRegressiveSeed003(mounting="loose").fit(ds, "train1")

@@ -266,9 +266,12 @@ def test_classifier_with_other_labels_is_an_error(ds):
     [
         (lambda ds: ConditionBank(model=mlr()).fit(ds, []), "no runs given"),
         (lambda ds: ConditionBank(model=mlr()).fit(ds, ["a", "nope"]), r"run\(s\) \['nope'\] not in dataset"),
-        (lambda ds: ConditionBank().fit(ds, ["a"]), "model must be an unfitted thermbench model"),
-        (lambda ds: ConditionBank(model=mlr(), step_s=0).fit(ds, ["a"]), "step_s must be a number > 0"),
-        (lambda ds: ConditionBank(model=mlr(), classifier="bayes").fit(ds, ["a"]), "classifier must be a scikit-learn"),
+        (lambda ds: ConditionBank().fit(ds, ["a"]), r"^ConditionBank\.model: expected an unfitted thermbench model \(ThermalErrorModel\), got None$"),
+        (lambda ds: ConditionBank(model="mlr").fit(ds, ["a"]), r"^ConditionBank\.model: expected an unfitted thermbench model .*, got 'mlr'$"),
+        (lambda ds: ConditionBank(model=mlr(), step_s=0).fit(ds, ["a"]), r"^ConditionBank\.step_s: expected a finite number > 0, got 0$"),
+        (lambda ds: ConditionBank(model=mlr(), window_s=True).fit(ds, ["a"]), r"^ConditionBank\.window_s: expected a finite number > 0, got True$"),
+        (lambda ds: ConditionBank(model=mlr(), min_moving_s=-1.0).fit(ds, ["a"]), r"^ConditionBank\.min_moving_s: expected a finite number >= 0, got -1\.0$"),
+        (lambda ds: ConditionBank(model=mlr(), classifier="bayes").fit(ds, ["a"]), r"^ConditionBank\.classifier: expected None or a scikit-learn classifier \(fit/predict/get_params\), got 'bayes'$"),
         (lambda ds: ConditionBank().fit_from_fitted(ds, {}), "non-empty mapping"),
         (lambda ds: ConditionBank().fit_from_fitted(ds, {"a": mlr()}), "'a' is not fitted"),
         (lambda ds: ConditionBank(model=mlr()).fit(ds, ["a", "idle"]), r"condition 'idle'.*no motion windows"),
@@ -524,9 +527,9 @@ def test_soft_motion_bank_and_same_fits(ds, refs, bank):
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda s: ConditionBank(blend="mix").fit_from_fitted(*s), r"blend must be one of \['hard', 'soft'\]"),
+        (lambda s: ConditionBank(blend="mix").fit_from_fitted(*s), r"^ConditionBank\.blend: expected one of \['hard', 'soft'\], got 'mix'$"),
         (lambda s: ConditionBank(blend="soft", classifier=__import__("sklearn.linear_model").linear_model
-                                 .RidgeClassifier()).fit_from_fitted(*s), "blend 'soft' needs a classifier with "
+                                 .RidgeClassifier()).fit_from_fitted(*s), "^ConditionBank: blend 'soft' needs a classifier with "
                                                                           "predict_proba"),
         (lambda s: ConditionBank(classifier=ProximityNaiveBayes(factors=["feed_mm_min"])).fit_from_fitted(*s),
          r"'classifier.factors': \['feed_mm_min'\], but the bank's conditions are levels of \['spindle_rpm'\]"),

@@ -31,9 +31,9 @@ def test_constructor_stores_parameters_and_clone_works():
 
 def test_bad_parameters_are_one_line(tmp_path):
     hist = dataset_view(two_blocks(tmp_path), "Z", segments=True, history=True)
-    with pytest.raises(ModelError, match="estimator must be a scikit-learn regressor, got NoneType"):
+    with pytest.raises(ModelError, match=r"^SensorRegressor\.estimator: expected a scikit-learn regressor, got None$"):
         SensorRegressor().fit(hist, ["low"])
-    with pytest.raises(ModelError, match="sensors must be a non-empty list"):
+    with pytest.raises(ModelError, match=r"^SensorRegressor\.sensors: expected None or a non-empty list of sensor names, got 'T_front'$"):
         SensorRegressor(estimator=LinearRegression(), sensors="T_front").fit(hist, ["low"])
 
 

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import logging
+import logging.config
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,7 +16,8 @@ from sklearn.kernel_ridge import KernelRidge
 from tests.synth import analytic_dataset, rise
 from thermbench.metrics import evaluate
 from thermbench.models.base import ModelError
-from thermbench.models.lssvm import LSSVMRegressor, PSOLSSVM, tune_lssvm
+from thermbench.models import lssvm
+from thermbench.models.lssvm import DEFAULT_PSO_OPTIONS, LSSVMRegressor, PSOLSSVM, global_best_pso, tune_lssvm
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "model" / "lssvm.yaml"
 
@@ -150,6 +153,37 @@ def test_pso_deterministic_and_leaves_global_state(series, tmp_path, monkeypatch
     assert list(tmp_path.iterdir()) == []
 
 
+def test_pso_is_pyswarms_global_best_draw_for_draw(monkeypatch, tmp_path):
+    """global_best_pso with np.random.RandomState(seed) is pyswarms' GlobalBestPSO (bounds
+    "nearest") after np.random.seed(seed), what tune_lssvm ran before: the same best cost,
+    position and history, bit for bit. pyswarms' own logging set-up (a dictConfig of the root
+    logger) is switched off for this comparison only."""
+    monkeypatch.setattr(logging.config, "dictConfig", lambda config: None)
+    monkeypatch.chdir(tmp_path)
+    from pyswarms.single.global_best import GlobalBestPSO
+
+    lo, hi = np.array([-1.0, 0.5]), np.array([3.0, 2.0])
+
+    def cost(P):
+        return ((P - [0.7, 1.1]) ** 2).sum(axis=1) + 0.3 * np.sin(5 * P[:, 0])
+
+    init = lo + (hi - lo) * np.random.default_rng(4).random((9, 2))
+    saved = np.random.get_state()
+    try:
+        np.random.seed(5)
+        ref = GlobalBestPSO(n_particles=9, dimensions=2, options=dict(DEFAULT_PSO_OPTIONS), bounds=(lo, hi),
+                            bh_strategy="nearest", init_pos=init.copy())  # fmt: skip
+        ref_cost, ref_pos = ref.optimize(cost, iters=15, verbose=False)
+    finally:
+        np.random.set_state(saved)
+    best, pos, hist = global_best_pso(cost, init, (lo, hi), 15, DEFAULT_PSO_OPTIONS, np.random.RandomState(5))
+    assert best == ref_cost
+    np.testing.assert_array_equal(pos, ref_pos)
+    np.testing.assert_array_equal(hist, np.asarray(ref.cost_history))
+    other = global_best_pso(cost, init, (lo, hi), 15, DEFAULT_PSO_OPTIONS, np.random.RandomState(6))
+    assert not np.array_equal(other[2], hist)  # the draws matter: another seed, another search
+
+
 def test_pso_no_worse_than_corners_or_default(series):
     X, y = series
     n_val = 18  # 0.2 * 90: the last block of rows
@@ -175,8 +209,16 @@ def test_pso_fixed_parameter_and_bad_bounds(series):
         tune_lssvm(X, y, sigma2_bounds=(0.0, 1.0))
     with pytest.raises(ModelError, match="val_fraction"):
         tune_lssvm(X, y, val_fraction=1.0)
-    with pytest.raises(ModelError, match="options"):
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.options: expected None or a mapping with the numbers c1, c2 "
+                                         r"and w, got \{'c1': 1\.0\}$"):
         tune_lssvm(X, y, options={"c1": 1.0})
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.n_particles: expected an integer >= 1, got True$"):
+        tune_lssvm(X, y, n_particles=True)
+    with pytest.raises(ModelError, match=r"^tune_lssvm\.seed: expected an integer 0\.\.4294967295, got -1$"):
+        tune_lssvm(X, y, seed=-1)
+    # equal bounds fix a parameter here (gamma_bounds above); val_fraction is unused with a val_mask
+    mask = np.arange(len(y)) >= 70
+    assert tune_lssvm(X, y, n_particles=3, iters=2, val_fraction=None, val_mask=mask).val_mask.sum() == 20
 
 
 # --------------------------------------------------------------------------- thermal model
@@ -207,6 +249,79 @@ def clean_ds():
 @pytest.fixture(scope="module")
 def fitted(clean_ds):
     return PSOLSSVM(preprocess=None, sensors=["T1", "T2"], n_particles=10, iters=10, seed=0).fit(clean_ds, ["r1"])
+
+
+@pytest.fixture
+def user_logging():
+    """A user's logging set-up: a handler on the root logger and a level on a named logger."""
+    root, named = logging.getLogger(), logging.getLogger("a_user_app.part")
+    saved = (list(root.handlers), root.level, named.level)
+    records: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    handler = Keep(level=logging.DEBUG)
+    root.addHandler(handler)
+    named.setLevel(logging.DEBUG)
+    yield SimpleNamespace(root=root, named=named, handler=handler, records=records)
+    root.removeHandler(handler)
+    named.setLevel(saved[2])
+
+
+def test_fit_leaves_numpy_global_rng_and_logging_alone(clean_ds, user_logging, tmp_path, monkeypatch):
+    """PSO draws from its own generator and never reconfigures logging: during the fit (seen
+    from the solver every particle calls) and after it, numpy's global generator is in the
+    state it was, logging.config.dictConfig is the real function, and the user's handlers
+    and levels are as they were; nothing is written to the working directory."""
+    monkeypatch.chdir(tmp_path)
+    real_dict_config = logging.config.dictConfig
+    log = user_logging
+    handlers, root_level = list(log.root.handlers), log.root.level
+    np.random.seed(2024)
+    before = np.random.get_state()
+
+    def same_state(state) -> bool:
+        return state[0] == before[0] and np.array_equal(state[1], before[1]) and state[2:] == before[2:]
+
+    seen = []
+    solve = lssvm._solve_kkt
+
+    def spy(K, y, gamma):
+        seen.append((logging.config.dictConfig is real_dict_config, same_state(np.random.get_state()),
+                     list(log.root.handlers) == handlers))  # fmt: skip
+        return solve(K, y, gamma)
+
+    monkeypatch.setattr(lssvm, "_solve_kkt", spy)
+    m = PSOLSSVM(preprocess=None, sensors=["T1", "T2"], n_particles=6, iters=4, seed=0).fit(clean_ds, ["r1"])
+    assert m.pso_cost_history_.size == 4 and len(seen) > 6 * 4
+    assert all(dc for dc, _, _ in seen)  # dictConfig was never replaced during the search
+    assert all(rng for _, rng, _ in seen)  # the global generator was never reseeded during it
+    assert all(h for _, _, h in seen)
+    assert same_state(np.random.get_state())
+    expected = np.random.RandomState()
+    expected.set_state(before)
+    assert np.random.random_sample(5).tolist() == expected.random_sample(5).tolist()
+    assert logging.config.dictConfig is real_dict_config
+    assert log.root.handlers == handlers and log.root.level == root_level
+    assert log.named.level == logging.DEBUG and not log.named.disabled
+    log.named.debug("still heard")
+    assert log.records[-1] == "still heard"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_same_seed_same_fit_other_seed_other_search(clean_ds, fitted):
+    kw = dict(preprocess=None, sensors=["T1", "T2"], n_particles=10, iters=10)
+    np.random.seed(1)  # the global generator's state does not matter
+    again = PSOLSSVM(seed=0, **kw).fit(clean_ds, ["r1"])
+    assert (again.gamma_, again.sigma2_, again.val_rmse_um_) == (fitted.gamma_, fitted.sigma2_, fitted.val_rmse_um_)
+    np.testing.assert_array_equal(again.pso_cost_history_, fitted.pso_cost_history_)
+    np.testing.assert_array_equal(again.predict(clean_ds, "r1"), fitted.predict(clean_ds, "r1"))
+    np.random.seed(99)
+    other = PSOLSSVM(seed=1, **kw).fit(clean_ds, ["r1"])
+    assert (other.gamma_, other.sigma2_) != (fitted.gamma_, fitted.sigma2_)
+    assert not np.array_equal(other.pso_cost_history_, fitted.pso_cost_history_)
 
 
 def test_recovers_smooth_nonlinear_truth(clean_ds, fitted):
@@ -267,8 +382,9 @@ def test_bad_inputs(clean_ds):
         ({"gamma": -3.0}, "gamma"),
         ({"val_fraction": 1.5}, "val_fraction"),
         ({"n_particles": 0}, "n_particles"),
+        ({"seed": -1}, "seed"),  # numpy's generators take 0..2**32-1
     ]:
-        with pytest.raises(ModelError, match=name):
+        with pytest.raises(ModelError, match=rf"^PSOLSSVM\.{name}: expected "):
             PSOLSSVM(sensors=["T1"], **bad).fit(clean_ds, "r1")
 
 

@@ -239,19 +239,25 @@ def small():
 @pytest.mark.parametrize(
     "params, match",
     [
-        (dict(n_nodes=0), r"^n_nodes must be an integer 1\.\.6, got 0$"),
-        (dict(n_nodes=2.5), r"^n_nodes must be an integer"),
-        (dict(step_s=0.0), r"^step_s must be a finite number > 0, got 0\.0$"),
-        (dict(step_s=-60), r"^step_s must be"),
+        (dict(n_nodes=0), r"^LumpedThermalNetwork\.n_nodes: expected an integer 1\.\.6 or a non-empty list of them, got 0$"),
+        (dict(n_nodes=2.5), r"^LumpedThermalNetwork\.n_nodes: expected an integer"),
+        (dict(n_nodes=True), r"^LumpedThermalNetwork\.n_nodes: expected an integer 1\.\.6 .*, got True$"),
+        (dict(n_nodes=[2, 7]), r"^LumpedThermalNetwork\.n_nodes: expected .*, got \[2, 7\]$"),
+        (dict(step_s=0.0), r"^LumpedThermalNetwork\.step_s: expected a finite number > 0, got 0\.0$"),
+        (dict(step_s=-60), r"^LumpedThermalNetwork\.step_s: expected a finite number > 0, got -60$"),
+        (dict(step_s=float("nan")), r"^LumpedThermalNetwork\.step_s: expected a finite number > 0, got nan$"),
+        (dict(step_s="60"), r"^LumpedThermalNetwork\.step_s: expected a finite number > 0, got '60'$"),
         (dict(operating="coolant"), r"^operating: column 'coolant' is not in the process log of run 'r'; columns: \[.*'spindle_rpm'"),
-        (dict(operating=["a", "b"]), r"^operating must be one process column name"),
-        (dict(u_ref=-1.0), r"^u_ref must be a finite number > 0"),
-        (dict(exponent=0), r"^exponent must be a finite number > 0"),
-        (dict(exponent_bounds=(2.0, 1.0)), r"^exponent_bounds must satisfy 0 < lo < hi"),
-        (dict(tau_bounds_s=(0.0, 1e4)), r"^tau_bounds_s must satisfy 0 < lo < hi"),
-        (dict(tau_bounds_s=60.0), r"^tau_bounds_s must be a pair \(lo, hi\)"),
-        (dict(n_starts=0), r"^n_starts must be an integer >= 1"),
-        (dict(geometric_degree=-1), r"^geometric_degree must be an integer >= 0"),
+        (dict(operating=["a", "b"]), r"^LumpedThermalNetwork\.operating: expected one process column name"),
+        (dict(u_ref=-1.0), r"^LumpedThermalNetwork\.u_ref: expected None or a finite number > 0, got -1\.0$"),
+        (dict(exponent=0), r"^LumpedThermalNetwork\.exponent: expected None or a finite number > 0, got 0$"),
+        (dict(exponent_bounds=(2.0, 1.0)), r"^LumpedThermalNetwork\.exponent_bounds: expected a pair \(low, high\) of finite numbers with 0 < low < high, got \(2\.0, 1\.0\)$"),
+        (dict(tau_bounds_s=(0.0, 1e4)), r"^LumpedThermalNetwork\.tau_bounds_s: expected a pair \(low, high\) .*0 < low < high"),
+        (dict(tau_bounds_s=60.0), r"^LumpedThermalNetwork\.tau_bounds_s: expected a pair \(low, high\)"),
+        (dict(n_starts=0), r"^LumpedThermalNetwork\.n_starts: expected an integer >= 1, got 0$"),
+        (dict(geometric_degree=-1), r"^LumpedThermalNetwork\.geometric_degree: expected an integer >= 0, got -1$"),
+        (dict(sensors="T_amb"), r"^LumpedThermalNetwork\.sensors: expected None, 'all', 'auto' or a non-empty list of sensor names, got 'T_amb'$"),
+        (dict(max_sensors=False), r"^LumpedThermalNetwork\.max_sensors: expected an integer >= 1, got False$"),
         (dict(ambient_sensor="T_room"), r"^ambient_sensor: 'T_room' is not a sensor of the dataset .*\['T_amb'\]"),
     ],
 )
@@ -328,5 +334,5 @@ def test_node_count_chosen_by_leave_one_run_out(two_node_data):
     scores = dict(m.node_selection_)
     assert m.n_nodes_ == 2 and set(scores) == {1, 2}
     assert scores[2] < 0.5 * scores[1]
-    with pytest.raises(ModelError, match=r"n_nodes: expected an integer 1..6 or a non-empty list"):
+    with pytest.raises(ModelError, match=r"n_nodes: expected an integer 1..6 or a non-empty list of them, got \[\]"):
         LumpedThermalNetwork(n_nodes=[]).fit(ds, ["a", "b"])

@@ -99,15 +99,18 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from annotated_types import Ge
 from scipy.signal import lfilter
 
 from ..data.io import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, curve_degree, fallback, readings, require
-from .mlr import check_degree_or_none, check_int, check_real, lstsq_fit
+from .mlr import lstsq_fit
+from .params import Degree, Int, Number, Params, PositiveNumber, check_params
 from .separation import curve_at, cycle_curves, geometric_from_residuals
 
 __all__ = ["AutoRegressiveSeed003", "parse_operating"]
@@ -206,6 +209,17 @@ def _curves(rd: pd.DataFrame, degree: int, origin_mm: float, column: str) -> tup
     return curves[["run_id", "cycle", "t_s", "c0"]], resid
 
 
+class AutoRegressiveSeed003Params(Params):
+    na: Degree
+    nb: Annotated[Int, Ge(1)]
+    sample_s: PositiveNumber
+    operating: Any  # checked by parse_operating
+    criterion: Literal[CRITERIA]
+    mounting: Optional[str]  # checked by separation.shape_degree
+    geometric_degree: Optional[Degree]
+    origin_mm: Number
+
+
 class AutoRegressiveSeed003(ThermalErrorModel):
     """Seed 003 auto-regressive (ARX) thermal error model without temperature sensors.
 
@@ -256,6 +270,8 @@ class AutoRegressiveSeed003(ThermalErrorModel):
     or outside the unit circle; output error: both fits): its free-run simulation would
     diverge.
     """
+
+    params_model = AutoRegressiveSeed003Params
 
     def __init__(
         self,
@@ -438,13 +454,9 @@ class AutoRegressiveSeed003(ThermalErrorModel):
 
     # --- fit --------------------------------------------------------------
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        self.na_ = check_int("na", self.na, 0)
-        self.nb_ = check_int("nb", self.nb, 1)
-        self.sample_ = check_real("sample_s", self.sample_s, positive=True)
-        if self.criterion not in CRITERIA:
-            raise ModelError(f"criterion must be one of {list(CRITERIA)}, got {self.criterion!r}")
-        origin = check_real("origin_mm", self.origin_mm)
-        gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
+        p = check_params(self, self.params_model)
+        self.na_, self.nb_, self.sample_ = p.na, p.nb, p.sample_s
+        origin, gdeg = p.origin_mm, p.geometric_degree
         # None: the dataset's operating inputs (feed on an axis, spindle speed on a spindle)
         self.operating_ = parse_operating(self.operating if self.operating is not None else ds.metadata.operating_inputs())
         degree = curve_degree(ds, self.mounting)

@@ -39,11 +39,12 @@ Beyond the axis motion of seed 002:
 
 from __future__ import annotations
 
-from numbers import Real
-from typing import Mapping
+from typing import Annotated, Any, Literal, Mapping, Optional
 
 import numpy as np
 import pandas as pd
+from annotated_types import Ge
+from pydantic import AfterValidator, model_validator
 from sklearn.base import clone
 
 from ..classify import (
@@ -55,6 +56,7 @@ from ..classify import (
 )
 from ..data.io import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, check_runs
+from .params import Expect, Number, Params, PositiveNumber, check_params
 
 __all__ = ["BLENDS", "ConditionBank", "condition_inputs"]
 
@@ -130,6 +132,36 @@ def condition_inputs(ds: Dataset, runs, require: bool = True) -> tuple[str, ...]
     return tuple(cols)
 
 
+def _classifier(clf):
+    if not (hasattr(clf, "fit") and hasattr(clf, "predict") and hasattr(clf, "get_params")):
+        raise ValueError("not a scikit-learn classifier")
+    return clf
+
+
+_MODEL = "an unfitted thermbench model (ThermalErrorModel)"
+
+
+class ConditionBankParams(Params):
+    model: Annotated[Optional[ThermalErrorModel], Expect(_MODEL)]  # None: only for fit_from_fitted
+    classifier: Annotated[Optional[Any], AfterValidator(lambda c: c if c is None else _classifier(c)),
+                          Expect("None or a scikit-learn classifier (fit/predict/get_params)")]  # fmt: skip
+    window_s: PositiveNumber
+    step_s: PositiveNumber
+    min_moving_s: Annotated[Number, Ge(0)]
+    blend: Literal[BLENDS]
+
+    @model_validator(mode="after")
+    def _soft_needs_probabilities(self):
+        clf = self.classifier
+        if self.blend == "soft" and clf is not None and not hasattr(clf, "predict_proba"):
+            raise ValueError(f"blend 'soft' needs a classifier with predict_proba; {type(clf).__name__} has none")
+        return self
+
+
+class _FitParams(ConditionBankParams):
+    model: Annotated[ThermalErrorModel, Expect(_MODEL)]  # fit() clones it per condition
+
+
 class ConditionBank(ThermalErrorModel):
     """One model per loading condition, chosen (or blended) at run time by a classifier
     (seed 002 §2.4-2.5).
@@ -178,6 +210,8 @@ class ConditionBank(ThermalErrorModel):
     Σ_k P_k (model_k - geometric_), so geometric + thermal is Σ_k P_k model_k).
     """
 
+    params_model = ConditionBankParams
+
     def __init__(self, model=None, classifier=None, window_s=600.0, step_s=60.0, min_moving_s=60.0, blend="hard"):
         self.model = model
         self.classifier = classifier
@@ -186,32 +220,9 @@ class ConditionBank(ThermalErrorModel):
         self.min_moving_s = min_moving_s
         self.blend = blend
 
-    # --- checks -------------------------------------------------------------
-    def _check_params(self) -> None:
-        for name in ("window_s", "step_s"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, Real) or not np.isfinite(v) or v <= 0:
-                raise ModelError(f"{name} must be a number > 0, got {v!r}")
-        v = self.min_moving_s
-        if isinstance(v, bool) or not isinstance(v, Real) or not np.isfinite(v) or v < 0:
-            raise ModelError(f"min_moving_s must be a number >= 0, got {v!r}")
-        clf = self.classifier
-        if clf is not None and not (hasattr(clf, "fit") and hasattr(clf, "predict") and hasattr(clf, "get_params")):
-            raise ModelError(
-                f"classifier must be a scikit-learn classifier (fit/predict/get_params), got {type(clf).__name__}"
-            )
-        if not isinstance(self.blend, str) or self.blend not in BLENDS:
-            raise ModelError(f"blend must be one of {list(BLENDS)}, got {self.blend!r}")
-        if self.blend == "soft" and clf is not None and not hasattr(clf, "predict_proba"):
-            raise ModelError(f"blend 'soft' needs a classifier with predict_proba; {type(clf).__name__} has none")
-
     # --- fitting ------------------------------------------------------------
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        self._check_params()
-        if not isinstance(self.model, ThermalErrorModel):
-            raise ModelError(
-                f"model must be an unfitted thermbench model (ThermalErrorModel), got {type(self.model).__name__}"
-            )
+        check_params(self, _FitParams)
         inputs = condition_inputs(ds, runs)
         groups: dict[tuple, list[str]] = {}
         for r in runs:
@@ -230,7 +241,7 @@ class ConditionBank(ThermalErrorModel):
         hard and a soft bank can share the same single-condition fits."""
         for attr in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:
             delattr(self, attr)
-        self._check_params()
+        check_params(self, self.params_model)
         if not isinstance(fitted, Mapping) or not fitted:
             raise ModelError("fit_from_fitted: give a non-empty mapping label -> fitted model")
         seen: dict[str, str] = {}

@@ -277,9 +277,14 @@ class ThermalErrorModel(BaseEstimator, ABC):
     """Base class of all model families (see module docstring).
 
     ``needs``: what a dataset must have for the family (keys of :data:`NEEDS`); fitting
-    on one that lacks it is one line naming what is missing (:func:`check_needs`)."""
+    on one that lacks it is one line naming what is missing (:func:`check_needs`).
+
+    ``params_model``: the family's hyper-parameters as a pydantic model
+    (:mod:`thermbench.models.params`), one field per constructor parameter; ``fit``
+    validates ``get_params()`` with it (:func:`~thermbench.models.params.check_params`)."""
 
     needs: tuple[str, ...] = ()
+    params_model = None
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
         runs = check_runs(dataset, runs)

@@ -21,16 +21,26 @@ regressor to the raw readings would.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Annotated, Optional, Sequence
 
 import numpy as np
+from annotated_types import Len
 from numpy.polynomial import Polynomial
 from sklearn.base import RegressorMixin, clone
 
 from ..data.io import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, readings, temperatures_at
+from .params import Bool, Expect, Params, Seed, check_params
 
 __all__ = ["SensorRegressor"]
+
+
+class SensorRegressorParams(Params):
+    estimator: Annotated[RegressorMixin, Expect("a scikit-learn regressor")]
+    sensors: Annotated[Optional[Annotated[Sequence[str], Len(min_length=1)]],
+                       Expect("None or a non-empty list of sensor names")]  # fmt: skip
+    seed: Optional[Seed]  # the estimator's random_state
+    interactions: Bool
 
 
 class SensorRegressor(ThermalErrorModel):
@@ -55,6 +65,7 @@ class SensorRegressor(ThermalErrorModel):
     """
 
     reference_only = True
+    params_model = SensorRegressorParams
 
     def __init__(self, estimator=None, sensors=None, seed=None, interactions=False):
         self.estimator = estimator
@@ -71,16 +82,8 @@ class SensorRegressor(ThermalErrorModel):
         return np.hstack(parts)
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        if self.estimator is None or not isinstance(self.estimator, RegressorMixin):
-            raise ModelError(f"estimator must be a scikit-learn regressor, got {type(self.estimator).__name__}")
-        if not isinstance(self.interactions, bool):
-            raise ModelError(f"interactions must be true or false, got {self.interactions!r}")
-        if self.sensors is None:
-            sensors = list(ds.metadata.sensors)
-        elif isinstance(self.sensors, str) or not isinstance(self.sensors, Sequence) or not self.sensors:
-            raise ModelError(f"sensors must be a non-empty list of sensor names or null, got {self.sensors!r}")
-        else:
-            sensors = [str(s) for s in self.sensors]
+        p = check_params(self, self.params_model)
+        sensors = list(ds.metadata.sensors) if p.sensors is None else list(p.sensors)
         if not sensors:
             raise ModelError(f"the dataset has no temperature sensors; {type(self).__name__} needs some")
         self.sensors_ = sensors
@@ -92,9 +95,9 @@ class SensorRegressor(ThermalErrorModel):
             r = rd[rd["run_id"] == run]
             X.append(self._features(ds, run, r["t_s"].to_numpy(), r["target_mm"].to_numpy()))
             y.append(r["error_um"].to_numpy())
-        est = clone(self.estimator)
-        if self.seed is not None and "random_state" in est.get_params():
-            est.set_params(random_state=int(self.seed))
+        est = clone(p.estimator)
+        if p.seed is not None and "random_state" in est.get_params():
+            est.set_params(random_state=p.seed)
         est.fit(np.vstack(X), np.concatenate(y))
         self.estimator_ = est
         self.geometric_ = Polynomial([0.0])

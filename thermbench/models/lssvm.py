@@ -10,7 +10,7 @@ Three layers:
   (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` after the paper's ``gam``/``sig2``;
   the kernel is eq. 14's exp(-d²/(2σ²)), whereas LS-SVMlab's RBF is exp(-d²/sig2): the
   paper's sig2 = 0.01 is σ² = 0.005 here), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
-* :func:`tune_lssvm`: particle-swarm search (``pyswarms.single.GlobalBestPSO``) of
+* :func:`tune_lssvm`: particle-swarm search (global-best PSO, :func:`global_best_pso`) of
   (log10 γ, log10 σ²) minimising the RMSE on a hold-out set (seed 002 Fig. 14:
   "iterative adaptive particles screen the parameters of the kernel function and
   penalty coefficients").
@@ -26,11 +26,12 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass, field
-from numbers import Integral, Real
-from typing import Sequence
+from typing import Annotated, Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
+from annotated_types import Ge, Gt, Lt
+from pydantic import AfterValidator
 from scipy.spatial.distance import cdist
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
@@ -38,10 +39,75 @@ from threadpoolctl import threadpool_limits
 
 from ..data.io import Dataset
 from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
+from .params import (
+    Bool,
+    Degree,
+    Expect,
+    Int,
+    Number,
+    Params,
+    PositiveNumber,
+    Seed,
+    Selection,
+    SensorNames,
+    check_params,
+    pair_bounds,
+    validate,
+)
 from .separation import line_separated_geometric
 
 #: Standard constriction coefficients of the PSO (Clerc & Kennedy 2002); seed 002 gives none.
 DEFAULT_PSO_OPTIONS = {"c1": 1.49445, "c2": 1.49445, "w": 0.729}
+
+
+# ---------------------------------------------------------------------------
+# parameters (checked at fit: thermbench.models.params)
+# ---------------------------------------------------------------------------
+class LSSVMRegressorParams(Params):
+    gamma: PositiveNumber
+    sigma2: PositiveNumber
+    standardize: Bool
+
+
+def _pso_options(opts):
+    missing = {"c1", "c2", "w"} - set(opts)
+    if missing:
+        raise ValueError(f"missing {sorted(missing)}")
+    return opts
+
+
+Count = Annotated[Int, Ge(1)]
+Fraction = Annotated[Number, Gt(0), Lt(1)]
+
+
+class TuneParams(Params):
+    """The settings of :func:`tune_lssvm` (equal bounds fix that parameter)."""
+
+    gamma_bounds: pair_bounds(strict=False)
+    sigma2_bounds: pair_bounds(strict=False)
+    n_particles: Count
+    iters: Count
+    val_fraction: Fraction = 0.25  # checked only without a val_mask
+    seed: Seed
+    options: Annotated[Optional[Mapping[str, Number]], AfterValidator(lambda o: o if o is None else _pso_options(o)),
+                       Expect("None or a mapping with the numbers c1, c2 and w")]  # fmt: skip
+    standardize: Bool
+
+
+class PSOLSSVMParams(Params):
+    sensors: Optional[SensorNames]
+    selection: Selection
+    preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
+    gamma: Optional[PositiveNumber]
+    sigma2: Optional[PositiveNumber]
+    gamma_bounds: pair_bounds()
+    sigma2_bounds: pair_bounds()
+    n_particles: Count
+    iters: Count
+    val_fraction: Fraction
+    seed: Seed
+    geometric_degree: Degree
+    max_samples: Annotated[Int, Ge(10)]
 
 
 # ---------------------------------------------------------------------------
@@ -77,12 +143,6 @@ def _solve_kkt(K: np.ndarray, y: np.ndarray, gamma: float) -> tuple[np.ndarray, 
         return s[1:], float(s[0])
 
 
-def _positive(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(float(value)) or value <= 0:
-        raise ModelError(f"{name} must be a finite number > 0, got {value!r}")
-    return float(value)
-
-
 class LSSVMRegressor(RegressorMixin, BaseEstimator):
     """Least-squares SVM regression with the RBF kernel (seed 002 eq. 12-14).
 
@@ -103,6 +163,8 @@ class LSSVMRegressor(RegressorMixin, BaseEstimator):
     ``8·(n·d + n + 2 + 2d)``.
     """
 
+    params_model = LSSVMRegressorParams
+
     def __init__(self, gamma: float = 10.0, sigma2: float = 1.0, standardize: bool = True):
         self.gamma = gamma
         self.sigma2 = sigma2
@@ -118,8 +180,8 @@ class LSSVMRegressor(RegressorMixin, BaseEstimator):
         return X
 
     def fit(self, X, y) -> "LSSVMRegressor":
-        gamma = _positive(self.gamma, "gamma")
-        sigma2 = _positive(self.sigma2, "sigma2")
+        p = check_params(self, self.params_model)
+        gamma, sigma2 = p.gamma, p.sigma2
         X = self._check_X(X, "X")
         y = np.asarray(y, dtype=float)
         if y.ndim != 1 or y.size != X.shape[0]:
@@ -128,7 +190,7 @@ class LSSVMRegressor(RegressorMixin, BaseEstimator):
             raise ModelError(f"y: {int(np.sum(~np.isfinite(y)))} non-finite value(s)")
         require(X.shape[0], 2, "training samples for the LSSVM")
         n, d = X.shape
-        if self.standardize:
+        if p.standardize:
             self.mean_ = X.mean(axis=0)
             sd = X.std(axis=0)
             self.scale_ = np.where(sd > 0, sd, 1.0)
@@ -168,41 +230,53 @@ class TuneResult:
     val_mask: np.ndarray = field(repr=False)
 
 
-def _bounds(value, name: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ModelError(f"{name} must be a pair (low, high) of numbers > 0, got {value!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
-        raise ModelError(f"{name} must be a pair (low, high) with 0 < low <= high, got {value!r}")
-    return lo, hi
+def global_best_pso(
+    cost: Callable[[np.ndarray], np.ndarray],
+    init_pos: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    iters: int,
+    options: Mapping[str, float],
+    rng: np.random.RandomState,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Global-best particle swarm minimisation of ``cost`` (one cost per row of positions).
 
+    The algorithm of ``pyswarms.single.GlobalBestPSO`` (pyswarms 1.3: star topology,
+    positions clipped to ``bounds`` ("nearest"), velocities unclamped, initial velocities
+    uniform in [0, 1), constant ``options`` c1, c2, w), step for step and draw for draw,
+    from the generator ``rng`` instead of numpy's global one: with
+    ``np.random.RandomState(seed)`` it gives the numbers pyswarms gives after
+    ``np.random.seed(seed)`` (tests/test_lssvm.py checks it against pyswarms). pyswarms
+    itself is not called because it draws from numpy's global generator and reconfigures
+    the root logger (``logging.config.dictConfig``) whenever it is imported or builds an
+    optimiser; this touches neither.
 
-@contextlib.contextmanager
-def _pyswarms_quiet_and_seeded(seed: int):
-    """Yield ``pyswarms.single.GlobalBestPSO`` with numpy's global RNG (which pyswarms
-    draws from) seeded with ``seed``; the RNG state is restored afterwards.
-
-    pyswarms builds a ``Reporter`` at import and in every optimiser/handler/topology
-    constructor, and each one calls ``logging.config.dictConfig`` on the ROOT logger
-    (a stream handler plus a ``report.log`` file created in the working directory).
-    That call is disabled while pyswarms is imported and the optimiser is built and
-    run, so using this module leaves the application's logging and the working
-    directory untouched.
+    Every iteration: evaluate the swarm, update the personal and the global best, then
+    ``v = w v + c1 r1 (pbest - x) + c2 r2 (gbest - x)`` (r1, r2 uniform per particle and
+    dimension) and ``x = clip(x + v)``. Returns (best cost, best position, the best cost
+    after each iteration).
     """
-    import logging.config
-
-    saved_dict_config = logging.config.dictConfig
-    saved_rng = np.random.get_state()
-    logging.config.dictConfig = lambda config: None
-    try:
-        import pyswarms.single.global_best as gb
-
-        np.random.seed(seed)
-        yield gb.GlobalBestPSO
-    finally:
-        logging.config.dictConfig = saved_dict_config
-        np.random.set_state(saved_rng)
+    lb, ub = bounds
+    c1, c2, w = options["c1"], options["c2"], options["w"]
+    pos = np.asarray(init_pos, dtype=float)
+    rng.random_sample(size=pos.shape)  # pyswarms builds its swarm twice (both constructors reset()):
+    vel = rng.random_sample(size=pos.shape)  # the initial velocities are the second draw
+    pbest_pos, pbest_cost = pos, np.full(pos.shape[0], np.inf)
+    best_pos, best_cost = pos[0], np.inf  # replaced by the first finite cost (pyswarms: empty, fails without one)
+    history = []
+    for _ in range(int(iters)):
+        current = cost(pos)
+        better = current < pbest_cost
+        pbest_pos = np.where(better[:, None], pos, pbest_pos)
+        pbest_cost = np.where(better, current, pbest_cost)
+        if np.min(pbest_cost) < best_cost:
+            best_pos, best_cost = pbest_pos[np.argmin(pbest_cost)], np.min(pbest_cost)
+        history.append(best_cost)
+        cognitive = c1 * rng.uniform(0, 1, pos.shape) * (pbest_pos - pos)
+        social = c2 * rng.uniform(0, 1, pos.shape) * (best_pos - pos)
+        vel = (w * vel) + cognitive + social
+        moved = pos + vel
+        pos = np.where(moved > ub, ub, np.where(moved < lb, lb, moved))
+    return float(best_cost), pbest_pos[pbest_cost.argmin()].copy(), np.asarray(history, dtype=float)
 
 
 def tune_lssvm(
@@ -227,29 +301,27 @@ def tune_lssvm(
     The inputs are standardised with the training rows' statistics, as the final
     LSSVM would be.
 
-    Swarm: ``pyswarms.single.GlobalBestPSO`` with ``options`` (default
-    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds ("nearest"). The
-    first particles start at the four corners and the centre of the (log) box, the
-    rest uniformly at random, so the result is never worse than those five points.
-    A pair of equal bounds fixes that parameter (only the other is searched).
-    Deterministic: numpy's global RNG (used by pyswarms) is seeded with ``seed`` and
-    restored afterwards.
+    Swarm: :func:`global_best_pso` (pyswarms' GlobalBestPSO) with ``options`` (default
+    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds. The first particles
+    start at the four corners and the centre of the (log) box, the rest uniformly at
+    random, so the result is never worse than those five points. A pair of equal bounds
+    fixes that parameter (only the other is searched). Deterministic: every random draw
+    comes from ``np.random.RandomState(seed)``; numpy's global generator is neither used
+    nor changed.
     """
-    glo, ghi = _bounds(gamma_bounds, "gamma_bounds")
-    slo, shi = _bounds(sigma2_bounds, "sigma2_bounds")
-    if isinstance(n_particles, bool) or not isinstance(n_particles, Integral) or n_particles < 1:
-        raise ModelError(f"n_particles must be an integer >= 1, got {n_particles!r}")
-    if isinstance(iters, bool) or not isinstance(iters, Integral) or iters < 1:
-        raise ModelError(f"iters must be an integer >= 1, got {iters!r}")
+    settings = dict(gamma_bounds=gamma_bounds, sigma2_bounds=sigma2_bounds, n_particles=n_particles, iters=iters,
+                    seed=seed, options=options, standardize=standardize)  # fmt: skip
+    if val_mask is None:
+        settings["val_fraction"] = val_fraction
+    p = validate(TuneParams, settings, "tune_lssvm")
+    (glo, ghi), (slo, shi) = p.gamma_bounds, p.sigma2_bounds
     X = LSSVMRegressor._check_X(X, "X")
     y = np.asarray(y, dtype=float)
     if y.ndim != 1 or y.size != X.shape[0] or not np.all(np.isfinite(y)):
         raise ModelError(f"y: expected {X.shape[0]} finite values matching X, got shape {y.shape}")
     n = y.size
     if val_mask is None:
-        if isinstance(val_fraction, bool) or not isinstance(val_fraction, Real) or not 0 < val_fraction < 1:
-            raise ModelError(f"val_fraction must be a number in (0, 1), got {val_fraction!r}")
-        n_val = int(round(val_fraction * n))
+        n_val = int(round(p.val_fraction * n))
         val = np.zeros(n, dtype=bool)
         val[n - n_val :] = True
     else:
@@ -258,13 +330,10 @@ def tune_lssvm(
             raise ModelError(f"val_mask: expected a boolean array of shape ({n},), got {val.shape}")
     require(int((~val).sum()), 2, "training samples for PSO tuning")
     require(int(val.sum()), 1, "validation samples for PSO tuning")
-    opts = dict(DEFAULT_PSO_OPTIONS if options is None else options)
-    missing = {"c1", "c2", "w"} - set(opts)
-    if missing:
-        raise ModelError(f"options: pyswarms needs keys c1, c2, w; missing {sorted(missing)}")
+    opts = dict(DEFAULT_PSO_OPTIONS if p.options is None else p.options)
 
     Xt, Xv, yt, yv = X[~val], X[val], y[~val], y[val]
-    if standardize:
+    if p.standardize:
         mu, sd = Xt.mean(axis=0), Xt.std(axis=0)
         sd = np.where(sd > 0, sd, 1.0)
         Xt, Xv = (Xt - mu) / sd, (Xv - mu) / sd
@@ -276,9 +345,9 @@ def tune_lssvm(
     free = np.flatnonzero(hi > lo)
 
     def params(pos: np.ndarray) -> tuple[float, float]:
-        p = np.array([glo, slo])  # a fixed parameter keeps its exact value
-        p[free] = 10.0 ** np.asarray(pos)
-        return float(p[0]), float(p[1])
+        v = np.array([glo, slo])  # a fixed parameter keeps its exact value
+        v[free] = 10.0 ** np.asarray(pos)
+        return float(v[0]), float(v[1])
 
     def rmse(gamma: float, sigma2: float) -> float:
         try:
@@ -294,26 +363,19 @@ def tune_lssvm(
         return TuneResult(glo, slo, r, np.array([r]), val)
 
     flo, fhi = lo[free], hi[free]
+    rng = np.random.RandomState(p.seed)  # the PSO's own generator
+    corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
+    starts = np.vstack([corners, (flo + fhi) / 2])[: p.n_particles]
+    rand = flo + (fhi - flo) * rng.random_sample((p.n_particles - len(starts), free.size))
+    init = np.clip(np.vstack([starts, rand]), flo, fhi)
     # hundreds of small factorisations: BLAS threads cost more than they gain there
     blas = threadpool_limits(limits=1, user_api="blas") if yt.size < 1000 else contextlib.nullcontext()
-    with blas, _pyswarms_quiet_and_seeded(int(seed)) as GlobalBestPSO:
-        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
-        starts = np.vstack([corners, (flo + fhi) / 2])[:n_particles]
-        rand = flo + (fhi - flo) * np.random.random_sample((n_particles - len(starts), free.size))
-        init = np.clip(np.vstack([starts, rand]), flo, fhi)
-        opt = GlobalBestPSO(
-            n_particles=int(n_particles),
-            dimensions=int(free.size),
-            options=opts,
-            bounds=(flo, fhi),
-            bh_strategy="nearest",
-            init_pos=init,
+    with blas:
+        best_cost, best_pos, history = global_best_pso(
+            lambda P: np.array([rmse(*params(q)) for q in P]), init, (flo, fhi), p.iters, opts, rng
         )
-        best_cost, best_pos = opt.optimize(
-            lambda P: np.array([rmse(*params(p)) for p in P]), iters=int(iters), verbose=False
-        )
-    g, s = params(np.asarray(best_pos, dtype=float))
-    return TuneResult(float(g), float(s), float(best_cost), np.asarray(opt.cost_history, dtype=float), val)
+    g, s = params(best_pos)
+    return TuneResult(float(g), float(s), best_cost, history, val)
 
 
 # ---------------------------------------------------------------------------
@@ -354,6 +416,8 @@ class PSOLSSVM(ThermalErrorModel):
     ``n_train_samples_``, ``subsampled_``, ``geometric_``.
     """
 
+    params_model = PSOLSSVMParams
+
     def __init__(
         self,
         sensors: Sequence[str] | None = None,
@@ -384,34 +448,15 @@ class PSOLSSVM(ThermalErrorModel):
         self.geometric_degree = geometric_degree
         self.max_samples = max_samples
 
-    def _check_params(self) -> None:
-        for name in ("gamma_bounds", "sigma2_bounds"):
-            lo, hi = _bounds(getattr(self, name), name)
-            if not lo < hi:
-                raise ModelError(f"{name} must be a pair (low, high) with low < high, got {getattr(self, name)!r}")
-        if self.gamma is not None:
-            _positive(self.gamma, "gamma")
-        if self.sigma2 is not None:
-            _positive(self.sigma2, "sigma2")
-        for name, minimum in (("n_particles", 1), ("iters", 1), ("geometric_degree", 0), ("max_samples", 10)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, Integral) or v < minimum:
-                raise ModelError(f"{name} must be an integer >= {minimum}, got {v!r}")
-        v = self.val_fraction
-        if isinstance(v, bool) or not isinstance(v, Real) or not 0 < v < 1:
-            raise ModelError(f"val_fraction must be a number in (0, 1), got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, Integral):
-            raise ModelError(f"seed must be an integer, got {self.seed!r}")
-
     def _features(self, ds: Dataset, run: str, t_s, axis_mm) -> np.ndarray:
         T = temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)
         return np.column_stack([T, np.asarray(axis_mm, dtype=float)])
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        self._check_params()
+        p = check_params(self, self.params_model)
         rd = readings(ds, runs)
         require(len(rd), 10, "interferometer readings in the training runs")
-        self.geometric_ = line_separated_geometric(rd, int(self.geometric_degree))  # seed 002 eq. 6-7
+        self.geometric_ = line_separated_geometric(rd, p.geometric_degree)  # seed 002 eq. 6-7
         self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
 
         X = np.empty((len(rd), len(self.sensors_) + 1))
@@ -419,32 +464,32 @@ class PSOLSSVM(ThermalErrorModel):
             m = (rd["run_id"] == r).to_numpy()
             g = rd[m]
             X[m] = self._features(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
-        val = last_cycles_mask(rd, float(self.val_fraction))
+        val = last_cycles_mask(rd, p.val_fraction)
         y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         require(int(ok.sum()), 10, "finite (temperature, error) readings in the training runs")
 
         idx = np.flatnonzero(ok)
-        self.subsampled_ = idx.size > self.max_samples
+        self.subsampled_ = idx.size > p.max_samples
         if self.subsampled_:
-            idx = np.sort(np.random.RandomState(self.seed).choice(idx, int(self.max_samples), replace=False))
+            idx = np.sort(np.random.RandomState(p.seed).choice(idx, p.max_samples, replace=False))
         X, y, val = X[idx], y[idx], val[idx]
         self.n_train_samples_ = int(idx.size)
 
-        if self.gamma is None or self.sigma2 is None:
+        if p.gamma is None or p.sigma2 is None:
             if not val.any() or val.all():
                 raise ModelError(
                     "too few samples: PSO tuning needs a training run with at least 2 measuring cycles "
                     "(the last val_fraction of them is the hold-out); or give both gamma and sigma2"
                 )
-            gb = self.gamma_bounds if self.gamma is None else (self.gamma, self.gamma)
-            sb = self.sigma2_bounds if self.sigma2 is None else (self.sigma2, self.sigma2)
-            res = tune_lssvm(X, y, gb, sb, int(self.n_particles), int(self.iters), seed=int(self.seed), val_mask=val)
+            gb = p.gamma_bounds if p.gamma is None else (p.gamma, p.gamma)
+            sb = p.sigma2_bounds if p.sigma2 is None else (p.sigma2, p.sigma2)
+            res = tune_lssvm(X, y, gb, sb, p.n_particles, p.iters, seed=p.seed, val_mask=val)
             self.gamma_, self.sigma2_ = res.gamma, res.sigma2
             self.val_rmse_um_ = res.val_rmse
             self.pso_cost_history_ = res.cost_history
         else:
-            self.gamma_, self.sigma2_ = float(self.gamma), float(self.sigma2)
+            self.gamma_, self.sigma2_ = p.gamma, p.sigma2
             self.val_rmse_um_ = float("nan")
             self.pso_cost_history_ = np.array([])
         self.regressor_ = LSSVMRegressor(gamma=self.gamma_, sigma2=self.sigma2_).fit(X, y)

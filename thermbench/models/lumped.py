@@ -89,9 +89,11 @@ import itertools
 import math
 import time
 from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Optional, Sequence, Union
 
 import numpy as np
 import pandas as pd
+from annotated_types import Ge, Le, Len
 from numpy.polynomial import Polynomial
 from scipy import sparse
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
@@ -101,7 +103,8 @@ from threadpoolctl import threadpool_limits
 
 from ..data.io import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, _name, fallback, readings, require, sensor_series, temperatures_at
-from .mlr import check_int, check_real, lstsq_fit
+from .mlr import lstsq_fit
+from .params import Degree, Expect, Int, Params, PositiveNumber, check_params, pair_bounds
 
 __all__ = ["LumpedThermalNetwork", "chain_matrices"]
 
@@ -183,6 +186,34 @@ class _Drive:
         return self.interp @ states
 
 
+NodeCount = Annotated[Int, Ge(1), Le(6)]
+
+
+class LumpedThermalNetworkParams(Params):
+    n_nodes: Annotated[
+        Union[NodeCount, Annotated[list[NodeCount], Len(min_length=1)]],
+        Expect("an integer 1..6 or a non-empty list of them"),
+    ]
+    operating: Annotated[
+        Optional[Union[str, Annotated[list[str], Len(1, 1)]]],
+        Expect("one process column name (e.g. 'spindle_rpm') or None"),
+    ]
+    u_ref: Optional[PositiveNumber]
+    exponent: Optional[PositiveNumber]
+    exponent_bounds: pair_bounds()
+    tau_bounds_s: pair_bounds()
+    ambient_sensor: Optional[str]  # None, "auto" or a sensor of the dataset (checked at fit)
+    preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
+    step_s: PositiveNumber
+    n_starts: Annotated[Int, Ge(1)]
+    geometric_degree: Degree
+    sensors: Annotated[
+        Optional[Union[Literal["all", "auto"], Annotated[Sequence[str], Len(min_length=1)]]],
+        Expect("None, 'all', 'auto' or a non-empty list of sensor names"),
+    ]
+    max_sensors: Annotated[Int, Ge(1)]
+
+
 class LumpedThermalNetwork(ThermalErrorModel):
     """Lumped thermal network driven by an operating signal (module docstring).
 
@@ -236,6 +267,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
     """
 
     needs: tuple[str, ...] = ()
+    params_model = LumpedThermalNetworkParams
 
     def __init__(
         self,
@@ -268,33 +300,15 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self.max_sensors = max_sensors
 
     # ------------------------------------------------------------ checks ---
-    @staticmethod
-    def _bounds(name: str, value) -> tuple[float, float]:
-        try:
-            lo, hi = (float(v) for v in value)
-        except (TypeError, ValueError):
-            raise ModelError(f"{name} must be a pair (lo, hi) of numbers, got {value!r}") from None
-        if not (0.0 < lo < hi < math.inf):
-            raise ModelError(f"{name} must satisfy 0 < lo < hi (finite), got {value!r}")
-        return lo, hi
-
-    def _operating_name(self, ds: Dataset) -> str:
-        op = self.operating
+    def _operating_name(self, ds: Dataset, op: str | list[str] | None) -> str:
+        """The operating column (``op``: the checked ``operating`` parameter)."""
         if op is None:
             inputs = ds.metadata.operating_inputs()
             if not inputs:
                 raise ModelError(f"operating: the dataset {_name(ds)} declares no operating input (metadata "
                                  f"'operating'); name the process column that drives the heat, e.g. operating=spindle_rpm")  # fmt: skip
             return str(inputs[0])
-        if not isinstance(op, str):
-            try:
-                items = [str(o) for o in op]
-            except TypeError:
-                items = []
-            if len(items) != 1:
-                raise ModelError(f"operating must be one process column name (e.g. 'spindle_rpm') or None, got {op!r}")
-            op = items[0]
-        return op
+        return op if isinstance(op, str) else op[0]  # a one-item list (a config list) names one column
 
     def _operating_values(self, ds: Dataset, run: str, col: str, fractional: bool) -> tuple[np.ndarray, np.ndarray]:
         pr = ds.process_run(run)
@@ -322,7 +336,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
                 fallback("ambient_sensor auto: the dataset has no sensor at location 'ambient'; "
                          "the network is driven by the operating input alone")  # fmt: skip
             return name
-        if not isinstance(a, str) or a not in ds.metadata.sensors:
+        if a not in ds.metadata.sensors:
             raise ModelError(f"ambient_sensor: {a!r} is not a sensor of the dataset {_name(ds)}; expected None, "
                              f"'auto' or one of {list(ds.metadata.sensors)}")  # fmt: skip
         return a
@@ -397,8 +411,6 @@ class LumpedThermalNetwork(ThermalErrorModel):
             return list(ds.metadata.sensors)
         if v == "auto":
             raise ModelError("sensors: 'auto' is resolved at fit time")  # never reached: _fit resolves it
-        if isinstance(v, str) or not isinstance(v, (list, tuple)) or not v:
-            raise ModelError(f"sensors: expected None, 'all' or a non-empty list of sensor names, got {v!r}")
         unknown = [x for x in v if x not in ds.metadata.sensors]
         if unknown:
             raise ModelError(f"sensors: {unknown} are not sensors of the dataset {_name(ds)}; "
@@ -416,7 +428,8 @@ class LumpedThermalNetwork(ThermalErrorModel):
         # the matrices are tiny (n+1 square, a few columns): threaded BLAS only costs time
         # (on a busy machine an expm of 3x3 took 16 ms with threads, 15 us without)
         with threadpool_limits(limits=1, user_api="blas"):
-            candidates = self._node_candidates()
+            n_nodes = check_params(self, self.params_model).n_nodes
+            candidates = n_nodes if isinstance(n_nodes, list) else [n_nodes]
             if len(candidates) == 1 and self.sensors != "auto":
                 self._identify(ds, runs, None, candidates[0])
                 return
@@ -428,19 +441,11 @@ class LumpedThermalNetwork(ThermalErrorModel):
             if self.sensors == "auto":
                 self.sensor_selection_ = steps
 
-    def _node_candidates(self) -> list[int]:
-        v = self.n_nodes
-        if isinstance(v, (list, tuple)):
-            if not v:
-                raise ModelError("n_nodes: expected an integer 1..6 or a non-empty list of them, got []")
-            return [check_int("n_nodes", k, 1, 6) for k in v]
-        return [check_int("n_nodes", v, 1, 6)]
-
     def _select(self, ds: Dataset, runs: list[str], n: int) -> tuple[float, list[str] | None, list]:
         """For ``n`` nodes: the network identified on the operating input alone, then the sensors
         (``sensors="auto"``: forward selection by cross-validated RMSE, see ``max_sensors``;
         else the given ones) scored with it. Returns (cross-validated RMSE, sensors, steps)."""
-        k_max = check_int("max_sensors", self.max_sensors, 1)
+        k_max = check_params(self, self.params_model).max_sensors
         base = type(self)(**{**self.get_params(), "sensors": None, "n_nodes": n})
         base._identify(ds, runs, [], n)
         base.train_runs_ = list(runs)
@@ -488,19 +493,15 @@ class LumpedThermalNetwork(ThermalErrorModel):
 
     def _identify(self, ds: Dataset, runs: list[str], sensors: list[str] | None = None, n_nodes: int = 2) -> None:
         t_start = time.perf_counter()
+        prm = check_params(self, self.params_model)
         self.n_nodes_ = n_nodes
-        self.step_ = check_real("step_s", self.step_s, positive=True)
-        n_starts = check_int("n_starts", self.n_starts, 1)
-        tau_lo, tau_hi = self._bounds("tau_bounds_s", self.tau_bounds_s)
-        if self.exponent is None:
-            p_lo, p_hi = self._bounds("exponent_bounds", self.exponent_bounds)
-            self.exponent_fixed_ = None
-        else:
-            self.exponent_fixed_ = check_real("exponent", self.exponent, positive=True)
+        self.step_ = prm.step_s
+        n_starts = prm.n_starts
+        tau_lo, tau_hi = prm.tau_bounds_s
+        p_lo, p_hi = prm.exponent_bounds  # used when the exponent is identified
+        self.exponent_fixed_ = prm.exponent
         self.fractional_ = self.exponent_fixed_ is None or not float(self.exponent_fixed_).is_integer()
-        if self.u_ref is not None:
-            check_real("u_ref", self.u_ref, positive=True)
-        self.operating_ = self._operating_name(ds)
+        self.operating_ = self._operating_name(ds, prm.operating)
         self.ambient_sensor_ = self._ambient_name(ds)
         self.ambient_location_ = ds.metadata.sensors.get(self.ambient_sensor_) if self.ambient_sensor_ else None
         self.sensors_ = list(sensors) if sensors is not None else self._sensor_names(ds)
@@ -509,18 +510,18 @@ class LumpedThermalNetwork(ThermalErrorModel):
         u_max = 0.0
         for run in runs:  # every training run's log is checked, and sets the scale
             u_max = max(u_max, float(np.max(np.abs(self._operating_values(ds, run, self.operating_, self.fractional_)[1]))))
-        if self.u_ref is None:
+        if prm.u_ref is None:
             if u_max <= 0.0:
                 raise ModelError(f"operating: column {self.operating_!r} is zero in every training run {runs}: "
                                  "there is no heat input to identify the network from (u_ref cannot be its maximum)")  # fmt: skip
             self.u_ref_ = u_max
         else:
-            self.u_ref_ = float(self.u_ref)
+            self.u_ref_ = prm.u_ref
 
         # geometric columns in the scaled position (along an axis; none at a fixed point)
         x = rd["target_mm"].to_numpy(dtype=float)
         lo, hi = float(x.min()) if x.size else 0.0, float(x.max()) if x.size else 0.0
-        gdeg = check_int("geometric_degree", self.geometric_degree, 0)
+        gdeg = prm.geometric_degree
         if hi <= lo:
             gdeg = 0  # a fixed point: no geometric part
         else:

@@ -22,14 +22,13 @@ regression on T is the same linear model up to the constant.
 
 from __future__ import annotations
 
-import math
 from abc import abstractmethod
 import warnings
-from numbers import Integral, Real
-from typing import Sequence
+from typing import Annotated, Any, Optional, Sequence
 
 import numpy as np
 import pandas as pd
+from annotated_types import Ge, Le
 
 from ..data.io import Dataset
 from .base import (
@@ -46,6 +45,7 @@ from .base import (
     sensors_by_location,
     temperatures_at,
 )
+from .params import Degree, Int, Number, Params, Selection, SensorNames, check_params
 from .separation import cold_reference_geometric, curve_at, cycle_curves, geometric_from_residuals, shape_degree
 
 __all__ = ["MLRSeed001", "MLRSeed002", "MLRSeed004", "lstsq_fit"]
@@ -53,26 +53,31 @@ __all__ = ["MLRSeed001", "MLRSeed002", "MLRSeed004", "lstsq_fit"]
 SEED004_LOCATIONS = ("fixed_bearing_housing", "nut_housing", "free_bearing_housing")
 
 
+# -------------------------------------------------------------- parameters ---
+class MLRSeed001Params(Params):
+    degree: Annotated[Int, Ge(1), Le(4)]  # seed 001 §3: m <= 4
+    nut_sensor: Optional[str]
+    bed_sensor: Optional[str]
+    origin_mm: Optional[Number]
+    preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
+
+
+class _CurveParams(Params):
+    sensors: Optional[SensorNames]
+    preprocess: Any
+    origin_mm: Number
+    geometric_degree: Optional[Degree]
+
+
+class MLRSeed002Params(_CurveParams):
+    selection: Selection
+
+
+class MLRSeed004Params(_CurveParams):
+    mounting: Optional[str]  # checked by separation.shape_degree
+
+
 # ----------------------------------------------------------------- helpers ---
-def check_int(name: str, value, lo: int, hi: int | None = None) -> int:
-    """``value`` as an int in [lo, hi]; otherwise a ModelError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < lo or (hi is not None and value > hi):
-        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise ModelError(f"{name} must be an integer {rng}, got {value!r}")
-    return int(value)
-
-
-def check_real(name: str, value, positive: bool = False) -> float:
-    """``value`` as a finite float (> 0 when ``positive``); otherwise a ModelError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value) or (positive and value <= 0):
-        raise ModelError(f"{name} must be a finite number{' > 0' if positive else ''}, got {value!r}")
-    return float(value)
-
-
-def check_degree_or_none(name: str, value) -> int | None:
-    return None if value is None else check_int(name, value, 0)
-
-
 def sensor_list(name: str, value) -> list[str] | None:
     """A list of sensor names from a list/tuple/ListConfig (a lone string is one sensor)."""
     if value is None:
@@ -161,6 +166,7 @@ class MLRSeed001(ThermalErrorModel):
     """
 
     needs = ("along_axis",)  # eq. 12: the thermal error is a slope times (Px - origin)
+    params_model = MLRSeed001Params
 
     def __init__(self, degree=4, nut_sensor=None, bed_sensor=None, origin_mm=None, preprocess="default"):
         self.degree = degree
@@ -175,13 +181,13 @@ class MLRSeed001(ThermalErrorModel):
         return np.column_stack(cols) * (p - self.origin_)[:, None]
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        degree = check_int("degree", self.degree, 1, 4)
-        origin = self.origin_mm
+        p = check_params(self, self.params_model)
+        degree = p.degree
+        origin = p.origin_mm
         if origin is None:  # Px from the fixed end, where seed 001 §4 integrates the elongation from
-            origin = (ds.metadata.screw.fixed_end_axis_mm if ds.metadata.screw is not None else None) or 0.0
-        origin = check_real("origin_mm", origin)
-        nut = str(self.nut_sensor) if self.nut_sensor is not None else sensors_at(ds, "nut_sensor", ["nut_housing"])
-        bed = self.bed_sensor
+            origin = float((ds.metadata.screw.fixed_end_axis_mm if ds.metadata.screw is not None else None) or 0.0)
+        nut = p.nut_sensor if p.nut_sensor is not None else sensors_at(ds, "nut_sensor", ["nut_housing"])
+        bed = p.bed_sensor
         if bed is None:  # seed 001 sensor 2 is a reference temperature (eq. 2); the ambient will do
             bed = sensors_at(ds, "bed_sensor", ["bed", "ambient"])
         check_sensors(ds, [nut], "nut_sensor")
@@ -216,6 +222,7 @@ class _CurveRegression(ThermalErrorModel):
     cycle's mean time, and the geometric error is the mean residual per measuring
     point (optionally a polynomial of ``geometric_degree``)."""
 
+
     @abstractmethod
     def _curve_degree(self, ds: Dataset) -> int:
         """Degree of each cycle's curve in position."""
@@ -225,8 +232,8 @@ class _CurveRegression(ThermalErrorModel):
         """The sensors the coefficients are regressed on."""
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        origin = check_real("origin_mm", self.origin_mm)
-        gdeg = check_degree_or_none("geometric_degree", self.geometric_degree)
+        p = check_params(self, self.params_model)
+        origin, gdeg = p.origin_mm, p.geometric_degree
         degree = self._curve_degree(ds)
         sensors = self._pick_sensors(ds, runs)
         rd = readings(ds, runs)
@@ -277,6 +284,8 @@ class MLRSeed002(_CurveRegression):
     Fitted: ``slope_coef_``, ``intercept_coef_`` (arrays ``[const, one per
     sensor]``, µm/mm and µm, per °C), ``sensors_``, ``geometric_``.
     """
+
+    params_model = MLRSeed002Params
 
     def __init__(self, sensors=None, selection=None, preprocess="default", origin_mm=0.0, geometric_degree=3):
         self.sensors = sensors
@@ -330,6 +339,8 @@ class MLRSeed004(_CurveRegression):
     Fitted: ``curve_coef_`` (shape (degree+1, 1+n_sensors): row i = ``[k_i0,
     k_i1..]`` for ``c_i``), ``shape_degree_``, ``sensors_``, ``geometric_``.
     """
+
+    params_model = MLRSeed004Params
 
     def __init__(self, sensors=None, mounting=None, geometric_degree=None, preprocess="default", origin_mm=0.0):
         self.sensors = sensors

@@ -55,11 +55,11 @@ from __future__ import annotations
 import math
 from abc import abstractmethod
 from contextlib import contextmanager
-from numbers import Integral, Real
-from typing import Sequence
+from typing import Annotated, Any, Literal, Optional, Sequence
 
 import numpy as np
 import pandas as pd
+from annotated_types import Ge, Len, Lt
 
 from ..data.io import Dataset
 from ..extras import require
@@ -67,6 +67,7 @@ from ..extras import require
 torch = require("torch", "the neural families MLP and GRU")
 nn = torch.nn
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
+from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
 from .separation import line_separated_geometric, shape_degree
 
 __all__ = ["GRUModel", "MLPModel"]
@@ -77,42 +78,45 @@ MIN_TRAIN_READINGS = 10
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU, "sigmoid": nn.Sigmoid}
 
 
-# --- parameter checks (all raise ModelError naming the parameter) ---------------------------
-def _int(owner: str, name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise ModelError(f"{owner}: {name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
+# --- parameters (checked at fit: thermbench.models.params) -----------------------------------
+Count = Annotated[Int, Ge(1)]
 
 
-def _real(owner: str, name: str, value, minimum: float, strict: bool) -> float:
-    ok = not isinstance(value, bool) and isinstance(value, Real) and math.isfinite(value)
-    ok = ok and (value > minimum if strict else value >= minimum)
-    if not ok:
-        raise ModelError(f"{owner}: {name} must be a finite number {'>' if strict else '>='} {minimum}, got {value!r}")
-    return float(value)
+class _NeuralParams(Params):
+    """The parameters both nets share."""
+
+    sensors: Annotated[Optional[Sequence[str]], Expect("a list of sensor names or None")]
+    selection: Selection
+    preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
+    lr: PositiveNumber
+    weight_decay: Annotated[Number, Ge(0)]
+    max_epochs: Count
+    patience: Count
+    min_epochs: Annotated[Int, Ge(0)]
+    val_fraction: Annotated[Number, Ge(0), Lt(1)]
+    batch_size: Optional[Count]
+    seed: Seed
+    geometric_degree: Optional[Degree]
+    max_samples: Optional[Annotated[Int, Ge(MIN_TRAIN_READINGS)]]
 
 
-def _common(m) -> dict:
-    """Checks of the parameters both nets share; returns them cleaned."""
-    owner = type(m).__name__
-    if isinstance(m.sensors, str):
-        raise ModelError(f"{owner}: sensors must be a list of sensor names or None, got the string {m.sensors!r}")
-    vf = m.val_fraction
-    if isinstance(vf, bool) or not isinstance(vf, Real) or not (0.0 <= vf < 1.0):
-        raise ModelError(f"{owner}: val_fraction must be in [0, 1), got {vf!r}")
-    if m.geometric_degree is not None:
-        _int(owner, "geometric_degree", m.geometric_degree, 0)
-    opts = {
-        "lr": _real(owner, "lr", m.lr, 0.0, True),
-        "weight_decay": _real(owner, "weight_decay", m.weight_decay, 0.0, False),
-        "max_epochs": _int(owner, "max_epochs", m.max_epochs, 1),
-        "patience": _int(owner, "patience", m.patience, 1),
-        "min_epochs": _int(owner, "min_epochs", m.min_epochs, 0),
-        "val_fraction": float(vf),
-        "batch_size": None if m.batch_size is None else _int(owner, "batch_size", m.batch_size, 1),
-        "seed": _int(owner, "seed", m.seed, 0),
-        "max_samples": None if m.max_samples is None else _int(owner, "max_samples", m.max_samples, MIN_TRAIN_READINGS),
-    }
+class MLPModelParams(_NeuralParams):
+    hidden: Annotated[list[Count], Len(min_length=1), Expect("a non-empty list of layer widths (integers >= 1)")]
+    activation: Literal[tuple(ACTIVATIONS)]
+
+
+class GRUModelParams(_NeuralParams):
+    hidden_size: Count
+    window_s: Annotated[Number, Ge(0)]
+    step_s: PositiveNumber
+    position_degree: Optional[Degree]
+
+
+def _options(p: _NeuralParams) -> dict:
+    """The training options of checked parameters ``p``."""
+    keys = ("lr", "weight_decay", "max_epochs", "patience", "min_epochs", "val_fraction", "batch_size", "seed",
+            "max_samples")  # fmt: skip
+    opts = {k: getattr(p, k) for k in keys}
     opts["min_epochs"] = min(opts["min_epochs"], opts["max_epochs"])  # the last epoch is always a candidate
     return opts
 
@@ -203,8 +207,8 @@ class _NeuralModel(ThermalErrorModel):
 
     # --- hooks of the concrete nets ------------------------------------------------------
     @abstractmethod
-    def _check_net_params(self, ds: Dataset) -> dict:
-        """The validated architecture parameters."""
+    def _net_options(self, ds: Dataset, p: _NeuralParams) -> dict:
+        """The architecture options of the checked parameters ``p``."""
 
     @abstractmethod
     def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
@@ -216,8 +220,9 @@ class _NeuralModel(ThermalErrorModel):
 
     # --- interface -----------------------------------------------------------------------
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        opts = _common(self)
-        self._net_opts_ = self._check_net_params(ds)
+        p = check_params(self, self.params_model)
+        opts = _options(p)
+        self._net_opts_ = self._net_options(ds, p)
         self.sensors_ = choose_sensors(ds, runs, self.sensors, self.selection, self.preprocess)
         rd = readings(ds, runs)
         require(len(rd), MIN_TRAIN_READINGS, f"readings in run(s) {runs}")
@@ -345,6 +350,8 @@ class MLPModel(_NeuralModel):
     (over ``[ΔT..., P]``) and ``y_mean_um_``/``y_scale_um_``.
     """
 
+    params_model = MLPModelParams
+
     def __init__(
         self,
         sensors: Sequence[str] | None = None,
@@ -379,18 +386,8 @@ class MLPModel(_NeuralModel):
         self.geometric_degree = geometric_degree
         self.max_samples = max_samples
 
-    def _check_net_params(self, ds: Dataset) -> dict:
-        owner = type(self).__name__
-        if isinstance(self.hidden, (str, bytes)) or not hasattr(self.hidden, "__iter__"):
-            raise ModelError(f"{owner}: hidden must be a list of layer widths, got {self.hidden!r}")
-        hidden = list(self.hidden)
-        if not hidden:
-            raise ModelError(f"{owner}: hidden must list at least one layer width, got {self.hidden!r}")
-        for h in hidden:
-            _int(owner, "hidden (each width)", h, 1)
-        if self.activation not in ACTIVATIONS:
-            raise ModelError(f"{owner}: activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
-        return {"hidden": [int(h) for h in hidden]}
+    def _net_options(self, ds: Dataset, p: MLPModelParams) -> dict:
+        return {"hidden": list(p.hidden)}
 
     def _inputs(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> list[np.ndarray]:
         dT = temperatures_at(ds, run, self.sensors_, t_s, self.preprocess)
@@ -428,6 +425,8 @@ class GRUModel(_NeuralModel):
     Fitted: as :class:`MLPModel`, scalers over (ΔT sequence, P), plus ``n_lags_`` (K)
     and ``position_degree_``.
     """
+
+    params_model = GRUModelParams
 
     def __init__(
         self,
@@ -467,16 +466,9 @@ class GRUModel(_NeuralModel):
         self.geometric_degree = geometric_degree
         self.max_samples = max_samples
 
-    def _check_net_params(self, ds: Dataset) -> dict:
-        owner = type(self).__name__
-        _int(owner, "hidden_size", self.hidden_size, 1)
-        step = _real(owner, "step_s", self.step_s, 0.0, True)
-        window = _real(owner, "window_s", self.window_s, 0.0, False)
-        self.n_lags_ = int(math.floor(window / step + 1e-9))
-        if self.position_degree is None:
-            self.position_degree_ = curve_degree(ds)
-        else:
-            self.position_degree_ = _int(owner, "position_degree", self.position_degree, 0)
+    def _net_options(self, ds: Dataset, p: GRUModelParams) -> dict:
+        self.n_lags_ = int(math.floor(p.window_s / p.step_s + 1e-9))
+        self.position_degree_ = curve_degree(ds) if p.position_degree is None else p.position_degree
         return {}
 
     def _sequences(self, ds: Dataset, run: str, t_s: np.ndarray) -> np.ndarray:

@@ -28,10 +28,12 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, fields, replace
-from typing import Sequence
+from typing import Annotated, Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import pandas as pd
+from annotated_types import Ge
+from pydantic import model_validator
 from scipy.optimize import lsq_linear, minimize
 
 from ..data.io import Dataset
@@ -39,6 +41,7 @@ from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory, run_prepared_many
 from ..sim.parts import CoreParams, Material, Numerics, Screw
 from .base import Inputs, ModelError, ThermalErrorModel, derived, fallback, readings, require, sensor_series
+from .params import Degree, Expect, Int, Limit, Number, Params, PositiveNumber, check_params
 from .separation import cold_reference_geometric
 
 CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
@@ -93,6 +96,31 @@ class FieldCache:
         return value
 
 
+class PhysicsModelParams(Params):
+    effects: Annotated[Optional[Mapping[str, Optional[Mapping[str, Any]]]],
+                       Expect("None or a mapping {effect id: {param: value}}")]  # ids and params: make_effect
+    identify: Annotated[Union[str, Sequence[str]], Expect("a parameter name or a list of them")]
+    initial: Annotated[Optional[Mapping[str, Number]], Expect("None or a mapping {core parameter: number}")]
+    bounds: Annotated[Optional[Mapping[str, tuple[Limit, Limit]]],
+                      Expect("None or a mapping {parameter: (low, high)} of numbers (or -inf/inf)")]
+    dx_m: PositiveNumber
+    dt_s: PositiveNumber
+    macro_dt_s: PositiveNumber
+    ambient_sensor: Optional[str]  # None, "auto" or a sensor of the dataset (checked at fit)
+    preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
+    geometric_degree: Degree
+    max_iter: Annotated[Int, Ge(1)]
+    ftol: PositiveNumber
+
+    @model_validator(mode="after")
+    def _whole_macro_steps(self):
+        ratio = self.macro_dt_s / self.dt_s
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:  # what sim.parts.Numerics requires
+            raise ValueError(f"macro_dt_s must be a whole multiple of dt_s, got macro_dt_s={self.macro_dt_s:g}, "
+                             f"dt_s={self.dt_s:g}")  # fmt: skip
+        return self
+
+
 class PhysicsModel(ThermalErrorModel):
     """Seed 000 finite-difference model with identified parameters (see module docstring).
 
@@ -119,6 +147,7 @@ class PhysicsModel(ThermalErrorModel):
     """
 
     needs = ("screw", "along_axis")  # the seed 000 finite-difference screw
+    params_model = PhysicsModelParams
 
     def __init__(
         self,
@@ -399,6 +428,7 @@ class PhysicsModel(ThermalErrorModel):
         return rd_all, e - e[rd.ref_idx]
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        check_params(self, self.params_model)
         specs = self._effect_specs()
         nonlinear = self._check_identify(specs)
         if ds.metadata.screw.mounting == "fixed_fixed" and FixedFixedConstraint.id not in specs:
