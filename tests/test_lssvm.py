@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import logging.config
 from pathlib import Path
 from types import SimpleNamespace
@@ -17,7 +18,7 @@ from tests.synth import analytic_dataset, rise
 from thermbench.metrics import evaluate
 from thermbench.models.base import ModelError
 from thermbench.models import lssvm
-from thermbench.models.lssvm import DEFAULT_PSO_OPTIONS, LSSVMRegressor, PSOLSSVM, global_best_pso, tune_lssvm
+from thermbench.models.lssvm import DEFAULT_PSO_OPTIONS, LSSVMRegressor, PSOLSSVM, tune_lssvm
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "model" / "lssvm.yaml"
 
@@ -153,37 +154,6 @@ def test_pso_deterministic_and_leaves_global_state(series, tmp_path, monkeypatch
     assert list(tmp_path.iterdir()) == []
 
 
-def test_pso_is_pyswarms_global_best_draw_for_draw(monkeypatch, tmp_path):
-    """global_best_pso with np.random.RandomState(seed) is pyswarms' GlobalBestPSO (bounds
-    "nearest") after np.random.seed(seed), what tune_lssvm ran before: the same best cost,
-    position and history, bit for bit. pyswarms' own logging set-up (a dictConfig of the root
-    logger) is switched off for this comparison only."""
-    monkeypatch.setattr(logging.config, "dictConfig", lambda config: None)
-    monkeypatch.chdir(tmp_path)
-    from pyswarms.single.global_best import GlobalBestPSO
-
-    lo, hi = np.array([-1.0, 0.5]), np.array([3.0, 2.0])
-
-    def cost(P):
-        return ((P - [0.7, 1.1]) ** 2).sum(axis=1) + 0.3 * np.sin(5 * P[:, 0])
-
-    init = lo + (hi - lo) * np.random.default_rng(4).random((9, 2))
-    saved = np.random.get_state()
-    try:
-        np.random.seed(5)
-        ref = GlobalBestPSO(n_particles=9, dimensions=2, options=dict(DEFAULT_PSO_OPTIONS), bounds=(lo, hi),
-                            bh_strategy="nearest", init_pos=init.copy())  # fmt: skip
-        ref_cost, ref_pos = ref.optimize(cost, iters=15, verbose=False)
-    finally:
-        np.random.set_state(saved)
-    best, pos, hist = global_best_pso(cost, init, (lo, hi), 15, DEFAULT_PSO_OPTIONS, np.random.RandomState(5))
-    assert best == ref_cost
-    np.testing.assert_array_equal(pos, ref_pos)
-    np.testing.assert_array_equal(hist, np.asarray(ref.cost_history))
-    other = global_best_pso(cost, init, (lo, hi), 15, DEFAULT_PSO_OPTIONS, np.random.RandomState(6))
-    assert not np.array_equal(other[2], hist)  # the draws matter: another seed, another search
-
-
 def test_pso_no_worse_than_corners_or_default(series):
     X, y = series
     n_val = 18  # 0.2 * 90: the last block of rows
@@ -271,11 +241,14 @@ def user_logging():
 
 
 def test_fit_leaves_numpy_global_rng_and_logging_alone(clean_ds, user_logging, tmp_path, monkeypatch):
-    """PSO draws from its own generator and never reconfigures logging: during the fit (seen
-    from the solver every particle calls) and after it, numpy's global generator is in the
-    state it was, logging.config.dictConfig is the real function, and the user's handlers
-    and levels are as they were; nothing is written to the working directory."""
+    """pyswarms runs with numpy's global generator seeded and its logging set-up pointed (LOG_CFG)
+    at an incremental config that changes nothing: during the fit (seen from the solver every
+    particle calls) logging.config.dictConfig is the real function and the user's handlers are in
+    place; after it numpy's global generator is in the state it was (the next draws are the ones
+    it would have given), LOG_CFG is as it was, the user's handlers, levels and named logger are
+    intact and still hear; nothing is written to the working directory (no report.log)."""
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("LOG_CFG", "/a/users/own/logging.yaml")  # a user's own value survives the fit
     real_dict_config = logging.config.dictConfig
     log = user_logging
     handlers, root_level = list(log.root.handlers), log.root.level
@@ -287,23 +260,33 @@ def test_fit_leaves_numpy_global_rng_and_logging_alone(clean_ds, user_logging, t
 
     seen = []
     solve = lssvm._solve_kkt
+    calls = []
+    real = logging.config.dictConfig
+
+    def counting_dict_config(config):  # pyswarms' Reporter calls it: it must get the harmless config
+        calls.append(config)
+        return real(config)
+
+    monkeypatch.setattr(logging.config, "dictConfig", counting_dict_config)
 
     def spy(K, y, gamma):
-        seen.append((logging.config.dictConfig is real_dict_config, same_state(np.random.get_state()),
-                     list(log.root.handlers) == handlers))  # fmt: skip
+        seen.append((logging.config.dictConfig is counting_dict_config, list(log.root.handlers) == handlers,
+                     os.environ.get("LOG_CFG") == str(lssvm.PYSWARMS_LOGGING)))  # fmt: skip
         return solve(K, y, gamma)
 
     monkeypatch.setattr(lssvm, "_solve_kkt", spy)
     m = PSOLSSVM(preprocess=None, sensors=["T1", "T2"], n_particles=6, iters=4, seed=0).fit(clean_ds, ["r1"])
     assert m.pso_cost_history_.size == 4 and len(seen) > 6 * 4
-    assert all(dc for dc, _, _ in seen)  # dictConfig was never replaced during the search
-    assert all(rng for _, rng, _ in seen)  # the global generator was never reseeded during it
-    assert all(h for _, _, h in seen)
+    assert all(dc for dc, _, _ in seen) and all(h for _, h, _ in seen)
+    assert sum(env for _, _, env in seen) >= 6 * 4  # every particle of the search ran inside pyswarms' context
+    assert calls and all(c == {"version": 1, "incremental": True} for c in calls)  # pyswarms built its reporters
+    monkeypatch.setattr(logging.config, "dictConfig", real)
+    assert logging.config.dictConfig is real_dict_config
     assert same_state(np.random.get_state())
     expected = np.random.RandomState()
     expected.set_state(before)
     assert np.random.random_sample(5).tolist() == expected.random_sample(5).tolist()
-    assert logging.config.dictConfig is real_dict_config
+    assert os.environ["LOG_CFG"] == "/a/users/own/logging.yaml"
     assert log.root.handlers == handlers and log.root.level == root_level
     assert log.named.level == logging.DEBUG and not log.named.disabled
     log.named.debug("still heard")

@@ -10,7 +10,7 @@ Three layers:
   (γ = the paper's penalty ``c``; ``gamma``/``sigma2`` after the paper's ``gam``/``sig2``;
   the kernel is eq. 14's exp(-d²/(2σ²)), whereas LS-SVMlab's RBF is exp(-d²/sig2): the
   paper's sig2 = 0.01 is σ² = 0.005 here), and the model ``f(x) = Σ α_i K(x_i, x) + b`` (eq. 14).
-* :func:`tune_lssvm`: particle-swarm search (global-best PSO, :func:`global_best_pso`) of
+* :func:`tune_lssvm`: particle-swarm search (``pyswarms.single.GlobalBestPSO``) of
   (log10 γ, log10 σ²) minimising the RMSE on a hold-out set (seed 002 Fig. 14:
   "iterative adaptive particles screen the parameters of the kernel function and
   penalty coefficients").
@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Callable, Mapping, Optional, Sequence
+from pathlib import Path
+from typing import Annotated, Any, Mapping, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -230,53 +232,38 @@ class TuneResult:
     val_mask: np.ndarray = field(repr=False)
 
 
-def global_best_pso(
-    cost: Callable[[np.ndarray], np.ndarray],
-    init_pos: np.ndarray,
-    bounds: tuple[np.ndarray, np.ndarray],
-    iters: int,
-    options: Mapping[str, float],
-    rng: np.random.RandomState,
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """Global-best particle swarm minimisation of ``cost`` (one cost per row of positions).
+#: an incremental logging config that changes nothing, given to pyswarms through LOG_CFG
+PYSWARMS_LOGGING = Path(__file__).with_name("pyswarms_logging.yaml")
 
-    The algorithm of ``pyswarms.single.GlobalBestPSO`` (pyswarms 1.3: star topology,
-    positions clipped to ``bounds`` ("nearest"), velocities unclamped, initial velocities
-    uniform in [0, 1), constant ``options`` c1, c2, w), step for step and draw for draw,
-    from the generator ``rng`` instead of numpy's global one: with
-    ``np.random.RandomState(seed)`` it gives the numbers pyswarms gives after
-    ``np.random.seed(seed)`` (tests/test_lssvm.py checks it against pyswarms). pyswarms
-    itself is not called because it draws from numpy's global generator and reconfigures
-    the root logger (``logging.config.dictConfig``) whenever it is imported or builds an
-    optimiser; this touches neither.
 
-    Every iteration: evaluate the swarm, update the personal and the global best, then
-    ``v = w v + c1 r1 (pbest - x) + c2 r2 (gbest - x)`` (r1, r2 uniform per particle and
-    dimension) and ``x = clip(x + v)``. Returns (best cost, best position, the best cost
-    after each iteration).
-    """
-    lb, ub = bounds
-    c1, c2, w = options["c1"], options["c2"], options["w"]
-    pos = np.asarray(init_pos, dtype=float)
-    rng.random_sample(size=pos.shape)  # pyswarms builds its swarm twice (both constructors reset()):
-    vel = rng.random_sample(size=pos.shape)  # the initial velocities are the second draw
-    pbest_pos, pbest_cost = pos, np.full(pos.shape[0], np.inf)
-    best_pos, best_cost = pos[0], np.inf  # replaced by the first finite cost (pyswarms: empty, fails without one)
-    history = []
-    for _ in range(int(iters)):
-        current = cost(pos)
-        better = current < pbest_cost
-        pbest_pos = np.where(better[:, None], pos, pbest_pos)
-        pbest_cost = np.where(better, current, pbest_cost)
-        if np.min(pbest_cost) < best_cost:
-            best_pos, best_cost = pbest_pos[np.argmin(pbest_cost)], np.min(pbest_cost)
-        history.append(best_cost)
-        cognitive = c1 * rng.uniform(0, 1, pos.shape) * (pbest_pos - pos)
-        social = c2 * rng.uniform(0, 1, pos.shape) * (best_pos - pos)
-        vel = (w * vel) + cognitive + social
-        moved = pos + vel
-        pos = np.where(moved > ub, ub, np.where(moved < lb, lb, moved))
-    return float(best_cost), pbest_pos[pbest_cost.argmin()].copy(), np.asarray(history, dtype=float)
+@contextlib.contextmanager
+def _pyswarms_private(seed: int):
+    """Yield ``pyswarms.single.GlobalBestPSO`` seeded with ``seed``, with the process's global
+    state given back exactly afterwards.
+
+    pyswarms draws every random number (swarm, velocities, updates) from numpy's global
+    generator, and its ``Reporter`` configures logging at import and in every optimiser,
+    topology and handler it builds: ``logging.config.dictConfig`` of the root logger (a stream
+    handler and a ``report.log`` file), unless the ``LOG_CFG`` environment variable names a
+    logging config file, which it loads instead. Here ``LOG_CFG`` names
+    :data:`PYSWARMS_LOGGING`, an incremental config with no handlers or loggers: dictConfig runs
+    and changes nothing, so the user's handlers, levels and working directory are untouched.
+    numpy's global generator is seeded with ``seed`` for the search; its state and ``LOG_CFG``
+    are restored exactly afterwards (``np.random.get_state``/``set_state``)."""
+    saved_env = os.environ.get("LOG_CFG")
+    saved_rng = np.random.get_state()
+    os.environ["LOG_CFG"] = str(PYSWARMS_LOGGING)
+    try:
+        from pyswarms.single.global_best import GlobalBestPSO
+
+        np.random.seed(seed)
+        yield GlobalBestPSO
+    finally:
+        np.random.set_state(saved_rng)
+        if saved_env is None:
+            os.environ.pop("LOG_CFG", None)
+        else:
+            os.environ["LOG_CFG"] = saved_env
 
 
 def tune_lssvm(
@@ -301,13 +288,13 @@ def tune_lssvm(
     The inputs are standardised with the training rows' statistics, as the final
     LSSVM would be.
 
-    Swarm: :func:`global_best_pso` (pyswarms' GlobalBestPSO) with ``options`` (default
-    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds. The first particles
-    start at the four corners and the centre of the (log) box, the rest uniformly at
-    random, so the result is never worse than those five points. A pair of equal bounds
-    fixes that parameter (only the other is searched). Deterministic: every random draw
-    comes from ``np.random.RandomState(seed)``; numpy's global generator is neither used
-    nor changed.
+    Swarm: ``pyswarms.single.GlobalBestPSO`` with ``options`` (default
+    :data:`DEFAULT_PSO_OPTIONS`), positions clipped to the bounds ("nearest"). The
+    first particles start at the four corners and the centre of the (log) box, the
+    rest uniformly at random, so the result is never worse than those five points.
+    A pair of equal bounds fixes that parameter (only the other is searched).
+    Deterministic: numpy's global generator (which pyswarms draws from) is seeded with
+    ``seed`` and restored exactly afterwards, as is logging (:func:`_pyswarms_private`).
     """
     settings = dict(gamma_bounds=gamma_bounds, sigma2_bounds=sigma2_bounds, n_particles=n_particles, iters=iters,
                     seed=seed, options=options, standardize=standardize)  # fmt: skip
@@ -363,19 +350,20 @@ def tune_lssvm(
         return TuneResult(glo, slo, r, np.array([r]), val)
 
     flo, fhi = lo[free], hi[free]
-    rng = np.random.RandomState(p.seed)  # the PSO's own generator
-    corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
-    starts = np.vstack([corners, (flo + fhi) / 2])[: p.n_particles]
-    rand = flo + (fhi - flo) * rng.random_sample((p.n_particles - len(starts), free.size))
-    init = np.clip(np.vstack([starts, rand]), flo, fhi)
     # hundreds of small factorisations: BLAS threads cost more than they gain there
     blas = threadpool_limits(limits=1, user_api="blas") if yt.size < 1000 else contextlib.nullcontext()
-    with blas:
-        best_cost, best_pos, history = global_best_pso(
-            lambda P: np.array([rmse(*params(q)) for q in P]), init, (flo, fhi), p.iters, opts, rng
-        )
-    g, s = params(best_pos)
-    return TuneResult(float(g), float(s), best_cost, history, val)
+    with blas, _pyswarms_private(p.seed) as GlobalBestPSO:
+        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
+        starts = np.vstack([corners, (flo + fhi) / 2])[: p.n_particles]
+        rand = flo + (fhi - flo) * np.random.random_sample((p.n_particles - len(starts), free.size))
+        init = np.clip(np.vstack([starts, rand]), flo, fhi)
+        opt = GlobalBestPSO(n_particles=p.n_particles, dimensions=int(free.size), options=opts, bounds=(flo, fhi),
+                            bh_strategy="nearest", init_pos=init)  # fmt: skip
+        best_cost, best_pos = opt.optimize(lambda P: np.array([rmse(*params(q)) for q in P]), iters=p.iters,
+                                           verbose=False)  # fmt: skip
+        history = np.asarray(opt.cost_history, dtype=float)
+    g, s = params(np.asarray(best_pos, dtype=float))
+    return TuneResult(float(g), float(s), float(best_cost), history, val)
 
 
 # ---------------------------------------------------------------------------
