@@ -62,13 +62,13 @@ import pandas as pd
 from annotated_types import Ge, Len, Lt
 
 from ..data.io import Dataset
-from ..extras import require
-
-torch = require("torch", "the neural families MLP and GRU")
-nn = torch.nn
+from ..extras import require as require_extra
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
 from .separation import line_separated_geometric, shape_degree
+
+torch = require_extra("torch", "the neural families MLP and GRU")
+nn = torch.nn
 
 __all__ = ["GRUModel", "MLPModel"]
 
