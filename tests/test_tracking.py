@@ -304,43 +304,60 @@ def _mlflow_cli() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "mlflow"]
 
 
+def wait_healthy(uri: str, proc: subprocess.Popen, log: Path, what: str, timeout_s: float = 90) -> None:
+    """Until ``uri/health`` answers 200; a failure (with the log's tail) if ``proc`` exits or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if proc.poll() is not None:
+            pytest.fail(f"{what} exited ({proc.returncode}):\n{log.read_text()[-3000:]}")
+        try:
+            with urllib.request.urlopen(uri + "/health", timeout=2) as r:
+                if r.status == 200:
+                    return
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what} not up in {timeout_s:.0f} s:\n{log.read_text()[-3000:]}")
+        time.sleep(0.25)
+
+
+def stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM to ``proc``'s process group (started with start_new_session), SIGKILL after 15 s."""
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=15)
+    except ProcessLookupError:
+        pass
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=15)
+
+
+@contextmanager
+def mlflow_server_on(backend_store_uri: str, srv: Path, workers: int = 1):
+    """``mlflow server`` on a free local port with ``backend_store_uri`` and proxied artifacts in
+    ``srv/artifacts``; yields (uri, srv) once healthy, stops it after."""
+    port = free_port()
+    cmd = [*_mlflow_cli(), "server", "--host", "127.0.0.1", "--port", str(port), "--backend-store-uri",
+           backend_store_uri, "--artifacts-destination", str(srv / "artifacts"), "--workers", str(workers)]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
+    log = srv / "server.log"
+    with open(log, "w") as logf:
+        proc = subprocess.Popen(cmd, cwd=srv, env=env, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
+    uri = f"http://127.0.0.1:{port}"
+    try:
+        wait_healthy(uri, proc, log, f"mlflow server on {backend_store_uri.split(':', 1)[0]}")
+        yield SimpleNamespace(uri=uri, dir=srv)
+    finally:
+        stop_group(proc)
+
+
 @pytest.fixture
 def mlflow_server(tmp_path_factory):
     """``mlflow server`` on a free local port with its own sqlite store and proxied artifacts."""
     srv = tmp_path_factory.mktemp("server")
-    port = free_port()
-    cmd = [*_mlflow_cli(), "server", "--host", "127.0.0.1", "--port", str(port),
-           "--backend-store-uri", f"sqlite:///{srv}/srv.db", "--artifacts-destination", str(srv / "artifacts"),
-           "--workers", "1"]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
-    logf = open(srv / "server.log", "w")
-    proc = subprocess.Popen(cmd, cwd=srv, env=env, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
-    uri = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 90
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"mlflow server exited ({proc.returncode}):\n{(srv / 'server.log').read_text()[-3000:]}")
-            try:
-                with urllib.request.urlopen(uri + "/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"mlflow server not up in 90 s:\n{(srv / 'server.log').read_text()[-3000:]}")
-            time.sleep(0.25)
-        yield SimpleNamespace(uri=uri, dir=srv)
-    finally:
-        try:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(timeout=15)
-        except ProcessLookupError:
-            pass
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=15)
-        logf.close()
+    with mlflow_server_on(f"sqlite:///{srv}/srv.db", srv) as server:
+        yield server
 
 
 def test_train_against_a_real_tracking_server(mlflow_server, workdir):

@@ -17,18 +17,15 @@ import glob
 import os
 import pwd
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
-from tests.test_tracking import _mlflow_cli, free_port
+from tests.test_tracking import free_port, mlflow_server_on
 
 DATASET = "seed001_vmc_x"
 REGISTERED = f"thermbench-{DATASET}-mlr_seed001"
@@ -54,33 +51,6 @@ def _as_server_user(cmd: list[str]) -> list[str]:
     except KeyError:
         pytest.fail("running as root and there is no 'postgres' user: apt-get install postgresql (.ci/run does)")
     return ["runuser", "-u", "postgres", "--", *cmd]
-
-
-def _wait_http(uri: str, proc: subprocess.Popen, log: Path, what: str, timeout_s: float = 120) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if proc.poll() is not None:
-            pytest.fail(f"{what} exited ({proc.returncode}):\n{log.read_text()[-3000:]}")
-        try:
-            with urllib.request.urlopen(uri + "/health", timeout=2) as r:
-                if r.status == 200:
-                    return
-        except OSError:
-            pass
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what} not up in {timeout_s:.0f} s:\n{log.read_text()[-3000:]}")
-        time.sleep(0.25)
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    try:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=20)
-    except ProcessLookupError:
-        pass
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=20)
 
 
 @pytest.fixture(scope="module")
@@ -122,20 +92,8 @@ def postgres():
 @pytest.fixture(scope="module")
 def pg_mlflow(postgres, tmp_path_factory):
     """``mlflow server`` with the PostgreSQL backend store and a file artifact root (proxied)."""
-    srv = tmp_path_factory.mktemp("pg_mlflow")
-    port = free_port()
-    cmd = [*_mlflow_cli(), "server", "--host", "127.0.0.1", "--port", str(port), "--backend-store-uri", postgres.uri,
-           "--artifacts-destination", str(srv / "artifacts"), "--workers", "2"]  # fmt: skip
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
-    log = srv / "server.log"
-    with open(log, "w") as logf:
-        proc = subprocess.Popen(cmd, cwd=srv, env=env, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
-    uri = f"http://127.0.0.1:{port}"
-    try:
-        _wait_http(uri, proc, log, "mlflow server on PostgreSQL")
-        yield SimpleNamespace(uri=uri, dir=srv, pg=postgres)
-    finally:
-        _stop(proc)
+    with mlflow_server_on(postgres.uri, tmp_path_factory.mktemp("pg_mlflow"), workers=2) as server:
+        yield SimpleNamespace(uri=server.uri, dir=server.dir, pg=postgres)
 
 
 def sql(pg, query: str, *args) -> list[tuple]:
