@@ -3,7 +3,8 @@
 Run by the Python of a venv holding ``pip install -e .`` and nothing else. It checks that the
 extras' packages are absent (torch above all), then runs what a core user runs, as a new user
 would, in a scratch directory: ``thermbench simulate``, ``validate``, an MLR ``train`` (tracked
-in the embedded MLflow store) and ``export`` of the registered model for the C runtime. A
+in the embedded MLflow store), ``export`` of the registered model for the C runtime and a small
+``benchmark`` (which skips the neural family, saying which extra it needs). A
 family or command that needs a missing extra must fail in one line, exit 2, naming the extra.
 Prints one line per step with its wall time; exits 1 on the first failure.
 """
@@ -61,6 +62,12 @@ def main() -> int:
         if len(tbm) != 1:
             sys.exit(f"core-check: export wrote {len(tbm)} model files under exp/")
         missing_extra(["train", "dataset=path", "dataset.source.path=ds", "train=cond1_3000", "model=gru"], cwd, "neural")
+        out = run(["benchmark", "name=core", "datasets=[seed001_vmc_x]", "families=[mlr_seed002,gru]",
+                   "bank_families=[mlr_seed002]", "n_jobs=1"], cwd)  # fmt: skip
+        skipped = [ln for ln in out.splitlines() if ln.startswith("[benchmark] skipped gru")]
+        if len(skipped) != 1 or "'neural' extra" not in skipped[0] or not (cwd / "reports/core/report.md").is_file():
+            sys.exit(f"core-check: the benchmark should skip gru in one line naming the 'neural' extra:\n{out[-3000:]}")
+        print(f"core-check:   {skipped[0]}")
         missing_extra(["sim-cnc", "run=cond1_3000"], cwd, "opcua")
         missing_extra(["train", "-m", "hydra/launcher=submitit_local", "dataset=path", "dataset.source.path=ds",
                        "model=mlr_seed002", "train=cond1_3000,cond2_6000"], cwd, "cluster")  # fmt: skip

@@ -251,7 +251,8 @@ def small():
         (dict(operating=["a", "b"]), r"^LumpedThermalNetwork\.operating: expected one process column name"),
         (dict(u_ref=-1.0), r"^LumpedThermalNetwork\.u_ref: expected None or a finite number > 0, got -1\.0$"),
         (dict(exponent=0), r"^LumpedThermalNetwork\.exponent: expected None or a finite number > 0, got 0$"),
-        (dict(exponent_bounds=(2.0, 1.0)), r"^LumpedThermalNetwork\.exponent_bounds: expected a pair \(low, high\) of finite numbers with 0 < low < high, got \(2\.0, 1\.0\)$"),
+        (dict(exponent_bounds=(2.0, 1.0)), r"^LumpedThermalNetwork\.exponent_bounds: expected None or a pair \(low, high\) of finite numbers with 0 < low < high, got \(2\.0, 1\.0\)$"),
+        (dict(exponent_bounds=None), r"^LumpedThermalNetwork\.exponent_bounds: expected \(lo, hi\) with 0 < lo < hi to identify the exponent \(exponent is None\), got None$"),
         (dict(tau_bounds_s=(0.0, 1e4)), r"^LumpedThermalNetwork\.tau_bounds_s: expected a pair \(low, high\) .*0 < low < high"),
         (dict(tau_bounds_s=60.0), r"^LumpedThermalNetwork\.tau_bounds_s: expected a pair \(low, high\)"),
         (dict(n_starts=0), r"^LumpedThermalNetwork\.n_starts: expected an integer >= 1, got 0$"),
@@ -273,6 +274,8 @@ def test_bad_data_is_one_line(small):
     with pytest.raises(ModelError, match=r"^operating: column 'spindle_rpm' of run 'r' is negative \(min -100\).*exponent"):
         LumpedThermalNetwork().fit(spindle_dataset({"r": neg}))
     LumpedThermalNetwork(n_nodes=1, exponent=2, n_starts=1).fit(spindle_dataset({"r": neg}))  # an integer power is fine
+    # a fixed exponent needs no bounds for it
+    LumpedThermalNetwork(n_nodes=1, exponent=2, exponent_bounds=None, n_starts=1).fit(spindle_dataset({"r": neg}))
     idle = {**small, "spindle_rpm": np.zeros_like(small["spindle_rpm"])}
     with pytest.raises(ModelError, match=r"^operating: column 'spindle_rpm' is zero in every training run"):
         LumpedThermalNetwork().fit(spindle_dataset({"r": idle}))

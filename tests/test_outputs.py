@@ -255,3 +255,26 @@ def test_hydra_directories_must_prove_they_are_hydras(tmp_path):
     _plant(run / "analysis.ipynb", "{}")
     with pytest.raises(OutputRefused, match="analysis.ipynb"):
         outputs.check_hydra_dir(run)
+
+
+def test_a_submitit_sweep_directory_is_a_hydra_sweeps(tmp_path):
+    """What hydra-submitit-launcher leaves in a sweep directory (``.submitit/%j``), with the local
+    executor (a pid per job) and with SLURM (array job ids, the submission script, and in
+    ``.submitit/`` itself the link to each submission script and pickles of jobs being
+    submitted: submitit 1.5 core.py Executor._submit_command), is accepted for a resume; a file
+    of the user's in there is not."""
+    sweep = tmp_path / "sweep"
+    hexa = "0123456789abcdef0123456789abcdef"
+    for rel in ("multirun.yaml", "sweep_size.txt", "0/.hydra/hydra.yaml", "0/result.json", "0/train.log",
+                ".submitit/27375/27375_submitted.pkl", ".submitit/27375/27375_0_log.out",
+                ".submitit/27375/27375_0_log.err", ".submitit/27375/27375_0_result.pkl.save_tmp",
+                ".submitit/4242_1/4242_1_submitted.pkl", ".submitit/4242_1/4242_1_0_result.pkl",
+                ".submitit/4242_1/4242_submission.sh", f".submitit/.submission_file_{hexa}.sh",
+                f".submitit/{hexa}.pkl"):  # fmt: skip
+        _plant(sweep / rel, "x")
+    outputs.check_hydra_dir(sweep, "hydra.sweep.dir")
+    for mine in (".submitit/notes.txt", ".submitit/27375/analysis.pkl", f".submitit/{hexa}.csv"):
+        _plant(sweep / mine, "x")
+        with pytest.raises(OutputRefused, match="not an earlier Hydra job's"):
+            outputs.check_hydra_dir(sweep, "hydra.sweep.dir")
+        (sweep / mine).unlink()

@@ -280,8 +280,11 @@ def model_config(family: str, dcfg: Mapping, dname: str) -> dict:
 
 def family_class(family: str):
     """The model class of option ``family`` (``conf/model/<family>.yaml``); for a bank option,
-    the class of the models inside it. None when the option names no ``_target_``."""
+    the class of the models inside it. None when the option names no ``_target_``. A family
+    whose optional dependency is missing raises :class:`~thermbench.extras.MissingExtra`."""
     from hydra._internal.utils import _locate
+
+    from .extras import MissingExtra
 
     opt = group_option("model", family)
     target = opt.get("_target_")
@@ -289,15 +292,24 @@ def family_class(family: str):
         return None
     if str(target).endswith("ConditionBank") and opt.get("model", {}).get("_target_"):
         target = opt["model"]["_target_"]
-    return _locate(str(target))
+    try:
+        return _locate(str(target))
+    except ImportError as exc:  # Hydra wraps the module's own error
+        if isinstance(exc.__cause__, MissingExtra):
+            raise exc.__cause__ from None
+        raise
 
 
 def family_lacks(family: str, ds) -> str | None:
     """What dataset ``ds`` lacks that model family ``family`` needs (its class's ``needs``,
     :func:`thermbench.models.base.missing_needs`), as text; None when it has everything."""
+    from .extras import MissingExtra
     from .models.base import NEEDS, missing_needs
 
-    cls = family_class(family)
+    try:
+        cls = family_class(family)
+    except MissingExtra as exc:  # e.g. gru on the core install: the other families still run
+        return str(exc)
     missing = missing_needs(cls, ds) if cls is not None else []
     return "needs " + "; and ".join(NEEDS[m] for m in missing) if missing else None
 
@@ -325,7 +337,12 @@ def _with_case(results: pd.DataFrame) -> pd.DataFrame:
 def reference_only(family: str) -> bool:
     """True for a baseline family (``reference_only`` on its class): in the tables for
     comparison, never chosen for deployment."""
-    return bool(getattr(family_class(family), "reference_only", False))
+    from .extras import MissingExtra
+
+    try:
+        return bool(getattr(family_class(family), "reference_only", False))
+    except MissingExtra:  # not installed, so not in the results: not a baseline either
+        return False
 
 
 def _options(group: str) -> list[str]:

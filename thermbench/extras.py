@@ -9,7 +9,7 @@ extra          installs                             needed by
 =============  ===================================  =========================================
 ``neural``     torch (CPU build: see the README)    the MLP and GRU families
 ``onnx``       onnx, onnxruntime                    ONNX export of the neural families
-``opcua``      asyncua                              ``thermbench compensate``, ``sim-cnc``
+``opcua``      asyncua                              ``thermbench compensator``, ``sim-cnc``, ``certs``
 ``cluster``    hydra-submitit-launcher (submitit)   ``hydra/launcher=submitit_local``/``cluster``
 ``postgres``   psycopg 3                            an MLflow tracking server on PostgreSQL
 ``notebooks``  jupyterlab, jupytext, papermill      the guided notebooks

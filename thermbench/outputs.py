@@ -374,8 +374,11 @@ class OutputStream:
 _HYDRA_RUN = r"\.hydra/(?:config|hydra|overrides)\.yaml|[A-Za-z0-9_.-]+\.log|result\.json"
 #: ... and the submitit launcher's job files (hydra.launcher.submitit_folder, ${hydra.sweep.dir}/.submitit/%j):
 #: per job id (local: a pid; SLURM: 123 or 123_4 for an array task) the pickled job, its result, its
-#: task logs, on SLURM the submission script, and a pickle being written (.save_tmp, renamed when done)
-_SUBMITIT = r"\.submitit/[0-9_]+/[0-9_]+_(?:submitted\.pkl|submission\.sh|\d+_log\.(?:out|err)|\d+_result\.pkl)(?:\.save_tmp)?"
+#: task logs, on SLURM the submission script, and a pickle being written (.save_tmp, renamed when done);
+#: on SLURM also, directly in .submitit/, the link to each submission script and the pickles of jobs
+#: being submitted (submitit's Executor._submit_command)
+_SUBMITIT = (r"\.submitit/(?:[0-9_]+/[0-9_]+_(?:submitted\.pkl|submission\.sh|\d+_log\.(?:out|err)|\d+_result\.pkl)"
+             r"(?:\.save_tmp)?|\.submission_file_[0-9a-f]{32}\.sh|[0-9a-f]{32}\.pkl)")
 _HYDRA_FILES = {"hydra.run.dir": re.compile(_HYDRA_RUN),
                 "hydra.sweep.dir": re.compile(rf"multirun\.yaml|sweep_size\.txt|\d+/(?:{_HYDRA_RUN})|{_SUBMITIT}")}  # fmt: skip
 _HYDRA_PROOF = {"hydra.run.dir": ".hydra/hydra.yaml", "hydra.sweep.dir": "multirun.yaml"}

@@ -200,7 +200,7 @@ class LumpedThermalNetworkParams(Params):
     ]
     u_ref: Optional[PositiveNumber]
     exponent: Optional[PositiveNumber]
-    exponent_bounds: pair_bounds()
+    exponent_bounds: Optional[pair_bounds()]  # needed when the exponent is identified (exponent None)
     tau_bounds_s: pair_bounds()
     ambient_sensor: Optional[str]  # None, "auto" or a sensor of the dataset (checked at fit)
     preprocess: Any  # checked by thermbench.preprocess.filters.resolve_steps
@@ -498,7 +498,10 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self.step_ = prm.step_s
         n_starts = prm.n_starts
         tau_lo, tau_hi = prm.tau_bounds_s
-        p_lo, p_hi = prm.exponent_bounds  # used when the exponent is identified
+        if prm.exponent is None and prm.exponent_bounds is None:
+            raise ModelError(f"{type(self).__name__}.exponent_bounds: expected (lo, hi) with 0 < lo < hi to identify "
+                             "the exponent (exponent is None), got None")  # fmt: skip
+        p_lo, p_hi = prm.exponent_bounds or (None, None)  # used when the exponent is identified
         self.exponent_fixed_ = prm.exponent
         self.fractional_ = self.exponent_fixed_ is None or not float(self.exponent_fixed_).is_integer()
         self.operating_ = self._operating_name(ds, prm.operating)
