@@ -1,4 +1,5 @@
-"""The core install, checked from its own venv (``make core-check``; CI runs it).
+"""The core install, checked from its own venv (``make core-check``: about 3 minutes, most of it the install;
+the test suite checks the same messages with the optional modules hidden: tests/test_extras.py).
 
 Run by the Python of a venv holding ``pip install -e .`` and nothing else. It checks that the
 extras' packages are absent (torch above all), then runs what a core user runs, as a new user

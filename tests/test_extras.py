@@ -1,6 +1,6 @@
 """A family or command whose extra is missing says in one line which extra to install
 (thermbench.extras). The real core install is checked by ``make core-check`` in its own venv
-(tests/core_check.py, run by CI); here the optional modules are hidden from a subprocess by an
+(tests/core_check.py); here the optional modules are hidden from a subprocess by an
 import hook, so the same messages are checked in the test suite."""
 
 from __future__ import annotations
