@@ -138,6 +138,38 @@ def test_closed_loop_reduces_the_error_as_replay_predicts(machine, seed001_expor
     assert _time_steps_within(log, 20.0)  # the compensation never changed in time faster than the limit
 
 
+def test_namespace_uris_resolve_on_a_server_that_numbers_its_namespaces_differently(machine, seed001_exports,
+                                                                                    nodes_file, tmp_path):
+    """sim-cnc with two other namespaces registered first: its own URI is index 4, not 2. The
+    nodes file names the namespace by URI (nsu=...), so the compensator finds its nodes and the
+    loop compensates; the same file with the index hard-coded as 2 (another vendor's namespace
+    there) is refused on connecting, naming the node."""
+    nodes = yaml.safe_load(nodes_file.read_text())
+    assert nodes["inputs"]["axis_mm"] == "nsu=urn:thermbench:sim-cnc;s=X.Position_mm"
+    hard = tmp_path / "nodes_ns2.yaml"
+    hard.write_text(nodes_file.read_text().replace("nsu=urn:thermbench:sim-cnc;", "ns=2;"))
+
+    async def both():
+        port = _port()
+        ep = f"opc.tcp://127.0.0.1:{port}/sim"
+        scfg = {"endpoint": ep, "run": RUN, "speed": 100.0, "linger_s": 0.3, "out_dir": str(tmp_path / "sim"),
+                "extra_namespaces": ["urn:a-vendor:plc", "urn:a-vendor:drives"]}  # fmt: skip
+        ready = asyncio.Event()
+        server = asyncio.ensure_future(serve(scfg, machine, ready))
+        await ready.wait()
+        with pytest.raises(CompensatorError) as exc:
+            await Compensator(seed001_exports / "mlr", ep, hard, _client_cfg(tmp_path, log=str(tmp_path / "bad.csv"))).run()
+        summary = await Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path)).run()
+        return str(exc.value), summary, await server
+
+    refused, s, f = asyncio.run(both())
+    assert refused.startswith("nodes file: output ") and " node 'ns=2;s=X." in refused, refused
+    assert "does not exist on opc.tcp://127.0.0.1:" in refused, refused
+    assert "\n" not in refused
+    assert s["cycles"] > 100 and s["flags"].get("DISCONNECTED", 0) == 0
+    assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]
+
+
 def test_error_line_output_feeds_a_stock_controller(machine, seed001_exports, nodes_file, tmp_path):
     """output=line: offset/slope/reference (SD43900/SD43910/SD43920) fitted over the travel;
     the machine applies only that line."""

@@ -300,3 +300,21 @@ def test_a_clock_that_stays_behind_starts_a_new_timeline():
 def test_bad_numbers_name_their_key(cfg, key):
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
         Settings.from_config(cfg)
+
+
+def test_namespace_uris_are_resolved_against_the_servers_namespace_array():
+    """OPC UA Part 6 5.3.1.10: nsu=<uri>;<id> names the namespace by URI; the server's
+    NamespaceArray gives its index (here 3). Other forms pass unchanged; an unknown URI or a
+    malformed id is a one-line CompensatorError naming the node and the server's namespaces."""
+    from thermbench.compensator.client import CompensatorError, resolve_node_id
+
+    array = ["http://opcfoundation.org/UA/", "urn:server", "urn:vendor:plc", "urn:thermbench:sim-cnc", "urn:a;b"]
+    assert resolve_node_id("nsu=urn:thermbench:sim-cnc;s=X.Position_mm", array, "input axis_mm") == "ns=3;s=X.Position_mm"
+    assert resolve_node_id("nsu=urn:vendor:plc;i=6001", array, "x") == "ns=2;i=6001"
+    assert resolve_node_id("nsu=urn:a%3Bb;s=Y", array, "x") == "ns=4;s=Y"  # ';' escaped in the URI
+    assert resolve_node_id("ns=2;s=X.Position_mm", array, "x") == "ns=2;s=X.Position_mm"
+    with pytest.raises(CompensatorError, match=r"^nodes file: input T_nut_C node 'nsu=urn:other;s=T': the server has no namespace "
+                                               r"'urn:other'; its namespaces: \['http://opcfoundation.org/UA/'"):
+        resolve_node_id("nsu=urn:other;s=T", array, "input T_nut_C")
+    with pytest.raises(CompensatorError, match="expected nsu=<namespace URI>;<identifier>"):
+        resolve_node_id("nsu=urn:thermbench:sim-cnc", array, "output value")

@@ -33,7 +33,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -178,8 +178,28 @@ async def connect_client(endpoint: str, sec: Security, timeout_s: float):
     return client
 
 
+def resolve_node_id(node_id: str, namespaces: Sequence[str], where: str) -> str:
+    """``node_id`` with a namespace URI (``nsu=<uri>;s=...``, the form that is the same on every
+    server) as the namespace index this server gives that URI (``ns=<index>;s=...``); any other
+    form as given. ``namespaces`` is the server's NamespaceArray; ``where`` names the node in a
+    mistake's message (a URI the server does not have)."""
+    if not node_id.startswith("nsu="):
+        return node_id
+    uri, sep, rest = node_id[len("nsu="):].partition(";")
+    if not sep or not rest or not uri:
+        raise CompensatorError(f"nodes file: {where} node {node_id!r}: expected nsu=<namespace URI>;<identifier>, "
+                               "e.g. nsu=urn:thermbench:sim-cnc;s=X.Position_mm")  # fmt: skip
+    uri = uri.replace("%3B", ";").replace("%25", "%")  # OPC UA Part 6 5.3.1.10: ';' and '%' escaped in the URI
+    if uri not in namespaces:
+        raise CompensatorError(f"nodes file: {where} node {node_id!r}: the server has no namespace {uri!r}; "
+                               f"its namespaces: {list(namespaces)}")  # fmt: skip
+    return f"ns={list(namespaces).index(uri)};{rest}"
+
+
 class Session:
-    """One connection to the machine: its input and output nodes, checked on connect."""
+    """One connection to the machine: its input and output nodes, checked on connect. Node ids
+    given with a namespace URI (``nsu=``) are resolved against the server's namespace array on
+    every connection (a restarted server may number its namespaces differently)."""
 
     def __init__(self, endpoint: str, nodes: Nodes, sec: Security, timeout_s: float) -> None:
         self.endpoint, self.nodes, self.sec, self.timeout_s = endpoint, nodes, sec, timeout_s
@@ -192,12 +212,14 @@ class Session:
         ua = _ua()
         client = await connect_client(self.endpoint, self.sec, self.timeout_s)
         try:
-            outs = self.nodes.output_ids()
+            namespaces = await client.get_namespace_array()
+            given = self.nodes.output_ids()
+            outs = {name: resolve_node_id(nid, namespaces, f"output {name}") for name, nid in given.items()}
             ids = list(outs.values())
             nodes = [client.get_node(i) for i in ids]
             access = await client.read_attributes(nodes, ua.AttributeIds.UserAccessLevel)
             types = await client.read_attributes(nodes, ua.AttributeIds.DataType)
-            for name, nid, dv, ty in zip(outs, ids, access, types):
+            for name, nid, dv, ty in zip(outs, given.values(), access, types):
                 if not dv.StatusCode.is_good():
                     raise CompensatorError(f"nodes file: output {name} node {nid!r} does not exist on {self.endpoint} "
                                            f"({dv.StatusCode.name})")  # fmt: skip
@@ -210,7 +232,8 @@ class Session:
                                            f"writes {'Int32' if name == 'status' else 'Double'}")  # fmt: skip
             current = await client.read_attributes(nodes)
             self.current = {name: (dv.Value.Value if dv.Value is not None else None) for name, dv in zip(outs, current)}
-            self.input_nodes = [client.get_node(i) for i in self.inputs.values()]
+            self.input_nodes = [client.get_node(resolve_node_id(i, namespaces, f"input {name}"))
+                                for name, i in self.inputs.items()]
             first = await client.read_attributes(self.input_nodes)
             for (name, nid), dv in zip(self.inputs.items(), first):
                 if dv.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown:

@@ -129,8 +129,10 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
 
 
 def nodes_yaml(machine: Machine, axis: str = "X") -> dict:
-    """The nodes file of this server's address space (``thermbench compensator --nodes``)."""
-    ns = "ns=2;s="
+    """The nodes file of this server's address space (``thermbench compensator --nodes``). The
+    node ids carry the namespace URI (``nsu=urn:thermbench:sim-cnc;s=...``), which the
+    compensator resolves to this server's index when it connects."""
+    ns = f"nsu={NAMESPACE};s="
     inputs = {"axis_mm": f"{ns}{axis}.Position_mm", "feed_mm_min": f"{ns}{axis}.Feed_mm_min",
               "load_N": f"{ns}{axis}.Load_N" if "load_N" in machine.samples else None,
               "measuring": f"{ns}{axis}.Measuring", "done": f"{ns}Machine.ProgramDone",
@@ -268,9 +270,12 @@ class SimCnc:
         else:
             server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         server.set_identity_tokens([ua.UserNameIdentityToken] if users else [ua.AnonymousIdentityToken])
+        extra = self.cfg.get("extra_namespaces") or []
+        if not isinstance(extra, (list, tuple)) or not all(isinstance(u, str) and u for u in extra):
+            raise SimCncError(f"config key 'extra_namespaces': expected a list of namespace URIs, got {extra!r}")
+        for uri in extra:  # before ours: our index moves up by one each
+            await server.register_namespace(str(uri))
         idx = await server.register_namespace(NAMESPACE)
-        if idx != 2:  # the node ids of nodes_yaml() say ns=2
-            raise RuntimeError(f"sim-cnc namespace index is {idx}, expected 2")
         objs = server.nodes.objects
         mach = await objs.add_object(ua.NodeId("Machine", idx), "Machine")
         ax = await objs.add_object(ua.NodeId(self.axis, idx), f"{self.axis}Axis")
