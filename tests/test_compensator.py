@@ -319,7 +319,8 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
             written = srv.server.read_attribute_value(srv.comp["value"]).Value.Value
             refused = {}
             for name, cfg in {"wrong password": sec(password_env="WRONG_PW"), "no encryption": {},
-                              "untrusted certificate": sec(stranger)}.items():  # fmt: skip
+                              "untrusted certificate": sec(stranger),
+                              "not the pinned server": sec(server_certificate=str(stranger["server_certificate"]))}.items():  # fmt: skip
                 try:
                     await Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, max_cycles=1,
                                                                                            security=cfg)).run()  # fmt: skip
@@ -371,8 +372,23 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
     s, written, refused, before, after, interrupted = asyncio.run(scenario())
     assert interrupted["ended"] == "interrupted" and interrupted["cycles"] > 10
     assert s["cycles"] == 60 and math.isfinite(written) and written != 0.0
-    assert set(refused) == {"wrong password", "no encryption", "untrusted certificate"}
-    assert all("cannot connect" in m for m in refused.values())
+    assert set(refused) == {"wrong password", "no encryption", "untrusted certificate", "not the pinned server"}
+    assert all("cannot connect" in m and "\n" not in m for m in refused.values())
+
+    def sha1(path) -> str:  # the thumbprint as OPC UA tools show it, computed by cryptography itself
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes
+
+        data = open(path, "rb").read()
+        load = x509.load_pem_x509_certificate if data.startswith(b"-----") else x509.load_der_x509_certificate
+        return load(data).fingerprint(hashes.SHA1()).hex(":").upper()
+
+    assert (f"the server refused this client's certificate (security.certificate={stranger['client_certificate']}, "
+            f"SHA-1 {sha1(stranger['client_certificate'])}): add it to the server's trusted") in refused["untrusted certificate"]
+    assert (f"the server's certificate is not the pinned one (security.server_certificate={stranger['server_certificate']}, "
+            f"SHA-1 {sha1(stranger['server_certificate'])}); {refused['not the pinned server'].split('cannot connect to ')[1].split(':')[0]}"
+            in refused["not the pinned server"])  # fmt: skip
+    assert f"presents SHA-1 {sha1(ok['server_certificate'])}" in refused["not the pinned server"]
     assert "BadUserAccessDenied" in refused["wrong password"]
     assert "No matching endpoints" in refused["no encryption"]  # the server offers sign-and-encrypt only
     # and the client never sends a password unencrypted, nor trusts an unpinned server

@@ -196,6 +196,63 @@ def resolve_node_id(node_id: str, namespaces: Sequence[str], where: str) -> str:
     return f"ns={list(namespaces).index(uri)};{rest}"
 
 
+def _certificate_der(path: str) -> bytes:
+    """A certificate file (PEM or DER) as DER bytes."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    data = Path(path).read_bytes()
+    cert = x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data else x509.load_der_x509_certificate(data)
+    return cert.public_bytes(Encoding.DER)
+
+
+def _thumbprint(der: bytes) -> str:
+    """The SHA-1 thumbprint OPC UA tools show for a certificate (colon-separated hex)."""
+    import hashlib
+
+    return ":".join(f"{b:02X}" for b in hashlib.sha1(der).digest())
+
+
+async def explain_security_refusal(endpoint: str, sec: "Security", timeout_s: float) -> str | None:
+    """Why a secured connection failed, in one line, when it is the certificates: asyncua reports
+    an untrusted client certificate as a bare ``AssertionError`` (the server closes the channel)
+    and a server whose certificate is not the pinned one as a decryption error. The server's
+    certificate is read from its endpoints (GetEndpoints, which needs no security) and compared
+    with the pinned one: different, the server is not the pinned one; the same, the server refused
+    this client's certificate. None when there is no security or the endpoints cannot be read."""
+    if not sec.policy or not sec.server_certificate or not sec.certificate:
+        return None
+    from asyncua import Client
+
+    try:
+        pinned = _certificate_der(sec.server_certificate)
+        endpoints = await asyncio.wait_for(Client(endpoint, timeout=timeout_s).connect_and_get_server_endpoints(), timeout_s)
+    except Exception:  # the server is not answering at all: the original error says more
+        return None
+    presented = next((bytes(e.ServerCertificate) for e in endpoints if e.ServerCertificate), None)
+    if presented is None:
+        return None
+    try:
+        presented = _certificate_der_bytes(presented)
+    except ValueError:
+        return None
+    if presented != pinned:
+        return (f"the server's certificate is not the pinned one (security.server_certificate={sec.server_certificate}, "
+                f"SHA-1 {_thumbprint(pinned)}); {endpoint} presents SHA-1 {_thumbprint(presented)}: pin the machine's "
+                "current certificate if it was renewed, else this is not the machine")  # fmt: skip
+    mine = _certificate_der(sec.certificate)
+    return (f"the server refused this client's certificate (security.certificate={sec.certificate}, SHA-1 "
+            f"{_thumbprint(mine)}): add it to the server's trusted client certificates")  # fmt: skip
+
+
+def _certificate_der_bytes(data: bytes) -> bytes:
+    """DER bytes as sent in an endpoint description (normalised through cryptography)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    return x509.load_der_x509_certificate(data).public_bytes(Encoding.DER)
+
+
 class Session:
     """One connection to the machine: its input and output nodes, checked on connect. Node ids
     given with a namespace URI (``nsu=``) are resolved against the server's namespace array on
@@ -423,7 +480,12 @@ class Compensator:
             raise
         except Exception as exc:
             log.close()
-            raise CompensatorError(f"cannot connect to {self.endpoint}: {type(exc).__name__}: {exc}") from None
+            code = type(exc).__name__ if isinstance(exc, _ua().UaStatusCodeError) else None
+            certificates = code is None or code.startswith(("BadCertificate", "BadSecurity"))  # not e.g. a password
+            why = await explain_security_refusal(self.endpoint, self.session.sec, self.session.timeout_s) if certificates else None
+            if why and code:
+                why = f"{why} ({code})"
+            raise CompensatorError(f"cannot connect to {self.endpoint}: {why or f'{type(exc).__name__}: {exc}'}") from None
         self._resume_from_controller()
         loop = asyncio.get_running_loop()
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
