@@ -49,6 +49,12 @@ demo: $(VENV)/.installed
 	$(BIN)/thermbench benchmark
 	$(BIN)/thermbench export
 
+# node-opcua (npm registry), the second OPC UA stack the compensator is tested against (tests/test_node_opcua.py)
+NODE_OPCUA := tests/node_opcua/node_modules/.installed
+$(NODE_OPCUA): tests/node_opcua/package.json tests/node_opcua/package-lock.json
+	cd tests/node_opcua && npm ci --no-audit --no-fund
+	touch $@
+
 # the core alone, in its own venv: installs without torch, and the main commands run on it
 core-check:
 	$(PYTHON) -m venv $(CORE_VENV)
@@ -57,7 +63,7 @@ core-check:
 
 # the real-time closed-loop tests (marker timing) run alone after the rest: on 2 cores a
 # neighbouring test would steal the cycles they measure
-test: $(VENV)/.installed-dev
+test: $(VENV)/.installed-dev $(NODE_OPCUA)
 	$(BIN)/python -m pytest -n 2 -q -m "not timing and not target"
 	$(BIN)/python -m pytest -q -m timing
 

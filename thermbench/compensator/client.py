@@ -89,6 +89,11 @@ class GuardedWriter:
             await self.client.write_values([self.client.get_node(i) for i in ids], [_ua().DataValue(v) for v in values.values()])
 
 
+#: refusals that are about something else than the certificates (the identity, the address space, load)
+NOT_CERTIFICATES = ("BadUserAccessDenied", "BadIdentityTokenInvalid", "BadIdentityTokenRejected", "BadNodeIdUnknown",
+                    "BadTooManySessions", "BadServerHalted", "BadTimeout")
+
+
 def _connection_errors() -> tuple[type[BaseException], ...]:
     """What a lost or refused connection raises (asyncua's status-code errors included)."""
     return (OSError, asyncio.TimeoutError, _ua().UaError)
@@ -481,7 +486,7 @@ class Compensator:
         except Exception as exc:
             log.close()
             code = type(exc).__name__ if isinstance(exc, _ua().UaStatusCodeError) else None
-            certificates = code is None or code.startswith(("BadCertificate", "BadSecurity"))  # not e.g. a password
+            certificates = code not in NOT_CERTIFICATES  # stacks report a certificate refusal in many ways
             why = await explain_security_refusal(self.endpoint, self.session.sec, self.session.timeout_s) if certificates else None
             if why and code:
                 why = f"{why} ({code})"

@@ -1,0 +1,160 @@
+"""The compensator against an OPC UA server of another stack: node-opcua (Node.js), started by
+the test on 127.0.0.1 (tests/node_opcua/server.js; `make test` installs it with `npm ci`).
+
+The server plays the first 5 minutes of the benchmark run valid1 (simulated by sim-cnc's
+machine, 100x real time) as Double input nodes whose source timestamps are the samples' machine
+times, and records every write to its Double and Int32 output nodes. It offers only Basic256Sha256
+SignAndEncrypt with user/password and trusts only the test's client certificate. The nodes file
+names the nodes by namespace URI (nsu=...), which the compensator resolves against node-opcua's
+own namespace array. Missing Node.js or node-opcua fails the test (it is not skipped).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench.compensator.certs import make_certificates
+from thermbench.compensator.client import Compensator, CompensatorError
+from thermbench.compensator.simcnc import build_machine
+
+pytestmark = pytest.mark.timing  # a real-time loop: run alone (see the Makefile)
+
+SERVER_DIR = Path(__file__).resolve().parent / "node_opcua"
+URI = "urn:a-vendor:machine"
+PASSWORD_ENV = "TB_NODE_OPCUA_PASSWORD"
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def node():
+    exe = shutil.which("node")
+    if exe is None or not (SERVER_DIR / "node_modules" / "node-opcua").is_dir():
+        pytest.fail("Node.js and node-opcua are needed: make test installs node-opcua (npm ci in tests/node_opcua)")
+    return exe
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return build_machine({"benchmark": "seed001_vmc_x", "run": "valid1", "duration_s": 300})
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pki")
+    return make_certificates(root / "ok"), make_certificates(root / "stranger")
+
+
+class NodeServer:
+    """tests/node_opcua/server.js in a subprocess, with its config and files in ``tmp``."""
+
+    def __init__(self, node: str, machine, certs, tmp: Path) -> None:
+        self.tmp, self.port = tmp, _port()
+        cols = [("t_s", "t_s"), ("Position_mm", "axis_mm"), ("Feed_mm_min", "feed_mm_min")]
+        cols += [(f"{s}_C", f"{s}_C") for s in machine.sensors]
+        self.cfg = {
+            "port": self.port, "uri": URI, "columns": [{"name": n} for n, _ in cols],
+            "samples": machine.samples[[c for _, c in cols]].to_numpy().tolist(), "speed": 100.0, "linger_s": 0.3,
+            "pki": str(tmp / "server_pki"), "trusted_clients": [str(certs["client_certificate"])],
+            "certificate": str(certs["server_certificate"]), "private_key": str(certs["server_private_key"]),
+            "application_uri": "urn:thermbench:sim-cnc", "user": "operator", "password_env": PASSWORD_ENV,
+            "writes": str(tmp / "writes.jsonl"), "ready": str(tmp / "ready.txt"),
+        }  # fmt: skip
+        (tmp / "server.json").write_text(json.dumps(self.cfg))
+        env = {**os.environ, PASSWORD_ENV: "s3cret"}
+        self.log = open(tmp / "node.log", "w")
+        self.proc = subprocess.Popen([node, str(SERVER_DIR / "server.js"), str(tmp / "server.json")], env=env,
+                                     stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+        deadline = time.monotonic() + 60
+        while not (tmp / "ready.txt").exists():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                pytest.fail(f"node-opcua server did not start:\n{(tmp / 'node.log').read_text()[-3000:]}")
+            time.sleep(0.05)
+        self.endpoint = f"opc.tcp://127.0.0.1:{self.port}/sim"
+
+    def writes(self) -> list[dict]:
+        path = self.tmp / "writes.jsonl"
+        return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+
+def nodes_file(tmp: Path, machine) -> Path:
+    ns = f"nsu={URI};s="
+    nodes = {"inputs": {"axis_mm": f"{ns}X.Position_mm", "feed_mm_min": f"{ns}X.Feed_mm_min",
+                        "done": f"{ns}Machine.ProgramDone", "temperatures": {s: f"{ns}X.{s}_C" for s in machine.sensors}},
+             "outputs": {"value": {"node": f"{ns}X.TempComp_um", "unit": "um"}, "status": f"{ns}X.TempComp_Status"}}  # fmt: skip
+    p = tmp / "nodes.yaml"
+    p.write_text(yaml.safe_dump(nodes))
+    return p
+
+
+def security(certs, server_certs) -> dict:
+    return {"user": "operator", "policy": "Basic256Sha256", "certificate": str(certs["client_certificate"]),
+            "private_key": str(certs["client_private_key"]), "server_certificate": str(server_certs["server_certificate"])}  # fmt: skip
+
+
+def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki, seed001_exports, tmp_path, monkeypatch):
+    ok, stranger = pki
+    monkeypatch.setenv("THERMBENCH_OPCUA_PASSWORD", "s3cret")
+    srv = NodeServer(node, machine, ok, tmp_path)
+    try:
+        refused = {}
+        for name, sec in {"untrusted certificate": security(stranger, ok), "not the pinned server": security(ok, stranger),
+                          "wrong password": {**security(ok, ok), "password_env": "TB_WRONG"}}.items():  # fmt: skip
+            monkeypatch.setenv("TB_WRONG", "guess")
+            try:
+                asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes_file(tmp_path, machine),
+                                        {"period_s": 0.01, "log": str(tmp_path / f"{name}.csv"), "security": sec}).run())  # fmt: skip
+            except CompensatorError as exc:
+                refused[name] = str(exc)
+        cfg = {"period_s": 0.01, "log": str(tmp_path / "cycles.csv"), "security": security(ok, ok)}
+        summary = asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes_file(tmp_path, machine), cfg).run())
+    finally:
+        srv.stop()
+    # every security refusal named in one line
+    assert set(refused) == {"untrusted certificate", "not the pinned server", "wrong password"}, refused
+    assert "the server refused this client's certificate" in refused["untrusted certificate"]
+    assert "the server's certificate is not the pinned one" in refused["not the pinned server"]
+    assert "BadUserAccessDenied" in refused["wrong password"] or "BadIdentityTokenRejected" in refused["wrong password"]
+    assert all("\n" not in m for m in refused.values())
+    # the loop ran to the program's end and compensated
+    assert summary["ended"] == "the machine's program is done"
+    log = pd.read_csv(tmp_path / "cycles.csv")
+    ok_cycles = log[log["flag_names"] == "OK"]
+    assert len(ok_cycles) > 100  # machine time from the source timestamps, to the program's last sample
+    assert ok_cycles["t_s"].max() >= 150 and ok_cycles["t_s"].is_monotonic_increasing
+    assert np.all(np.isfinite(ok_cycles["value_um"])) and np.abs(ok_cycles["value_um"]).max() > 3.0  # a warming axis
+    # node-opcua received exactly what the compensator logged: the Double bit for bit, the flags as Int32
+    writes = srv.writes()
+    doubles = [w["value"] for w in writes if w["node"] == "TempComp_um"]
+    ints = [w["value"] for w in writes if w["node"] == "TempComp_Status"]
+    assert {w["dataType"] for w in writes if w["node"] == "TempComp_um"} == {"Double"}
+    assert {w["dataType"] for w in writes if w["node"] == "TempComp_Status"} == {"Int32"}
+    assert doubles == log["value_um"].tolist()
+    assert ints == log["flags"].astype(int).tolist()
