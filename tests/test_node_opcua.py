@@ -64,8 +64,10 @@ def pki(tmp_path_factory):
 class NodeServer:
     """tests/node_opcua/server.js in a subprocess, with its config and files in ``tmp``."""
 
-    def __init__(self, node: str, machine, certs, tmp: Path) -> None:
-        self.tmp, self.port = tmp, _port()
+    def __init__(self, node: str, machine, certs, tmp: Path, port: int | None = None, faults: dict | None = None) -> None:
+        self.tmp, self.port = tmp, port or _port()
+        for f in ("ready.txt",):
+            (tmp / f).unlink(missing_ok=True)
         cols = [("t_s", "t_s"), ("Position_mm", "axis_mm"), ("Feed_mm_min", "feed_mm_min")]
         cols += [(f"{s}_C", f"{s}_C") for s in machine.sensors]
         self.cfg = {
@@ -75,10 +77,11 @@ class NodeServer:
             "certificate": str(certs["server_certificate"]), "private_key": str(certs["server_private_key"]),
             "application_uri": "urn:thermbench:sim-cnc", "user": "operator", "password_env": PASSWORD_ENV,
             "writes": str(tmp / "writes.jsonl"), "ready": str(tmp / "ready.txt"),
+            "faults": faults or {"sensor": [], "freeze": []},
         }  # fmt: skip
         (tmp / "server.json").write_text(json.dumps(self.cfg))
         env = {**os.environ, PASSWORD_ENV: "s3cret"}
-        self.log = open(tmp / "node.log", "w")
+        self.log = open(tmp / "node.log", "a")
         self.proc = subprocess.Popen([node, str(SERVER_DIR / "server.js"), str(tmp / "server.json")], env=env,
                                      stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
         deadline = time.monotonic() + 60
@@ -104,11 +107,13 @@ class NodeServer:
         self.log.close()
 
 
-def nodes_file(tmp: Path, machine) -> Path:
+def nodes_file(tmp: Path, machine, done: bool = True) -> Path:
     ns = f"nsu={URI};s="
     nodes = {"inputs": {"axis_mm": f"{ns}X.Position_mm", "feed_mm_min": f"{ns}X.Feed_mm_min",
                         "done": f"{ns}Machine.ProgramDone", "temperatures": {s: f"{ns}X.{s}_C" for s in machine.sensors}},
              "outputs": {"value": {"node": f"{ns}X.TempComp_um", "unit": "um"}, "status": f"{ns}X.TempComp_Status"}}  # fmt: skip
+    if not done:  # the loop runs on after the program's end (until duration_s)
+        del nodes["inputs"]["done"]
     p = tmp / "nodes.yaml"
     p.write_text(yaml.safe_dump(nodes))
     return p
@@ -158,3 +163,59 @@ def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki,
     assert {w["dataType"] for w in writes if w["node"] == "TempComp_Status"} == {"Int32"}
     assert doubles == log["value_um"].tolist()
     assert ints == log["flags"].astype(int).tolist()
+
+
+def test_faults_and_a_restart_of_the_node_opcua_server(node, pki, seed001_exports, tmp_path, monkeypatch):
+    """The fault tests of the sim-cnc suite against node-opcua: a NaN sensor (held at its last good
+    value, INPUT_HELD), frozen data (the timestamps stop: STALE, the compensation held at one
+    value), and the server killed and started again on the same port (DISCONNECTED and HELD while
+    it is down, then reconnected and RESTARTED: its program starts again)."""
+    import threading
+
+    from thermbench.compensator.control import Flags
+
+    ok, _ = pki
+    monkeypatch.setenv("THERMBENCH_OPCUA_PASSWORD", "s3cret")
+    m = build_machine({"benchmark": "seed001_vmc_x", "run": "valid1", "duration_s": 500})
+    faults = {"sensor": [{"column": "T_nut_C", "from_s": 100, "to_s": 160, "value": None}],
+              "freeze": [{"from_s": 300, "to_s": 400}]}  # fmt: skip
+    srv = NodeServer(node, m, ok, tmp_path, faults=faults)
+    servers = [srv]
+
+    def restart():  # 6 s after the loop starts: the first program (500 s at 100x) is over, the loop goes on
+        servers[-1].stop()
+        time.sleep(0.5)
+        servers.append(NodeServer(node, m, ok, tmp_path, port=srv.port, faults={"sensor": [], "freeze": []}))
+
+    cfg = {"period_s": 0.01, "log": str(tmp_path / "cycles.csv"), "security": security(ok, ok), "stale_after_s": 0.3,
+           "reconnect": {"initial_s": 0.05, "max_s": 0.4, "factor": 2.0}, "duration_s": 14.0}  # fmt: skip
+    nodes = nodes_file(tmp_path, m, done=False)
+    timer = threading.Timer(6.0, restart)
+    timer.start()
+    try:
+        summary = asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes, cfg).run())
+    finally:
+        timer.join()
+        for s in servers:
+            s.stop()
+    log = pd.read_csv(tmp_path / "cycles.csv")
+    INPUT_HELD, STALE, HELD = int(Flags.INPUT_HELD), int(Flags.STALE), int(Flags.HELD)
+    DISCONNECTED, RESTARTED = int(Flags.DISCONNECTED), int(Flags.RESTARTED)
+    first = log.loc[: log.index[(log["flags"] & DISCONNECTED) > 0][0] - 1]  # before the restart
+    # the log's t_s counts from the loop's first cycle, the faults from the server's program start: the
+    # NaN window is found in the log as the one block of cycles holding T_nut_C, 60 s of machine time long
+    nan_win = first[(first["flags"] & INPUT_HELD) > 0]
+    assert len(nan_win) > 20 and nan_win["held"].eq("T_nut_C").all()
+    assert (np.diff(nan_win.index) == 1).all() and 55 <= nan_win["t_s"].iloc[-1] - nan_win["t_s"].iloc[0] <= 61
+    assert (nan_win["T_nut_C"] == first.loc[nan_win.index[0] - 1, "T_nut_C"]).all()  # held at the last good value
+    is_stale = (first["flags"] & STALE) > 0
+    start = is_stale.idxmax()
+    freeze = first.loc[start:][~is_stale.loc[start:]].index[0]  # the freeze: the first block of stale cycles
+    stale = first.loc[start : freeze - 1]
+    assert len(stale) > 10 and (stale["flags"] & HELD).all() and stale["value_um"].nunique() == 1
+    assert is_stale.loc[freeze:].any()  # and again once the program is over: nothing new is published
+    down = log[(log["flags"] & DISCONNECTED) > 0]
+    assert len(down) > 20 and (down["flags"] & HELD).all() and down["value_um"].nunique() == 1
+    after = log.loc[down.index[-1] + 1:]
+    assert (after["flags"] & RESTARTED).any() and (after["flag_names"] == "OK").sum() > 50
+    assert summary["flags"]["reconnects"] >= 1

@@ -38,11 +38,20 @@ async function main() {
   const rows = cfg.samples;
   let t0 = null; // the program starts when a client first reads an input
   const now = () => (t0 === null ? 0 : ((Date.now() - t0) / 1000) * cfg.speed);
+  // faults (machine time windows): a sensor column publishes a value (null: NaN) instead of its own;
+  // during a freeze nothing new is published (the values and their timestamps stop)
+  const faults = cfg.faults || { sensor: [], freeze: [] };
+  const column = Object.fromEntries(cols.map((c, k) => [c.name, k]));
   const row = () => {
-    const t = now();
+    let t = now();
+    for (const f of faults.freeze) if (t >= f.from_s && t < f.to_s) t = f.from_s;
     let i = 0;
     while (i + 1 < rows.length && rows[i + 1][0] <= t) i++;
-    return rows[i];
+    const r = rows[i].slice();
+    for (const f of faults.sensor) {
+      if (r[0] >= f.from_s && r[0] < f.to_s) r[column[f.column]] = f.value === null ? NaN : f.value;
+    }
+    return r;
   };
   const last = rows[rows.length - 1][0];
   const objects = space.rootFolder.objects;
