@@ -318,3 +318,16 @@ def test_namespace_uris_are_resolved_against_the_servers_namespace_array():
         resolve_node_id("nsu=urn:other;s=T", array, "input T_nut_C")
     with pytest.raises(CompensatorError, match="expected nsu=<namespace URI>;<identifier>"):
         resolve_node_id("nsu=urn:thermbench:sim-cnc", array, "output value")
+
+
+def test_the_status_line_says_cycles_times_machine_time_compensation_and_flags():
+    from types import SimpleNamespace
+
+    from thermbench.compensator.client import status_line
+
+    c = SimpleNamespace(t_s=3600.4, value_um=-12.345, flags=int(Flags.STALE) | int(Flags.HELD))
+    line = status_line(41, c, [1.0, 2.0, 6.0])
+    assert line == ("cycle 42: 3.00 ms mean, 6.00 ms max over 3 cycles; machine time 3600 s; compensation -12.35 um; "
+                    "STALE|HELD")  # the flags in the order of the flags word's bits
+    assert status_line(0, SimpleNamespace(t_s=math.nan, value_um=None, flags=0), [0.5]).endswith(
+        "machine time -; compensation -; OK")

@@ -138,8 +138,10 @@ def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki,
                                         {"period_s": 0.01, "log": str(tmp_path / f"{name}.csv"), "security": sec}).run())  # fmt: skip
             except CompensatorError as exc:
                 refused[name] = str(exc)
-        cfg = {"period_s": 0.01, "log": str(tmp_path / "cycles.csv"), "security": security(ok, ok)}
-        summary = asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes_file(tmp_path, machine), cfg).run())
+        cfg = {"period_s": 0.01, "log": str(tmp_path / "cycles.csv"), "security": security(ok, ok), "status_every_s": 0.5}
+        lines: list[str] = []  # what the command prints
+        summary = asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes_file(tmp_path, machine), cfg,
+                                          say=lines.append).run())  # fmt: skip
     finally:
         srv.stop()
     # every security refusal named in one line
@@ -148,8 +150,11 @@ def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki,
     assert "the server's certificate is not the pinned one" in refused["not the pinned server"]
     assert "BadUserAccessDenied" in refused["wrong password"] or "BadIdentityTokenRejected" in refused["wrong password"]
     assert all("\n" not in m for m in refused.values())
-    # the loop ran to the program's end and compensated
+    # the loop ran to the program's end and compensated, saying so as it went
     assert summary["ended"] == "the machine's program is done"
+    assert lines[0] == f"connected to {srv.endpoint}: {2 + len(machine.sensors) + 1} inputs, outputs value, status"
+    status = [ln for ln in lines[1:] if ln.startswith("cycle ")]
+    assert len(status) >= 4 and all(" ms mean, " in ln and "; compensation " in ln for ln in status)
     log = pd.read_csv(tmp_path / "cycles.csv")
     ok_cycles = log[log["flag_names"] == "OK"]
     assert len(ok_cycles) > 100  # machine time from the source timestamps, to the program's last sample

@@ -246,7 +246,7 @@ def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[s
     from .compensator.client import Compensator, format_summary
 
     _quiet_asyncua()
-    comp = Compensator(Path(model_dir), endpoint, Path(nodes), cfg)
+    comp = Compensator(Path(model_dir), endpoint, Path(nodes), cfg, say=lambda line: print(line, flush=True))
 
     async def run() -> dict:
         import signal

@@ -33,7 +33,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -417,7 +417,10 @@ class Ring:
 class Compensator:
     """The control loop (see the module docstring); :meth:`run` returns the summary."""
 
-    def __init__(self, model_dir: str | Path, endpoint: str, nodes_path: str | Path, cfg: Mapping[str, Any]) -> None:
+    def __init__(self, model_dir: str | Path, endpoint: str, nodes_path: str | Path, cfg: Mapping[str, Any],
+                 say: Callable[[str], None] | None = None) -> None:
+        """``say``: where ``connected``, the status lines (every ``status_every_s``) and the
+        reconnections go (the command prints them; None: silent)."""
         from ..config import with_defaults
         from ..export.native import LiveModel
 
@@ -443,6 +446,8 @@ class Compensator:
             raise CompensatorError(f"config key 'max_cycles': expected null or a whole number > 0, got {max_cycles}")
         self.max_cycles = None if max_cycles is None else int(max_cycles)
         self.duration_s = None if cfg.get("duration_s") is None else _num(cfg, "duration_s", 1.0)
+        self.status_every_s = _num(cfg, "status_every_s", 5.0)
+        self.say = say
         self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
         check_output_file(self.log_path, "compensator-log")  # refused before anything connects
         check_output_file(self.log_path.with_suffix(".summary.json"), "compensator-summary")
@@ -452,6 +457,10 @@ class Compensator:
         self.connect_attempts: collections.deque = collections.deque(maxlen=1000)  # loop times of reconnection attempts
         self.last_error: str | None = None
         self.summary: dict | None = None
+
+    def _say(self, line: str) -> None:
+        if self.say is not None:
+            self.say(line)
 
     def _resume_from_controller(self) -> None:
         """Ramp from what the controller holds (read when the session opened), not from zero."""
@@ -492,8 +501,12 @@ class Compensator:
                 why = f"{why} ({code})"
             raise CompensatorError(f"cannot connect to {self.endpoint}: {why or f'{type(exc).__name__}: {exc}'}") from None
         self._resume_from_controller()
+        self._say(f"connected to {self.endpoint}: {len(self.session.inputs)} inputs, outputs "
+                  f"{', '.join(self.nodes.output_ids())}")  # fmt: skip
         loop = asyncio.get_running_loop()
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
+        window: list[float] = []  # cycle times since the last status line
+        next_status = loop.time() + self.status_every_s
         counts = collections.Counter()
         connecting: asyncio.Task | None = None
         backoff, next_try = self.backoff0, 0.0
@@ -515,6 +528,7 @@ class Compensator:
                     exc = connecting.exception()
                     connecting = None
                     if exc is None:
+                        self._say(f"reconnected to {self.endpoint}")
                         counts["reconnects"] += 1
                         self.logic.reconnected()
                         self._resume_from_controller()  # a restarted controller may hold another value
@@ -552,6 +566,11 @@ class Compensator:
                     if f.value and c.flags & f.value:
                         counts[f.name] += 1
                 log.write(time.time(), k, c, late_ms, cyc_ms)
+                window.append(cyc_ms)
+                if end >= next_status:
+                    self._say(status_line(k, c, window))
+                    window.clear()
+                    next_status = end + self.status_every_s
                 k += 1
                 if end - deadline > self.period_s:  # overran: skip the missed deadlines, do not burst
                     missed = int((end - t_start) / self.period_s) - k + 1
@@ -595,6 +614,17 @@ class Compensator:
 def run_compensator(model_dir, endpoint: str, nodes_path, cfg: Mapping[str, Any]) -> dict:
     """Plain entry point (the CLI's): run the loop to its end and return the summary."""
     return asyncio.run(Compensator(model_dir, endpoint, nodes_path, cfg).run())
+
+
+def status_line(k: int, c, cycle_ms: Sequence[float]) -> str:
+    """One line of the running loop: cycles so far, the cycle times since the last line (mean,
+    max), machine time, the compensation written and the flags of the latest cycle."""
+    names = "|".join(f.name for f in Flags if f.value and c.flags & f.value) or "OK"
+    value = "-" if c.value_um is None or not math.isfinite(c.value_um) else f"{c.value_um:+.2f} um"
+    ms = np.asarray(cycle_ms, dtype=float)
+    t = "-" if c.t_s is None or not math.isfinite(c.t_s) else f"{c.t_s:.0f} s"
+    return (f"cycle {k + 1}: {ms.mean():.2f} ms mean, {ms.max():.2f} ms max over {ms.size} cycles; machine time {t}; "
+            f"compensation {value}; {names}")  # fmt: skip
 
 
 def format_summary(s: dict) -> str:
