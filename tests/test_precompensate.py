@@ -211,6 +211,51 @@ def test_rewritten_targets_are_target_minus_prediction():
     assert direct.max() > 15.0  # the sample program heats the screw
 
 
+def _in_inches(text: str) -> str:
+    """``text`` (a G21 program) by hand in inches: G20 for G21, every X and F word divided by
+    25.4 and written with 6 decimals (1e-6 in = 25 nm, below the 0.1 um of the mm program)."""
+    import re
+
+    def inch(m):
+        return f"{m.group(1)}{float(m.group(2)) / 25.4:.6f}"
+
+    out = []
+    for line in text.splitlines(keepends=True):
+        code, paren, comment = line.partition("(")
+        code = re.sub(r"\b([XF])(-?\d+\.?\d*)", inch, code.replace("G21", "G20"))
+        out.append(code + paren + comment)
+    return "".join(out)
+
+
+def test_an_inch_program_is_the_mm_program_and_is_written_back_in_inches():
+    """G20: the sample program converted by hand to inches plans and compensates as the mm program
+    (same moves, times and predicted errors), and its revised X words are in inches: x 25.4 they
+    are the mm program's revised targets (to the rounding of both: 1e-5 in and 1e-4 mm)."""
+    mm_text = SAMPLE.read_text()
+    inch_text = _in_inches(mm_text)
+    assert "G20" in inch_text and "X18.897638" in inch_text  # 480 mm
+    meta = seed000_metadata()
+    mm, inch = precompensate(mm_text, oracle(), meta), precompensate(inch_text, oracle(), meta)
+    a, b = mm.moves, inch.moves
+    assert len(a) == len(b) and (a["compensate"] == b["compensate"]).all()
+    np.testing.assert_allclose(b["target_mm"], a["target_mm"], atol=25.4 * 0.5e-6)
+    np.testing.assert_allclose(b["t_end_s"], a["t_end_s"], atol=1e-4)
+    # the inch words' rounding (< 1e-6 in) shifts move ends by < 3e-5 s, which moves some across the
+    # planned log's sample grid: the predicted errors differ by up to a few hundredths of a um
+    np.testing.assert_allclose(b["predicted_error_um"], a["predicted_error_um"], atol=0.05, equal_nan=True)
+    comp = a["compensate"].to_numpy()
+    np.testing.assert_allclose(b.loc[comp, "new_target_mm"], a.loc[comp, "new_target_mm"],
+                               atol=25.4 * 0.5e-5 + 0.5e-4 + 0.05e-3)  # fmt: skip
+    blocks = parse_program(inch_text).blocks
+    assert len(blocks) == len(b) and all(blk.mm_per_unit == 25.4 for blk in blocks if blk.span is not None)
+    absolute = comp & ~np.array([blk.incremental for blk in blocks])  # G91 blocks write the increment
+    np.testing.assert_allclose(b.loc[absolute, "written_value"] * 25.4, b.loc[absolute, "new_target_mm"], atol=1e-9)
+    # the written numbers have 5 decimals (the sample's inch words have 6: kept), and the text is inches
+    first = b.index[comp][0]
+    line = inch.text.splitlines()[int(b.loc[first, "line"]) - 1]
+    assert f"X{b.loc[first, 'written_value']:.6f}" in line
+
+
 def test_work_offset_moves_the_axis_not_the_program():
     text = "G90 G0 X0\nG1 X100 F6000\n"
     res = precompensate(text, stub(), seed000_metadata(), work_offset_mm=50.0)
@@ -328,7 +373,6 @@ def test_run_precompensate_from_files(tmp_path):
 @pytest.mark.parametrize(
     "text, line, expected",
     [
-        ("G21\nG20 G1 X1 F100\n", 2, "G21 (mm)"),
         ("G90\nG1 X10\n", 2, "F<mm/min>"),
         ("G1 X10 F-100\n", 1, "feed > 0"),
         ("G0 X0\nG4\n", 2, "P<seconds>"),

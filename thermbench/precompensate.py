@@ -83,7 +83,7 @@ class Block:
     ``kind``: ``"G0"``, ``"G1"``, ``"G4"`` (dwell) or an unsupported motion that
     still moves the axis (``"G2"``, ``"G3"``, ``"G81"`` ...): its end point is
     followed and it is timed on the axis distance, but not compensated.
-    Positions are program coordinates of the axis (mm). ``feed_mm_min`` is None
+    Positions are program coordinates of the axis (mm; a G20 program's inches are converted). ``feed_mm_min`` is None
     for rapid moves (timed at the rapid feed of :func:`plan_motion`).
     ``span`` is where the axis word's number sits in the line (for the rewrite).
     """
@@ -97,6 +97,7 @@ class Block:
     incremental: bool = False
     span: tuple[int, int] | None = None
     decimals: int = 0
+    mm_per_unit: float = 1.0  # 25.4 under G20: the axis word and F are in inches (converted to mm here)
 
     @property
     def compensate(self) -> bool:
@@ -175,7 +176,8 @@ def parse_program(
     """Read a G-code program for one feed axis (seed 003 §1: the planned operation).
 
     Supported: G0/G1 (modal), G90/G91 (modal, G90 at start), F (feed mm/min, modal),
-    G4 dwell with ``P`` in seconds, G21 (mm), G94, comments ``( ... )`` and ``;``,
+    G4 dwell with ``P`` in seconds, G21 (mm) and G20 (inch: axis words and F read in inches and
+    converted to mm, the rewrite written back in inches), G94, comments ``( ... )`` and ``;``,
     ``N`` numbers, ``%``, M codes (M2/M30 end the program: later lines pass through
     unread). Everything else passes through untouched and is listed in
     :attr:`Program.unsupported`; blocks that carry words of other axes only move no
@@ -185,7 +187,7 @@ def parse_program(
 
     ``start_mm``: the axis position before the first block; None takes the first
     absolute target (so an incremental move before any absolute one is an error).
-    Raises :class:`ProgramError` naming ``source:line`` for G20 (inches), G93/G95,
+    Raises :class:`ProgramError` naming ``source:line`` for G93/G95,
     a G1 before any F, F <= 0, G4 without P, two axis words, an axis word with no
     G0/G1 in force or in a block the planner cannot follow (G28, G92, macros ...).
     """
@@ -200,6 +202,7 @@ def parse_program(
     feed: float | None = None
     pos: float | None = None if start_mm is None else float(start_mm)
     ended = False
+    mm_per_unit = 1.0  # G21 until a G20
 
     for number, raw in enumerate(lines, start=1):
         if ended:
@@ -252,15 +255,15 @@ def parse_program(
                 new_motion, motion_set = None, True
             elif g == "G4":
                 dwell = True
-            elif g == "G20":
-                raise ProgramError(
-                    f"{where}: G20 (inch units) is not supported; expected G21 (mm): convert the program to millimetres"
-                )
+            elif g == "G20":  # inch: modal, and in force for this block's words too
+                mm_per_unit = 25.4
             elif g == "G90":
                 incremental = False
             elif g == "G91":
                 incremental = True
-            elif g in ("G21", "G94"):
+            elif g == "G21":
+                mm_per_unit = 1.0
+            elif g == "G94":
                 pass
             elif g == "G33":
                 raise ProgramError(f"{where}: G33 (threading, F per revolution) is not supported; expected G0/G1 moves")
@@ -280,8 +283,8 @@ def parse_program(
         for letter, value, *_ in words:
             if letter == "F":
                 if value <= 0:
-                    raise ProgramError(f"{where}: feed F{value:g}; expected a feed > 0 in mm/min")
-                feed = value
+                    raise ProgramError(f"{where}: feed F{value:g}; expected a feed > 0 in mm/min (inch/min under G20)")
+                feed = value * mm_per_unit
             elif letter == "M":
                 mv = int(value) if value == int(value) else value
                 if mv in _END_M:
@@ -315,6 +318,7 @@ def parse_program(
                 reasons.append(f"G4 P{p_text} read as {p[0]:g} s (P in seconds here; Fanuc-style controls read ms)")
         elif axis_words:
             _, value, s0, s1, decimals = axis_words[0]
+            value *= mm_per_unit
             if motion is None:
                 raise ProgramError(
                     f"{where}: {axis}{value:g} but no motion mode is in force; "
@@ -334,7 +338,8 @@ def parse_program(
                     f"{motion} block"
                 )
             blocks.append(
-                Block(number, motion, start, target, None if rapid else feed, 0.0, incremental, (s0, s1), decimals)
+                Block(number, motion, start, target, None if rapid else feed, 0.0, incremental, (s0, s1), decimals,
+                      mm_per_unit)
             )
             if motion not in ("G0", "G1"):
                 reasons.append(
@@ -621,14 +626,16 @@ def _rewrite(
             value = b.target_mm - b.start_mm if b.incremental else b.target_mm
             pos = (pos if pos is not None else b.start_mm) + value if b.incremental else b.target_mm
             continue
-        decimals = max(b.decimals, min_decimals)
+        # in the program's own units: mm, or inches under G20 with one more decimal (1e-5 in = 0.25 um)
+        u = b.mm_per_unit
+        decimals = max(b.decimals, min_decimals + (1 if u != 1.0 else 0))
         if b.incremental:
             base = pos if pos is not None else b.start_mm
-            value = round(new_target_mm[i] - base, decimals)
-            end = base + value
+            value = round((new_target_mm[i] - base) / u, decimals)
+            end = base + value * u
         else:
-            value = round(new_target_mm[i], decimals)
-            end = value
+            value = round(new_target_mm[i] / u, decimals)
+            end = value * u
         raw = lines[b.line - 1]
         body = raw.rstrip("\r\n")
         s0, s1 = b.span
