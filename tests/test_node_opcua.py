@@ -154,8 +154,11 @@ def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki,
     assert summary["ended"] == "the machine's program is done"
     assert lines[0] == f"connected to {srv.endpoint}: {2 + len(machine.sensors) + 1} inputs, outputs value, status"
     status = [ln for ln in lines[1:] if ln.startswith("cycle ")]
-    assert len(status) >= 4 and all(" ms mean, " in ln and "; compensation " in ln for ln in status)
     log = pd.read_csv(tmp_path / "cycles.csv")
+    # one status line per status_every_s (0.5 s) of the loop's wall time (a slow machine runs longer, not fewer)
+    wall_s = log["wall_s"].iloc[-1] - log["wall_s"].iloc[0]
+    assert len(status) >= 2 and abs(len(status) - wall_s // 0.5) <= 1, (len(status), wall_s)
+    assert all(" ms mean, " in ln and "; compensation " in ln for ln in status)
     ok_cycles = log[log["flag_names"] == "OK"]
     assert len(ok_cycles) > 100  # machine time from the source timestamps, to the program's last sample
     assert ok_cycles["t_s"].max() >= 150 and ok_cycles["t_s"].is_monotonic_increasing
