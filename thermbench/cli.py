@@ -285,6 +285,29 @@ def cmd_certs(out_dir: str, days: int, host: str | None) -> int:
     return 0
 
 
+def cmd_linuxcnc(what: str, model_dir: str | None, overrides: list[str]) -> int:
+    """``thermbench linuxcnc component|plant|sim``: thermbench/linuxcnc/."""
+    say = lambda line: print(line, flush=True)  # noqa: E731
+    if what == "component":
+        from .linuxcnc.component import HalCompensator
+
+        HalCompensator(Path(model_dir), _compose("linuxcnc_component", overrides), say=say).run()
+        return 0
+    if what == "plant":
+        from .linuxcnc.plant import ThermalPlant
+
+        f = ThermalPlant(_compose("linuxcnc_plant", overrides)).run()
+        say(f"tbplant: {f.get('samples', 0)} process samples written")
+        return 0
+    from .linuxcnc.sim import run_sim
+    from .linuxcnc.verify import format_figures
+
+    cfg = _compose("linuxcnc_sim", overrides)
+    print(format_figures(run_sim(Path(model_dir), cfg, say=say)))
+    print(f"  -> {Path(cfg['out_dir']).resolve()}")
+    return 0
+
+
 HYDRA_JOBS = ("train", "evaluate", "benchmark", "export")
 
 
@@ -428,6 +451,11 @@ def _main(argv: list[str] | None) -> int:
     p_certs.add_argument("out_dir")
     p_certs.add_argument("--days", type=_number(1, integer=True), default=365, help="validity, days (>= 1)")
     p_certs.add_argument("--host", default=None, help="host name in the certificates (default: this host's)")
+    p_lcnc = sub.add_parser("linuxcnc", help="LinuxCNC: the compensator as a HAL component writing the external offsets "
+                            "(component), a simulated thermal plant (plant), a headless closed-loop run (sim)")  # fmt: skip
+    p_lcnc.add_argument("what", choices=["component", "plant", "sim"])
+    p_lcnc.add_argument("model_dir", nargs="?", default=None, help="an exported model (component, sim)")
+    p_lcnc.add_argument("overrides", nargs="*", help="overrides of conf/linuxcnc_<what>.yaml")
     commands = [*sub.choices, *HYDRA_JOBS]
     if argv and not argv[0].startswith("-") and argv[0] not in commands:
         guess = difflib.get_close_matches(argv[0], commands, n=1)
@@ -435,7 +463,7 @@ def _main(argv: list[str] | None) -> int:
         parser.error(f"unknown command '{argv[0]}'{hint} the commands: {', '.join(commands)}")
     # overrides may follow the options (argparse matches positionals in one chunk)
     args, extra = parser.parse_known_args(argv)
-    if extra and (args.command not in ("diagnose", "compensator", "sim-cnc") or any(e.startswith("-") for e in extra)):
+    if extra and (args.command not in ("diagnose", "compensator", "sim-cnc", "linuxcnc") or any(e.startswith("-") for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         if args.command == "diagnose":
@@ -446,6 +474,14 @@ def _main(argv: list[str] | None) -> int:
             return cmd_sim_cnc(args.endpoint, [*args.overrides, *extra])
         if args.command == "certs":
             return cmd_certs(args.out_dir, args.days, args.host)
+        if args.command == "linuxcnc":
+            overrides = [*args.overrides, *extra]
+            if args.what == "plant" and args.model_dir is not None:  # the plant takes no model: that was an override
+                overrides.insert(0, args.model_dir)
+                args.model_dir = None
+            if args.what != "plant" and (args.model_dir is None or "=" in args.model_dir):
+                parser.error(f"linuxcnc {args.what}: the exported model directory comes first (thermbench export writes it)")
+            return cmd_linuxcnc(args.what, args.model_dir, overrides)
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "replay":

@@ -63,6 +63,7 @@ class Flags(enum.IntFlag):
     RATE_LIMITED = 64  # the compensation was limited to the configured rate
     RESTARTED = 128  # the model was restarted after an outage longer than it bridges
     HELD = 256  # the written compensation is the last good value, not a new prediction
+    MACHINE_OFF = 512  # the controller dropped the compensation (LinuxCNC machine off): 0 written, ramps from 0 after
 
 
 def flag_names(f: int) -> str:
@@ -396,6 +397,14 @@ class CycleLogic:
             c.flags |= Flags.RATE_LIMITED
         self.fresh_ready = ready
         self.t_prev = t
+        return c
+
+    def dropped(self, c: Cycle, flag: Flags) -> Cycle:
+        """The controller holds no compensation any more (LinuxCNC drops external offsets at
+        machine off): 0 is what it holds, and the next values ramp from 0 at the rate limit."""
+        self.value_um, self.ends_um, self.fresh_ready, self.lag_um = 0.0, None, None, 0.0
+        c.value_um, c.line = 0.0, None
+        c.flags = int(c.flags | flag | Flags.HELD)
         return c
 
     def _held_from(self, c: Cycle, flag: Flags) -> Cycle:

@@ -1,0 +1,161 @@
+"""The compensator in a real LinuxCNC (``thermbench linuxcnc``, thermbench/linuxcnc/).
+
+The closed-loop test runs LinuxCNC 2.9 (Debian's ``linuxcnc-uspace``) headless: its sim
+configuration with a display program on LinuxCNC's Python ``linuxcnc`` module, the thermal
+plant on a 120x clock and the compensator as userspace HAL components, a reciprocating X
+program in an ``o100 repeat`` loop. uspace refuses root: as root the test creates an
+unprivileged user for it. LinuxCNC missing fails the test (``.ci/run`` installs it).
+
+The checks use three records made by three programs: LinuxCNC's own sampler (every servo
+period), the component's log, and the plant's process log and dataset, replayed by
+``thermbench replay``'s code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pwd
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from thermbench.compensator.control import Flags
+from thermbench.linuxcnc.component import HalCompensator
+from thermbench.linuxcnc.sim import LinuxCncSimError, gcode, run_sim
+
+LCNC_USER = "thermbench-lcnc"
+
+
+@pytest.fixture(scope="module")
+def lcnc_user():
+    """The unprivileged user LinuxCNC runs as (None when the tests are not root)."""
+    assert shutil.which("linuxcnc"), "LinuxCNC is not installed: apt-get install --no-install-recommends linuxcnc-uspace"
+    if os.geteuid() != 0:
+        return None
+    try:
+        pwd.getpwnam(LCNC_USER)
+    except KeyError:
+        subprocess.run(["useradd", "--create-home", "--shell", "/bin/sh", LCNC_USER], check=True)
+    return LCNC_USER
+
+
+@pytest.fixture(scope="module")
+def shared_dir():
+    """A directory the LinuxCNC user can reach (pytest's own temporary tree is root's alone)."""
+    d = Path(tempfile.mkdtemp(prefix="thermbench-lcnc-"))
+    d.chmod(0o755)
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+class Pins(dict):
+    """A HAL component's pins, for stepping the component by hand."""
+
+
+def _pins(comp: HalCompensator, **values) -> Pins:
+    p = Pins({name: (False if t == "bit" else 0) for name, t, _ in comp.pins()})
+    p.update(values)
+    return p
+
+
+def test_counts_machine_off_and_inch_units(seed001_exports, tmp_path):
+    """One cycle over hand-set pins: the counts are the compensation in machine units over the
+    scale (µm -> mm or inch, by hand); with the machine off the offset is dropped (enable off,
+    clear on, counts 0) and comes back from 0 at the rate limit."""
+    comp = HalCompensator(seed001_exports / "mlr", {"log": str(tmp_path / "a.csv"), "time_source": "pin",
+                                                     "rate_limit_um_s": 1.0})  # fmt: skip
+    names = {n for n, _, _ in comp.pins()}
+    assert {"axis-pos", "axis-vel", "machine-on", "time-s", "temp.T_nut", "temp.T_bed"} <= names
+    assert {"eoffset-counts", "eoffset-scale", "eoffset-enable", "eoffset-clear", "comp-um", "flags"} <= names
+    assert comp.counts(-12.34) == -123  # 0.1 µm per count: -12.34 µm -> -123.4 counts, rounded
+    assert comp.counts(0.04) == 0 and comp.counts(0.06) == 1 and comp.counts(None) == 0
+
+    def warming(k):  # the nut warms 0.5 K per machine second
+        return {"temp.T_nut": 20.0 + 0.5 * k, "temp.T_bed": 20.0, "axis-pos": 350.0, "axis-vel": 100.0}
+
+    cycles = []
+    for k in range(40):  # machine time 0..39 s, the model's 1 s grid
+        h = _pins(comp, **warming(k), **{"time-s": float(k), "machine-on": k < 20 or k >= 30})
+        cycles.append((comp.step(h, now_wall_s=0.01 * k), dict(h)))
+    c, h = cycles[15]
+    assert not c.flags & Flags.HELD and h["eoffset-enable"] and not h["eoffset-clear"]
+    assert abs(c.value_um) > 5.0 and h["eoffset-counts"] == round(c.value_um * 1e-3 / 0.0001)
+    assert c.inputs["feed_mm_min"] == 6000.0  # 100 mm/s on the pin, mm/min to the model
+    assert all(cy.flags & Flags.MACHINE_OFF and cy.value_um == 0.0 for cy, _ in cycles[20:30])
+    assert all(p["eoffset-counts"] == 0 and not p["eoffset-enable"] and p["eoffset-clear"] for _, p in cycles[20:30])
+    # back on: from 0, at most rate_limit_um_s x 1 s of machine time per cycle
+    back = np.array([cy.value_um for cy, _ in cycles[29:]])
+    assert back[0] == 0.0 and np.all(np.abs(np.diff(back)) <= 1.0 + 1e-9) and abs(back[-1]) >= 9.0 - 1e-9
+    assert all(cy.flags & Flags.RATE_LIMITED for cy, _ in cycles[30:])
+    # a machine in inches: pins in inches, the same compensation in 1e-5 inch counts
+    inch = HalCompensator(seed001_exports / "mlr", {"log": str(tmp_path / "b.csv"), "time_source": "pin", "units": "inch",
+                                                    "scale_per_count": 1e-5, "rate_limit_um_s": 1.0})  # fmt: skip
+    for k in range(16):
+        w = warming(k)
+        hi = _pins(inch, **{**w, "axis-pos": 350.0 / 25.4, "axis-vel": 100.0 / 25.4}, **{"time-s": float(k), "machine-on": True})
+        ci = inch.step(hi, now_wall_s=0.01 * k)
+    assert ci.inputs["axis_mm"] == pytest.approx(350.0) and ci.value_um == pytest.approx(c.value_um)
+    assert hi["eoffset-counts"] == round(ci.value_um / 25.4e3 / 1e-5) and hi["eoffset-scale"] == 1e-5
+
+
+def test_gcode_duty_cycle_is_a_linuxcnc_loop():
+    text = gcode({"start_mm": 210, "end_mm": 490, "feed_mm_min": 8000, "repeats": 3, "dwell_s": 5})
+    assert "o100 repeat [3]" in text and "o100 endrepeat" in text and "G1 X490.000 F8000.0" in text and "G4 P5.000" in text
+
+
+def test_sim_refuses_root_without_a_user_in_one_line(seed001_exports, tmp_path):
+    if os.geteuid() != 0:
+        pytest.fail("this check needs root (as CI runs): LinuxCNC refuses root, and so must the command")
+    with pytest.raises(LinuxCncSimError, match=r"config key 'user': LinuxCNC \(uspace\) refuses to run as root"):
+        run_sim(seed001_exports / "mlr", {"out_dir": str(tmp_path / "x")})
+    with pytest.raises(LinuxCncSimError, match="no user 'nobody-here-xyz'"):
+        run_sim(seed001_exports / "mlr", {"out_dir": str(tmp_path / "x"), "user": "nobody-here-xyz"})
+
+
+def test_linuxcnc_closed_loop(seed001_exports, lcnc_user, shared_dir):
+    """LinuxCNC runs a reciprocating program while the component writes the external offset:
+    LinuxCNC's actual position is the commanded position plus the offset (its simulated servo
+    passes the command through, two servo periods late); the offset follows counts x scale
+    within LinuxCNC's own rate limit; the compensation written is what thermbench replay
+    computes from the plant's logged motion; the thermal error at the tool shrinks."""
+    model = shared_dir / "model"
+    shutil.copytree(seed001_exports / "mlr", model)
+    out = shared_dir / "run"
+    cfg = {"out_dir": str(out), "user": lcnc_user, "program": {"start_mm": 210.0, "end_mm": 490.0, "feed_mm_min": 8000.0,
+                                                              "repeats": 7, "dwell_s": 8.0}}  # fmt: skip
+    f = run_sim(model, cfg)
+    assert f["ok"] and f["display"]["ok"], f
+    steps = [s for s, _ in f["display"]["steps"]]
+    assert steps == ["status", "machine on", "homed", "program started", "program done"]
+    assert f["display"]["errors"] == []
+    c = f["controller"]
+    assert c["samples_lost"] == 0 and c["servo_samples_machine_on"] > 20000  # > 20 s of 1 ms servo periods
+    # actual = commanded + offset: basic_sim's PID is a pass-through (FF0 = 1), two servo periods behind
+    assert c["servo_delay_periods"] == 2 and c["actual_minus_commanded_plus_offset_max_abs_um"] < 1.0
+    # the request is counts x scale (0.1 µm counts), the offset follows it within the rate limit
+    assert c["request_minus_counts_x_scale_max_abs_um"] < 1.0 and c["offset_minus_request_max_abs_um"] < 1.0
+    assert c["offset_rate_max_mm_s"] <= c["offset_rate_limit_mm_s"] + 1e-9
+    assert c["offset_max_abs_um"] > 20.0 and c["counts_max_abs"] > 200  # the compensation did grow
+    # the component's writes are what thermbench replay computes from the plant's process log
+    r = f["replay"]
+    assert r["compared_samples"] >= 0.95 * f["tool"]["samples"] - 60
+    assert r["written_minus_replay_max_abs_um"] < 0.5, r
+    # the thermal error at the tool, from the plant's simulator at every process sample
+    t = f["tool"]
+    assert t["machine_s"] > 3600 and t["before_max_abs_um"] > 30.0
+    assert t["after_max_abs_um"] < 0.25 * t["before_max_abs_um"], t
+    # three records on disk, the component's log among them
+    log = pd.read_csv(out / "compensator_log.csv")
+    assert (log["flag_names"] == "OK").mean() > 0.95
+    s = pd.read_csv(out / "samples.txt", sep=r"\s+", header=None)
+    assert len(s) == c["servo_samples"]
+    ds_meta = (out / "plant" / "dataset" / "metadata.yaml").read_text()
+    assert "linuxcnc" in ds_meta and json.loads((out / "linuxcnc_sim.json").read_text())["ok"]
+    assert math.isfinite(t["after_rms_um"]) and np.isfinite(log["value_um"]).any()

@@ -1,0 +1,298 @@
+"""``thermbench linuxcnc sim MODEL_DIR``: the compensator in a real LinuxCNC, headless.
+
+It writes a LinuxCNC sim configuration into ``out_dir`` and runs it once:
+
+* ``thermbench.ini``: one X joint (trivkins, mm), ``basic_sim.tcl`` for the simulated servo
+  loop, ``[AXIS_X]OFFSET_AV_RATIO`` for the external offsets, and ``[DISPLAY]DISPLAY`` =
+  ``display.py``, a program on LinuxCNC's Python ``linuxcnc`` module that turns the machine
+  on, homes it, runs the G-code program and exits (no GUI, no X server);
+* ``thermbench.hal``: the thermal plant (:mod:`.plant`, on a scaled clock) and the
+  compensator component (:mod:`.component`) loaded with ``loadusr -Wn``, their pins netted
+  to the joint, the axis's external offset pins and each other, and LinuxCNC's ``sampler``
+  recording, every servo period, the commanded position, the applied and requested
+  offsets, the actual position (``joint.0.motor-pos-fb``), the counts written and machine
+  time (``halsampler`` -> ``samples.txt``);
+* ``program.ngc``: the duty cycle (a reciprocating X stroke in an ``o100 repeat`` loop,
+  then a dwell while the screw cools), or the user's ``gcode``;
+* ``model/``: a copy of the exported model (the LinuxCNC user must be able to read it).
+
+LinuxCNC (``linuxcnc-uspace``) refuses to run as root: as root, ``user`` names the
+unprivileged user it runs as (the directory is handed to that user). After the run
+:func:`thermbench.linuxcnc.verify.check_run` checks the closed loop and the figures go to
+``linuxcnc_sim.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pwd
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..errors import UserError
+from ..outputs import output_dir
+
+FILES = Path(__file__).parent / "files"
+#: the sampler's columns: (name, cfg letter f=float s=s32, HAL signal, the pin that drives it when the
+#: signal is made here; None: a signal the other nets already made)
+SAMPLED = (("pos_cmd_mm", "f", "tb-pos-cmd", "axis.x.pos-cmd"), ("eoffset_mm", "f", "tb-eoffset", None),
+           ("eoffset_request_mm", "f", "tb-eoffset-request", "axis.x.eoffset-request"),
+           ("actual_mm", "f", "J0:pos-fb", None), ("machine_s", "f", "tb-time", None),
+           ("counts", "s", "tb-counts", None), ("machine_on", "b", "sample:enable", None))  # fmt: skip
+
+
+class LinuxCncSimError(UserError):
+    """A set-up that cannot run (LinuxCNC missing, root without a user, a failed run)."""
+
+
+def gcode(program: Mapping[str, Any]) -> str:
+    """The reciprocating duty cycle: a loop of LinuxCNC's O-codes, a real interpreter feature."""
+    a, b, f = float(program["start_mm"]), float(program["end_mm"]), float(program["feed_mm_min"])
+    n, dwell = int(program["repeats"]), float(program["dwell_s"])
+    return "\n".join([
+        "( thermbench linuxcnc sim: a reciprocating X stroke, then a stop while the screw cools )",
+        "G21 G90 G94 G17",
+        f"G0 X{a:.3f}",
+        f"o100 repeat [{n}]",
+        f"  G1 X{b:.3f} F{f:.1f}",
+        f"  G1 X{a:.3f}",
+        "o100 endrepeat",
+        f"G4 P{dwell:.3f}",
+        "M2",
+        "",
+    ])  # fmt: skip
+
+
+def ini_text(cfg: Mapping[str, Any], program_file: str) -> str:
+    lo, hi = (float(v) for v in cfg["travel_mm"])
+    v, a = float(cfg["max_velocity_mm_s"]), float(cfg["max_acceleration_mm_s2"])
+    return f"""# written by thermbench linuxcnc sim: one X joint, simulated servo loop, external offsets, headless display
+[EMC]
+VERSION = 1.1
+MACHINE = thermbench-linuxcnc-sim
+
+[DISPLAY]
+DISPLAY = ./display.py
+OPEN_FILE = {program_file}
+POSITION_OFFSET = RELATIVE
+POSITION_FEEDBACK = ACTUAL
+
+[THERMBENCH]
+RESULT = display_result.json
+TIMEOUT_S = {float(cfg['timeout_s'])}
+SETTLE_S = {float(cfg['settle_s'])}
+
+[TASK]
+TASK = milltask
+CYCLE_TIME = 0.001
+
+[RS274NGC]
+PARAMETER_FILE = sim.var
+
+[EMCIO]
+EMCIO = io
+CYCLE_TIME = 0.100
+
+[EMCMOT]
+EMCMOT = motmod
+SERVO_PERIOD = 1000000
+
+[HAL]
+HALFILE = LIB:basic_sim.tcl -no_use_hal_manualtoolchange -no_sim_spindle
+HALFILE = thermbench.hal
+
+[TRAJ]
+COORDINATES = X
+LINEAR_UNITS = mm
+ANGULAR_UNITS = degree
+MAX_LINEAR_VELOCITY = {v}
+
+[KINS]
+JOINTS = 1
+KINEMATICS = trivkins coordinates=X
+
+[AXIS_X]
+OFFSET_AV_RATIO = {float(cfg['offset_av_ratio'])}
+MAX_VELOCITY = {v}
+MAX_ACCELERATION = {a}
+MIN_LIMIT = {lo}
+MAX_LIMIT = {hi}
+
+[JOINT_0]
+TYPE = LINEAR
+HOME_SEQUENCE = 0
+MAX_VELOCITY = {v}
+MAX_ACCELERATION = {a}
+MIN_LIMIT = {lo}
+MAX_LIMIT = {hi}
+"""
+
+
+def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
+    """The HAL file: plant, compensator, nets, sampler (the snippet docs/linuxcnc.md explains)."""
+    env = "env NUMBA_CACHE_DIR=numba_cache MPLBACKEND=Agg"
+    plant = (f"loadusr -Wn tbplant {env} {python} linuxcnc plant benchmark={cfg['benchmark']} "
+             f"time_scale={float(cfg['time_scale'])} period_s={float(cfg['period_s'])} out_dir=plant")  # fmt: skip
+    comp_over = {"time_source": "pin", "period_s": float(cfg["period_s"]), "scale_per_count": float(cfg["scale_per_count"]),
+                 "log": "compensator_log.csv", **dict(cfg.get("component") or {})}  # fmt: skip
+    comp = f"loadusr -Wn tbcomp {env} {python} linuxcnc component model " + " ".join(
+        f"{k}={v}" for k, v in comp_over.items())
+    lines = ["# written by thermbench linuxcnc sim", "# the thermal plant (scaled clock) and the compensator", plant, comp,
+             "", "# the axis as both see it",
+             "net tb-pos joint.0.pos-fb => tbplant.axis-pos tbcomp.axis-pos",
+             "net tb-vel joint.0.vel-cmd => tbplant.axis-vel tbcomp.axis-vel",
+             "net tb-time tbplant.time-s => tbcomp.time-s",
+             "net sample:enable => tbcomp.machine-on",
+             "# the temperature pins (on a real machine: the sensors' HAL pins)"]  # fmt: skip
+    lines += [f"net tb-{s} tbplant.temp.{s} => tbcomp.temp.{s}" for s in sensors]
+    lines += ["# the compensation into LinuxCNC's external offset of X",
+              "net tb-counts tbcomp.eoffset-counts => axis.x.eoffset-counts",
+              "net tb-scale tbcomp.eoffset-scale => axis.x.eoffset-scale",
+              "net tb-enable tbcomp.eoffset-enable => axis.x.eoffset-enable",
+              "net tb-clear tbcomp.eoffset-clear => axis.x.eoffset-clear",
+              "net tb-eoffset axis.x.eoffset => tbplant.eoffset",
+              "", "# every servo period: " + ", ".join(n for n, _, _, _ in SAMPLED),
+              f"loadrt sampler depth=20000 cfg={''.join(c for _, c, _, _ in SAMPLED)}",
+              "addf sampler.0 servo-thread"]  # fmt: skip
+    lines += [f"net {sig} {pin or ''} => sampler.0.pin.{i}".replace("  ", " ") for i, (_, _, sig, pin) in enumerate(SAMPLED)]
+    lines += ["loadusr halsampler -t samples.txt", ""]
+    return "\n".join(lines)
+
+
+def _unprivileged(cfg: Mapping[str, Any]) -> str | None:
+    """The user LinuxCNC runs as: None (this user) unless we are root."""
+    if os.geteuid() != 0:
+        return None
+    user = cfg.get("user")
+    if not user:
+        raise LinuxCncSimError("config key 'user': LinuxCNC (uspace) refuses to run as root; create an unprivileged user "
+                               "(useradd -m thermbench) and pass user=thermbench")  # fmt: skip
+    try:
+        pw = pwd.getpwnam(str(user))
+    except KeyError:
+        raise LinuxCncSimError(f"config key 'user': no user {user!r} on this machine (create it: useradd -m {user})") from None
+    if pw.pw_uid == 0:
+        raise LinuxCncSimError(f"config key 'user': {user!r} is root; LinuxCNC needs an unprivileged user")
+    return str(user)
+
+
+LAUNCHER = """#!{python}
+# written by thermbench linuxcnc sim: runs thermbench for LinuxCNC's loadusr{how}
+import site
+import sys
+
+SITE = {site!r}
+if SITE:  # thermbench's environment first, ahead of the system's own packages
+    before = list(sys.path)
+    site.addsitedir(SITE)
+    sys.path[:] = [p for p in sys.path if p not in before] + before
+import runpy
+
+sys.argv[0] = "thermbench"
+runpy.run_module("thermbench", run_name="__main__", alter_sys=True)
+"""
+
+
+def component_python(user: str | None, display_python: str) -> tuple[str, str | None]:
+    """The interpreter LinuxCNC's user starts the components with, and the site-packages to
+    put first (None: the interpreter's own environment). This one when that user can run it;
+    else (a root-owned interpreter, e.g. under /root, that the user cannot reach) the system
+    Python of the same version with this environment's site-packages in front."""
+    import sysconfig
+
+    probe = [sys.executable, "-c", "import thermbench"]
+    if user is None or subprocess.run(["runuser", "-u", user, "--", *probe], capture_output=True, cwd="/").returncode == 0:
+        return sys.executable, None
+    version = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    other = subprocess.run([display_python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], capture_output=True, text=True)
+    if other.returncode != 0 or other.stdout.strip() != version:
+        raise LinuxCncSimError(f"user {user!r} cannot run {sys.executable}, and {display_python} (config key 'display_python') "
+                               f"is not Python {version}: install thermbench where that user can run it")  # fmt: skip
+    return display_python, sysconfig.get_paths()["purelib"]
+
+
+def write_config(stage: Path, model_dir: Path, cfg: Mapping[str, Any], sensors: list[str], launcher: str) -> None:
+    """The configuration directory (see the module docstring)."""
+    shutil.copytree(model_dir, stage / "model")
+    if cfg.get("gcode"):
+        src = Path(str(cfg["gcode"]))
+        if not src.is_file():
+            raise LinuxCncSimError(f"config key 'gcode': {src} is not a file")
+        shutil.copyfile(src, stage / "program.ngc")
+    else:
+        (stage / "program.ngc").write_text(gcode(cfg["program"]))
+    (stage / "thermbench.ini").write_text(ini_text(cfg, "program.ngc"))
+    (stage / "thermbench.hal").write_text(hal_text(cfg, sensors, "./tb_launch"))
+    (stage / "tb_launch").write_text(launcher)
+    (stage / "tb_launch").chmod(0o755)
+    display = (FILES / "headless_display").read_text().replace("#!/usr/bin/python3", f"#!{cfg['display_python']}", 1)
+    (stage / "display.py").write_text(display)
+    (stage / "display.py").chmod(0o755)
+    (stage / "numba_cache").mkdir()
+
+
+def run_linuxcnc(stage: Path, user: str | None, timeout_s: float) -> subprocess.CompletedProcess:
+    """``linuxcnc thermbench.ini`` in ``stage`` (as ``user`` when given), under ``script`` so that
+    LinuxCNC prints to our pipe (without a terminal it writes to temporary files it deletes)."""
+    cmd = ["env", f"HOME={stage}", "script", "-qec", "linuxcnc thermbench.ini", "/dev/null"]
+    if user is not None:
+        cmd = ["runuser", "-u", user, "--", *cmd]
+    return subprocess.run(cmd, cwd=stage, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
+
+
+def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=None) -> dict:
+    """Write the configuration, run LinuxCNC once, check the run; returns the figures (also in
+    ``out_dir/linuxcnc_sim.json``). A run that fails is a :class:`LinuxCncSimError` naming why;
+    its directory is kept for a look."""
+    from ..config import with_defaults
+    from ..export.native import LiveModel
+    from . import verify
+
+    cfg = with_defaults("linuxcnc_sim", cfg or {})
+    say = say or (lambda line: None)
+    if shutil.which("linuxcnc") is None:
+        raise LinuxCncSimError("LinuxCNC is not installed (Debian: apt-get install --no-install-recommends linuxcnc-uspace)")
+    user = _unprivileged(cfg)
+    python, site_dir = component_python(user, str(cfg["display_python"]))
+    how = "" if site_dir is None else f" (user {user} cannot run {sys.executable}: {python} with its site-packages)"
+    launcher = LAUNCHER.format(python=python, site=site_dir, how=how)
+    model_dir = Path(model_dir)
+    sensors = list(LiveModel(model_dir).temperatures)  # a model directory the runtime refuses fails here, in one line
+    out = Path(str(cfg["out_dir"]))
+    failure = None
+    with output_dir(out, "linuxcnc-sim", force=bool(cfg["force"]), force_option="force=true") as stage:
+        write_config(stage, model_dir, cfg, sensors, launcher)
+        stage.chmod(0o755)
+        if user is not None:
+            for p in [stage, *stage.rglob("*")]:
+                shutil.chown(p, user)
+        say(f"linuxcnc sim: running {stage / 'thermbench.ini'}" + (f" as {user}" if user else ""))
+        proc = run_linuxcnc(stage, user, float(cfg["timeout_s"]) + 120.0)
+        (stage / "linuxcnc_output.txt").write_text(proc.stdout + proc.stderr)
+        shutil.rmtree(stage / "numba_cache", ignore_errors=True)
+        result_file = stage / "display_result.json"
+        result = json.loads(result_file.read_text()) if result_file.exists() else {"ok": False, "failure": "no result"}
+        if not result.get("ok"):
+            failure = f"the LinuxCNC run failed: {result.get('failure')}; LinuxCNC said: {_tail(proc.stdout + proc.stderr)}"
+            figures = {"ok": False, "failure": failure, "display": result}
+        else:
+            try:
+                figures = verify.check_run(stage, cfg)
+            except Exception as exc:  # a run whose records cannot be checked: kept for a look
+                failure = f"checking the run failed: {type(exc).__name__}: {exc}"
+                figures = {"ok": False, "failure": failure}
+            figures["display"] = result
+        (stage / "linuxcnc_sim.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
+    if failure:
+        raise LinuxCncSimError(f"{failure} (see {out})".replace(str(stage), str(out)))
+    return figures
+
+
+def _tail(text: str, n: int = 6) -> str:
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith("task: main loop took")]
+    return " | ".join(lines[-n:])

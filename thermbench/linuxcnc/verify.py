@@ -1,0 +1,128 @@
+"""Checks of a LinuxCNC closed-loop run (``thermbench linuxcnc sim``), from three records
+made by three different programs:
+
+* ``samples.txt``: LinuxCNC's own ``sampler``/``halsampler``, every servo period: the
+  commanded position (``axis.x.pos-cmd``), the applied external offset (``axis.x.eoffset``)
+  and the requested one (``axis.x.eoffset-request``), the actual position
+  (``joint.0.motor-pos-fb``), the plant's machine time and the counts the component wrote;
+* ``compensator_log.csv``: the component's per-cycle log;
+* ``plant/``: the thermal plant's process log and dataset (the motion as the plant sampled it).
+
+:func:`controller_figures`: does LinuxCNC's actual position equal the commanded position
+plus the offset, and does the offset follow the request (counts x scale) within LinuxCNC's
+own rate limit (``OFFSET_AV_RATIO`` x ``MAX_VELOCITY``)? :func:`replay_figures`: is the
+compensation written what ``thermbench replay`` computes from the plant's logged motion?
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import pandas as pd
+
+SERVO_S = 0.001  # [EMCMOT]SERVO_PERIOD of the sim configuration
+
+
+def read_samples(path: Path) -> pd.DataFrame:
+    """halsampler's output (``-t``: the sample number first), one column per sampled pin."""
+    from .sim import SAMPLED
+
+    names = ["sample", *(n for n, _, _, _ in SAMPLED)]
+    df = pd.read_csv(path, sep=r"\s+", header=None, names=names, engine="python", on_bad_lines="skip")
+    df = df.apply(pd.to_numeric, errors="coerce").dropna()  # the last line may be cut when halsampler is stopped
+    return df.reset_index(drop=True)
+
+
+def servo_delay(s: pd.DataFrame, max_periods: int = 5) -> tuple[int, np.ndarray]:
+    """The simulated servo loop's delay in servo periods (the shift of the actual position behind
+    commanded + offset that fits best; basic_sim's pass-through PID takes 2) and the residual
+    actual - (commanded + offset) at that shift, in mm."""
+    a, c = s["actual_mm"].to_numpy(), (s["pos_cmd_mm"] + s["eoffset_mm"]).to_numpy()
+    res = [a[k:] - c[: c.size - k] for k in range(max_periods + 1)]
+    k = int(np.argmin([np.max(np.abs(r)) for r in res]))
+    return k, res[k]
+
+
+def controller_figures(samples: pd.DataFrame, scale_mm: float, ratio: float, max_velocity_mm_s: float) -> dict:
+    """What LinuxCNC did with the counts while the machine was on (all in mm unless named _um)."""
+    gap = np.diff(samples["sample"].to_numpy())
+    s = samples[samples["machine_on"] > 0].reset_index(drop=True)
+    if len(s) < 10:
+        raise ValueError(f"only {len(s)} servo samples with the machine on")
+    delay, actual_vs = servo_delay(s)
+    req_vs_counts = s["eoffset_request_mm"] - s["counts"] * scale_mm
+    lag = s["eoffset_mm"] - s["eoffset_request_mm"]
+    rate = np.abs(np.diff(s["eoffset_mm"].to_numpy())) / SERVO_S
+    return {
+        "servo_samples": int(len(samples)), "servo_samples_machine_on": int(len(s)),
+        "samples_lost": int(np.sum(gap[gap > 1] - 1)),
+        "servo_delay_periods": delay,
+        "actual_minus_commanded_plus_offset_max_abs_um": 1e3 * float(np.max(np.abs(actual_vs))),
+        "request_minus_counts_x_scale_max_abs_um": 1e3 * float(np.max(np.abs(req_vs_counts))),
+        "offset_minus_request_max_abs_um": 1e3 * float(np.max(np.abs(lag))),
+        "offset_rate_max_mm_s": float(rate.max()) if rate.size else 0.0,
+        "offset_rate_limit_mm_s": ratio * max_velocity_mm_s,
+        "offset_max_abs_um": 1e3 * float(np.max(np.abs(s["eoffset_mm"]))),
+        "counts_max_abs": int(np.max(np.abs(s["counts"]))),
+    }  # fmt: skip
+
+
+def replay_figures(model_dir: Path, plant_dir: Path, log: pd.DataFrame, run: str) -> dict:
+    """``thermbench replay`` of the plant's dataset against what the component wrote: at each
+    of the plant's process samples (grid time t_k, its axis position), the component's value
+    at its first cycle at or past t_k (the cycle that stepped the model with grid point k)."""
+    from ..export.replay import replay_run
+
+    rep = replay_run(model_dir, plant_dir / "dataset", run)
+    comp = rep["compensation"]
+    ok = log[log["value_um"].notna() & ~log["flag_names"].astype(str).str.contains("HELD|NOT_READY")]
+    t_log = ok["t_s"].to_numpy()
+    idx = np.searchsorted(t_log, comp["t_s"].to_numpy() - 1e-9)
+    has = idx < t_log.size
+    written = ok["value_um"].to_numpy()[idx[has]]
+    want = comp["compensation_um"].to_numpy()[has]
+    x_log = ok["axis_mm"].to_numpy()[idx[has]]
+    d = written - want
+    f = rep["figures"]
+    return {
+        "compared_samples": int(has.sum()),
+        "written_minus_replay_max_abs_um": float(np.max(np.abs(d))),
+        "written_minus_replay_rms_um": float(np.sqrt(np.mean(d**2))),
+        "position_difference_max_mm": float(np.max(np.abs(x_log - comp["axis_mm"].to_numpy()[has]))),
+        "replay_before_max_abs_um": f.get("before_max_abs_um"), "replay_after_max_abs_um": f.get("after_max_abs_um"),
+        "replay_readings": f.get("n_readings"),
+    }  # fmt: skip
+
+
+def check_run(stage: Path, cfg: Mapping[str, Any]) -> dict:
+    """Every figure of a finished run directory (``thermbench linuxcnc sim``)."""
+    stage = Path(stage)
+    samples = read_samples(stage / "samples.txt")
+    log = pd.read_csv(stage / "compensator_log.csv")
+    plant = json.loads((stage / "plant" / "closed_loop.json").read_text())
+    ctrl = controller_figures(samples, float(cfg["scale_per_count"]), float(cfg["offset_av_ratio"]),
+                              float(cfg["max_velocity_mm_s"]))  # fmt: skip
+    rep = replay_figures(stage / "model", stage / "plant", log, "linuxcnc")
+    summary = json.loads((stage / "compensator_log.summary.json").read_text())
+    return {"ok": True, "time_scale": float(cfg["time_scale"]), "tool": plant, "controller": ctrl, "replay": rep,
+            "component": {k: summary.get(k) for k in ("cycles", "cycle_ms", "flags", "ended")}}  # fmt: skip
+
+
+def format_figures(f: Mapping[str, Any]) -> str:
+    t, c, r = f["tool"], f["controller"], f["replay"]
+    return "\n".join([
+        f"linuxcnc sim: {t['machine_s'] / 3600:.2f} h of thermal time at {f['time_scale']:g}x, {t['samples']} process samples",
+        f"  thermal error at the tool: before max {t['before_max_abs_um']:.2f} um (rms {t['before_rms_um']:.2f}), "
+        f"after LinuxCNC's offset max {t['after_max_abs_um']:.2f} um (rms {t['after_rms_um']:.2f})",
+        f"  LinuxCNC: actual - (commanded + offset) {c['servo_delay_periods']} servo periods before: max "
+        f"{c['actual_minus_commanded_plus_offset_max_abs_um']:.4f} um; "
+        f"request - counts x scale max {c['request_minus_counts_x_scale_max_abs_um']:.4f} um; offset - request max "
+        f"{c['offset_minus_request_max_abs_um']:.3f} um; offset rate max {c['offset_rate_max_mm_s']:.3f} mm/s "
+        f"(limit {c['offset_rate_limit_mm_s']:g})",
+        f"  written vs thermbench replay of the plant's log: max {r['written_minus_replay_max_abs_um']:.3f} um "
+        f"over {r['compared_samples']} samples; replay before {r['replay_before_max_abs_um']:.2f} um, after "
+        f"{r['replay_after_max_abs_um']:.2f} um at {r['replay_readings']} readings",
+    ])  # fmt: skip
