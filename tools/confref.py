@@ -64,6 +64,11 @@ COMMANDS: dict[str, str] = {
     "compensator": "`thermbench compensator MODEL_DIR --endpoint URL --nodes nodes.yaml [overrides]` "
     "(`thermbench.compensator.client`)",
     "sim_cnc": "`thermbench sim-cnc [--endpoint URL] [overrides]` (`thermbench.compensator.simcnc`)",
+    "linuxcnc_component": "`thermbench linuxcnc component MODEL_DIR [overrides]`, a HAL component started by "
+    "LinuxCNC's `loadusr` (`thermbench.linuxcnc.component`)",
+    "linuxcnc_plant": "`thermbench linuxcnc plant [overrides]`, a HAL component of the sim configuration "
+    "(`thermbench.linuxcnc.plant`)",
+    "linuxcnc_sim": "`thermbench linuxcnc sim MODEL_DIR [overrides]` (`thermbench.linuxcnc.sim`)",
 }
 UNKNOWN_COMMAND = "not known to `tools.confref` (add it to `COMMANDS`)"
 
