@@ -209,7 +209,8 @@ def cmd_precompensate(args) -> int:
     res = run_precompensate(args.program, args.model, args.out, dataset=args.dataset,
                             truth="auto" if args.verify else None, axis=args.axis, rapid_mm_min=args.rapid,
                             sample_s=args.sample, start_mm=args.start_mm, work_offset_mm=args.work_offset,
-                            ambient_C=args.ambient, decimals=args.decimals)  # fmt: skip
+                            ambient_C=args.ambient, decimals=args.decimals, flatten=args.flatten,
+                            tool_table=args.tool_table)  # fmt: skip
     print(format_summary(res))
     return 0
 
@@ -437,6 +438,11 @@ def _main(argv: list[str] | None) -> int:
     p_pre.add_argument("--work-offset", type=float, default=0.0, help="axis position = program coordinate + this, mm")
     p_pre.add_argument("--ambient", type=float, default=20.0, help="ambient held constant for a physics model, °C")
     p_pre.add_argument("--decimals", type=int, default=4)
+    p_pre.add_argument("--flatten", choices=["auto", "always", "never"], default="auto",
+                       help="expand parameters, loops, subroutines and arcs with LinuxCNC's rs274 (auto: when the reader "
+                       "cannot follow the program and rs274 is installed; always: arcs too, as compensated chords); "
+                       "the output is then the flattened program")  # fmt: skip
+    p_pre.add_argument("--tool-table", default=None, help="LinuxCNC tool table for rs274 (default: tools 1-99, no offsets)")
     p_pre.add_argument("--verify", action="store_true", help="replay both programs in the simulator that made --dataset")
     p_cmp = sub.add_parser("compensator", help="OPC UA compensator: read the machine, run the exported model in the "
                            "C runtime, write the compensation (conf/compensator.yaml)")  # fmt: skip

@@ -884,6 +884,8 @@ def run_precompensate(
     work_offset_mm: float = 0.0,
     ambient_C: float = 20.0,
     decimals: int = 4,
+    flatten: str = "auto",
+    tool_table=None,
 ) -> PrecompResult:
     """``thermbench precompensate``: read the program and the joblib model, write the
     rewritten program to ``out_path`` (atomically; never over a file thermbench did not
@@ -894,9 +896,34 @@ def run_precompensate(
     ``truth``: None (no verification), ``"auto"`` (the simulator that made
     ``dataset``: :func:`truth_from_metadata`), a dataset name/directory, or a
     :class:`ScrewThermalModel`. The verification figures are in ``result.verification``.
+    ``flatten``: ``"auto"`` runs LinuxCNC's interpreter (``rs274``, :mod:`thermbench.linuxcnc.rs274`)
+    over a program the reader cannot follow (parameters, expressions, loops, subroutines) and
+    compensates the flattened program; ``"always"`` also flattens a program it can follow (its arcs
+    become compensated chords); ``"never"``.
+    ``tool_table``: LinuxCNC's tool table for rs274 (None: tools 1..99 without offsets).
     """
     program_path, model_path, out_path = Path(program_path), Path(model_path), Path(out_path)
     text = _read_program(program_path)
+    flat_note = None
+    reason = _flatten_reason(text, axis, str(program_path), start_mm) if flatten == "auto" else None
+    if flatten not in ("auto", "always", "never"):
+        raise PrecompError(f"--flatten: expected auto, always or never, got {flatten!r}")
+    if flatten == "always" or reason is not None:
+        from .linuxcnc.rs274 import flatten as rs274_flatten, rs274_path
+
+        if rs274_path() is None:
+            if flatten == "always":
+                raise PrecompError(f"{program_path}: --flatten always needs LinuxCNC's rs274 (apt-get install "
+                                   "--no-install-recommends linuxcnc-uspace)")  # fmt: skip
+            parse_program(text, axis=axis, source=str(program_path), start_mm=start_mm)  # the reader's own error, if any
+        else:
+            flat = rs274_flatten(program_path, tool_table=None if tool_table is None else Path(tool_table))
+            if flat.moves == 0:
+                raise PrecompError(f"{program_path}: LinuxCNC's interpreter finds no move in it; nothing to compensate")
+            text = flat.text
+            flat_note = (f"flattened with LinuxCNC's rs274 ({reason or '--flatten always'}): {flat.canonical_calls} "
+                         f"canonical calls -> {flat.moves} straight moves ({flat.arcs} arcs in chords), in {flat.units}; "
+                         "the output is the flattened program, compensated")  # fmt: skip
     if out_path.resolve() == program_path.resolve():
         raise PrecompError(f"{out_path}: the output would overwrite the input program; expected another file name")
     check_output_file(out_path, "part-program")  # an existing file thermbench did not write is refused now
@@ -923,11 +950,27 @@ def run_precompensate(
         start_mm=start_mm, work_offset_mm=work_offset_mm, ambient_C=ambient_C, decimals=decimals,
         source=str(program_path),
     )  # fmt: skip
+    if flat_note is not None:
+        result.notes.insert(0, flat_note)
+        result.settings["flattened"] = True
     write_text(out_path, result.text, "part-program")
     result.settings["out_path"] = str(out_path)
     if truth_model is not None:
         result.verification = verify_in_simulator(result, truth_model)
     return result
+
+
+def _flatten_reason(text: str, axis: str, source: str, start_mm) -> str | None:
+    """Why the line reader cannot follow ``text`` alone (None: it can): its own refusal, or O-codes,
+    parameters or expressions it passed over. (Arcs it follows, uncompensated: ``--flatten always``
+    turns them into compensated chords.)"""
+    try:
+        prog = parse_program(text, axis=axis, source=source, start_mm=start_mm)
+    except ProgramError as exc:
+        return f"the reader refused it: {str(exc).split(': ', 1)[-1]}"
+    if any(("macro" in u.reason or "subprogram" in u.reason) for u in prog.unsupported):
+        return "O-codes, parameters or expressions"
+    return None
 
 
 def _duration(seconds: float) -> str:
