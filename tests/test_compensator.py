@@ -422,3 +422,50 @@ def test_cli_errors_name_what_is_wrong(machine, seed001_exports, nodes_file, tmp
     assert main(["certs", str(tmp_path / "pki")]) == 0
     assert main(["certs", str(tmp_path / "pki")]) == 2
     assert "never overwritten" in capsys.readouterr().err
+
+
+def test_warm_restart_resumes_and_a_long_outage_starts_cold_loudly(machine, seed001_exports, nodes_file, tmp_path):
+    """Three compensator processes against one running machine (20x): the first saves its state;
+    the second, started at once, resumes it (says so, first cycle RESUMED, the value the
+    controller holds continued); the third, started after more than 60 s of machine time, starts
+    cold and says so in one line, every cycle flagged COLD."""
+    state = tmp_path / "state.json"
+
+    async def scenario():
+        port = _port()
+        ep = f"opc.tcp://127.0.0.1:{port}/sim"
+        sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "immediate"})
+        await sim.start_server()
+        clock = asyncio.ensure_future(sim.run_clock())
+        said, logs = [], []
+        try:
+            for n, pause_s in enumerate((0.0, 0.0, 4.0)):  # 4 s wall = 80 s of machine time
+                await asyncio.sleep(pause_s)
+                cfg = _client_cfg(tmp_path, period_s=0.01, log=str(tmp_path / f"run{n}.csv"), duration_s=1.5,
+                                  state={"path": str(state), "every_s": 0.2})  # fmt: skip
+                lines: list[str] = []
+                await Compensator(seed001_exports / "mlr", ep, nodes_file, cfg, say=lines.append).run()
+                said.append(lines)
+                logs.append(pd.read_csv(tmp_path / f"run{n}.csv"))
+        finally:
+            clock.cancel()
+            await sim.stop_server()
+        return said, logs
+
+    said, logs = asyncio.run(scenario())
+    first, second, third = logs
+    assert any(ln.startswith("starting fresh: no saved state at ") for ln in said[0])  # the first start: nothing saved
+    assert not (first["flags"] & int(Flags.COLD)).any()
+    resumed = [ln for ln in said[1] if ln.startswith("resumed the model state of ")]
+    assert len(resumed) == 1 and "samples re-stepped" in resumed[0]
+    assert int(second["flags"].iloc[0]) & int(Flags.RESUMED) and not (second["flags"] & int(Flags.COLD)).any()
+    # the controller's value goes on from where the first process left it (rate limit 20 µm/s, 1 s per cycle at most)
+    last, nxt = first["value_um"].dropna().iloc[-1], second["value_um"].dropna().iloc[0]
+    assert abs(nxt - last) <= 20.0 + 1e-9
+    # the machine time goes on too: the second process's t_s continues the first's (same origin)
+    assert second["t_s"].iloc[0] > first["t_s"].iloc[-1]
+    cold = [ln for ln in said[2] if ln.startswith("COLD START: the saved state is ")]
+    assert len(cold) == 1 and "more than the 60 s the runtime bridges" in cold[0] and "\n" not in cold[0]
+    assert (third["flags"] & int(Flags.COLD)).all() and "COLD" in third["flag_names"].iloc[-1]
+    saved = json.loads(state.read_text())
+    assert saved["rows"] > 0 and saved["cold"] is True

@@ -129,7 +129,7 @@ def test_linuxcnc_closed_loop(seed001_exports, lcnc_user, shared_dir):
     shutil.copytree(seed001_exports / "mlr", model)
     out = shared_dir / "run"
     cfg = {"out_dir": str(out), "user": lcnc_user, "program": {"start_mm": 210.0, "end_mm": 490.0, "feed_mm_min": 8000.0,
-                                                              "repeats": 7, "dwell_s": 8.0}}  # fmt: skip
+                                                              "repeats": 6, "dwell_s": 6.0}}  # fmt: skip
     f = run_sim(model, cfg)
     assert f["ok"] and f["display"]["ok"], f
     steps = [s for s, _ in f["display"]["steps"]]

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..outputs import OutputStream, check_output_file, write_text
 from .control import Cycle, CycleLogic, Flags, Line, Reading, Settings, _num, flag_names
+from .state import StateError, StateStore
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
 CLIENT_APP_URI = "urn:thermbench:compensator"
@@ -451,6 +452,17 @@ class Compensator:
         self.log_path = Path(str(cfg.get("log", "compensator_log.csv")))
         check_output_file(self.log_path, "compensator-log")  # refused before anything connects
         check_output_file(self.log_path.with_suffix(".summary.json"), "compensator-summary")
+        st = dict(cfg.get("state") or {})
+        self.state_every_s = _num(st, "every_s", 5.0, name="state.every_s")
+        self.state_max_gap_s = _num(st, "max_gap_s", 60.0, name="state.max_gap_s")
+        self.state_agree_C = _num(st, "agree_C", 2.0, name="state.agree_C")
+        self.store = StateStore(str(st["path"])) if st.get("path") else None
+        try:
+            self.saved_state = self.store.load() if self.store is not None else None
+        except StateError as exc:
+            raise CompensatorError(str(exc)) from None
+        self.resume_pending = self.store is not None
+        self._flag_next = 0  # a flag for the next cycle (RESUMED)
         self.session = Session(endpoint, self.nodes, self.sec, self.timeout_s)
         self.stop_requested = False
         self.stop_reason = "stopped"
@@ -507,6 +519,7 @@ class Compensator:
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
         window: list[float] = []  # cycle times since the last status line
         next_status = loop.time() + self.status_every_s
+        next_state = loop.time() + self.state_every_s
         counts = collections.Counter()
         connecting: asyncio.Task | None = None
         backoff, next_try = self.backoff0, 0.0
@@ -545,7 +558,10 @@ class Compensator:
                     c = None
                     try:
                         readings = await self.session.read()
+                        if self.resume_pending:
+                            self._resume_or_cold(readings, begin)
                         c = self.logic.cycle(readings, begin, time.time())
+                        c.flags, self._flag_next = int(c.flags | self._flag_next), 0
                         await self.session.write(output_variants(c, self.nodes, self.output))
                         done = bool(readings.get("done") and readings["done"].value)
                         backoff = self.backoff0  # a full cycle worked: the next outage starts the back-off afresh
@@ -565,6 +581,12 @@ class Compensator:
                 for f in Flags:
                     if f.value and c.flags & f.value:
                         counts[f.name] += 1
+                if c.flags & Flags.RESTARTED:
+                    self._say(f"COLD RESTART at machine time {c.t_s:.0f} s: a gap longer than the runtime bridges; the "
+                              "model starts from the machine as it is now (flag COLD from here on)")  # fmt: skip
+                if self.store is not None and end >= next_state:
+                    self._save_state()
+                    next_state = end + self.state_every_s
                 log.write(time.time(), k, c, late_ms, cyc_ms)
                 window.append(cyc_ms)
                 if end >= next_status:
@@ -594,6 +616,9 @@ class Compensator:
             raise
         finally:
             log.close()
+            if self.store is not None and not self.resume_pending:
+                self._save_state()
+                self.store.close()
             if connecting is not None:
                 connecting.cancel()
             await self.session.close()
@@ -604,6 +629,32 @@ class Compensator:
             write_text(self.log_path.with_suffix(".summary.json"), json.dumps(self.summary, indent=2, default=float) + "\n",
                        "compensator-summary")
         return self.summary
+
+    def _save_state(self) -> None:
+        self.store.sync(self.logic.stepped, self.logic.starts)
+        self.store.save({**self.logic.state(), "model": self.model.manifest.get("name"), "saved_utc": time.time()})
+
+    def _resume_or_cold(self, readings, now_wall_s: float) -> None:
+        """At the first reading: go on from the saved state (warm) or start cold, saying which."""
+        self.resume_pending = False
+        saved = self.saved_state
+        if saved is None:  # the first start: nothing says the machine ran before
+            self._say(f"starting fresh: no saved state at {self.store.path} (the machine as it is now is the model's zero)")
+            self.store.sync(self.logic.stepped, self.logic.starts)
+            return
+        else:
+            ts = self.logic._machine_ts(readings, now_wall_s, time.time())
+            now = {n: float(r.value) for n, r in readings.items() if r is not None and isinstance(r.value, (int, float))}
+            warm, why = self.logic.resume_decision(saved[0], saved[1], ts, now, self.state_max_gap_s, self.state_agree_C)
+        if warm:
+            self.logic.warm_start(*saved)
+            self._flag_next = Flags.RESUMED
+            self._say(f"resumed the model state of {self.store.path}: {why}")
+        else:
+            self.logic.cold = True
+            self._say(f"COLD START: {why}; the model starts from the machine as it is now, and a machine still warm "
+                      "from before reads as its zero (flag COLD on every cycle of this run)")  # fmt: skip
+        self.store.sync(self.logic.stepped, self.logic.starts)
 
     def stop(self, reason: str = "stopped") -> None:
         """End the loop after the current cycle (the summary says ``reason``)."""

@@ -64,6 +64,9 @@ class Flags(enum.IntFlag):
     RESTARTED = 128  # the model was restarted after an outage longer than it bridges
     HELD = 256  # the written compensation is the last good value, not a new prediction
     MACHINE_OFF = 512  # the controller dropped the compensation (LinuxCNC machine off): 0 written, ramps from 0 after
+    RESUMED = 1024  # warm restart: the model state of the previous run re-stepped from its saved samples
+    COLD = 2048  # the model started cold on a machine that may be warm (no usable saved state, or a gap longer
+    # than the runtime bridges): its zero is the machine as it was then; set on every cycle after
 
 
 def flag_names(f: int) -> str:
@@ -227,6 +230,64 @@ class CycleLogic:
         self.fresh_ready: float | None = None  # model time of the previous fresh value (None: the last cycle held)
         self.lag_um = 0.0  # written value minus the model's, at the current position
         self._saved: tuple = ()
+        # what the model was stepped with since its last start: (k, axis, feed, load, measuring, temps...),
+        # the state a warm restart re-steps (the C runtime's arena holds pointers: its bytes do not outlive us)
+        self.stepped: list[tuple] = []
+        self.cold = False  # sticky: the model started cold on a possibly warm machine
+        self.starts = 0  # model (re)starts: a state store rewrites its samples after one
+
+    def _restart(self) -> None:
+        self.model.start()
+        self.stepped = []
+        self.starts += 1
+
+    # ------------------------------------------------------------ warm restart ---
+    STATE_COLUMNS = ("k", "axis_mm", "feed_mm_min", "load_N", "measuring")
+
+    def state(self) -> dict:
+        """What a later process needs to go on where this one stopped (with :attr:`stepped`)."""
+        return {"t0_ts": self.t0_ts, "last_ts": self.last_ts, "k_last": self.k_last, "value_um": self.value_um,
+                "ends_um": list(self.ends_um) if self.ends_um is not None else None, "period_s": self.period_s,
+                "temperatures": list(self.model.temperatures), "cold": self.cold}  # fmt: skip
+
+    def resume_decision(self, state: dict, rows, ts_now: float, inputs_now: Mapping[str, float],
+                        max_gap_s: float = TB_MAX_GAP_S, agree_C: float = 2.0) -> tuple[bool, str]:  # fmt: skip
+        """Warm (True) when the saved state is of this model's inputs, the gap in machine time is
+        at most ``max_gap_s`` (what the runtime bridges) and every temperature now is within
+        ``agree_C`` of the last saved sample's; else cold, and why."""
+        if state.get("temperatures") != list(self.model.temperatures) or state.get("period_s") != self.period_s:
+            return False, "the saved state is of another model"
+        if not len(rows) or state.get("last_ts") is None:
+            return False, "the saved state has no sample"
+        gap = ts_now - float(state["last_ts"])
+        if gap < 0:
+            return False, f"machine time went back {-gap:.1f} s since the saved state (the server restarted its clock)"
+        if gap > max_gap_s:
+            return False, f"the saved state is {gap:.0f} s old, more than the {max_gap_s:.0f} s the runtime bridges"
+        last = rows[-1]
+        n0 = len(self.STATE_COLUMNS)
+        for j, name in enumerate(self.model.temperatures):
+            now = inputs_now.get(f"{name}_C")
+            if now is None or not math.isfinite(now) or abs(now - last[n0 + j]) > agree_C:
+                return False, f"{name} is {now} °C now, {last[n0 + j]:.2f} °C in the saved state (more than {agree_C} K apart)"
+        return True, f"gap {gap:.1f} s, {len(rows)} samples re-stepped"
+
+    def warm_start(self, state: dict, rows) -> None:
+        """Re-step the saved samples into a fresh model state and go on from the saved clock and
+        compensation (the controller still holds it: it ramps from there)."""
+        self._restart()
+        n0 = len(self.STATE_COLUMNS)
+        for row in rows:
+            k = int(row[0])
+            rc = self.model.step(k * self.period_s, row[1], row[2], list(row[n0:]), load_N=row[3], measuring=bool(row[4]))
+            if rc >= 0:
+                self.stepped.append(tuple(float(v) for v in row))
+        self.t0_ts, self.last_ts = float(state["t0_ts"]), float(state["last_ts"])
+        self.k_last = int(rows[-1][0])
+        self.value_um = state.get("value_um")
+        self.ends_um = tuple(state["ends_um"]) if state.get("ends_um") else None
+        self.cold = bool(state.get("cold"))
+        self.fresh_ready = None
 
     # ------------------------------------------------------------- controller ---
     def resume(self, value_um: float | None = None, line: "Line | None" = None) -> None:
@@ -266,7 +327,7 @@ class CycleLogic:
     # ------------------------------------------------------------------- cycle ---
     def hold(self, flags: int, t_s: float = math.nan) -> Cycle:
         """A cycle that writes the value the controller holds (nothing before there is one)."""
-        c = Cycle(t_s=t_s, flags=int(flags | Flags.HELD))
+        c = Cycle(t_s=t_s, flags=int(flags | Flags.HELD | (Flags.COLD if self.cold else 0)))
         c.value_um = self.value_um
         c.line = self._line_from_ends(self.ends_um) if self.ends_um is not None else None
         self.fresh_ready = None  # the controller now holds one value at every position
@@ -282,6 +343,12 @@ class CycleLogic:
         return max(stamps) if stamps else now
 
     def cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
+        c = self._cycle(readings, now_wall_s, now_epoch_s)
+        if self.cold:
+            c.flags = int(c.flags | Flags.COLD)
+        return c
+
+    def _cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
         self._saved = (self.value_um, self.ends_um, self.t_prev, self.fresh_ready, self.lag_um)
         ts = self._machine_ts(readings, now_wall_s, now_epoch_s)
         restarted = False
@@ -292,7 +359,8 @@ class CycleLogic:
             self.back_since_wall = None
         if back and (self.resync or now_wall_s - self.back_since_wall > self.s.stale_after_s):
             # the server's clock restarted (after a reconnection, or for longer than a glitch): new timeline
-            self.model.start()
+            self._restart()
+            self.cold = True
             self.t0_ts = self.last_ts = self.k_last = self.t_prev = self.fresh_ready = None
             self.back_since_wall, back, restarted = None, False, True
         self.resync = False
@@ -335,7 +403,8 @@ class CycleLogic:
         if self.k_last is not None and k <= self.k_last:
             return
         if self.k_last is not None and (k - self.k_last) * self.period_s > TB_MAX_GAP_S:
-            self.model.start()
+            self._restart()
+            self.cold = True  # a gap the runtime does not bridge: the machine is warm, the model starts from it
             c.flags |= Flags.RESTARTED
             self.fresh_ready = None  # a new model state: ramp from what the controller holds
         i = c.inputs
@@ -343,13 +412,16 @@ class CycleLogic:
         args = (k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps)
         rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
         if rc == TB_E_SAMPLING:
-            self.model.start()
+            self._restart()
+            self.cold = True
             c.flags |= Flags.RESTARTED
             self.fresh_ready = None
             rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc
+        else:
+            self.stepped.append((k, i["axis_mm"], i["feed_mm_min"], i.get("load_N", 0.0), float(measuring), *temps))
         self.k_last = k
 
     def _predict(self, c: Cycle, t: float) -> Cycle:
