@@ -262,6 +262,36 @@ def cmd_compensator(model_dir: str, endpoint: str, nodes: str, overrides: list[s
     return 130 if summary["ended"] == "interrupted" else 0
 
 
+def cmd_station(path: str, overrides: list[str]) -> int:
+    import asyncio
+
+    import yaml
+
+    from .compensator.station import StationError, Station, format_summary, load_station
+
+    spec = load_station(path)
+    for o in overrides:  # top-level keys of the station file: period_s=0.05 duration_s=60
+        key, eq, value = o.partition("=")
+        if not eq or key not in ("period_s", "duration_s", "max_cycles", "status_every_s", "log_dir", "timeout_s"):
+            raise StationError(f"override {o!r}: expected KEY=VALUE with KEY one of period_s, duration_s, max_cycles, "
+                               "status_every_s, log_dir, timeout_s")  # fmt: skip
+        spec[key] = yaml.safe_load(value)
+    _require_opcua("thermbench station")
+    _quiet_asyncua()
+    station = Station(spec, say=lambda line: print(line, flush=True))
+
+    async def run() -> dict:
+        import signal
+
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, station.stop, "interrupted")
+        return await station.run()
+
+    print(format_summary(asyncio.run(run())))
+    return 0
+
+
 def cmd_sim_cnc(endpoint: str | None, overrides: list[str]) -> int:
     import asyncio
 
@@ -450,6 +480,10 @@ def _main(argv: list[str] | None) -> int:
     p_cmp.add_argument("--endpoint", required=True, help="the machine's OPC UA endpoint, opc.tcp://HOST:PORT[/path]")
     p_cmp.add_argument("--nodes", required=True, help="nodes.yaml: node ids of the inputs and outputs")
     p_cmp.add_argument("overrides", nargs="*", help="overrides of conf/compensator.yaml, e.g. period_s=0.1 output=line")
+    p_sta = sub.add_parser("station", help="one compensator for several axes and spindle channels over several OPC UA "
+                           "endpoints (a station file: thermbench/compensator/station.py)")  # fmt: skip
+    p_sta.add_argument("station", help="the station file (YAML: endpoints, channels)")
+    p_sta.add_argument("overrides", nargs="*", help="period_s=..., duration_s=..., max_cycles=..., log_dir=...")
     p_sim_cnc = sub.add_parser("sim-cnc", help="a simulated CNC axis behind an OPC UA server (conf/sim_cnc.yaml)")
     p_sim_cnc.add_argument("--endpoint", default=None, help="endpoint to serve (default from conf/sim_cnc.yaml)")
     p_sim_cnc.add_argument("overrides", nargs="*", help="overrides, e.g. benchmark=seed001_vmc_x run=valid1 speed=100")
@@ -469,7 +503,7 @@ def _main(argv: list[str] | None) -> int:
         parser.error(f"unknown command '{argv[0]}'{hint} the commands: {', '.join(commands)}")
     # overrides may follow the options (argparse matches positionals in one chunk)
     args, extra = parser.parse_known_args(argv)
-    if extra and (args.command not in ("diagnose", "compensator", "sim-cnc", "linuxcnc") or any(e.startswith("-") for e in extra)):
+    if extra and (args.command not in ("diagnose", "compensator", "sim-cnc", "linuxcnc", "station") or any(e.startswith("-") for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         if args.command == "diagnose":
@@ -480,6 +514,8 @@ def _main(argv: list[str] | None) -> int:
             return cmd_sim_cnc(args.endpoint, [*args.overrides, *extra])
         if args.command == "certs":
             return cmd_certs(args.out_dir, args.days, args.host)
+        if args.command == "station":
+            return cmd_station(args.station, [*args.overrides, *extra])
         if args.command == "linuxcnc":
             overrides = [*args.overrides, *extra]
             if args.what == "plant" and args.model_dir is not None:  # the plant takes no model: that was an override

@@ -104,6 +104,12 @@ def _seconds(dt) -> float | None:
     return None if dt is None else dt.timestamp()
 
 
+def _reading(dv) -> Reading:
+    ts = _seconds(dv.SourceTimestamp) or _seconds(dv.ServerTimestamp)
+    v = dv.Value.Value if dv.Value is not None else None
+    return Reading(v, ts, dv.StatusCode.is_good() if dv.StatusCode is not None else True)
+
+
 def output_variants(c: Cycle, nodes: Nodes, output: str) -> dict[str, Any]:
     """The values one cycle writes, in each node's unit (nothing before the first prediction)."""
     ua = _ua()
@@ -264,8 +270,16 @@ class Session:
     given with a namespace URI (``nsu=``) are resolved against the server's namespace array on
     every connection (a restarted server may number its namespaces differently)."""
 
-    def __init__(self, endpoint: str, nodes: Nodes, sec: Security, timeout_s: float) -> None:
+    def __init__(self, endpoint: str, nodes: Nodes, sec: Security, timeout_s: float,
+                 subscribe_ms: float | None = None, probe_every_s: float = 1.0) -> None:  # fmt: skip
+        """``subscribe_ms``: take the inputs from a subscription (data changes, timestamps included,
+        published every ``subscribe_ms``) instead of one read request per cycle; the connection is
+        then probed every ``probe_every_s`` in the background (the server's CurrentTime)."""
         self.endpoint, self.nodes, self.sec, self.timeout_s = endpoint, nodes, sec, timeout_s
+        self.subscribe_ms, self.probe_every_s = subscribe_ms, probe_every_s
+        self.latest: dict[str, Reading] = {}
+        self._probe: asyncio.Task | None = None
+        self._next_probe = 0.0
         self.client = None
         self.writer: GuardedWriter | None = None
         self.inputs = nodes.input_ids()
@@ -288,11 +302,12 @@ class Session:
                                            f"({dv.StatusCode.name})")  # fmt: skip
                 if not int(dv.Value.Value) & ua.AccessLevel.CurrentWrite.mask:
                     raise CompensatorError(f"nodes file: output {name} node {nid!r} is not writable for this user on {self.endpoint}")
-                want = ua.ObjectIds.Int32 if name == "status" else ua.ObjectIds.Double
+                status = name.rsplit("/", 1)[-1] == "status"  # a station's outputs are <channel>/<name>
+                want = ua.ObjectIds.Int32 if status else ua.ObjectIds.Double
                 got = ty.Value.Value
                 if got is None or got.Identifier != want or got.NamespaceIndex != 0:
                     raise CompensatorError(f"nodes file: output {name} node {nid!r} has data type {got}; the compensator "
-                                           f"writes {'Int32' if name == 'status' else 'Double'}")  # fmt: skip
+                                           f"writes {'Int32' if status else 'Double'}")  # fmt: skip
             current = await client.read_attributes(nodes)
             self.current = {name: (dv.Value.Value if dv.Value is not None else None) for name, dv in zip(outs, current)}
             self.input_nodes = [client.get_node(resolve_node_id(i, namespaces, f"input {name}"))
@@ -301,6 +316,21 @@ class Session:
             for (name, nid), dv in zip(self.inputs.items(), first):
                 if dv.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown:
                     raise CompensatorError(f"nodes file: input {name} node {nid!r} does not exist on {self.endpoint}")
+            if self.subscribe_ms is not None:
+                self.latest = {name: _reading(dv) for name, dv in zip(self.inputs, first)}
+                by_id = {n.nodeid: name for name, n in zip(self.inputs, self.input_nodes)}
+                session = self
+
+                class Handler:
+                    def datachange_notification(self, node, val, data) -> None:
+                        name = by_id.get(node.nodeid)
+                        if name is not None:
+                            session.latest[name] = _reading(data.monitored_item.Value)
+
+                sub = await client.create_subscription(self.subscribe_ms, Handler())
+                trigger = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp)  # a new stamp is news
+                await sub._subscribe(self.input_nodes, ua.AttributeIds.Value, mfilter=trigger, sampling_interval=0.0)
+                self._status_node = client.get_node(ua.NodeId(ua.ObjectIds.Server_ServerStatus_CurrentTime))
         except BaseException:
             await _quiet_disconnect(client)
             raise
@@ -308,13 +338,25 @@ class Session:
         self.writer = GuardedWriter(client, outs)
 
     async def read(self) -> dict[str, Reading]:
+        if self.subscribe_ms is not None:
+            return self._subscribed()
         dvs = await asyncio.wait_for(self.client.read_attributes(self.input_nodes), self.timeout_s)
-        out = {}
-        for name, dv in zip(self.inputs, dvs):
-            ts = _seconds(dv.SourceTimestamp) or _seconds(dv.ServerTimestamp)
-            v = dv.Value.Value if dv.Value is not None else None
-            out[name] = Reading(v, ts, dv.StatusCode.is_good() if dv.StatusCode is not None else True)
-        return out
+        return {name: _reading(dv) for name, dv in zip(self.inputs, dvs)}
+
+    def _subscribed(self) -> dict[str, Reading]:
+        """The newest value of every input, and the background probe's verdict on the connection."""
+        probe, now = self._probe, time.monotonic()
+        if probe is not None and probe.done():
+            self._probe = None
+            exc = probe.exception()
+            if exc is not None:
+                raise exc if isinstance(exc, _connection_errors()) else ConnectionError(f"probe: {exc}")
+        if self._probe is None and now >= self._next_probe:
+            self._probe = asyncio.ensure_future(asyncio.wait_for(self._status_node.read_value(), self.timeout_s))
+            self._next_probe = now + self.probe_every_s
+        elif probe is not None and now - self._next_probe + self.probe_every_s > self.timeout_s + 0.5:
+            raise asyncio.TimeoutError("the connection probe did not answer")
+        return dict(self.latest)
 
     async def write(self, values: Mapping[str, Any]) -> None:
         ua = _ua()
@@ -328,6 +370,9 @@ class Session:
             raise
 
     async def close(self) -> None:
+        if self._probe is not None:
+            self._probe.cancel()
+            self._probe = None
         client, self.client, self.writer = self.client, None, None
         if client is not None:
             await _quiet_disconnect(client)
@@ -429,7 +474,7 @@ class Compensator:
         self.period_s = _num(cfg, "period_s", 0.1)
         self.output = str(cfg.get("output", "value"))
         self.model = LiveModel(model_dir)
-        self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output)
+        self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output, self.model.operating)
         self.logic = CycleLogic(self.model, Settings.from_config(cfg), self.output, has_load=self.model.needs_load,
                                 has_measuring=self.nodes.inputs.measuring is not None)  # fmt: skip
         self.sec = Security.from_config(cfg.get("security"))

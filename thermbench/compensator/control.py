@@ -210,8 +210,9 @@ class CycleLogic:
         self.output = output
         if output in ("line", "both") and settings.line_travel_mm is None:
             raise config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] in mm")
+        self.operating = list(getattr(model, "operating", []))  # e.g. spindle_rpm of a spindle's lumped network
         self.names = ["axis_mm", "feed_mm_min", *(["load_N"] if has_load else []),
-                      *[f"{t}_C" for t in model.temperatures]]  # fmt: skip
+                      *[f"{t}_C" for t in model.temperatures], *self.operating]  # fmt: skip
         self.has_measuring = has_measuring
         self.period_s = float(model.period_s)
         self.sign = -1.0 if settings.convention == "compensation" else 1.0
@@ -235,6 +236,9 @@ class CycleLogic:
         self.stepped: list[tuple] = []
         self.cold = False  # sticky: the model started cold on a possibly warm machine
         self.starts = 0  # model (re)starts: a state store rewrites its samples after one
+        # inputs read from another server than the axis's (a station's separate logger): another clock, so
+        # they neither set machine time nor are aged against it
+        self.foreign: set[str] = set()
 
     def _restart(self) -> None:
         self.model.start()
@@ -279,7 +283,9 @@ class CycleLogic:
         n0 = len(self.STATE_COLUMNS)
         for row in rows:
             k = int(row[0])
-            rc = self.model.step(k * self.period_s, row[1], row[2], list(row[n0:]), load_N=row[3], measuring=bool(row[4]))
+            nt = len(self.model.temperatures)
+            rc = self.model.step(k * self.period_s, row[1], row[2], list(row[n0 : n0 + nt]), load_N=row[3],
+                                 measuring=bool(row[4]), operating=list(row[n0 + nt :]))  # fmt: skip
             if rc >= 0:
                 self.stepped.append(tuple(float(v) for v in row))
         self.t0_ts, self.last_ts = float(state["t0_ts"]), float(state["last_ts"])
@@ -317,7 +323,8 @@ class CycleLogic:
         v = None if r is None else r.value
         ok = r is not None and r.good and isinstance(v, (int, float)) and not isinstance(v, bool)
         ok = ok and math.isfinite(float(v)) and lo <= float(v) <= hi
-        if ok and self.s.clock == "source" and r.ts_s is not None and ts_now - r.ts_s > self.s.input_max_age_s:
+        if (ok and self.s.clock == "source" and r.ts_s is not None and name not in self.foreign
+                and ts_now - r.ts_s > self.s.input_max_age_s):  # fmt: skip
             ok = False  # older than the newest input by more than the machine-time limit: stale
         if ok:
             self.good[name] = float(v)
@@ -339,7 +346,8 @@ class CycleLogic:
         now = now_epoch_s if now_epoch_s is not None else now_wall_s
         if self.s.clock == "client":
             return now
-        stamps = [r.ts_s for n, r in readings.items() if r is not None and r.ts_s is not None and n != "heartbeat"]
+        stamps = [r.ts_s for n, r in readings.items()
+                  if r is not None and r.ts_s is not None and n != "heartbeat" and n not in self.foreign]  # fmt: skip
         return max(stamps) if stamps else now
 
     def cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
@@ -410,18 +418,20 @@ class CycleLogic:
         i = c.inputs
         temps = [i[f"{s}_C"] for s in self.model.temperatures]
         args = (k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps)
-        rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
+        op = [i[n] for n in self.operating]
+        kw = {"operating": op} if op else {}
+        rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring, **kw)
         if rc == TB_E_SAMPLING:
             self._restart()
             self.cold = True
             c.flags |= Flags.RESTARTED
             self.fresh_ready = None
-            rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring)
+            rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring, **kw)
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc
         else:
-            self.stepped.append((k, i["axis_mm"], i["feed_mm_min"], i.get("load_N", 0.0), float(measuring), *temps))
+            self.stepped.append((k, i["axis_mm"], i["feed_mm_min"], i.get("load_N", 0.0), float(measuring), *temps, *op))
         self.k_last = k
 
     def _predict(self, c: Cycle, t: float) -> Cycle:

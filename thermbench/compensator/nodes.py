@@ -81,6 +81,7 @@ class Inputs(_Strict):
     done: str | None = None
     heartbeat: str | None = None
     temperatures: dict[str, str]
+    operating: dict[str, str] = {}  # operating inputs of the model by manifest name (a spindle's spindle_rpm)
 
 
 class Outputs(_Strict):
@@ -101,6 +102,7 @@ class Nodes(_Strict):
             if getattr(i, key):
                 out[key] = getattr(i, key)
         out.update({f"{s}_C": n for s, n in i.temperatures.items()})
+        out.update(i.operating)
         return out
 
     def output_ids(self) -> dict[str, str]:
@@ -120,7 +122,7 @@ def _where(loc: tuple) -> str:
 
 
 def load_nodes(path: str | Path, sensors: list[str] | None = None, needs_load: bool = False,
-               output: str = "value") -> Nodes:  # fmt: skip
+               output: str = "value", operating: list[str] | None = None) -> Nodes:  # fmt: skip
     """Read and check ``path`` against the model (its ``sensors``, whether it reads the load)
     and the output form (``value``, ``line`` or ``both``)."""
     path = Path(path)
@@ -139,6 +141,9 @@ def load_nodes(path: str | Path, sensors: list[str] | None = None, needs_load: b
     if missing:
         raise NodesError(f"{path}: key inputs.temperatures: the model reads sensor(s) {missing}, which have no node; "
                          f"mapped: {sorted(nodes.inputs.temperatures)}")  # fmt: skip
+    missing = [o for o in (operating or []) if o not in nodes.inputs.operating]
+    if missing:
+        raise NodesError(f"{path}: key inputs.operating: the model reads operating input(s) {missing}, which have no node")
     if needs_load and not nodes.inputs.load_N:
         raise NodesError(f"{path}: key inputs.load_N: the model reads the axial load, so it needs a node")
     if output not in ("value", "line", "both"):

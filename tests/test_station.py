@@ -1,0 +1,111 @@
+"""One compensator process for several channels over several endpoints (``thermbench station``,
+thermbench/compensator/station.py), against two sim-cnc machines: axis X on endpoint a, axis Y on
+endpoint b, and X's bed sensor read from b, as a separate temperature logger would be. Killing b
+holds Y (DISCONNECTED) and X's bed input only (INPUT_HELD): X goes on compensating on a."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from thermbench.compensator.control import Flags
+from thermbench.compensator.simcnc import NAMESPACE, SimCnc, build_machine, nodes_yaml
+from thermbench.compensator.station import Station, StationError, load_station
+from tests.test_compensator import _port
+
+pytestmark = pytest.mark.timing  # real-time loops: run alone (see the Makefile)
+
+
+@pytest.fixture(scope="module")
+def machines():
+    return (build_machine({"benchmark": "seed001_vmc_x", "run": "valid1", "duration_s": 900}),
+            build_machine({"benchmark": "seed001_vmc_x", "run": "valid2", "duration_s": 900}))  # fmt: skip
+
+
+def _station_file(tmp_path, model, ports, machines) -> "Path":
+    a, b = machines
+    nx, ny = nodes_yaml(a, "X"), nodes_yaml(b, "Y")
+    for n in (nx, ny):
+        n["inputs"].pop("done")
+        n["outputs"].pop("line")
+    nx["inputs"]["temperatures"]["T_bed"] = f"b::nsu={NAMESPACE};s=Y.T_bed_C"  # from the other server
+    (tmp_path / "nodes_x.yaml").write_text(yaml.safe_dump(nx))
+    (tmp_path / "nodes_y.yaml").write_text(yaml.safe_dump(ny))
+    spec = {"period_s": 0.02, "log_dir": str(tmp_path / "logs"), "status_every_s": 0.5, "duration_s": 4.0,
+            "reconnect": {"initial_s": 0.1, "max_s": 0.4},
+            "endpoints": {"a": {"url": f"opc.tcp://127.0.0.1:{ports[0]}/a"}, "b": {"url": f"opc.tcp://127.0.0.1:{ports[1]}/b"}},
+            "channels": {"X": {"model": str(model), "nodes": "nodes_x.yaml", "endpoint": "a"},
+                         "Y": {"model": str(model), "nodes": "nodes_y.yaml", "endpoint": "b",
+                               "config": {"rate_limit_um_s": 5.0}}}}  # fmt: skip
+    p = tmp_path / "station.yaml"
+    p.write_text(yaml.safe_dump(spec))
+    return p
+
+
+def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, tmp_path):
+    ports = (_port(), _port())
+    path = _station_file(tmp_path, seed001_exports / "mlr", ports, machines)
+    lines: list[str] = []
+
+    async def scenario():
+        sims = [SimCnc(m, {"endpoint": f"opc.tcp://127.0.0.1:{p}/{n}", "run": m.run, "speed": 20.0, "start": "immediate",
+                           "axis": ax})
+                for m, p, n, ax in zip(machines, ports, "ab", "XY")]  # fmt: skip
+        clocks = []
+        for s in sims:
+            await s.start_server()
+            clocks.append(asyncio.ensure_future(s.run_clock()))
+        st = Station(load_station(path), say=lines.append)
+        task = asyncio.ensure_future(st.run())
+        await asyncio.sleep(1.5)
+        clocks[1].cancel()
+        await sims[1].stop_server()  # b goes away: Y's controller and X's bed sensor
+        kill_wall = __import__("time").time()
+        summary = await task
+        applied = sims[0]._read("value")  # what a holds as X's compensation
+        clocks[0].cancel()
+        await sims[0].stop_server()
+        return summary, kill_wall, applied
+
+    summary, kill_wall, applied = asyncio.run(scenario())
+    x = pd.read_csv(tmp_path / "logs" / "X.csv")
+    y = pd.read_csv(tmp_path / "logs" / "Y.csv")
+    assert len(x) == len(y) == summary["cycles"] > 100  # one line per channel per cycle
+    before_x, after_x = x[x["wall_s"] < kill_wall], x[x["wall_s"] > kill_wall + 0.3]
+    before_y, after_y = y[y["wall_s"] < kill_wall], y[y["wall_s"] > kill_wall + 0.3]
+    assert (before_x["flag_names"] == "OK").mean() > 0.5 and (before_y["flag_names"] == "OK").mean() > 0.5
+    # Y: its controller is gone: held, disconnected
+    assert len(after_y) > 20 and ((after_y["flags"] & int(Flags.DISCONNECTED)) > 0).all()
+    assert ((after_y["flags"] & int(Flags.HELD)) > 0).all()
+    # X: only its bed sensor is held (at its last good value); it goes on compensating on a
+    assert len(after_x) > 20 and not ((after_x["flags"] & int(Flags.DISCONNECTED)) > 0).any()
+    assert (after_x["held"] == "T_bed_C").all() and ((after_x["flags"] & int(Flags.INPUT_HELD)) > 0).all()
+    assert after_x["T_bed_C"].nunique() == 1 and after_x["T_bed_C"].iloc[0] == before_x["T_bed_C"].iloc[-1]
+    assert after_x["t_s"].is_monotonic_increasing and after_x["t_s"].iloc[-1] > before_x["t_s"].iloc[-1] + 10
+    assert applied == x["value_um"].dropna().iloc[-1]  # a holds the last value X wrote, bit for bit
+    assert any(ln.startswith("lost b (") for ln in lines)
+    status = [ln for ln in lines if ln.startswith("cycle ")]
+    assert status and all(" | Y " in ln and ln.split(": ", 1)[1].count("X ") >= 1 for ln in status)
+    assert summary["channels"]["Y"]["flags"]["DISCONNECTED"] == len(y[(y["flags"] & int(Flags.DISCONNECTED)) > 0])
+
+
+def test_station_file_mistakes_are_one_line(tmp_path, seed001_exports, machines):
+    path = _station_file(tmp_path, seed001_exports / "mlr", (1, 2), machines)
+    spec = yaml.safe_load(path.read_text())
+    spec["channels"]["X"]["endpoint"] = "c"
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(StationError, match=r"channels.X: key 'endpoint': 'c' is not one of the endpoints \['a', 'b'\]"):
+        Station(load_station(path))
+    spec["channels"]["X"]["endpoint"] = "a"
+    nx = yaml.safe_load((tmp_path / "nodes_x.yaml").read_text())
+    nx["inputs"]["temperatures"]["T_bed"] = "z::ns=2;s=T"
+    (tmp_path / "nodes_x.yaml").write_text(yaml.safe_dump(nx))
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(StationError, match=r"input T_bed_C 'z::ns=2;s=T': 'z' is not one of the endpoints"):
+        Station(load_station(path))
+    with pytest.raises(StationError, match="no such station file"):
+        load_station(tmp_path / "nope.yaml")
