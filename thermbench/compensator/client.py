@@ -38,7 +38,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..outputs import OutputStream, check_output_file, write_text
-from .control import Cycle, CycleLogic, Flags, Line, Reading, Settings, _num, flag_names
+from .control import Cycle, CycleLogic, Deadlines, Flags, Line, Reading, Settings, _num, flag_names
 from .state import StateError, StateStore
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
@@ -568,18 +568,17 @@ class Compensator:
         counts = collections.Counter()
         connecting: asyncio.Task | None = None
         backoff, next_try = self.backoff0, 0.0
-        t_start = loop.time()
-        k = 0
+        sched = Deadlines(self.period_s, loop.time(), self.max_cycles, self.duration_s)
         ended = None
         task = asyncio.current_task()
         try:
             while not self.stop_requested:
                 if getattr(task, "cancelling", lambda: 0)():  # a cancellation some library call swallowed
                     raise asyncio.CancelledError
-                deadline = t_start + k * self.period_s
-                now = loop.time()
-                if now < deadline:
-                    await asyncio.sleep(deadline - now)
+                k, deadline = sched.k, sched.deadline
+                wait = sched.wait_s(loop.time())
+                if wait > 0:
+                    await asyncio.sleep(wait)
                 begin = loop.time()
                 done = False
                 if connecting is not None and connecting.done():  # a reconnection attempt has ended
@@ -638,20 +637,12 @@ class Compensator:
                     self._say(status_line(k, c, window))
                     window.clear()
                     next_status = end + self.status_every_s
-                k += 1
-                if end - deadline > self.period_s:  # overran: skip the missed deadlines, do not burst
-                    missed = int((end - t_start) / self.period_s) - k + 1
-                    if missed > 0:
-                        counts["skipped_deadlines"] += missed
-                        k += missed
+                over = sched.next(end)
                 if done:
                     ended = "the machine's program is done"
                     break
-                if self.max_cycles is not None and len(durations) >= self.max_cycles:
-                    ended = "max_cycles"
-                    break
-                if self.duration_s is not None and end - t_start >= self.duration_s:
-                    ended = "duration_s"
+                if over:
+                    ended = over
                     break
         except asyncio.CancelledError:
             ended = "interrupted"
@@ -667,6 +658,8 @@ class Compensator:
             if connecting is not None:
                 connecting.cancel()
             await self.session.close()
+            if sched.skipped:
+                counts["skipped_deadlines"] = sched.skipped
             self.summary = {"endpoint": self.endpoint, "model": self.model.manifest.get("name"), "period_s": self.period_s,
                             "output": self.output, "log": str(self.log_path), "ended": ended or self.stop_reason, "flags": dict(counts),
                             "last_error": self.last_error,

@@ -50,7 +50,7 @@ import yaml
 from ..outputs import check_output_file, write_text
 from .client import (STATS_CYCLES, CompensatorError, CycleLog, Ring, Security, Session, _connection_errors,
                      _num, cycle_stats, output_variants)  # fmt: skip
-from .control import Cycle, CycleLogic, Flags, Settings, flag_names
+from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, flag_names
 from .nodes import Nodes, NodesError, load_nodes
 
 SEP = "::"  # "<endpoint>::<node id>": an input node on another endpoint than its channel's
@@ -246,15 +246,15 @@ class Station:
         loop = asyncio.get_running_loop()
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
         window: list[float] = []
-        t_start = loop.time()
-        next_status = t_start + self.status_every_s
-        k, ended = 0, "stopped"
+        sched = Deadlines(self.period_s, loop.time(), self.max_cycles, self.duration_s)
+        next_status = loop.time() + self.status_every_s
+        ended = "stopped"
         try:
             while not self.stop_requested:
-                deadline = t_start + k * self.period_s
-                now = loop.time()
-                if now < deadline:
-                    await asyncio.sleep(deadline - now)
+                k, deadline = sched.k, sched.deadline
+                wait = sched.wait_s(loop.time())
+                if wait > 0:
+                    await asyncio.sleep(wait)
                 begin = loop.time()
                 self._reconnect(begin)
                 live = [ep for ep in self.endpoints.values() if ep.session.client is not None]
@@ -304,14 +304,9 @@ class Station:
                     self._say(self.status_line(k, window))
                     window.clear()
                     next_status = end + self.status_every_s
-                k += 1
-                if end - deadline > self.period_s:
-                    k = max(k, int((end - t_start) / self.period_s) + 1)
-                if self.max_cycles is not None and len(durations) >= self.max_cycles:
-                    ended = "max_cycles"
-                    break
-                if self.duration_s is not None and end - t_start >= self.duration_s:
-                    ended = "duration_s"
+                over = sched.next(end)
+                if over:
+                    ended = over
                     break
         except asyncio.CancelledError:
             ended = "interrupted"
@@ -328,6 +323,7 @@ class Station:
                                                   "flags": dict(c.counts), "log": str(self.log_dir / f"{c.name}.csv")}
                                          for c in self.channels},
                             "last_errors": {n: e.last_error for n, e in self.endpoints.items() if e.last_error},
+                            "skipped_deadlines": sched.skipped,
                             **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip
             import json
 

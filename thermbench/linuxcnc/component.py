@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from ..compensator.client import CycleLog, Ring, cycle_stats, status_line
-from ..compensator.control import Cycle, CycleLogic, Flags, Reading, Settings, config_error
+from ..compensator.control import Cycle, CycleLogic, Deadlines, Flags, Reading, Settings, config_error
 from ..errors import UserError
 from ..outputs import check_output_file, write_text
 
@@ -209,17 +209,15 @@ class HalCompensator:
         durations, lates, starts, index = (Ring(STATS_CYCLES) for _ in range(4))
         counts: dict[str, int] = {}
         window: list[float] = []
-        t_start = time.monotonic()
-        next_status = t_start + self.status_every_s
+        sched = Deadlines(self.period_s, time.monotonic(), duration_s=self.duration_s)
+        next_status = time.monotonic() + self.status_every_s
         self._say(f"{self.name}: running {self.model.manifest.get('name')} every {1e3 * self.period_s:g} ms; "
                   f"pins {self.name}.*")  # fmt: skip
-        k, ended = 0, "unloaded"
+        ended = "unloaded"
         try:
             while not self.stop_requested:
-                deadline = t_start + k * self.period_s
-                now = time.monotonic()
-                if now < deadline:
-                    time.sleep(deadline - now)
+                k, deadline = sched.k, sched.deadline
+                time.sleep(sched.wait_s(time.monotonic()))
                 begin = time.monotonic()
                 c = self.step(h, begin)
                 end = time.monotonic()
@@ -235,19 +233,16 @@ class HalCompensator:
                     self._say(status_line(k, c, window) + f"; counts {self.counts(c.value_um)}")
                     window.clear()
                     next_status = end + self.status_every_s
-                k += 1
-                if end - deadline > self.period_s:  # overran: skip the missed deadlines
-                    missed = int((end - t_start) / self.period_s) - k + 1
-                    if missed > 0:
-                        counts["skipped_deadlines"] = counts.get("skipped_deadlines", 0) + missed
-                        k += missed
-                if self.duration_s is not None and end - t_start >= self.duration_s:
-                    ended = "duration_s"
+                over = sched.next(end)
+                if over:
+                    ended = over
                     break
         except KeyboardInterrupt:  # hal raises it when the component is asked to exit
             ended = "unloaded"
         finally:
             log.close()
+            if sched.skipped:
+                counts["skipped_deadlines"] = sched.skipped
             summary = {"component": self.name, "model": self.model.manifest.get("name"), "period_s": self.period_s,
                        "log": str(self.log_path), "ended": ended, "flags": counts,
                        **cycle_stats(durations.values(), lates.values(), index.values(), starts.values(), self.period_s)}  # fmt: skip

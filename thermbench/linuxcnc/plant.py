@@ -42,6 +42,7 @@ from typing import Any, Mapping
 import numpy as np
 import pandas as pd
 
+from ..compensator.control import Deadlines
 from ..outputs import check_output_dir, output_dir
 from .component import UNITS_MM, _choice, _positive, import_linuxcnc_module, temp_pin
 
@@ -187,16 +188,12 @@ class ThermalPlant:
         h = self.component() if h is None else h
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self.stop)
-        t_start = time.monotonic()
-        k = 0
+        sched = Deadlines(self.period_s, time.monotonic())
         try:
             while not self.stop_requested:
-                deadline = t_start + k * self.period_s
-                now = time.monotonic()
-                if now < deadline:
-                    time.sleep(deadline - now)
+                time.sleep(sched.wait_s(time.monotonic()))
                 self.step(h, time.monotonic())
-                k = max(k + 1, int((time.monotonic() - t_start) / self.period_s))
+                sched.next(time.monotonic())
         except KeyboardInterrupt:
             pass
         finally:
