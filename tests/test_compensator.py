@@ -469,3 +469,50 @@ def test_warm_restart_resumes_and_a_long_outage_starts_cold_loudly(machine, seed
     assert (third["flags"] & int(Flags.COLD)).all() and "COLD" in third["flag_names"].iloc[-1]
     saved = json.loads(state.read_text())
     assert saved["rows"] > 0 and saved["cold"] is True
+
+
+def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exports, nodes_file, tmp_path):
+    """The machine keeps its inputs' history (OPC UA Historical Access): a compensator back after
+    80 s of machine time (more than the 60 s the runtime bridges) replays the outage from it and
+    resumes warm. Its predictions are then thermbench replay's, sample by sample, over the run as
+    the machine played it: as if it had never stopped."""
+    from thermbench.data.io import save_dataset
+
+    state = tmp_path / "state.json"
+
+    async def scenario():
+        ep = f"opc.tcp://127.0.0.1:{_port()}/sim"
+        sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "on_compensator", "history": True})
+        await sim.start_server()
+        clock = asyncio.ensure_future(sim.run_clock())
+        said = []
+        try:
+            for n, pause_s in enumerate((0.0, 4.0)):  # 4 s of wall time: 80 s of machine time
+                await asyncio.sleep(pause_s)
+                cfg = _client_cfg(tmp_path, period_s=0.01, log=str(tmp_path / f"run{n}.csv"), duration_s=2.0,
+                                  state={"path": str(state), "every_s": 0.2})  # fmt: skip
+                lines: list[str] = []
+                await Compensator(seed001_exports / "mlr", ep, nodes_file, cfg, say=lines.append).run()
+                said.append(lines)
+        finally:
+            clock.cancel()
+            await sim.stop_server()
+        return said
+
+    said = asyncio.run(scenario())
+    back = [ln for ln in said[1] if ln.startswith("resumed the model state of ")]
+    assert len(back) == 1 and "the outage replayed from the server's history (" in back[0], said[1]
+    first, second = (pd.read_csv(tmp_path / f"run{n}.csv") for n in (0, 1))
+    gap = second["t_s"].iloc[0] - first["t_s"].iloc[-1]
+    assert 61 < gap < 200 and not (second["flags"] & int(Flags.COLD)).any()
+    save_dataset(machine.dataset, tmp_path / "ds")
+    comp = replay_run(seed001_exports / "mlr", tmp_path / "ds", RUN)["compensation"].set_index("t_s")
+    # the first run saw the run from its start: replay's numbers, as the closed loop always gave
+    f1 = first[(first["flags"] & HELD) == 0]
+    k1 = np.floor(f1["t_s"].to_numpy() + 1e-3)
+    np.testing.assert_allclose(f1["predicted_um"].to_numpy(), -comp.loc[k1, "compensation_um"].to_numpy(), rtol=0, atol=1e-6)
+    fresh = second[(second["flags"] & HELD) == 0]
+    k = np.floor(fresh["t_s"].to_numpy() + 1e-3)  # the model's last grid point (1 s) at each cycle
+    assert len(fresh) > 50 and set(k) <= set(comp.index)
+    want = -comp.loc[k, "compensation_um"].to_numpy()  # replay: the total error predicted at the sample
+    np.testing.assert_allclose(fresh["predicted_um"].to_numpy(), want, rtol=0, atol=1e-6)

@@ -17,7 +17,7 @@ from thermbench.compensator.simcnc import NAMESPACE, SimCnc, build_machine, node
 from thermbench.compensator.station import Station, StationError, load_station
 from tests.test_compensator import _port
 
-pytestmark = pytest.mark.timing  # real-time loops: run alone (see the Makefile)
+# a real-time loop, but its checks are of flags and values, not of timing: it runs in the parallel suite
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings
-from thermbench.compensator.state import StateError, StateStore
+from thermbench.compensator.state import StateStore
 from thermbench.export.native import LiveModel
 
 T0 = 1.7e9  # machine time is a server's epoch timestamp
@@ -26,7 +26,9 @@ def readings(t: float) -> dict[str, Reading]:
 
 
 def logic(model_dir) -> CycleLogic:
-    return CycleLogic(LiveModel(model_dir), Settings(rate_limit_um_s=1000.0))
+    lg = CycleLogic(LiveModel(model_dir), Settings(rate_limit_um_s=1000.0))
+    lg.keep_stepped = True  # as the compensator does when it has a state store
+    return lg
 
 
 def run(lg: CycleLogic, times) -> list:
@@ -82,10 +84,21 @@ def test_cold_when_the_gap_is_long_or_the_machine_changed(seed001_exports, tmp_p
     assert not any(c.flags & Flags.COLD for c in cs[:10])
 
 
-def test_state_files_are_checked(tmp_path):
-    (tmp_path / "state.json").write_text("not json")
-    with pytest.raises(StateError, match=r"state.json: not a compensator state"):
-        StateStore(tmp_path / "mine.json")  # fine: nothing there
-        s = StateStore.__new__(StateStore)
-        s.path, s.samples_path = tmp_path / "state.json", tmp_path / "state.json.samples.csv"
-        s.load()
+def test_state_files_are_checked(tmp_path, seed001_exports):
+    from thermbench.outputs import OutputRefused
+
+    (tmp_path / "state.json").write_text("{}")  # a user's file of that name: never read as a state, nor replaced
+    with pytest.raises(OutputRefused, match=r"state.json: exists and thermbench did not write it"):
+        StateStore(tmp_path / "state.json")
+    # a state whose samples are not its own (a power cut after the samples were cut short): a loud
+    # cold start, not a refusal
+    first = logic(seed001_exports / "mlr")
+    run(first, range(50))
+    store = StateStore(tmp_path / "s2.json")
+    store.sync(first.stepped, first.starts)
+    store.save(first.state())  # the process dies here: the samples stream is never closed
+    samples = tmp_path / "s2.json.samples.csv"
+    samples.write_text("\n".join(samples.read_text().splitlines()[:30]) + "\n")
+    header, rows = StateStore(tmp_path / "s2.json").load()
+    ok, why = logic(seed001_exports / "mlr").resume_decision(header, rows, T0 + 55, {k: r.value for k, r in readings(55).items()})
+    assert not ok and why.startswith("the saved state is inconsistent (s2.json.samples.csv has 30 rows"), why

@@ -38,7 +38,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..outputs import OutputStream, check_output_file, write_text
-from .control import Cycle, CycleLogic, Deadlines, Flags, Line, Reading, Settings, _num, flag_names
+from .control import TB_MAX_GAP_S, Cycle, CycleLogic, Deadlines, Flags, Line, Reading, Settings, _num, flag_names
 from .state import StateError, StateStore
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes, load_nodes
 
@@ -108,6 +108,25 @@ def _reading(dv) -> Reading:
     ts = _seconds(dv.SourceTimestamp) or _seconds(dv.ServerTimestamp)
     v = dv.Value.Value if dv.Value is not None else None
     return Reading(v, ts, dv.StatusCode.is_good() if dv.StatusCode is not None else True)
+
+
+def resume_from_controller(logic: CycleLogic, current: Mapping[str, Any], nodes: Nodes, prefix: str = "") -> None:
+    """Make ``logic`` ramp from the compensation the controller holds (``current``: the output
+    nodes' values read when the session opened, keyed ``<prefix><output name>``), not from zero."""
+    o = nodes.outputs
+
+    def num(key, factor):
+        v = current.get(prefix + key)
+        return float(v) / factor if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
+
+    value = num("value", LENGTH_UNITS[o.value.unit]) if o.value else None
+    line = None
+    if o.line:
+        off, slope = num("offset", LENGTH_UNITS[o.line.offset.unit]), num("slope", SLOPE_UNITS[o.line.slope.unit])
+        ref = num("ref", LENGTH_UNITS[o.line.ref.unit])
+        if None not in (off, slope, ref):
+            line = Line(off, slope, ref / 1e3)
+    logic.resume(value, line)
 
 
 def output_variants(c: Cycle, nodes: Nodes, output: str) -> dict[str, Any]:
@@ -354,7 +373,7 @@ class Session:
         if self._probe is None and now >= self._next_probe:
             self._probe = asyncio.ensure_future(asyncio.wait_for(self._status_node.read_value(), self.timeout_s))
             self._next_probe = now + self.probe_every_s
-        elif probe is not None and now - self._next_probe + self.probe_every_s > self.timeout_s + 0.5:
+        elif self._probe is not None and now - self._next_probe + self.probe_every_s > self.timeout_s + 0.5:
             raise asyncio.TimeoutError("the connection probe did not answer")
         return dict(self.latest)
 
@@ -371,7 +390,10 @@ class Session:
 
     async def close(self) -> None:
         if self._probe is not None:
-            self._probe.cancel()
+            if self._probe.done():
+                self._probe.exception()  # retrieved: a probe that failed is why we close
+            else:
+                self._probe.cancel()
             self._probe = None
         client, self.client, self.writer = self.client, None, None
         if client is not None:
@@ -501,7 +523,12 @@ class Compensator:
         self.state_every_s = _num(st, "every_s", 5.0, name="state.every_s")
         self.state_max_gap_s = _num(st, "max_gap_s", 60.0, name="state.max_gap_s")
         self.state_agree_C = _num(st, "agree_C", 2.0, name="state.agree_C")
+        self.state_history = bool(st.get("history", True))
+        if self.state_max_gap_s > TB_MAX_GAP_S:
+            raise CompensatorError(f"config key 'state.max_gap_s': at most {TB_MAX_GAP_S:g} s (the longest gap the C "
+                                   f"runtime bridges), got {self.state_max_gap_s:g}")  # fmt: skip
         self.store = StateStore(str(st["path"])) if st.get("path") else None
+        self.logic.keep_stepped = self.store is not None
         try:
             self.saved_state = self.store.load() if self.store is not None else None
         except StateError as exc:
@@ -521,20 +548,7 @@ class Compensator:
 
     def _resume_from_controller(self) -> None:
         """Ramp from what the controller holds (read when the session opened), not from zero."""
-        cur, o = self.session.current, self.nodes.outputs
-
-        def num(key, factor):
-            v = cur.get(key)
-            return float(v) / factor if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
-
-        value = num("value", LENGTH_UNITS[o.value.unit]) if o.value else None
-        line = None
-        if o.line:
-            off, slope = num("offset", LENGTH_UNITS[o.line.offset.unit]), num("slope", SLOPE_UNITS[o.line.slope.unit])
-            ref = num("ref", LENGTH_UNITS[o.line.ref.unit])
-            if None not in (off, slope, ref):
-                line = Line(off, slope, ref / 1e3)
-        self.logic.resume(value, line)
+        resume_from_controller(self.logic, self.session.current, self.nodes)
 
     async def run(self) -> dict:
         """Connect (the first connection must succeed: a wrong endpoint or credentials are a
@@ -603,7 +617,7 @@ class Compensator:
                     try:
                         readings = await self.session.read()
                         if self.resume_pending:
-                            self._resume_or_cold(readings, begin)
+                            await self._resume_or_cold(readings, begin)
                         c = self.logic.cycle(readings, begin, time.time())
                         c.flags, self._flag_next = int(c.flags | self._flag_next), 0
                         await self.session.write(output_variants(c, self.nodes, self.output))
@@ -626,8 +640,9 @@ class Compensator:
                     if f.value and c.flags & f.value:
                         counts[f.name] += 1
                 if c.flags & Flags.RESTARTED:
-                    self._say(f"COLD RESTART at machine time {c.t_s:.0f} s: a gap longer than the runtime bridges; the "
-                              "model starts from the machine as it is now (flag COLD from here on)")  # fmt: skip
+                    self._say(f"COLD RESTART at machine time {c.t_s:.0f} s: the model restarted (a gap longer than the "
+                              "runtime bridges, or the server's clock restarted); it starts from the machine as it is "
+                              "now (flag COLD from here on)")  # fmt: skip
                 if self.store is not None and end >= next_state:
                     self._save_state()
                     next_state = end + self.state_every_s
@@ -672,20 +687,33 @@ class Compensator:
         self.store.sync(self.logic.stepped, self.logic.starts)
         self.store.save({**self.logic.state(), "model": self.model.manifest.get("name"), "saved_utc": time.time()})
 
-    def _resume_or_cold(self, readings, now_wall_s: float) -> None:
-        """At the first reading: go on from the saved state (warm) or start cold, saying which."""
+    async def _resume_or_cold(self, readings, now_wall_s: float) -> None:
+        """At the first reading: go on from the saved state (warm), replay an outage longer than
+        the runtime bridges from the server's history (OPC UA Historical Access) when it keeps one,
+        or start cold; saying which."""
         self.resume_pending = False
         saved = self.saved_state
         if saved is None:  # the first start: nothing says the machine ran before
             self._say(f"starting fresh: no saved state at {self.store.path} (the machine as it is now is the model's zero)")
             self.store.sync(self.logic.stepped, self.logic.starts)
             return
-        else:
-            ts = self.logic._machine_ts(readings, now_wall_s, time.time())
-            now = {n: float(r.value) for n, r in readings.items() if r is not None and isinstance(r.value, (int, float))}
-            warm, why = self.logic.resume_decision(saved[0], saved[1], ts, now, self.state_max_gap_s, self.state_agree_C)
+        state, rows = saved
+        ts = self.logic._machine_ts(readings, now_wall_s, time.time())
+        now = {n: float(r.value) for n, r in readings.items() if r is not None and isinstance(r.value, (int, float))}
+        warm, why = self.logic.resume_decision(state, rows, ts, now, self.state_max_gap_s, self.state_agree_C)
+        if not warm and self.state_history and why.startswith("the saved state is ") and "old" in why:
+            missed, note = await self._history_rows(state, rows, ts)
+            if missed:
+                rows = np.vstack([rows, np.asarray(missed, dtype=float)])
+                state = {**state, "last_ts": float(state["t0_ts"]) + missed[-1][0] * self.logic.period_s}
+                warm, why2 = self.logic.resume_decision(state, rows, ts, now, self.state_max_gap_s, self.state_agree_C)
+                why = (f"{why}: the outage replayed from the server's history ({len(missed)} samples), {why2}" if warm
+                       else f"{why}; after the server's history: {why2}")  # fmt: skip
+            else:
+                why = f"{why}, and {note}"
         if warm:
-            self.logic.warm_start(*saved)
+            self.logic.warm_start(state, rows)
+            self._resume_from_controller()  # what the controller holds now, if it says, is where the ramp starts
             self._flag_next = Flags.RESUMED
             self._say(f"resumed the model state of {self.store.path}: {why}")
         else:
@@ -693,6 +721,55 @@ class Compensator:
             self._say(f"COLD START: {why}; the model starts from the machine as it is now, and a machine still warm "
                       "from before reads as its zero (flag COLD on every cycle of this run)")  # fmt: skip
         self.store.sync(self.logic.stepped, self.logic.starts)
+
+    async def _history_rows(self, state: dict, rows, ts_now: float) -> tuple[list[tuple], str]:
+        """The samples the model missed (grid points after the saved state, before now), from the
+        server's raw history of every input (each value held until the next, as the loop holds
+        them); ([], why not) when the server keeps none or it has a hole longer than the runtime
+        bridges."""
+        import datetime as dt
+
+        ua = _ua()
+        lg = self.logic
+        t0, p = float(state["t0_ts"]), lg.period_s
+        k_last, k_now = int(rows[-1][0]), math.floor((ts_now - t0) / p + 1e-3)
+        if k_now - k_last <= 1:
+            return [], "no sample is missing"
+        start = dt.datetime.fromtimestamp(float(state["last_ts"]), dt.timezone.utc)
+        end = dt.datetime.fromtimestamp(ts_now, dt.timezone.utc)
+        series: dict[str, tuple[np.ndarray, list]] = {}
+        for name, node in zip(self.session.inputs, self.session.input_nodes):
+            if name in ("done", "heartbeat"):
+                continue
+            try:
+                dvs = await asyncio.wait_for(node.read_raw_history(start, end), 10 * self.timeout_s)
+            except (ua.UaStatusCodeError, asyncio.TimeoutError) as exc:
+                return [], f"the server keeps no history of {name} ({type(exc).__name__})"
+            pts = sorted((dv.SourceTimestamp.timestamp(), dv.Value.Value) for dv in dvs
+                         if dv.SourceTimestamp is not None and dv.Value is not None and dv.StatusCode.is_good())  # fmt: skip
+            if not pts:
+                return [], f"the server's history of {name} is empty for the outage"
+            t = np.array([q[0] for q in pts])
+            holes = np.diff(np.concatenate([[float(state["last_ts"])], t, [ts_now]]))
+            if holes.max() > self.state_max_gap_s:
+                return [], f"the server's history of {name} has a hole of {holes.max():.0f} s"
+            series[name] = (t, [q[1] for q in pts])
+        n0 = len(lg.STATE_COLUMNS)
+        last = rows[-1]
+        held = {"axis_mm": last[1], "feed_mm_min": last[2], "load_N": last[3], "measuring": last[4],
+                **{f"{s}_C": last[n0 + j] for j, s in enumerate(lg.model.temperatures)},
+                **{o: last[n0 + len(lg.model.temperatures) + j] for j, o in enumerate(lg.operating)}}  # fmt: skip
+        out = []
+        for k in range(k_last + 1, k_now):
+            t = t0 + k * p
+            v = dict(held)
+            for name, (ts, vals) in series.items():
+                i = int(np.searchsorted(ts, t + 1e-3 * p)) - 1  # the grid's tolerance: stamps carry float rounding
+                if i >= 0:
+                    v[name] = float(vals[i])
+            out.append((k, v["axis_mm"], v["feed_mm_min"], v.get("load_N", 0.0), float(bool(v.get("measuring", 0.0))),
+                        *[v[f"{s}_C"] for s in lg.model.temperatures], *[v[o] for o in lg.operating]))  # fmt: skip
+        return out, ""
 
     def stop(self, reason: str = "stopped") -> None:
         """End the loop after the current cycle (the summary says ``reason``)."""

@@ -269,6 +269,7 @@ class CycleLogic:
         # what the model was stepped with since its last start: (k, axis, feed, load, measuring, temps...),
         # the state a warm restart re-steps (the C runtime's arena holds pointers: its bytes do not outlive us)
         self.stepped: list[tuple] = []
+        self.keep_stepped = False  # recorded only for a state store (warm restarts): else it would only grow
         self.cold = False  # sticky: the model started cold on a possibly warm machine
         self.starts = 0  # model (re)starts: a state store rewrites its samples after one
         # inputs read from another server than the axis's (a station's separate logger): another clock, so
@@ -294,6 +295,8 @@ class CycleLogic:
         """Warm (True) when the saved state is of this model's inputs, the gap in machine time is
         at most ``max_gap_s`` (what the runtime bridges) and every temperature now is within
         ``agree_C`` of the last saved sample's; else cold, and why."""
+        if state.get("_problem"):
+            return False, str(state["_problem"])
         if state.get("temperatures") != list(self.model.temperatures) or state.get("period_s") != self.period_s:
             return False, "the saved state is of another model"
         if not len(rows) or state.get("last_ts") is None:
@@ -465,7 +468,7 @@ class CycleLogic:
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc
-        else:
+        elif self.keep_stepped:
             self.stepped.append((k, i["axis_mm"], i["feed_mm_min"], i.get("load_N", 0.0), float(measuring), *temps, *op))
         self.k_last = k
 

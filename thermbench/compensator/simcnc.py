@@ -312,6 +312,9 @@ class SimCnc:
         server.subscribe_server_callback(CallbackType.PostRead, on_read)
         try:
             await server.start()
+            if self.cfg.get("history"):  # OPC UA Historical Access on the inputs: a compensator back from an outage replays it
+                keys = ["axis_mm", "feed_mm_min", "measuring", *[k for k in self.ids if k.endswith("_C") or k == "load_N"]]
+                await server.historize_node_data_change([server.get_node(self.ids[k]) for k in keys], period=None)
         except OSError as exc:
             raise SimCncError(f"config key 'endpoint': cannot serve {self.endpoint}: {exc}") from None
         self.server = server

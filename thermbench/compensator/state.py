@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,10 +45,14 @@ class StateStore:
             header = json.loads(self.path.read_text())
             n = int(header["rows"])
             rows = np.zeros((0, 0))
-            if n and self.samples_path.exists():
+            if n and self.samples_path.exists() and self.samples_path.stat().st_size:
                 rows = np.loadtxt(self.samples_path, delimiter=",", ndmin=2, max_rows=n)
-            if len(rows) != n:
-                raise ValueError(f"{self.samples_path} has {len(rows)} rows, the state says {n}")
+            if len(rows) != n or (n and int(rows[-1][0]) != int(header.get("k_last", -1))):
+                # cut short by a crash between the samples and the state (or a restart's new samples):
+                # not this state's samples, so not usable; a loud cold start, not a refusal
+                header["_problem"] = (f"the saved state is inconsistent ({self.samples_path.name} has {len(rows)} rows "
+                                      f"ending at grid point {int(rows[-1][0]) if len(rows) else None}; the state says {n}, "
+                                      f"ending at {header.get('k_last')})")  # fmt: skip
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise StateError(f"config key 'state.path': {self.path}: not a compensator state ({exc}); move it away to start "
                              "cold") from None  # fmt: skip
@@ -66,8 +71,11 @@ class StateStore:
         self.n = len(stepped)
 
     def save(self, header: dict) -> None:
+        """The state, after its samples are on disk (flushed and fsynced: a power cut leaves the
+        state behind its samples, never ahead)."""
         if self.out is not None:
             self.out.fh.flush()
+            os.fsync(self.out.fh.fileno())
         write_text(self.path, json.dumps({**header, "rows": self.n}, indent=2) + "\n", "compensator-state")
 
     def close(self) -> None:

@@ -49,7 +49,7 @@ import yaml
 
 from ..outputs import check_output_file, write_text
 from .client import (STATS_CYCLES, CompensatorError, CycleLog, Ring, Security, Session, _connection_errors,
-                     _num, cycle_stats, output_variants)  # fmt: skip
+                     _num, cycle_stats, output_variants, resume_from_controller)  # fmt: skip
 from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, flag_names
 from .nodes import Nodes, NodesError, load_nodes
 
@@ -241,6 +241,8 @@ class Station:
             for ep in self.endpoints.values():
                 await ep.session.close()
             raise
+        for ep in self.endpoints.values():
+            self._resume_channels(ep)
         self._say(f"connected to {len(self.endpoints)} endpoint(s) ({', '.join(self.endpoints)}): {len(self.channels)} "
                   f"channels ({', '.join(c.name for c in self.channels)})")  # fmt: skip
         loop = asyncio.get_running_loop()
@@ -267,6 +269,7 @@ class Station:
                         await self._lost(ep, r, begin)
                     else:
                         readings.update(r)
+                        ep.backoff_s = self.backoff0  # it worked: the next outage backs off afresh
                 writes: dict[str, dict] = collections.defaultdict(dict)
                 wall = time.time()
                 for c in self.channels:
@@ -338,16 +341,22 @@ class Station:
                 ep.connecting = None
                 if exc is None:
                     self._say(f"reconnected to {ep.name} ({ep.url})")
-                    ep.backoff_s = self.backoff0
                     for c in self.channels:
                         if any(e == ep.name for e, _ in c.inputs.values()):
                             c.logic.reconnected()
+                    self._resume_channels(ep)  # a restarted controller may hold another value
                 else:
                     ep.last_error = f"reconnecting: {type(exc).__name__}: {exc}"
                     ep.next_try = now + ep.backoff_s
                     ep.backoff_s = min(ep.backoff_s * self.backoff_factor, self.backoff_max)
             if ep.session.client is None and ep.connecting is None and now >= ep.next_try:
                 ep.connecting = asyncio.ensure_future(ep.session.open())
+
+    def _resume_channels(self, ep: Endpoint) -> None:
+        """The channels writing to ``ep`` ramp from what its controller holds, not from zero."""
+        for c in self.channels:
+            if c.endpoint == ep.name:
+                resume_from_controller(c.logic, ep.session.current, c.nodes, prefix=f"{c.name}/")
 
     async def _lost(self, ep: Endpoint, exc: BaseException, now: float) -> None:
         ep.last_error = f"{type(exc).__name__}: {exc}"

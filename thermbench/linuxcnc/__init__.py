@@ -1,8 +1,8 @@
 """LinuxCNC integration: thermal compensation through the controller's external offsets.
 
 LinuxCNC (the open-source CNC controller, Debian package ``linuxcnc-uspace``) adds an
-*external offset* to an axis: ``axis.L.eoffset-counts`` x ``axis.L.eoffset-scale`` while
-``axis.L.eoffset-enable`` is true, rate-limited by the INI's ``[AXIS_L]OFFSET_AV_RATIO``
+*external offset* to an axis: the changes of ``axis.L.eoffset-counts`` x ``axis.L.eoffset-scale``
+while ``axis.L.eoffset-enable`` is true and the machine is on and homed, rate-limited by the INI's ``[AXIS_L]OFFSET_AV_RATIO``
 (a fraction of the axis's velocity and acceleration reserved for the offset). That is the
 controller's own way to add a correction to an axis, and where thermal compensation goes.
 

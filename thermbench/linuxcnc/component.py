@@ -17,9 +17,12 @@ MODEL_DIR ...``). Every ``period_s`` of the wall clock it
    netted to ``axis.L.eoffset-counts``, ``-scale`` and ``-enable``. LinuxCNC then adds
    counts x scale to the axis, rate-limited by ``[AXIS_L]OFFSET_AV_RATIO``.
 
-While ``machine-on`` is false (``require_machine_on``) the model keeps stepping (the machine
-cools while it is off), but the offset is dropped: enable false, counts 0, ``eoffset-clear``
-true. On the way back the compensation ramps from zero at the rate limit.
+LinuxCNC adds the *changes* of the counts (x scale) to the offset, and drops the changes made
+while the machine is off, not homed, or enable is false. So the offset is written only while
+``machine-on`` (net ``motion.motion-enabled``) and ``all-homed`` (net ``motion.is-all-homed``) are
+both true (``require_machine_on``): otherwise the model keeps stepping (the machine cools while
+it is off), but the offset is dropped (enable false, counts 0, ``eoffset-clear`` true, flag
+``MACHINE_OFF``), and on the way back the compensation ramps from zero at the rate limit.
 
 Output pins for a GUI or halscope: ``comp-um`` (the compensation written, µm),
 ``predicted-um`` (the model's error at the axis position), ``flags`` (the cycle's
@@ -131,7 +134,7 @@ class HalCompensator:
     # ------------------------------------------------------------------ pins ---
     def pins(self) -> list[tuple[str, str, str]]:
         """(name, type, direction) of every pin: type float|s32|bit, direction in|out."""
-        ins = [("axis-pos", "float"), ("axis-vel", "float"), ("machine-on", "bit")]
+        ins = [("axis-pos", "float"), ("axis-vel", "float"), ("machine-on", "bit"), ("all-homed", "bit")]
         ins += [(temp_pin(s), "float") for s in self.model.temperatures]
         if self.model.needs_load:
             ins.append(("load-N", "float"))
@@ -180,7 +183,10 @@ class HalCompensator:
         """One cycle: read ``h``'s input pins, decide, write its output pins."""
         ts = self.machine_time(h, now_wall_s)
         c = self.logic.cycle(self.readings(h, ts), now_wall_s)
-        on = bool(h["machine-on"]) or not self.require_on
+        # LinuxCNC adds count *changes* x scale to the offset, and drops the changes made while the
+        # machine is off, not homed, or enable is false: the offset can only follow the counts while
+        # both pins say so, and it starts from 0 (counts 0, clear) every time they do
+        on = not self.require_on or (bool(h["machine-on"]) and bool(h["all-homed"]))
         if not on:
             c = self.logic.dropped(c, Flags.MACHINE_OFF)
         h["eoffset-scale"] = self.scale

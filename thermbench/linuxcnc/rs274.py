@@ -99,8 +99,11 @@ def run_rs274(program: Path, tool_table: Path | None = None, timeout_s: float = 
             tool_table = Path(tmp) / "tools.tbl"
             tool_table.write_text("".join(f"T{i} P{i} D0 Z0 ;\n" for i in range(1, 100)))
         cmd = [exe, "-t", str(Path(tool_table).resolve()), "-g", str(program.resolve())]
-        proc = subprocess.run(cmd, cwd=program.resolve().parent, capture_output=True, text=True, stdin=subprocess.DEVNULL,
-                              timeout=timeout_s)  # fmt: skip
+        try:
+            proc = subprocess.run(cmd, cwd=program.resolve().parent, capture_output=True, text=True,
+                                  stdin=subprocess.DEVNULL, timeout=timeout_s)  # fmt: skip
+        except subprocess.TimeoutExpired:
+            raise FlattenError(f"{program}: LinuxCNC's rs274 did not finish within {timeout_s:g} s (an endless loop?)") from None
     calls, problems = [], []
     for line in proc.stdout.splitlines():
         m = _CALL.match(line)

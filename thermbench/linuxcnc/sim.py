@@ -137,8 +137,13 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
     env = "env NUMBA_CACHE_DIR=numba_cache MPLBACKEND=Agg"
     plant = (f"loadusr -Wn tbplant {env} {python} linuxcnc plant benchmark={cfg['benchmark']} "
              f"time_scale={float(cfg['time_scale'])} period_s={float(cfg['period_s'])} out_dir=plant")  # fmt: skip
+    extra = dict(cfg.get("component") or {})
+    bad = [k for k, v in extra.items() if not isinstance(v, (int, float, str, bool)) or " " in str(v)]
+    if bad:
+        raise LinuxCncSimError(f"config key 'component': {bad} are not plain values (a number, a word): they go on the "
+                               "loadusr line of the HAL file")  # fmt: skip
     comp_over = {"time_source": "pin", "period_s": float(cfg["period_s"]), "scale_per_count": float(cfg["scale_per_count"]),
-                 "log": "compensator_log.csv", **dict(cfg.get("component") or {})}  # fmt: skip
+                 "log": "compensator_log.csv", **extra}  # fmt: skip
     comp = f"loadusr -Wn tbcomp {env} {python} linuxcnc component model " + " ".join(
         f"{k}={v}" for k, v in comp_over.items())
     lines = ["# written by thermbench linuxcnc sim", "# the thermal plant (scaled clock) and the compensator", plant, comp,
@@ -147,6 +152,7 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
              "net tb-vel joint.0.vel-cmd => tbplant.axis-vel tbcomp.axis-vel",
              "net tb-time tbplant.time-s => tbcomp.time-s",
              "net sample:enable => tbcomp.machine-on",
+             "net tb-homed motion.is-all-homed => tbcomp.all-homed",
              "# the temperature pins (on a real machine: the sensors' HAL pins)"]  # fmt: skip
     lines += [f"net tb-{s} tbplant.temp.{s} => tbcomp.temp.{s}" for s in sensors]
     lines += ["# the compensation into LinuxCNC's external offset of X",
@@ -237,11 +243,25 @@ def write_config(stage: Path, model_dir: Path, cfg: Mapping[str, Any], sensors: 
 
 def run_linuxcnc(stage: Path, user: str | None, timeout_s: float) -> subprocess.CompletedProcess:
     """``linuxcnc thermbench.ini`` in ``stage`` (as ``user`` when given), under ``script`` so that
-    LinuxCNC prints to our pipe (without a terminal it writes to temporary files it deletes)."""
+    LinuxCNC prints to our pipe (without a terminal it writes to temporary files it deletes). It
+    runs in a session of its own: past ``timeout_s`` the whole of it (realtime, task, components)
+    is killed, and that is a :class:`LinuxCncSimError`."""
+    import signal
+
     cmd = ["env", f"HOME={stage}", "script", "-qec", "linuxcnc thermbench.ini", "/dev/null"]
     if user is not None:
         cmd = ["runuser", "-u", user, "--", *cmd]
-    return subprocess.run(cmd, cwd=stage, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, cwd=stage, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            stdin=subprocess.DEVNULL, start_new_session=True)  # fmt: skip
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        subprocess.run(["pkill", "-KILL", "-s", str(proc.pid)], check=False)
+        raise LinuxCncSimError(f"LinuxCNC did not finish within {timeout_s:g} s (config key 'timeout_s' + 120 s); "
+                               "it was stopped") from None  # fmt: skip
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
 def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=None) -> dict:

@@ -53,7 +53,11 @@ def controller_figures(samples: pd.DataFrame, scale_mm: float, ratio: float, max
     if len(s) < 10:
         raise ValueError(f"only {len(s)} servo samples with the machine on")
     delay, actual_vs = servo_delay(s)
-    req_vs_counts = s["eoffset_request_mm"] - s["counts"] * scale_mm
+    # the motion controller reads the counts at the start of its servo period, the sampler at the
+    # end: a change written between the two shows one period later
+    req = s["eoffset_request_mm"].to_numpy()
+    cs = s["counts"].to_numpy() * scale_mm
+    req_vs_counts = np.minimum(np.abs(req - cs), np.abs(req - np.concatenate([[cs[0]], cs[:-1]])))
     lag = s["eoffset_mm"] - s["eoffset_request_mm"]
     rate = np.abs(np.diff(s["eoffset_mm"].to_numpy())) / SERVO_S
     return {
