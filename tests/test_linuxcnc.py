@@ -35,15 +35,35 @@ LCNC_USER = "thermbench-lcnc"
 
 @pytest.fixture(scope="module")
 def lcnc_user():
-    """The unprivileged user LinuxCNC runs as (None when the tests are not root)."""
+    """The unprivileged user LinuxCNC runs as (None when the tests are not root). As root (CI),
+    thermbench's checkout and interpreter may sit below directories only root can pass (a
+    ``mktemp -d`` clone, a pyenv under /root): the user is given the x (pass) permission on just
+    those directories for the test, and it is taken back after."""
+    import stat
+    import sysconfig
+
+    from thermbench.linuxcnc.sim import blocking_dirs
+
     assert shutil.which("linuxcnc"), "LinuxCNC is not installed: apt-get install --no-install-recommends linuxcnc-uspace"
     if os.geteuid() != 0:
-        return None
+        yield None
+        return
     try:
         pwd.getpwnam(LCNC_USER)
     except KeyError:
         subprocess.run(["useradd", "--create-home", "--shell", "/bin/sh", LCNC_USER], check=True)
-    return LCNC_USER
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    blocked = blocking_dirs([Path(sys.executable).resolve(), Path(sysconfig.get_paths()["purelib"]), repo])
+    modes = {d: stat.S_IMODE(d.stat().st_mode) for d in blocked}
+    for d, m in modes.items():
+        d.chmod(m | 0o001)
+    try:
+        yield LCNC_USER
+    finally:
+        for d, m in modes.items():
+            d.chmod(m)
 
 
 @pytest.fixture(scope="module")

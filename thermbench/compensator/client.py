@@ -496,7 +496,8 @@ class Compensator:
         self.period_s = _num(cfg, "period_s", 0.1)
         self.output = str(cfg.get("output", "value"))
         self.model = LiveModel(model_dir)
-        self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output, self.model.operating)
+        self.nodes = load_nodes(nodes_path, self.model.temperatures, self.model.needs_load, self.output,
+                                getattr(self.model, "operating", []))  # fmt: skip
         self.logic = CycleLogic(self.model, Settings.from_config(cfg), self.output, has_load=self.model.needs_load,
                                 has_measuring=self.nodes.inputs.measuring is not None)  # fmt: skip
         self.sec = Security.from_config(cfg.get("security"))

@@ -5,8 +5,8 @@ offsets) but has no heat. This userspace HAL component supplies it: the ball-scr
 simulator of a benchmark machine (seed 000 §3, :func:`thermbench.sim.scenario.build_model`
 with the benchmark's truth) driven by the axis's actual motion, read from HAL.
 
-**The scaled clock.** Machine (thermal) time runs ``time_scale`` times faster than the wall
-clock: with 120, one minute of LinuxCNC's motion is two hours of thermal history. The
+**The scaled clock.** Machine (thermal) time starts when the machine is first on (``machine-on``,
+net ``motion.motion-enabled``) and runs ``time_scale`` times faster than the wall clock: with 120, one minute of LinuxCNC's motion is two hours of thermal history. The
 motion is stretched in time: where the nut is, and for what fraction of the time, are the
 axis's; the friction heat uses the axis's real speed (mm/min as LinuxCNC moves it). So a
 program that reciprocates for a minute heats the screw as that duty cycle would for two
@@ -124,7 +124,7 @@ class ThermalPlant:
 
     # ------------------------------------------------------------------ pins ---
     def pins(self) -> list[tuple[str, str, str]]:
-        ins = [("axis-pos", "float", "in"), ("axis-vel", "float", "in"), ("eoffset", "float", "in")]
+        ins = [("axis-pos", "float", "in"), ("axis-vel", "float", "in"), ("eoffset", "float", "in"), ("machine-on", "bit", "in")]
         outs = [("time-s", "float", "out"), *((temp_pin(s), "float", "out") for s in self.sensors)]
         return ins + outs
 
@@ -134,7 +134,7 @@ class ThermalPlant:
             self.start_worker()
         h = hal.component(self.name)
         for name, typ, d in self.pins():
-            h.newpin(name, {"float": hal.HAL_FLOAT}[typ], hal.HAL_IN if d == "in" else hal.HAL_OUT)
+            h.newpin(name, {"float": hal.HAL_FLOAT, "bit": hal.HAL_BIT}[typ], hal.HAL_IN if d == "in" else hal.HAL_OUT)
         for s, v in self.temps_C.items():
             h[temp_pin(s)] = v
         h.ready()
@@ -149,7 +149,10 @@ class ThermalPlant:
         return self.model.run(Motion(m[:, 0], m[:, 1], m[:, 2]), ambient_C=self.ambient0_C)
 
     def step(self, h, now_wall_s: float) -> float:
-        if self.t0_wall is None:
+        if self.t0_wall is None:  # the clock starts when the machine is first on: the compensator is loaded by
+            if not h["machine-on"]:  # then, so its first sample is the run's first, as in the dataset written at the end
+                h["time-s"] = 0.0
+                return 0.0
             self.t0_wall = now_wall_s
         t = self.time_scale * (now_wall_s - self.t0_wall)
         x = float(h["axis-pos"]) * self.unit_mm

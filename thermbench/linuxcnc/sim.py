@@ -151,7 +151,7 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
              "net tb-pos joint.0.pos-fb => tbplant.axis-pos tbcomp.axis-pos",
              "net tb-vel joint.0.vel-cmd => tbplant.axis-vel tbcomp.axis-vel",
              "net tb-time tbplant.time-s => tbcomp.time-s",
-             "net sample:enable => tbcomp.machine-on",
+             "net sample:enable => tbcomp.machine-on tbplant.machine-on",
              "net tb-homed motion.is-all-homed => tbcomp.all-homed",
              "# the temperature pins (on a real machine: the sensors' HAL pins)"]  # fmt: skip
     lines += [f"net tb-{s} tbplant.temp.{s} => tbcomp.temp.{s}" for s in sensors]
@@ -218,7 +218,24 @@ def component_python(user: str | None, display_python: str) -> tuple[str, str | 
     if other.returncode != 0 or other.stdout.strip() != version:
         raise LinuxCncSimError(f"user {user!r} cannot run {sys.executable}, and {display_python} (config key 'display_python') "
                                f"is not Python {version}: install thermbench where that user can run it")  # fmt: skip
-    return display_python, sysconfig.get_paths()["purelib"]
+    purelib = sysconfig.get_paths()["purelib"]
+    probe = [display_python, "-c", f"import site; site.addsitedir({purelib!r}); import thermbench"]
+    if subprocess.run(["runuser", "-u", user, "--", *probe], capture_output=True, cwd="/").returncode != 0:
+        blocked = blocking_dirs([Path(purelib), Path(__file__).resolve().parents[2]])
+        raise LinuxCncSimError(f"user {user!r} cannot reach thermbench's environment: {', '.join(map(str, blocked)) or purelib} "
+                               f"not open to it (a directory on the way lacks the x permission for others): run from a "
+                               f"checkout and environment that user can read")  # fmt: skip
+    return display_python, purelib
+
+
+def blocking_dirs(paths) -> list[Path]:
+    """The directories on the way to ``paths`` that other users cannot pass (no x for others)."""
+    out: list[Path] = []
+    for p in paths:
+        for d in [*reversed(Path(p).resolve().parents), Path(p).resolve()]:
+            if d.is_dir() and not d.stat().st_mode & 0o001 and d not in out:
+                out.append(d)
+    return out
 
 
 def write_config(stage: Path, model_dir: Path, cfg: Mapping[str, Any], sensors: list[str], launcher: str) -> None:
