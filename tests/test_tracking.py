@@ -555,3 +555,28 @@ def test_a_model_with_a_non_finite_score_is_never_registered(workdir, monkeypatc
     assert res.outputs["registered"] == "no: non-finite score on run(s) ['valid2']"
     assert "non-finite score on run(s) ['valid2']" in capsys.readouterr().err
     assert store_client(workdir).search_registered_models() == []
+
+
+def test_an_attempt_killed_mid_run_is_closed_by_the_next_attempt_of_the_same_job(tmp_path, monkeypatch):
+    """submitit sends SIGKILL 1 s after Ctrl-C's SIGINT: an attempt still closing its MLflow run
+    leaves it RUNNING. The next attempt of the same job (config hash and job directory) marks it
+    KILLED; the same configuration running in another sweep's directory is left alone."""
+    import mlflow
+    from mlflow import MlflowClient
+
+    from thermbench import tracking
+
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path}/mlflow.db")
+    c = MlflowClient()
+    exp = c.create_experiment("thermbench")
+    mine, other = tmp_path / "sweep" / "1", tmp_path / "other" / "1"
+    for d in (mine, other):
+        d.mkdir(parents=True)
+    monkeypatch.chdir(other)
+    elsewhere = c.create_run(exp, tags=tracking.standard_tags(None, "h1", "train")).info.run_id
+    monkeypatch.chdir(mine)
+    killed = c.create_run(exp, tags=tracking.standard_tags(None, "h1", "train")).info.run_id
+    another_config = c.create_run(exp, tags=tracking.standard_tags(None, "h2", "train")).info.run_id
+    assert tracking.close_interrupted(exp, "h1") == 1
+    status = {r: c.get_run(r).info.status for r in (killed, elsewhere, another_config)}
+    assert status == {killed: "KILLED", elsewhere: "RUNNING", another_config: "RUNNING"}

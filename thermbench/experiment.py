@@ -495,6 +495,7 @@ def train(cfg: DictConfig) -> JobResult:
     steps = OmegaConf.to_container(cfg.preprocess.steps, resolve=True) if cfg.get("preprocess") and cfg.preprocess.get("steps") is not None else None
     model = build_model(conf["model"], steps, cfg.get("seed"))
     run_name = f"{model_name} | {split.name} | {'+'.join(train_runs)}"
+    tracking.close_interrupted(exp_id, h)  # an earlier attempt of this job killed mid-run: closed, not left RUNNING
     with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as run:
         mlflow.set_tags(tracking.standard_tags(data_hash, h, "train") | {"model": model_name, "dataset": split.name})
         tracking.log_config(conf)

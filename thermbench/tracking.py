@@ -189,12 +189,39 @@ def git_commit(path: str | Path | None = None) -> str:
         return "unknown"
 
 
+def job_dir() -> str:
+    """Where this job writes (Hydra's output directory; else the working directory): it names one
+    job of one sweep, as the config hash names its configuration."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(Path(HydraConfig.get().runtime.output_dir).resolve())
+    except Exception:  # not inside a Hydra job
+        return str(Path.cwd().resolve())
+
+
+def close_interrupted(experiment_id: str, cfg_hash: str) -> int:
+    """Mark KILLED the runs this same job (config hash and job directory) left RUNNING: an attempt
+    killed before it could close its run (submitit sends SIGKILL 1 s after Ctrl-C's SIGINT). Runs
+    of other sweeps (another directory), running now or not, are left alone."""
+    from mlflow import MlflowClient
+
+    c = MlflowClient()
+    d = job_dir().replace("'", "")
+    runs = c.search_runs([experiment_id], filter_string=f"tags.`thermbench.config_hash` = '{cfg_hash}' and "
+                         f"tags.`thermbench.job_dir` = '{d}' and attributes.status = 'RUNNING'")  # fmt: skip
+    for r in runs:
+        c.set_terminated(r.info.run_id, "KILLED")
+    return len(runs)
+
+
 def standard_tags(dataset_hash: str | None, cfg_hash: str, job: str) -> dict[str, str]:
     tags = {
         "thermbench.version": __version__,
         "git_commit": git_commit(),
         "thermbench.config_hash": cfg_hash,
         "thermbench.job": job,
+        "thermbench.job_dir": job_dir().replace("'", ""),
     }
     if dataset_hash:
         tags["dataset_hash"] = dataset_hash
