@@ -18,7 +18,10 @@ export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 # pip installs with --no-compile: byte-compiling every module of torch, mlflow and the rest at install
 # time took about 60 s of a fresh install (measured: torch + mlflow 106 s -> 45 s); Python compiles
-# what is imported, when it is first imported
+# what is imported, when it is first imported, and keeps it: an environment that sets
+# PYTHONDONTWRITEBYTECODE would otherwise compile every import of every process again (the test suite
+# runs hundreds of processes: its parallel phase went from about 510 s to 730 s)
+unexport PYTHONDONTWRITEBYTECODE
 
 # where torch comes from: empty = the package index pip is configured with; e.g. the PyTorch CPU index
 TORCH_INDEX ?=
