@@ -430,29 +430,9 @@ def test_warm_restart_resumes_and_a_long_outage_starts_cold_loudly(machine, seed
     controller holds continued); the third, started after more than 60 s of machine time, starts
     cold and says so in one line, every cycle flagged COLD."""
     state = tmp_path / "state.json"
-
-    async def scenario():
-        port = _port()
-        ep = f"opc.tcp://127.0.0.1:{port}/sim"
-        sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "immediate"})
-        await sim.start_server()
-        clock = asyncio.ensure_future(sim.run_clock())
-        said, logs = [], []
-        try:
-            for n, pause_s in enumerate((0.0, 0.0, 4.0)):  # 4 s wall = 80 s of machine time
-                await asyncio.sleep(pause_s)
-                cfg = _client_cfg(tmp_path, period_s=0.01, log=str(tmp_path / f"run{n}.csv"), duration_s=1.5,
-                                  state={"path": str(state), "every_s": 0.2})  # fmt: skip
-                lines: list[str] = []
-                await Compensator(seed001_exports / "mlr", ep, nodes_file, cfg, say=lines.append).run()
-                said.append(lines)
-                logs.append(pd.read_csv(tmp_path / f"run{n}.csv"))
-        finally:
-            clock.cancel()
-            await sim.stop_server()
-        return said, logs
-
-    said, logs = asyncio.run(scenario())
+    said = asyncio.run(_restarted_compensators(machine, seed001_exports / "mlr", nodes_file, tmp_path,
+                                               (0.0, 0.0, 4.0), 1.5, start="immediate"))  # 4 s wall = 80 s machine
+    logs = [pd.read_csv(tmp_path / f"run{n}.csv") for n in range(3)]
     first, second, third = logs
     assert any(ln.startswith("starting fresh: no saved state at ") for ln in said[0])  # the first start: nothing saved
     assert not (first["flags"] & int(Flags.COLD)).any()
@@ -478,28 +458,8 @@ def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exp
     the machine played it: as if it had never stopped."""
     from thermbench.data.io import save_dataset
 
-    state = tmp_path / "state.json"
-
-    async def scenario():
-        ep = f"opc.tcp://127.0.0.1:{_port()}/sim"
-        sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, "start": "on_compensator", "history": True})
-        await sim.start_server()
-        clock = asyncio.ensure_future(sim.run_clock())
-        said = []
-        try:
-            for n, pause_s in enumerate((0.0, 4.0)):  # 4 s of wall time: 80 s of machine time
-                await asyncio.sleep(pause_s)
-                cfg = _client_cfg(tmp_path, period_s=0.01, log=str(tmp_path / f"run{n}.csv"), duration_s=2.0,
-                                  state={"path": str(state), "every_s": 0.2})  # fmt: skip
-                lines: list[str] = []
-                await Compensator(seed001_exports / "mlr", ep, nodes_file, cfg, say=lines.append).run()
-                said.append(lines)
-        finally:
-            clock.cancel()
-            await sim.stop_server()
-        return said
-
-    said = asyncio.run(scenario())
+    said = asyncio.run(_restarted_compensators(machine, seed001_exports / "mlr", nodes_file, tmp_path, (0.0, 4.0), 2.0,
+                                               start="on_compensator", history=True))  # 4 s wall = 80 s machine
     back = [ln for ln in said[1] if ln.startswith("resumed the model state of ")]
     assert len(back) == 1 and "the outage replayed from the server's history (" in back[0], said[1]
     first, second = (pd.read_csv(tmp_path / f"run{n}.csv") for n in (0, 1))
@@ -516,3 +476,25 @@ def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exp
     assert len(fresh) > 50 and set(k) <= set(comp.index)
     want = -comp.loc[k, "compensation_um"].to_numpy()  # replay: the total error predicted at the sample
     np.testing.assert_allclose(fresh["predicted_um"].to_numpy(), want, rtol=0, atol=1e-6)
+
+
+async def _restarted_compensators(machine, model_dir, nodes_file, tmp_path, pauses_s, duration_s, **sim_kw):
+    """One 20x sim-cnc; a compensator with ``state.path`` started after each pause (wall s), run for
+    ``duration_s``; returns what each said (its log is ``run<n>.csv``)."""
+    ep = f"opc.tcp://127.0.0.1:{_port()}/sim"
+    sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, **sim_kw})
+    await sim.start_server()
+    clock = asyncio.ensure_future(sim.run_clock())
+    said = []
+    try:
+        for n, pause_s in enumerate(pauses_s):
+            await asyncio.sleep(pause_s)
+            cfg = _client_cfg(tmp_path, period_s=0.01, log=str(tmp_path / f"run{n}.csv"), duration_s=duration_s,
+                              state={"path": str(tmp_path / "state.json"), "every_s": 0.2})  # fmt: skip
+            lines: list[str] = []
+            await Compensator(model_dir, ep, nodes_file, cfg, say=lines.append).run()
+            said.append(lines)
+    finally:
+        clock.cancel()
+        await sim.stop_server()
+    return said
