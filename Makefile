@@ -2,8 +2,10 @@
 #   make demo   create .venv, install thermbench with the extras the demo uses (neural, onnx), run the
 #               main job (the robustness benchmark) and export its models for the embedded compensator
 #               (exports/benchmark/, C runtime checked)
-#   make test   create/update .venv with the dev extras (every extra the tests exercise), run the whole suite
-#   make core-check  the core install alone (.venv-core, no torch): simulate, validate, train an MLR, export
+#   make test   the system packages the tests need (tools/sysdeps.sh: apt-get as root or with sudo -n, else one
+#               line naming them), create/update .venv with the dev extras (every extra the tests exercise),
+#               node-opcua (npm), run the whole suite
+#   make core-check  the wheel, core only (.venv-core, no torch): simulate, validate, train an MLR, export
 #   make notebooks  run every notebook with full settings -> outputs/notebooks/*.ipynb (with outputs)
 #   make fuzz   libFuzzer on the C runtime's model-file loader (needs clang; FUZZ_SECONDS=300)
 # torch (the neural extra) is pinned to 2.13.0 through constraints.txt. On the machines this project is
@@ -30,7 +32,7 @@ CORE_VENV   ?= .venv-core
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean
+.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean sysdeps-test sysdeps-target
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -55,27 +57,31 @@ demo: $(VENV)/.installed
 	$(BIN)/thermbench benchmark
 	$(BIN)/thermbench export
 
+# the system packages a target needs (tools/system-packages.txt, the one list; the README prints it):
+# nothing is run when they are installed; apt-get as root, sudo -n apt-get when that works, else one line
+sysdeps-test sysdeps-target:
+	@sh tools/sysdeps.sh $(@:sysdeps-%=%) $(SYSDEPS_LIST)
+
 # node-opcua (npm registry), the second OPC UA stack the compensator is tested against (tests/test_node_opcua.py)
 NODE_OPCUA := tests/node_opcua/node_modules/.installed
 $(NODE_OPCUA): tests/node_opcua/package.json tests/node_opcua/package-lock.json
 	cd tests/node_opcua && npm ci --no-audit --no-fund
 	touch $@
 
-# the core alone, in its own venv: installs without torch, and the main commands run on it
+# the wheel alone, as a release is installed: built from a copy of the source, installed without extras
+# (no torch) into a fresh venv, the main commands run from an empty directory (tools/wheelcheck.py)
 core-check:
-	$(PYTHON) -m venv $(CORE_VENV)
-	$(CORE_VENV)/bin/python -m pip install -q --no-compile -c constraints.txt -e .
-	$(CORE_VENV)/bin/python tests/core_check.py
+	$(PYTHON) -m tools.wheelcheck --venv $(CORE_VENV)
 
 # the real-time closed-loop tests (marker timing) run alone after the rest: on 2 cores a
 # neighbouring test would steal the cycles they measure
-test: $(VENV)/.installed-dev $(NODE_OPCUA)
+test: sysdeps-test $(VENV)/.installed-dev $(NODE_OPCUA)
 	$(BIN)/python -m pytest -n 2 -q -m "not timing and not target"
 	$(BIN)/python -m pytest -q -m timing
 
 # the C runtime cross-compiled for the Cortex-M4F and run on QEMU's mps2-an386 (marker target);
-# needs 'apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm' (.ci/run does)
-target-test: $(VENV)/.installed-dev
+# its system packages (cross compiler, newlib, QEMU) come from sysdeps-target
+target-test: sysdeps-target $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q -m target
 
 notebooks: $(VENV)/.installed-dev

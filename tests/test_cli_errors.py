@@ -151,6 +151,14 @@ def test_config_inspection_and_help_still_work(workdir, capsys):
     assert nothing_written(workdir)
 
 
+def test_top_level_help_names_spindles_too(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "ball-screw feed axes and spindles" in text and "Ball-screw thermal error modelling" not in text
+
+
 # ------------------------------------------------------- which errors are ours ---
 def test_one_definition_of_user_errors_and_no_plain_valueerror_in_it():
     from thermbench import app

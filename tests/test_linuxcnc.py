@@ -4,7 +4,7 @@ The closed-loop test runs LinuxCNC 2.9 (Debian's ``linuxcnc-uspace``) headless: 
 configuration with a display program on LinuxCNC's Python ``linuxcnc`` module, the thermal
 plant on a 120x clock and the compensator as userspace HAL components, a reciprocating X
 program in an ``o100 repeat`` loop. uspace refuses root: as root the test creates an
-unprivileged user for it. LinuxCNC missing fails the test (``.ci/run`` installs it).
+unprivileged user for it. LinuxCNC missing fails the test (``make test`` installs it: tools/sysdeps.sh).
 
 The checks use three records made by three programs: LinuxCNC's own sampler (every servo
 period), the component's log, and the plant's process log and dataset, replayed by

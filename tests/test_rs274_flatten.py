@@ -1,5 +1,5 @@
 """Flattening part programs with LinuxCNC's interpreter (thermbench/linuxcnc/rs274.py) and
-pre-compensating the result. LinuxCNC's ``rs274`` must be installed (``.ci/run`` installs
+pre-compensating the result. LinuxCNC's ``rs274`` must be installed (``make test`` installs
 ``linuxcnc-uspace``): missing, these tests fail."""
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 seed 002's STM32F407 and run on QEMU's mps2-an386 board, the model files in flash.
 
 Marker ``target``: ``make target-test`` runs these (``make test`` does not). Without the cross
-compiler or QEMU they fail, naming the packages: CI installs them (``.ci/run``)."""
+compiler or QEMU they fail, naming the packages: ``make target-test`` installs them (tools/sysdeps.sh)."""
 
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ What they record is then read back **from PostgreSQL's own tables** with psycopg
 through MLflow's client: runs, params, metrics, the logged model, the registered versions and
 the ``champion`` alias. Two sweeps writing at once must not lose a run.
 
-PostgreSQL missing is a failure, not a skip: ``.ci/run`` installs it (``apt-get install
+PostgreSQL missing is a failure, not a skip: ``make test`` installs it (tools/sysdeps.sh: ``apt-get install
 postgresql``); on another machine install it the same way.
 """
 
@@ -38,7 +38,7 @@ def _pg_bin(name: str) -> str:
     """A PostgreSQL server program: on PATH, else Debian's /usr/lib/postgresql/<version>/bin."""
     found = shutil.which(name) or next(iter(sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}"), reverse=True)), None)
     if found is None:
-        pytest.fail(f"PostgreSQL's {name} is not installed: apt-get install postgresql (.ci/run does)")
+        pytest.fail(f"PostgreSQL's {name} is not installed: apt-get install postgresql (make test installs it: tools/sysdeps.sh)")
     return found
 
 
@@ -50,7 +50,7 @@ def _as_server_user(cmd: list[str]) -> list[str]:
     try:
         pwd.getpwnam("postgres")
     except KeyError:
-        pytest.fail("running as root and there is no 'postgres' user: apt-get install postgresql (.ci/run does)")
+        pytest.fail("running as root and there is no 'postgres' user: apt-get install postgresql (make test installs it: tools/sysdeps.sh)")
     return ["runuser", "-u", "postgres", "--", *cmd]
 
 

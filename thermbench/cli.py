@@ -407,7 +407,7 @@ def _main(argv: list[str] | None) -> int:
 
     parser = _Parser(
         prog="thermbench",
-        description="Ball-screw thermal error modelling and compensation.",
+        description="Thermal error modelling and compensation for CNC machine tools: ball-screw feed axes and spindles.",
         epilog="Hydra jobs: thermbench {train,evaluate,benchmark,export} [overrides] [-m] [--help]",
     )
     parser.add_argument("--version", action="version", version=f"thermbench {__version__}")

@@ -21,6 +21,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from ._resources import project_dir
 from .errors import UserError, one_line
 
 
@@ -29,13 +30,13 @@ class ConfigError(UserError):
 
 
 def config_dir() -> Path:
-    """``$THERMBENCH_CONFIG_DIR``, else the ``conf/`` next to the package (a source checkout)."""
-    env = os.environ.get("THERMBENCH_CONFIG_DIR")
-    cand = Path(env) if env else Path(__file__).resolve().parent.parent / "conf"
+    """``$THERMBENCH_CONFIG_DIR``, else the ``conf/`` the package carries (a wheel), else the one at the
+    top of a source checkout (thermbench/_resources.py)."""
+    cand, tried = project_dir("conf", "THERMBENCH_CONFIG_DIR", "simulate.yaml")
     if not (cand / "simulate.yaml").exists():
-        raise ConfigError(
-            f"config directory {cand} has no simulate.yaml; set THERMBENCH_CONFIG_DIR to the project's conf/"
-        )
+        where = " nor ".join(str(t) for t in tried)
+        raise ConfigError(f"no thermbench configuration: {where} has no simulate.yaml; set THERMBENCH_CONFIG_DIR "
+                          "to a copy of the project's conf/")
     return cand
 
 

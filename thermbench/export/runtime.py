@@ -21,6 +21,8 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from .._resources import project_dir
+
 CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
 SANITIZE = ("-fsanitize=address,undefined,float-cast-overflow", "-fno-omit-frame-pointer", "-fno-sanitize-recover=all",
             "-g")  # fmt: skip
@@ -35,11 +37,12 @@ class RuntimeFailed(RuntimeError):
 
 
 def embedded_dir() -> Path:
-    """``$THERMBENCH_EMBEDDED_DIR``, else ``embedded/`` next to the package (a source checkout)."""
-    env = os.environ.get("THERMBENCH_EMBEDDED_DIR")
-    d = Path(env) if env else Path(__file__).resolve().parents[2] / "embedded"
+    """``$THERMBENCH_EMBEDDED_DIR``, else the ``embedded/`` the package carries (a wheel), else the one
+    at the top of a source checkout (thermbench/_resources.py)."""
+    d, tried = project_dir("embedded", "THERMBENCH_EMBEDDED_DIR", "src/tb_runtime.c")
     if not (d / "src" / "tb_runtime.c").exists():
-        raise RuntimeUnavailable(f"the C runtime sources are not at {d}; set THERMBENCH_EMBEDDED_DIR to the project's embedded/")
+        where = " nor ".join(str(t) for t in tried)
+        raise RuntimeUnavailable(f"the C runtime sources are not at {where}; set THERMBENCH_EMBEDDED_DIR to the project's embedded/")
     return d
 
 

@@ -8,7 +8,7 @@ firmware-style harness (``embedded/target``) with ``arm-none-eabi-gcc`` for the 
 and returns the predictions, as :func:`thermbench.export.runtime.replay` does on the host.
 
 Needs Debian's ``gcc-arm-none-eabi``, ``libnewlib-arm-none-eabi`` and ``qemu-system-arm``
-(``.ci/run`` installs them); without them :class:`~.runtime.RuntimeUnavailable` says so.
+(``make target-test`` installs them: tools/sysdeps.sh); without them :class:`~.runtime.RuntimeUnavailable` says so.
 """
 
 from __future__ import annotations
