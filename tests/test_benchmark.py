@@ -3,6 +3,7 @@ global and bank models, the chosen model, report/MLflow/export outputs, resume f
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +160,13 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
         ("mlr_seed001", "single"), ("mlr_seed001", "global"),
         ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "bank"),
         ("mlr_seed002", "bank_soft")}
+    # the dataset, as an MLflow dataset input of the benchmark run and of each cell: its name,
+    # the content hash of its data (loaded here) as the digest, its directory as the source
+    for r in [run, *children]:
+        (inp,) = MlflowClient().get_run(r.info.run_id).inputs.dataset_inputs
+        assert (inp.dataset.name, inp.dataset.digest) == ("seed001_vmc_x", ds.content_hash())
+        assert json.loads(inp.dataset.source) == {"uri": str((data_env / "seed001_vmc_x").resolve())}
+        assert {t.key: t.value for t in inp.tags} == {"mlflow.data.context": "training"}
     # run again (e.g. after an interruption): every (dataset, family) task comes from the
     # cache, nothing is refitted, and the report and the MLflow run are made again
     (tmp_path / "reports" / "report.md").unlink()

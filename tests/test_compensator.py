@@ -163,7 +163,8 @@ def test_namespace_uris_resolve_on_a_server_that_numbers_its_namespaces_differen
         return str(exc.value), summary, await server
 
     refused, s, f = asyncio.run(both())
-    assert refused.startswith("nodes file: output ") and " node 'ns=2;s=X." in refused, refused
+    # the file and the key as written in it, then the node (issue 34)
+    assert refused.startswith(f"{hard}: key outputs.value.node: output value node 'ns=2;s=X.TempComp_um'"), refused
     assert "does not exist on opc.tcp://127.0.0.1:" in refused, refused
     assert "\n" not in refused
     assert s["cycles"] > 100 and s["flags"].get("DISCONNECTED", 0) == 0
@@ -330,7 +331,9 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
             wrong = yaml.safe_load(nodes_file.read_text())
             wrong["outputs"] = {"value": {"node": "ns=2;s=X.TempComp_Status", "unit": "um"}}
             (tmp_path / "wrong.yaml").write_text(yaml.safe_dump(wrong))
-            with pytest.raises(CompensatorError, match="data type"):
+            with pytest.raises(CompensatorError, match=r"wrong\.yaml: key outputs\.value\.node: output value node "
+                                                       r"'ns=2;s=X\.TempComp_Status' has data type Int32; the "
+                                                       r"compensator writes Double$"):  # a name, not a NodeId(...)
                 await Compensator(seed001_exports / "mlr", ep, tmp_path / "wrong.yaml", _client_cfg(tmp_path, security=sec())).run()
             # Ctrl-C (the task cancelled) still leaves the summary beside the log
             stopped = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, log=str(tmp_path / "int.csv"),

@@ -9,6 +9,7 @@ noise floor. ``thermbench diagnose`` then runs on the written files alone.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import ClassVar  # at module level: dataclasses recognise ClassVar fields by it
 
 import numpy as np
@@ -112,6 +113,13 @@ def test_negative_control_names_nothing_and_logs_to_mlflow(clean_data, tmp_path)
     assert len(runs) == 1 and runs["tags.missing_effects"].iloc[0] == "none"
     files = {a.path for a in mlflow.MlflowClient().list_artifacts(runs["run_id"].iloc[0], "diagnosis")}
     assert "diagnosis/diagnosis.json" in files and "diagnosis/report.md" in files
+    # the dataset diagnosed is the run's input, with the content hash of the files that were read
+    inputs = mlflow.MlflowClient().get_run(runs["run_id"].iloc[0]).inputs.dataset_inputs
+    assert len(inputs) == 1
+    from thermbench.data.io import load_dataset
+
+    assert inputs[0].dataset.digest == load_dataset(clean_data).content_hash()
+    assert json.loads(inputs[0].dataset.source)["uri"].endswith(str(Path(clean_data).resolve()))
 
 
 def test_declared_split_and_base_effects(clean_data, tmp_path):

@@ -11,6 +11,8 @@ from ``conf/model/mlr_seed001.yaml`` is the reference for every prediction check
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import signal
 import socket
@@ -185,6 +187,29 @@ def test_train_run_records_config_tags_and_artifacts(trained):
     assert (art / "before_after.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def dataset_inputs(client: MlflowClient, run_id: str) -> list:
+    return list(client.get_run(run_id).inputs.dataset_inputs)
+
+
+def test_train_run_logs_its_dataset_as_an_input(trained, seed001_data_root):
+    """The MLflow UI's Dataset column: the run has one dataset input, named as the dataset, its
+    digest the data's content hash (the dataset_hash tag), its source the dataset directory, its
+    schema the columns of the dataset's tables, in the training context."""
+    (inp,) = dataset_inputs(store_client(trained.tmp), trained.res.mlflow_run_id)
+    d = inp.dataset
+    assert d.name == DATASET
+    assert d.digest == trained.ds.content_hash()  # the dataset loaded here, not the job's copy
+    assert d.source_type == "local"
+    assert json.loads(d.source) == {"uri": str((seed001_data_root / DATASET).resolve())}
+    cols = json.loads(d.schema)["mlflow_colspec"]
+    ds = trained.ds
+    expected = list(ds.process.columns) + [c for c in ds.errors.columns if c not in ds.process.columns]
+    assert [c["name"] for c in cols] == expected and {"target_mm", "error_um", "T_nut_C"} <= set(expected)
+    types = {c["name"]: c["type"] for c in cols}
+    assert types["run_id"] == "string" and types["t_s"] == types["error_um"] == "double"
+    assert {t.key: t.value for t in inp.tags} == {"mlflow.data.context": "training"}
+
+
 def test_logged_metrics_match_an_independent_recomputation(trained):
     """Per-run and headline metrics recomputed by hand (residual = measured - predicted,
     seed 000 §5 / seed 002 §3 compensation rate) from the dataset and the model's predictions."""
@@ -285,9 +310,12 @@ def test_alias_resolves_for_export_and_evaluate(workdir):
     trained_v1 = store_client(workdir).get_run(v1.mlflow_run_id).data.metrics
     for run in ("valid1", "valid2"):
         assert scored[f"runs/{run}/rmse_um"] == pytest.approx(trained_v1[f"runs/{run}/rmse_um"], rel=1e-12)
-    # and records what it scored: the table and the before/after figure
+    # and records what it scored: the table and the before/after figure, and the dataset as its input
     arts = {f.path for f in store_client(workdir).list_artifacts(ev.mlflow_run_id)}
     assert {"results.csv", "before_after.png", "config.yaml"} <= arts
+    (inp,) = dataset_inputs(store_client(workdir), ev.mlflow_run_id)
+    assert (inp.dataset.name, inp.dataset.digest) == (DATASET, ds.content_hash())
+    assert {t.key: t.value for t in inp.tags} == {"mlflow.data.context": "evaluation"}
 
 
 def test_model_uri_from_config_keys():
@@ -492,7 +520,11 @@ def test_config_hash_ignores_tracking_and_hydra_keys_but_not_results_keys():
     base = {"model": {"_target_": "thermbench.models.mlr.MLRSeed001", "degree": 4}, "train": "state1", "seed": 0,
             "dataset": {"name": DATASET}, "tracking": {"uri": "sqlite:///mlflow.db", "experiment": "thermbench"}}
     h = tracking.config_hash(base)
-    assert len(h) == 16 and int(h, 16) >= 0
+    # SHA-256 of the canonical JSON of the result keys (tracking left out) and the version,
+    # computed here: the same in every process (no per-process salt), not merely some hex string
+    canonical = json.dumps({"cfg": {k: v for k, v in base.items() if k != "tracking"},
+                            "version": dist_version("thermbench")}, sort_keys=True)  # fmt: skip
+    assert h == hashlib.sha256(canonical.encode()).hexdigest()[:16]
     assert tracking.config_hash(dict(reversed(list(base.items())))) == h  # key order
     assert tracking.config_hash({**base, "tracking": {"uri": "http://10.0.0.1:5000", "experiment": "x"}}) == h
     assert tracking.config_hash({**base, "hydra": {"run": {"dir": "/somewhere"}, "job": {"num": 3}}}) == h

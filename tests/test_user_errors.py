@@ -131,6 +131,7 @@ def test_sim_cnc_unknown_run(workdir, capsys):
         ("physics.dt_s=nan", "config key 'physics.dt_s': expected a finite number, got"),
         ("physics.dt_s=0.3", "config key 'physics.macro_dt_s': must be a whole multiple of physics.dt_s"),
         ("physics.max_iter=0", "config key 'physics.max_iter': must be >= 1, got 0"),
+        ("noise.repeat_window_s=-5", "config key 'noise.repeat_window_s': expected a number >= 0, got -5"),
     ],
 )
 def test_diagnose_physics_numbers(workdir, capsys, override, expected):

@@ -18,7 +18,9 @@ compensation rate and max residual on unseen cycles. A format 2 dataset with sev
 channels (``channel: null`` in its option) is benchmarked on each channel: one task per
 (dataset, channel, family); the results' ``channel`` column names it (``all`` for a format 1
 dataset). Tasks run in parallel (joblib), each cached on disk by its arguments
-(joblib.Memory), so an interrupted benchmark resumes where it stopped.
+(joblib.Memory), so an interrupted benchmark resumes where it stopped. Each of the ``n_jobs``
+workers runs its fits on its share of the job's cores
+(:func:`thermbench.experiment.worker_threads`), so parallel tasks never oversubscribe them.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from .experiment import (
     load_split,
     model_flags,
     plain,
+    run_workers,
     save_models,
 )
 from .metrics import evaluate as evaluate_runs
@@ -399,10 +402,8 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
     cache = cfg.get("cache_dir")
     fn = joblib.Memory(str(cache), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
-    n_jobs = int(cfg.get("n_jobs", 1))
-    if n_jobs == 1:
-        return (fn(**t) for t in todo)
-    return joblib.Parallel(n_jobs=n_jobs, return_as="generator_unordered")(joblib.delayed(fn)(**t) for t in todo)
+    # each worker on its share of the job's cores (experiment.worker_threads); results as they finish
+    return run_workers(fn, [((), t) for t in todo], int(cfg.get("n_jobs", 1)), ordered=False)
 
 
 def _overrides() -> list[str]:
@@ -471,7 +472,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     if not todo:
         raise ExperimentError("config keys 'datasets' and 'families': nothing to run")
     data_hashes = sorted({f"{case_label(t['dataset_cfg'].get('name'), t['channel'])}={t['dataset_hash']}" for t in todo})
-    case_cfg = {case_label(t["dataset_cfg"].get("name"), t["channel"]): t["dataset_cfg"] for t in todo}
+    case_cfg = {case_label(t["dataset_cfg"].get("name"), t["channel"]): (t["dataset_cfg"], t["channel"]) for t in todo}
     h = tracking.config_hash(conf | {"dataset_content": data_hashes})
     t0 = time.perf_counter()
     done_tasks = []
@@ -541,12 +542,19 @@ def benchmark(cfg: DictConfig) -> JobResult:
         extra[f"{c}__{f}__{a}"] = {"dataset": str(d), **({"channel": str(ch)} if ch != "all" else {}),
                                    "metrics": {k: float(v) for k, v in cell.items()}}  # fmt: skip
     logged = {}
+    case_data = {}  # case (as the results name it) -> its dataset, each loaded once
+    for dcfg, channel in case_cfg.values():
+        sp = load_split(dcfg)
+        case_data[case_label(sp.name, channel)] = sp.dataset
+    inputs = {c: tracking.dataset_input(ds, c) for c, ds in case_data.items()}  # MLflow's dataset inputs, named by case
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
         for v in extra.values():
             v["mlflow_run_id"] = run.info.run_id  # the run that holds these models (thermbench export reads it)
         save_models(models, model_dir, chosen=chosen_keys, extra=extra, force=force)
         mlflow.set_tags(tracking.standard_tags(";".join(data_hashes), h, "benchmark"))
         tracking.log_config(conf)
+        # every dataset it fitted on (MLflow asks for the three lists, of one length)
+        mlflow.log_inputs(list(inputs.values()), contexts=["training"] * len(inputs), tags_list=[None] * len(inputs))
         metrics = {}
         for (c, d, ch, f, a), g in cased.groupby(["case", "dataset", "channel", "family", "approach"], sort=False):
             cell = extra[f"{c}__{f}__{a}"]["metrics"]
@@ -559,6 +567,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
                                  "thermbench.job": "benchmark-cell"})  # fmt: skip
                 mlflow.log_params({"dataset": d, "channel": ch, "family": f, "approach": a,
                                    "n_models": int(g["train"].nunique())})  # fmt: skip
+                mlflow.log_input(inputs[c], context="training")
                 mlflow.log_metrics(cell)
                 mlflow.log_text(g.to_csv(index=False), "results.csv")
         mlflow.log_metrics(metrics | {"wall_s": wall_s})
@@ -567,8 +576,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
         mlflow.log_text(results.to_csv(index=False), "results.csv")
         for r in chosen.itertuples():
             key = f"{r.case}__{r.family}__{r.approach}"
-            ds = load_split(case_cfg[r.case]).dataset
-            logged[r.case] = tracking.log_model(models[key], ds, name=key.replace("__", "-"))
+            logged[r.case] = tracking.log_model(models[key], case_data[r.case], name=key.replace("__", "-"))
     registered = {}
     if cfg.tracking.get("register", True):  # after the run has finished: no version of an unfinished run
         for d, info in logged.items():

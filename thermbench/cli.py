@@ -30,6 +30,7 @@ import difflib
 import math
 import signal
 import sys
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -373,6 +374,8 @@ def main(argv: list[str] | None = None) -> int:
 
     stdout = sys.stdout
     sys.stdout = GuardedStdout(stdout)
+    saved_format = warnings.formatwarning
+    warnings.formatwarning = _format_warning
     try:  # SIGTERM unwinds like Ctrl-C: staging directories and temporary files are removed
         saved_term = signal.signal(signal.SIGTERM, _terminated)
     except ValueError:  # not the main thread
@@ -388,8 +391,20 @@ def main(argv: list[str] | None = None) -> int:
         return BROKEN_PIPE_EXIT
     finally:
         sys.stdout = stdout
+        warnings.formatwarning = saved_format
         if saved_term is not None:
             signal.signal(signal.SIGTERM, saved_term)
+
+
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    """thermbench's own warnings (a dataset column ignored, a replay on another machine) as one line
+    ``thermbench: warning: ...``; anybody else's keep Python's form, with the file and line."""
+    if category.__module__.startswith("thermbench."):
+        return f"thermbench: warning: {message}\n"
+    return _PY_FORMAT(message, category, filename, lineno, line)
+
+
+_PY_FORMAT = warnings.formatwarning
 
 
 def _terminated(signum, frame) -> None:

@@ -77,14 +77,31 @@ def config_hash(cfg) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def _cached_hash(path: Path) -> str | None:
+def _cached_value(path: Path, key: tuple[str, str]) -> str | None:
+    """The text at ``key`` (``("simulation", "config_hash")``) of the ``metadata.yaml`` of a
+    cached dataset at ``path``, read by the strict loader (no aliases, duplicate keys or
+    oversize files); None when the file is missing or unreadable (the dataset is then rebuilt)."""
+    from .data.errors import DatasetError
+    from .data.files import read_capped
+    from .data.limits import METADATA_MAX_BYTES
+    from .data.safe_yaml import load_yaml
+
     meta = path / "metadata.yaml"
-    if not meta.exists():
+    if not os.path.lexists(meta):
         return None
     try:
-        return (yaml.safe_load(meta.read_text()) or {}).get("simulation", {}).get("config_hash")
-    except Exception:
+        text = read_capped(meta, METADATA_MAX_BYTES, "metadata.yaml").decode("utf-8-sig")
+        data, _ = load_yaml(text)
+    except (DatasetError, UnicodeDecodeError):  # YAMLInputError is a DatasetError
         return None
+    block = data.get(key[0]) if isinstance(data, dict) else None
+    value = block.get(key[1]) if isinstance(block, dict) else None
+    # written by dump_yaml, a hash reads back as text; one written before as a number: rebuilt
+    return value if isinstance(value, str) else None
+
+
+def _cached_hash(path: Path) -> str | None:
+    return _cached_value(path, ("simulation", "config_hash"))
 
 
 @contextmanager
@@ -161,13 +178,7 @@ def import_real(name: str, root: str | Path | None = None) -> Path:
 
 
 def _cached_import(path: Path) -> str | None:
-    meta = path / "metadata.yaml"
-    if not meta.exists():
-        return None
-    try:
-        return ((yaml.safe_load(meta.read_text()) or {}).get("imported") or {}).get("sha256")
-    except Exception:
-        return None
+    return _cached_value(path, ("imported", "sha256"))
 
 
 def simulated(

@@ -36,7 +36,7 @@ from . import tracking
 from ._atomic import write_text_atomic
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
-from .models.base import FallbackWarning
+from .models.base import FallbackWarning, thread_budget, threads_per_worker
 from .outputs import output_dir
 
 LOG = logging.getLogger(__name__)
@@ -57,6 +57,60 @@ def hydra_runtime():
         return hc
     except Exception:
         return None
+
+
+def job_threads(hc=None, cores: int | None = None) -> int:
+    """The threads (per OpenMP and BLAS thread pool) this job may use: the cores it sees
+    (``cores``; default :func:`joblib.cpu_count`, which honours CPU affinity and a cgroup quota)
+    shared with the jobs a Hydra multirun runs beside it on this machine
+    (``hydra/launcher=joblib``: ``hydra.launcher.n_jobs`` at once), and at most the launcher's
+    ``cpus_per_task`` (submitit) when it sets one. ``hc``: the Hydra config (default: the
+    running job's, :func:`hydra_runtime`); outside Hydra every core."""
+    if cores is None:
+        cores = joblib.cpu_count()
+    cores = max(1, int(cores))
+    hc = hydra_runtime() if hc is None else hc
+    launcher = OmegaConf.select(hc, "launcher", default=None) if hc is not None else None
+    if launcher is None:
+        return cores
+    mode = OmegaConf.select(hc, "mode", default=None)
+    multirun = getattr(mode, "name", str(mode).rsplit(".", 1)[-1]) == "MULTIRUN"
+    if multirun and str(launcher.get("_target_", "")).endswith(".JoblibLauncher"):
+        cores = threads_per_worker(cores, int(launcher.get("n_jobs") or -1))
+    per_task = launcher.get("cpus_per_task")
+    if multirun and isinstance(per_task, int) and not isinstance(per_task, bool) and per_task > 0:
+        cores = min(cores, per_task)
+    return cores
+
+
+def worker_threads(n_jobs: int, n_tasks: int, cores: int | None = None) -> int:
+    """The threads each of ``n_jobs`` parallel workers may use (per OpenMP and BLAS thread
+    pool): the job's cores (:func:`job_threads`, or ``cores``) shared by the workers that run
+    at once (at most one per task), so workers x threads never exceeds them. ``n_jobs`` counts
+    as joblib counts it (-1: one worker per core, -2: all but one, ...)."""
+    cores = job_threads() if cores is None else int(cores)
+    workers = n_jobs if n_jobs > 0 else max(1, joblib.cpu_count() + 1 + n_jobs)
+    return threads_per_worker(cores, min(workers, max(1, n_tasks)))
+
+
+def _call_limited(fn, threads: int, args: tuple, kwargs: Mapping):
+    """``fn(*args, **kwargs)`` with every fit (and whatever else runs there) on ``threads`` threads."""
+    with thread_budget(threads):
+        return fn(*args, **kwargs)
+
+
+def run_workers(fn, calls: Sequence[tuple[tuple, Mapping]], n_jobs: int, ordered: bool = True):
+    """``fn(*args, **kwargs)`` for each ``(args, kwargs)`` of ``calls``, each on its worker's
+    share of the cores (:func:`worker_threads`): one after the other in this process for
+    ``n_jobs=1`` (lazily), else in ``n_jobs`` joblib workers, results in the calls' order
+    (``ordered``) or as they finish. Where every job that fits models in parallel dispatches them."""
+    calls = list(calls)
+    threads = worker_threads(n_jobs, len(calls))
+    if n_jobs == 1:
+        return (_call_limited(fn, threads, a, k) for a, k in calls)
+    how = "generator" if ordered else "generator_unordered"
+    work = (joblib.delayed(_call_limited)(fn, threads, a, k) for a, k in calls)
+    return joblib.Parallel(n_jobs=n_jobs, return_as=how)(work)
 
 
 class ExperimentError(ValueError):
@@ -223,6 +277,13 @@ class Split:
 
     def kind(self, run: str) -> str:
         return "validation" if run in self.validation else "state"
+
+    @property
+    def label(self) -> str:
+        """The dataset's name as the MLflow runs give it (their dataset input): the name, with
+        ``-<channel>`` for one error channel of a format 2 dataset (as the benchmark's cases)."""
+        channel = self.dataset.channel
+        return self.name if channel is None else f"{self.name}-{channel}"
 
 
 def load_source(dcfg: Mapping):
@@ -499,7 +560,9 @@ def train(cfg: DictConfig) -> JobResult:
     with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as run:
         mlflow.set_tags(tracking.standard_tags(data_hash, h, "train") | {"model": model_name, "dataset": split.name})
         tracking.log_config(conf)
-        with warnings.catch_warnings(record=True) as caught:
+        tracking.log_dataset(split.dataset, split.label, "training", digest=data_hash)
+        # the job's share of the cores (a multirun's parallel jobs share them): every family runs with it
+        with warnings.catch_warnings(record=True) as caught, thread_budget(job_threads()):
             warnings.simplefilter("always", FallbackWarning)
             fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
         for w in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, FallbackWarning)):
@@ -531,9 +594,12 @@ def evaluate(cfg: DictConfig) -> JobResult:
     runs = resolve_runs(cfg.get("runs"), split, "runs")
     h = tracking.config_hash(conf)
     with mlflow.start_run(experiment_id=exp_id, run_name=f"evaluate {uri} | {split.name}") as run:
-        mlflow.set_tags(tracking.standard_tags(split.dataset.content_hash(), h, "evaluate") | {"model_uri": uri})
+        data_hash = split.dataset.content_hash()
+        mlflow.set_tags(tracking.standard_tags(data_hash, h, "evaluate") | {"model_uri": uri})
         tracking.log_config(conf)
-        rows, curves = evaluate_runs(model, split.dataset, runs, curves=True)
+        tracking.log_dataset(split.dataset, split.label, "evaluation", digest=data_hash)
+        with thread_budget(job_threads()):
+            rows, curves = evaluate_runs(model, split.dataset, runs, curves=True)
         rows.insert(1, "own", rows["run_id"].isin(getattr(model, "train_runs_", [])))
         metrics = _log_scores(rows, curves, split, type(model).__name__, "evaluated", f"{uri} on {split.name}")
     return _finish(JobResult("evaluate", _table(rows, split), metrics, mlflow_run_id=run.info.run_id))

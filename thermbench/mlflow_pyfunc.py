@@ -13,14 +13,27 @@ import joblib
 import mlflow
 import numpy as np
 import pandas as pd
-import yaml
 
 
 class ThermbenchPyfunc(mlflow.pyfunc.PythonModel):
     def load_context(self, context):
+        from pathlib import Path
+
+        from thermbench.data.errors import DatasetError
+        from thermbench.data.files import read_capped
+        from thermbench.data.limits import METADATA_MAX_BYTES
+        from thermbench.data.safe_yaml import YAMLInputError, load_yaml
+
         self.model = joblib.load(context.artifacts["model"])
-        with open(context.artifacts["metadata"], encoding="utf-8") as fh:
-            self.metadata = yaml.safe_load(fh)
+        path = Path(context.artifacts["metadata"])  # the training dataset's metadata.yaml, logged with the model
+        try:
+            self.metadata, _ = load_yaml(read_capped(path, METADATA_MAX_BYTES, "metadata.yaml").decode("utf-8-sig"))
+        except UnicodeDecodeError:
+            raise DatasetError(f"{path}: not UTF-8 text") from None
+        except YAMLInputError as exc:
+            raise DatasetError(f"{path}: {exc}") from None
+        if not isinstance(self.metadata, dict):
+            raise DatasetError(f"{path}: expected a mapping (the dataset's metadata), got {type(self.metadata).__name__}")
 
     def predict(self, context, model_input: pd.DataFrame, params=None) -> pd.DataFrame:
         from thermbench.data.io import Dataset

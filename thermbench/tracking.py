@@ -7,10 +7,11 @@
   unreachable server fails in seconds, not after an hour of training.
 
 Every run records the flattened resolved config as params, metrics, artifacts,
-and the tags of :func:`standard_tags` (git commit, dataset hash, thermbench
-version, config hash). :func:`config_hash` is what lets an interrupted sweep
-resume: a job whose hash already has a FINISHED run is skipped
-(:func:`finished_run`).
+the tags of :func:`standard_tags` (git commit, dataset hash, thermbench
+version, config hash) and its dataset as an MLflow dataset input
+(:func:`log_dataset`: the Dataset column of the MLflow UI). :func:`config_hash`
+is what lets an interrupted sweep resume: a job whose hash already has a
+FINISHED run is skipped (:func:`finished_run`).
 
 Models are logged as MLflow pyfunc models (:mod:`thermbench.mlflow_pyfunc`)
 and registered; :func:`load_model` takes ``models:/<name>@<alias>`` (or any
@@ -34,6 +35,7 @@ import joblib
 import yaml
 
 from . import __version__
+from .data.safe_yaml import dump_yaml
 
 LOG = logging.getLogger(__name__)
 PYFUNC_CODE = Path(__file__).with_name("mlflow_pyfunc.py")
@@ -241,6 +243,48 @@ def finished_run(experiment_id: str, cfg_hash: str):
     return runs[0] if runs else None
 
 
+#: pandas dtype kind -> MLflow column type (the schema of a logged dataset)
+_KIND_TYPES = {"f": "double", "i": "long", "u": "long", "b": "boolean", "M": "datetime"}
+
+
+def dataset_schema(dataset):
+    """The columns of ``dataset``'s process log, then those of its readings table that the
+    log lacks (``target_mm``, ``error_um``), as an MLflow :class:`~mlflow.types.Schema`: what
+    a run's dataset input shows. Taken from the column types, so it costs nothing on a long log."""
+    from mlflow.types import ColSpec, DataType, Schema
+
+    cols: dict[str, str] = {}
+    for df in (dataset.process, dataset.errors):
+        for name, dtype in df.dtypes.items():
+            cols.setdefault(str(name), _KIND_TYPES.get(getattr(dtype, "kind", "O"), "string"))
+    return Schema([ColSpec(DataType[t], name) for name, t in cols.items()])
+
+
+def dataset_input(dataset, name: str, digest: str | None = None):
+    """``dataset`` as an MLflow dataset (metadata only: no data is copied): ``name``; as its
+    digest the content hash (:meth:`~thermbench.data.Dataset.content_hash`, 16 hex: the
+    ``dataset_hash`` tag; an own dataset's registered model names carry its first 8); its
+    directory as the source; its columns as the schema (:func:`dataset_schema`). ``digest``:
+    the content hash when the caller has it already."""
+    from mlflow.data.code_dataset_source import CodeDatasetSource
+    from mlflow.data.meta_dataset import MetaDataset
+    from mlflow.data.sources import LocalArtifactDatasetSource
+
+    if dataset.path is not None:
+        source = LocalArtifactDatasetSource(str(Path(dataset.path).resolve()))
+    else:  # built in memory, never written: the code that made it is its source
+        source = CodeDatasetSource(tags={})
+    return MetaDataset(source, name=str(name), digest=digest or dataset.content_hash(), schema=dataset_schema(dataset))
+
+
+def log_dataset(dataset, name: str, context: str = "training", digest: str | None = None) -> None:
+    """Record ``dataset`` (:func:`dataset_input`) as an input of the active run, with
+    ``context`` (``training``, ``evaluation``) as MLflow's ``mlflow.data.context`` tag."""
+    import mlflow
+
+    mlflow.log_input(dataset_input(dataset, name, digest), context=context)
+
+
 def log_config(cfg: Mapping[str, Any]) -> None:
     """The flattened config as params and the resolved config as ``config.yaml``."""
     import mlflow
@@ -263,7 +307,7 @@ def log_model(model, dataset, name: str = "model", registered_name: str | None =
         mpath = Path(tmp) / "model.joblib"
         joblib.dump(model, mpath)
         meta = Path(tmp) / "dataset_metadata.yaml"
-        meta.write_text(yaml.safe_dump(dataset.metadata.model_dump(mode="json"), sort_keys=False), encoding="utf-8")
+        meta.write_text(dump_yaml(dataset.metadata.model_dump(mode="json"), sort_keys=False), encoding="utf-8")  # read strictly
         return mlflow.pyfunc.log_model(
             name=name,
             python_model=str(PYFUNC_CODE),

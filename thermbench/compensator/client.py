@@ -66,6 +66,20 @@ def _ua():
     return ua
 
 
+def data_type_name(node_id) -> str:
+    """A DataType attribute's NodeId as a reader knows it: a standard type (namespace 0) by its
+    name (``Int32``, ``Float``, ``Double``), any other as its string form (``ns=2;i=3002``)."""
+    if node_id is None:
+        return "none (the node has no data type)"
+    identifier = getattr(node_id, "Identifier", None)
+    if getattr(node_id, "NamespaceIndex", None) == 0 and isinstance(identifier, int):
+        name = _ua().ObjectIdNames.get(identifier)
+        if name:
+            return name
+    to_string = getattr(node_id, "to_string", None)
+    return f"{to_string() if callable(to_string) else node_id} (not a standard type)"
+
+
 class GuardedWriter:
     """Writes only the configured output nodes; anything else is refused before the network."""
 
@@ -209,20 +223,21 @@ async def connect_client(endpoint: str, sec: Security, timeout_s: float):
     return client
 
 
-def resolve_node_id(node_id: str, namespaces: Sequence[str], where: str) -> str:
+def resolve_node_id(node_id: str, namespaces: Sequence[str], where: str, source: str = "nodes file") -> str:
     """``node_id`` with a namespace URI (``nsu=<uri>;s=...``, the form that is the same on every
     server) as the namespace index this server gives that URI (``ns=<index>;s=...``); any other
     form as given. ``namespaces`` is the server's NamespaceArray; ``where`` names the node in a
-    mistake's message (a URI the server does not have)."""
+    mistake's message (a URI the server does not have), ``source`` the file and key it is set
+    at (``nodes.yaml: key inputs.temperatures.T_nut``)."""
     if not node_id.startswith("nsu="):
         return node_id
     uri, sep, rest = node_id[len("nsu="):].partition(";")
     if not sep or not rest or not uri:
-        raise CompensatorError(f"nodes file: {where} node {node_id!r}: expected nsu=<namespace URI>;<identifier>, "
+        raise CompensatorError(f"{source}: {where} node {node_id!r}: expected nsu=<namespace URI>;<identifier>, "
                                "e.g. nsu=urn:thermbench:sim-cnc;s=X.Position_mm")  # fmt: skip
     uri = uri.replace("%3B", ";").replace("%25", "%")  # OPC UA Part 6 5.3.1.10: ';' and '%' escaped in the URI
     if uri not in namespaces:
-        raise CompensatorError(f"nodes file: {where} node {node_id!r}: the server has no namespace {uri!r}; "
+        raise CompensatorError(f"{source}: {where} node {node_id!r}: the server has no namespace {uri!r}; "
                                f"its namespaces: {list(namespaces)}")  # fmt: skip
     return f"ns={list(namespaces).index(uri)};{rest}"
 
@@ -304,37 +319,45 @@ class Session:
         self.inputs = nodes.input_ids()
         self.current: dict[str, Any] = {}  # the output nodes' values when the session opened
 
+    def _source(self, name: str, output: bool = False) -> str:
+        """Where the input (or output) ``name`` is set: ``<nodes file>: key <key path as written>``
+        (``inputs.temperatures.T_nut``); ``nodes file`` for nodes not read from one file (a station's)."""
+        where = getattr(self.nodes, "where", None)
+        return where(name, output) if callable(where) else "nodes file"
+
     async def open(self) -> None:
         ua = _ua()
         client = await connect_client(self.endpoint, self.sec, self.timeout_s)
         try:
             namespaces = await client.get_namespace_array()
             given = self.nodes.output_ids()
-            outs = {name: resolve_node_id(nid, namespaces, f"output {name}") for name, nid in given.items()}
+            outs = {name: resolve_node_id(nid, namespaces, f"output {name}", self._source(name, output=True))
+                    for name, nid in given.items()}  # fmt: skip
             ids = list(outs.values())
             nodes = [client.get_node(i) for i in ids]
             access = await client.read_attributes(nodes, ua.AttributeIds.UserAccessLevel)
             types = await client.read_attributes(nodes, ua.AttributeIds.DataType)
             for name, nid, dv, ty in zip(outs, given.values(), access, types):
+                source = self._source(name, output=True)
                 if not dv.StatusCode.is_good():
-                    raise CompensatorError(f"nodes file: output {name} node {nid!r} does not exist on {self.endpoint} "
+                    raise CompensatorError(f"{source}: output {name} node {nid!r} does not exist on {self.endpoint} "
                                            f"({dv.StatusCode.name})")  # fmt: skip
                 if not int(dv.Value.Value) & ua.AccessLevel.CurrentWrite.mask:
-                    raise CompensatorError(f"nodes file: output {name} node {nid!r} is not writable for this user on {self.endpoint}")
+                    raise CompensatorError(f"{source}: output {name} node {nid!r} is not writable for this user on {self.endpoint}")
                 status = name.rsplit("/", 1)[-1] == "status"  # a station's outputs are <channel>/<name>
                 want = ua.ObjectIds.Int32 if status else ua.ObjectIds.Double
                 got = ty.Value.Value
                 if got is None or got.Identifier != want or got.NamespaceIndex != 0:
-                    raise CompensatorError(f"nodes file: output {name} node {nid!r} has data type {got}; the compensator "
-                                           f"writes {'Int32' if status else 'Double'}")  # fmt: skip
+                    raise CompensatorError(f"{source}: output {name} node {nid!r} has data type {data_type_name(got)}; "
+                                           f"the compensator writes {'Int32' if status else 'Double'}")  # fmt: skip
             current = await client.read_attributes(nodes)
             self.current = {name: (dv.Value.Value if dv.Value is not None else None) for name, dv in zip(outs, current)}
-            self.input_nodes = [client.get_node(resolve_node_id(i, namespaces, f"input {name}"))
+            self.input_nodes = [client.get_node(resolve_node_id(i, namespaces, f"input {name}", self._source(name)))
                                 for name, i in self.inputs.items()]
             first = await client.read_attributes(self.input_nodes)
             for (name, nid), dv in zip(self.inputs.items(), first):
                 if dv.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown:
-                    raise CompensatorError(f"nodes file: input {name} node {nid!r} does not exist on {self.endpoint}")
+                    raise CompensatorError(f"{self._source(name)}: input {name} node {nid!r} does not exist on {self.endpoint}")
             if self.subscribe_ms is not None:
                 self.latest = {name: _reading(dv) for name, dv in zip(self.inputs, first)}
                 by_id = {n.nodeid: name for name, n in zip(self.inputs, self.input_nodes)}

@@ -34,8 +34,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, PrivateAttr, ValidationError, field_validator
+
+from ..data.errors import DatasetError
+from ..data.files import read_capped
+from ..data.limits import METADATA_MAX_BYTES
+from ..data.safe_yaml import YAMLInputError, load_yaml
 
 # value of 1 µm in each unit a controller may take a length or a slope in
 LENGTH_UNITS = {"um": 1.0, "mm": 1e-3, "0.1um": 10.0}  # Beckhoff P-AXIS-00272/273: 0.1 µm
@@ -44,6 +48,28 @@ SLOPE_UNITS = {"um_per_m": 1.0, "ratio": 1e-6}  # Beckhoff P-AXIS-00274: µm/m; 
 
 class NodesError(ValueError):
     """A nodes file that cannot be used (names the file and key)."""
+
+
+#: the largest nodes or station file read (a real one is a few hundred bytes)
+NODES_MAX_BYTES = METADATA_MAX_BYTES
+
+
+def read_yaml_file(path: Path, what: str, error: type[Exception] = NodesError) -> object:
+    """The data of the user's YAML file ``path`` (``what`` names its role in messages), read by
+    the strict loader (:func:`thermbench.data.safe_yaml.load_yaml`: no aliases, anchors, merge
+    keys or duplicate keys, at most :data:`NODES_MAX_BYTES`); any problem is one ``error``
+    line naming the file (and the line)."""
+    try:
+        data = read_capped(path, NODES_MAX_BYTES, what)
+        text = data.decode("utf-8-sig")
+        return load_yaml(text)[0]
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise error(f"{path}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x}); save the file as UTF-8") from None
+    except YAMLInputError as exc:
+        raise error(f"{path}: {exc}") from None
+    except DatasetError as exc:  # not a regular file, too large: the message starts with the path
+        raise error(str(exc)) from None
 
 
 class _Strict(BaseModel):
@@ -93,28 +119,55 @@ class Outputs(_Strict):
 class Nodes(_Strict):
     inputs: Inputs
     outputs: Outputs
+    _path: str | None = PrivateAttr(default=None)  # the file it was read from (load_nodes)
+
+    @property
+    def path(self) -> str | None:
+        """The nodes file these nodes were read from (None when built in code)."""
+        return self._path
+
+    def _inputs(self) -> list[tuple[str, str, str]]:
+        """(input name, key path in the nodes file as written, node id), in read order; temperatures
+        are named ``<sensor>_C`` (key ``inputs.temperatures.<sensor>``)."""
+        i = self.inputs
+        rows = [("axis_mm", "inputs.axis_mm", i.axis_mm), ("feed_mm_min", "inputs.feed_mm_min", i.feed_mm_min)]
+        rows += [(k, f"inputs.{k}", getattr(i, k)) for k in ("load_N", "measuring", "done", "heartbeat") if getattr(i, k)]
+        rows += [(f"{s}_C", f"inputs.temperatures.{s}", n) for s, n in i.temperatures.items()]
+        rows += [(o, f"inputs.operating.{o}", n) for o, n in i.operating.items()]
+        return rows
+
+    def _outputs(self) -> list[tuple[str, str, str]]:
+        """(output name, key path in the nodes file, node id): the only nodes the compensator may write."""
+        o, rows = self.outputs, []
+        if o.value:
+            rows.append(("value", "outputs.value.node", o.value.node))
+        if o.line:
+            rows += [(k, f"outputs.line.{k}.node", getattr(o.line, k).node) for k in ("offset", "slope", "ref")]
+        if o.status:
+            rows.append(("status", "outputs.status", o.status))
+        return rows
+
+    def input_keys(self) -> dict[str, str]:
+        """input name (as in :meth:`input_ids`) -> its key path in the nodes file, as written."""
+        return {name: key for name, key, _ in self._inputs()}
+
+    def output_keys(self) -> dict[str, str]:
+        """output name (as in :meth:`output_ids`) -> its key path in the nodes file."""
+        return {name: key for name, key, _ in self._outputs()}
+
+    def where(self, name: str, output: bool = False) -> str:
+        """Where the input (or output) ``name`` is set, for a message: ``<file>: key <key path>``
+        (``nodes file: key ...`` when the nodes were not read from a file)."""
+        key = (self.output_keys() if output else self.input_keys()).get(name)
+        return f"{self._path or 'nodes file'}: key {key}" if key else f"{self._path or 'nodes file'}"
 
     def input_ids(self) -> dict[str, str]:
         """input name -> node id (temperatures as ``<sensor>_C``), in read order."""
-        i = self.inputs
-        out = {"axis_mm": i.axis_mm, "feed_mm_min": i.feed_mm_min}
-        for key in ("load_N", "measuring", "done", "heartbeat"):
-            if getattr(i, key):
-                out[key] = getattr(i, key)
-        out.update({f"{s}_C": n for s, n in i.temperatures.items()})
-        out.update(i.operating)
-        return out
+        return {name: nid for name, _, nid in self._inputs()}
 
     def output_ids(self) -> dict[str, str]:
         """output name -> node id: the only nodes the compensator may write."""
-        o, out = self.outputs, {}
-        if o.value:
-            out["value"] = o.value.node
-        if o.line:
-            out.update({"offset": o.line.offset.node, "slope": o.line.slope.node, "ref": o.line.ref.node})
-        if o.status:
-            out["status"] = o.status
-        return out
+        return {name: nid for name, _, nid in self._outputs()}
 
 
 def _where(loc: tuple) -> str:
@@ -128,15 +181,13 @@ def load_nodes(path: str | Path, sensors: list[str] | None = None, needs_load: b
     path = Path(path)
     if not path.exists():
         raise NodesError(f"{path}: no such nodes file (see thermbench/compensator/nodes.py for its form)")
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise NodesError(f"{path}: not valid YAML ({exc})") from None
+    raw = read_yaml_file(path, "a nodes file")
     try:
         nodes = Nodes.model_validate(raw if raw is not None else {})
     except ValidationError as exc:
         e = exc.errors()[0]
         raise NodesError(f"{path}: key {_where(e['loc']) or '(top)'}: {e['msg']}") from None
+    nodes._path = str(path)
     missing = [s for s in (sensors or []) if s not in nodes.inputs.temperatures]
     if missing:
         raise NodesError(f"{path}: key inputs.temperatures: the model reads sensor(s) {missing}, which have no node; "

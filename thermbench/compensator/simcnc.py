@@ -45,7 +45,7 @@ from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
-import yaml
+from ..data.safe_yaml import dump_yaml
 
 from ..outputs import check_output_dir, check_output_file, output_dir, write_text
 from .nodes import LENGTH_UNITS, SLOPE_UNITS
@@ -456,7 +456,7 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     await sim.start_server()
     try:
         if cfg.get("write_nodes"):  # written once the server listens: the file appearing means "connect now"
-            write_text(Path(str(cfg["write_nodes"])), yaml.safe_dump(nodes_yaml(machine, sim.axis), sort_keys=False), "nodes")
+            write_text(Path(str(cfg["write_nodes"])), dump_yaml(nodes_yaml(machine, sim.axis), sort_keys=False), "nodes")
         if ready is not None:
             ready.set()
         await sim.run_clock()

@@ -45,13 +45,12 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
-import yaml
 
 from ..outputs import check_output_file, write_text
 from .client import (STATS_CYCLES, CompensatorError, CycleLog, Ring, Security, Session, _connection_errors,
                      _num, cycle_stats, output_variants, resume_from_controller)  # fmt: skip
 from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, flag_names
-from .nodes import Nodes, NodesError, load_nodes
+from .nodes import Nodes, NodesError, load_nodes, read_yaml_file
 
 SEP = "::"  # "<endpoint>::<node id>": an input node on another endpoint than its channel's
 
@@ -112,10 +111,7 @@ def load_station(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise StationError(f"{path}: no such station file (see thermbench/compensator/station.py for its form)")
-    try:
-        spec = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as exc:
-        raise StationError(f"{path}: not valid YAML ({exc})") from None
+    spec = read_yaml_file(path, "a station file", StationError) or {}
     if not isinstance(spec, dict):
         raise StationError(f"{path}: expected a mapping with endpoints and channels")
     unknown = sorted(set(spec) - {"period_s", "log_dir", "status_every_s", "timeout_s", "reconnect", "endpoints", "channels",

@@ -31,14 +31,13 @@ from typing import Any, Literal, Optional, Union
 
 import numpy as np
 import pandas as pd
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..errors import UserError
 from . import limits
 from .errors import DatasetError, short_repr
 from .files import check_regular_file, open_regular_file
-from .safe_yaml import YAMLInputError, load_yaml
+from .safe_yaml import YAMLInputError, dump_yaml, load_yaml
 from .schema import FORMAT_V2, Metadata
 
 MAPPING_FORMAT = "thermbench-import/1"
@@ -717,7 +716,7 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
     meta, process, errors = build_tables(mapping_path)
     with output_dir(out, "dataset", force=force) as tmp:
         doc = meta.model_dump(mode="json", exclude_none=True) | dict(extra or {})
-        (tmp / "metadata.yaml").write_text(yaml.safe_dump(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
+        (tmp / "metadata.yaml").write_text(dump_yaml(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
         tables = [("process", process)] + ([("errors", errors)] if len(errors) else [])
         for name, df in tables:
             if file_format == "parquet":

@@ -30,7 +30,7 @@ from ..outputs import output_dir
 from . import limits
 from .errors import DatasetError, one_line, short_repr
 from .files import find_case_variant, open_regular_file, read_capped
-from .safe_yaml import YAMLInputError, load_yaml
+from .safe_yaml import YAMLInputError, dump_yaml, load_yaml
 from .schema import FORMATS, Metadata, MetadataV1
 
 PROCESS_REQUIRED = ("run_id", "t_s", "axis_mm", "feed_mm_min")
@@ -49,7 +49,12 @@ except ImportError:  # pragma: no cover - pandas moved it
                   "<NA>", "N/A", "NA", "NULL", "NaN", "None", "n/a", "nan", "null"}  # fmt: skip
 CSV_NA_VALUES = sorted(_PANDAS_NA)
 
-__all__ = ["Dataset", "DatasetError", "load_dataset", "load_metadata", "save_dataset"]
+__all__ = ["Dataset", "DatasetError", "DatasetWarning", "load_dataset", "load_metadata", "save_dataset"]
+
+
+class DatasetWarning(UserWarning):
+    """A dataset loads, but something in it is ignored (a sensor column that ``metadata.yaml``
+    does not declare); the message (one line) names the file and the column."""
 
 
 @dataclass
@@ -655,16 +660,32 @@ def _check_duplicate_rows(df: pd.DataFrame, path: Path, cols: tuple[str, ...]) -
 
 def load_dataset(path: str | Path) -> Dataset:
     """Read and validate a dataset directory; raise :class:`DatasetError` on any violation.
-    Reads only: the dataset's files are never modified."""
-    with warnings.catch_warnings():  # a warning would be a second line on stderr
+    Reads only: the dataset's files are never modified. What the dataset holds but does not
+    declare (a sensor column missing from ``metadata.yaml``) is ignored with a
+    :class:`DatasetWarning` naming the file and the column."""
+    notes: list[str] = []
+    with warnings.catch_warnings():  # a library's warning would be a second line on stderr
         warnings.simplefilter("ignore")
         try:
-            return _load_dataset(Path(path))
+            ds = _load_dataset(Path(path), notes)
         except MemoryError:
             raise DatasetError(f"{path}: too large to load in this process's memory") from None
+    for note in notes:  # ours, one line each, after the filter above
+        warnings.warn(note, DatasetWarning, stacklevel=2)
+    return ds
 
 
-def _load_dataset(root: Path) -> Dataset:
+def _undeclared_sensor_columns(process: pd.DataFrame, meta: Metadata, ppath: Path) -> list[str]:
+    """One note per temperature column (``<name>_C``) of the process table that
+    ``metadata.yaml`` declares neither as a sensor nor as an operating input: nothing reads it."""
+    declared = {meta.sensor_column(s) for s in meta.sensors} | set(meta.operating_inputs())
+    return [f"{ppath}: column {short_repr(c)} is not declared in metadata.yaml; ignored (declare sensor "
+            f"{short_repr(c[:-2])} under 'sensors' to use it)"
+            for c in process.columns if isinstance(c, str) and c.endswith("_C") and c not in declared]  # fmt: skip
+
+
+def _load_dataset(root: Path, notes: list[str] | None = None) -> Dataset:
+    notes = [] if notes is None else notes
     if not root.is_dir():
         what = "does not exist" if not os.path.lexists(root) else "is not a directory"
         raise DatasetError(f"{root}: not a dataset directory ({what})")
@@ -673,6 +694,7 @@ def _load_dataset(root: Path) -> Dataset:
         from .v2 import load_tables_v2
 
         process, errors = load_tables_v2(root, meta)
+        notes += _undeclared_sensor_columns(process, meta, _find_table(root, "process"))
         return Dataset(meta, process, errors, root)
     ppath = _find_table(root, "process")
     epath = _find_table(root, "errors")
@@ -737,6 +759,7 @@ def _load_dataset(root: Path) -> Dataset:
     _check_within(errors, epath, "t_s", t0[k], t1[k],
                   lambda i: f"s is outside the process log of run {errors['run_id'].iloc[i]!r} "
                   f"({t0[k[i]]:g}..{t1[k[i]]:g} s)")  # fmt: skip
+    notes += _undeclared_sensor_columns(process, meta, ppath)
     return Dataset(meta, process.reset_index(drop=True), errors.reset_index(drop=True), root)
 
 
@@ -760,7 +783,7 @@ def save_dataset(ds: Dataset, path: str | Path, file_format: str = "csv", force:
     target = Path(path)
     meta = ds.metadata.model_dump(mode="json", exclude_none=True)
     with output_dir(target, "dataset", force=force, force_option=force_option) as tmp:
-        (tmp / "metadata.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
+        (tmp / "metadata.yaml").write_text(dump_yaml(meta, sort_keys=False), encoding="utf-8")
         for name, df in (("process", ds.process), ("errors", ds.errors)):
             if file_format == "parquet":
                 df.to_parquet(tmp / f"{name}.parquet", index=False)

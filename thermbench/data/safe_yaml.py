@@ -177,6 +177,22 @@ StrictLoader.add_implicit_resolver(
 )
 
 
+class StrictDumper(yaml.SafeDumper):
+    """A SafeDumper whose text round-trips through :class:`StrictLoader`: a string that the
+    loader would read as a number (``1e5``, a hex digest of digits and one ``e``) is quoted."""
+
+
+StrictDumper.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeDumper.yaml_implicit_resolvers.items()}
+for _first, _resolvers in StrictLoader.yaml_implicit_resolvers.items():
+    for _tag, _rx in _resolvers:
+        StrictDumper.add_implicit_resolver(_tag, _rx, [_first])
+
+
+def dump_yaml(data, **kw) -> str:
+    """``yaml.safe_dump`` that :func:`load_yaml` reads back as written (see :class:`StrictDumper`)."""
+    return yaml.dump(data, Dumper=StrictDumper, **kw)
+
+
 def _key_lines(data, loader: StrictLoader) -> dict[tuple, int]:
     """Path of every mapping key (a tuple of keys and list indices) -> its line."""
     out: dict[tuple, int] = {}

@@ -330,7 +330,8 @@ def _public(c: dict) -> dict:
 
 
 # ------------------------------------------------------------------ the job ---
-def _number(value, key: str, kind=float):
+def _number(value, key: str, kind=float, lo: float | None = None):
+    """``value`` as ``kind``, finite (and >= ``lo`` when given), else a one-line error naming ``key``."""
     try:
         if isinstance(value, bool):
             raise ValueError
@@ -339,6 +340,8 @@ def _number(value, key: str, kind=float):
         raise DiagnoseError(f"config key {key!r}: expected {'an integer' if kind is int else 'a number'}, got {value!r}") from None
     if not np.isfinite(out):
         raise DiagnoseError(f"config key {key!r}: expected a finite number, got {value!r}")
+    if lo is not None and out < lo:
+        raise DiagnoseError(f"config key {key!r}: expected a number >= {lo:g}, got {value!r}")
     return out
 
 
@@ -460,7 +463,7 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     settings = settings_from_config(conf, say)
     max_effects = _number(conf.get("max_effects", 3), "max_effects", int)
     noise = dict(conf.get("noise") or {})
-    window_s = _number(noise.get("repeat_window_s", 60.0), "noise.repeat_window_s")
+    window_s = _number(noise.get("repeat_window_s", 60.0), "noise.repeat_window_s", lo=0.0)
     min_groups = _number(noise.get("min_groups", 20), "noise.min_groups", int)
     force = conf.get("force", False)
     if not isinstance(force, bool):
@@ -485,6 +488,7 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
             mlflow.set_tags(tracking.standard_tags(ds.content_hash(), tracking.config_hash(conf), "diagnose")
                             | {"missing_effects": ",".join(d["missing_effects"]) or "none", "verdict": d["verdict"]})  # fmt: skip
             tracking.log_config(conf)
+            tracking.log_dataset(ds, ds.metadata.machine.name, "evaluation", digest=ds.content_hash())
             mlflow.log_metrics({"noise_floor_um": d["noise_floor_um"], "heldout_rmse_base_um": d["final"]["heldout_rmse_base_um"],
                                 "heldout_rmse_final_um": d["final"]["heldout_rmse_um"], "n_missing": len(d["missing_effects"]),
                                 "runtime_s": d["runtime_s"]})  # fmt: skip

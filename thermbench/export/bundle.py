@@ -366,7 +366,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["delta_T"] = "rise above the first filtered sample of the run (seed 002 eq. 10)"
         man["outputs"] = {"thermal_um": "thermal part of the positioning error", "total_um":
                           "geometric + thermal positioning error (measured - commanded); compensation = -total_um"}  # fmt: skip
-        man["training"] = {"runs": list(model.train_runs_), **({"dataset": str(ds.path), "dataset_hash": ds.content_hash()}
+        man["training"] = {"runs": list(model.train_runs_), **({"dataset": str(ds.path), "dataset_hash": ds.content_hash(),
+                                                                "machine": ds.metadata.machine.model_dump(exclude_none=True)}
                            if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
                            **source.pop("training", {})}  # fmt: skip
         man["metrics"] = source.pop("metrics", {})

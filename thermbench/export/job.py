@@ -213,7 +213,8 @@ def _source_name(e: dict) -> str:
 def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path) -> list[dict]:
     """Export every item into ``stage/<key>``: what each needs is checked here first (so a
     bad key fails before any work), then the models are exported in ``export.n_jobs``
-    processes (joblib; each model's directory is its own), rows in the items' order."""
+    processes (joblib; each model's directory is its own; each process on its share of the
+    cores: :func:`thermbench.experiment.run_workers`), rows in the items' order."""
     every = e.get("select", "all") == "all" and len(items) > 1
     todo = []
     for key, model, info in items:
@@ -236,12 +237,10 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
     n_jobs = e.get("n_jobs", 1)
     if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0 or n_jobs < -1:
         raise ConfigError(f"config key 'export.n_jobs': expected an integer >= 1 (or -1: every core), got {n_jobs!r}")
-    if n_jobs == 1 or len(todo) == 1:
-        rows = [_export_one(*t, opts, stage, out_root, every) for t in todo]
-    else:
-        import joblib
+    from ..experiment import run_workers  # each worker on its share of the cores (thread limits)
 
-        rows = joblib.Parallel(n_jobs=n_jobs)(joblib.delayed(_export_one)(*t, opts, stage, out_root, every) for t in todo)
+    calls = [((*t, opts, stage, out_root, every), {}) for t in todo]
+    rows = list(run_workers(_export_one, calls, 1 if len(todo) == 1 else n_jobs))
     rows = [r for r in rows if r is not None]
     if not rows:
         raise ExportError(f"nothing to export: no model meets export.target={opts.target} (the lines above say why)")

@@ -19,6 +19,7 @@ before/after with the condition the bank had chosen (seed 002 Fig. 22 analogue).
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,67 @@ from ..metrics import cycle_curves, residual_metrics
 from ..outputs import output_dir
 from .bundle import read_manifest, replay_dir
 from .encoding import ExportError
+
+
+class MachineMismatchWarning(UserWarning):
+    """The dataset replayed is of another machine than the one the model was trained on."""
+
+
+def _machine(machine) -> tuple[str, str | None] | None:
+    """(name, axis) of a machine as a manifest or a dataset's metadata records it (a name, or a
+    mapping / object with ``name`` and ``axis``); None when it names none."""
+    if isinstance(machine, str):
+        return (machine, None) if machine else None
+    get = machine.get if isinstance(machine, dict) else (lambda key: getattr(machine, key, None))
+    name, axis = get("name"), get("axis")
+    if not isinstance(name, str) or not name:
+        return None
+    return name, (str(axis) if axis else None)
+
+
+def _machine_text(machine: tuple[str, str | None]) -> str:
+    name, axis = machine
+    return f"{name!r} (axis {axis})" if axis else repr(name)
+
+
+def model_machine(man: dict, model_dir: Path) -> tuple[tuple[str, str | None], str] | None:
+    """((name, axis), where it is recorded) of the machine the model was trained on:
+    ``training.machine`` in its manifest (written by the export), else, for a model exported before
+    that was recorded, the ``machine`` of its training dataset (``training.dataset``, read when that
+    directory is still there); None when neither says."""
+    training = man.get("training") if isinstance(man.get("training"), dict) else {}
+    machine = _machine(training.get("machine"))
+    if machine is not None:
+        return machine, f"{Path(model_dir) / 'manifest.json'}, training.machine"
+    data = training.get("dataset")
+    if isinstance(data, str) and data and (Path(data) / "metadata.yaml").is_file():
+        from ..data.io import load_metadata
+
+        try:
+            machine = _machine(load_metadata(Path(data)).machine)
+        except ValueError:  # the training dataset changed since (a DatasetError): nothing to compare with
+            return None
+        if machine is not None:
+            return machine, f"its training dataset {Path(data) / 'metadata.yaml'}"
+    return None
+
+
+def check_machine(man: dict, model_dir: Path, ds, data_dir: Path) -> str | None:
+    """Warn (:class:`MachineMismatchWarning`, one line naming both machines) when the dataset at
+    ``data_dir`` is of another machine (or axis) than the one the model was trained on; returns
+    the message (None: the same machine, or the model or the dataset records none)."""
+    recorded = model_machine(man, model_dir)
+    theirs = _machine(ds.metadata.machine)
+    if recorded is None or theirs is None:
+        return None
+    mine, where = recorded
+    if mine[0] == theirs[0] and (mine[1] is None or theirs[1] is None or mine[1] == theirs[1]):
+        return None
+    message = (f"model {model_dir} was trained on machine {_machine_text(mine)} ({where}), but "
+               f"{Path(data_dir) / 'metadata.yaml'} is of machine {_machine_text(theirs)}: the compensation is "
+               "replayed on a machine the model was not fitted to")  # fmt: skip
+    warnings.warn(message, MachineMismatchWarning, stacklevel=3)
+    return message
 
 
 def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
@@ -69,6 +131,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
+    check_machine(man, model_dir, ds, data_dir)
     if ds.metadata.version == 2:
         ds = replay_view(ds, man, run, channel, data_dir)
     elif channel is not None and channel not in ds.metadata.error_channels():

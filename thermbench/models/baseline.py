@@ -17,6 +17,10 @@ several measuring targets also the position P and, for the linear model, P·ΔT_
 error that grows along the axis). The target is the reading itself (``error_um``); the
 geometric part is left in the regressor (``geometric_`` is 0), as a user fitting a
 regressor to the raw readings would.
+
+Threads: an estimator's OpenMP and BLAS pools (``baseline_hgb``'s booster is OpenMP-parallel)
+run with the thread count of the job that fits it, like every family's
+(:func:`thermbench.models.base.thread_budget`, applied by ``ThermalErrorModel.fit``).
 """
 
 from __future__ import annotations

@@ -11,13 +11,36 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 
+class FieldValueError(ValueError):
+    """A constructor argument is out of range; ``field`` names it, so the config layer can name the
+    whole key (``config key 'instruments.sensor.noise_C': expected a number >= 0, got -0.1``)."""
+
+    def __init__(self, field: str, problem: str):
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{field}: {problem}")
+
+
+def _at_least_zero(value: object, key: str) -> None:
+    """``value`` must be a finite number >= 0 (a standard deviation, a step, a rate); ``key``
+    names it (``noise_C``)."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not ok or not 0 <= value < math.inf:
+        raise FieldValueError(key, f"expected a number >= 0, got {value!r}")
+
+
 @dataclass(frozen=True)
 class SensorSpec:
+    """A temperature sensor (DS18B20 class): white noise of standard deviation ``noise_C``,
+    rounding to ``quantum_C``, spikes of ``spike_C`` and dropouts (config ``instruments.sensor``).
+    The noise, the quantum, the rates and the dropout length are >= 0 (0: none)."""
+
     noise_C: float = 0.03
     quantum_C: float = 0.0625
     spike_rate_per_h: float = 0.0
@@ -25,6 +48,11 @@ class SensorSpec:
     dropout_rate_per_h: float = 0.0
     dropout_len_s: float = 5.0
     dropout_value_C: float = 85.0
+
+    def __post_init__(self) -> None:
+        # built from config key 'instruments.sensor' (thermbench.sim.scenario names it)
+        for key in ("noise_C", "quantum_C", "spike_rate_per_h", "dropout_rate_per_h", "dropout_len_s"):
+            _at_least_zero(getattr(self, key), key)
 
     def read(self, true_C: np.ndarray, t_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         y = np.asarray(true_C, dtype=float).copy()
@@ -65,8 +93,14 @@ class GeometricError:
 
 @dataclass(frozen=True)
 class Interferometer:
+    """The laser interferometer: the error plus the geometric one plus white noise of standard
+    deviation ``noise_um`` (>= 0; config key ``instruments.interferometer.noise_um``)."""
+
     noise_um: float = 0.2
     geometric: GeometricError = field(default_factory=GeometricError)
+
+    def __post_init__(self) -> None:
+        _at_least_zero(self.noise_um, "noise_um")
 
     def read(self, thermal_um: np.ndarray, target_mm: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         y = np.asarray(thermal_um, dtype=float) + self.geometric(target_mm)

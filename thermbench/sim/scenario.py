@@ -21,7 +21,7 @@ from ..data.io import Dataset
 from ..data.schema import FORMAT, Metadata
 from .duty import Measuring, Phase, Trajectory, build_run, random_phases
 from .effects import Effect, effects_from_config
-from .instruments import GeometricError, Interferometer, SensorSpec
+from .instruments import FieldValueError, GeometricError, Interferometer, SensorSpec
 from .model import ScrewThermalModel, ThermalHistory
 from .parts import CoreParams, Material, Numerics, Screw, housings_from_config
 
@@ -47,6 +47,8 @@ def _build(spec: Any, cls: type, key: str) -> Any:
         return cls(**dict(spec or {}))
     except Exception as exc:
         why = exc.__cause__ if exc.__cause__ is not None else exc  # Hydra wraps the class's own message
+        if isinstance(why, FieldValueError):  # the class names the field: name the whole key
+            raise ConfigError(f"config key '{key}.{why.field}': {why.problem}") from None
         raise ConfigError(f"config key {key!r}: {why}") from None
 
 
@@ -165,7 +167,10 @@ def simulate_dataset(cfg: Any, runs_only: Sequence[str] | None = None,
     geometric = GeometricError() if clean else _build(m.get("geometric"), GeometricError, "machine.geometric")
     ifm_spec = dict(inst.get("interferometer") or {})
     ifm_spec.pop("_target_", None)
-    ifm = Interferometer(noise_um=0.0 if clean else float(ifm_spec.get("noise_um", 0.2)), geometric=geometric)
+    try:
+        ifm = Interferometer(noise_um=0.0 if clean else ifm_spec.get("noise_um", 0.2), geometric=geometric)
+    except FieldValueError as exc:
+        raise ConfigError(f"config key 'instruments.interferometer.{exc.field}': {exc.problem}") from None
     rate_hz = inst.get("process_rate_hz", 1.0)
     if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float)) or not 1.0 <= rate_hz < math.inf:
         raise ConfigError(f"config key 'instruments.process_rate_hz': must be >= 1 (contract), got {rate_hz!r}")
