@@ -32,7 +32,7 @@ CORE_VENV   ?= .venv-core
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean sysdeps-test sysdeps-target
+.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean sysdeps-test sysdeps-target-test
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -59,7 +59,7 @@ demo: $(VENV)/.installed
 
 # the system packages a target needs (tools/system-packages.txt, the one list; the README prints it):
 # nothing is run when they are installed; apt-get as root, sudo -n apt-get when that works, else one line
-sysdeps-test sysdeps-target:
+sysdeps-test sysdeps-target-test:
 	@sh tools/sysdeps.sh $(@:sysdeps-%=%) $(SYSDEPS_LIST)
 
 # node-opcua (npm registry), the second OPC UA stack the compensator is tested against (tests/test_node_opcua.py)
@@ -80,8 +80,8 @@ test: sysdeps-test $(VENV)/.installed-dev $(NODE_OPCUA)
 	$(BIN)/python -m pytest -q -m timing
 
 # the C runtime cross-compiled for the Cortex-M4F and run on QEMU's mps2-an386 (marker target);
-# its system packages (cross compiler, newlib, QEMU) come from sysdeps-target
-target-test: sysdeps-target $(VENV)/.installed-dev
+# its system packages (cross compiler, newlib, QEMU) come from sysdeps-target-test
+target-test: sysdeps-target-test $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -n 2 -q -m target
 
 notebooks: $(VENV)/.installed-dev

@@ -34,7 +34,7 @@ def rows() -> list[tuple[str, str]]:
     """(package, make target) of the list, read here with a regex, not with the script's awk."""
     out = []
     for line in LIST.read_text(encoding="utf-8").splitlines():
-        m = re.match(r"^([a-z0-9][a-z0-9+.-]+)\s+(test|target)\s+\S+", line)
+        m = re.match(r"^([a-z0-9][a-z0-9+.-]+)\s+(test|target-test)\s+\S+", line)
         if m:
             out.append((m.group(1), m.group(2)))
     return out
@@ -73,7 +73,7 @@ def fake_list(tmp_path):
                  "tb-fake-alpha  test    tb-no-such-command-a   first\n"
                  "tb-fake-beta   test    /nonexistent/tb/*/beta  second\n"
                  "tb-fake-gamma  test    -                       third\n"
-                 "tb-fake-delta  target  tb-no-such-command-d   for the target\n")
+                 "tb-fake-delta  target-test  tb-no-such-command-d  for the target\n")
     return f
 
 
@@ -92,7 +92,7 @@ def test_missing_as_root_installs_exactly_the_missing(standins, fake_list):
 
 
 def test_missing_with_passwordless_sudo_goes_through_sudo(standins, fake_list):
-    p, calls = standins([], uid=1000, sudo=True, list_file=fake_list, target="target")
+    p, calls = standins([], uid=1000, sudo=True, list_file=fake_list, target="target-test")
     assert p.returncode == 0, p.stderr
     assert calls[0] == "sudo -n true"
     assert "sudo -n env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends tb-fake-delta" in calls
@@ -130,7 +130,7 @@ def test_the_real_list_is_what_the_readme_prints():
     block = re.search(r"<!-- system-packages -->(.*?)<!-- /system-packages -->", readme, re.S)
     assert block, "README.md has no system-packages table"
     printed = re.findall(r"^\| `([^`]+)` \| `make (test|target-test)` \|", block.group(1), re.M)
-    listed = [(p, "target-test" if t == "target" else "test") for p, t in rows()]
+    listed = rows()
     assert printed == listed
     # the packages the suite's own failure messages name are in the list
     names = {p for p, _ in rows()}

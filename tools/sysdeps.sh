@@ -1,6 +1,6 @@
 #!/bin/sh
 # Installs the system packages that a make target needs (tools/system-packages.txt), or says in one
-# line what to install. Usage: tools/sysdeps.sh TARGET [LIST]   (TARGET: test or target; LIST: the
+# line what to install. Usage: tools/sysdeps.sh TARGET [LIST]   (TARGET: test or target-test; LIST: the
 # package list, tools/system-packages.txt by default).
 #   nothing missing           -> nothing is run, exit 0 (a second `make test` does no apt work)
 #   missing, running as root  -> apt-get update; one apt-get install of exactly the missing packages
