@@ -141,6 +141,7 @@ def test_sim_refuses_root_without_a_user_in_one_line(seed001_exports, tmp_path):
         run_sim(seed001_exports / "mlr", {"out_dir": str(tmp_path / "x"), "user": "nobody-here-xyz"})
 
 
+@pytest.mark.timing  # LinuxCNC's servo thread and the components in real time: run alone (see the Makefile)
 def test_linuxcnc_closed_loop(seed001_exports, lcnc_user, shared_dir):
     """LinuxCNC runs a reciprocating program while the component writes the external offset:
     LinuxCNC's actual position is the commanded position plus the offset (its simulated servo

@@ -9,6 +9,7 @@ import joblib
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 from numpy.polynomial import Polynomial
 
 from tests.synth import make_dataset
@@ -173,7 +174,7 @@ def test_unsupported_lines_pass_through_and_are_listed():
     assert set(listed) == {3, 4, 5, 7}
     assert "G17" in listed[3] and "G54" in listed[3]
     assert "M6" in listed[4] and "T2" in listed[4]
-    assert "macro" in listed[5]
+    assert "(parameters #)" in listed[5]
     assert "G2" in listed[7] and "not compensated" in listed[7]
     # the arc is followed to X60 and timed on its X distance at F1200; Y-only blocks take no time
     arc = res.moves[res.moves["kind"] == "G2"].iloc[0]
@@ -378,7 +379,7 @@ def test_run_precompensate_from_files(tmp_path):
         ("G0 X0\nG4\n", 2, "P<seconds>"),
         ("G0 X0\nG4 X2\n", 2, "P<seconds>"),
         ("G91 G1 X10 F100\n", 1, "incremental"),
-        ("G1 X#1 F100\n", 1, "macro"),
+        ("G1 X#1 F100\n", 1, "(a word whose value is a parameter or an expression)"),
         ("X10\n", 1, "no motion mode"),
         ("G0 X0\nG28 X0\n", 2, "G28"),
         ("G1 X1 X2 F100\n", 1, "at most one"),
@@ -448,3 +449,30 @@ def test_file_errors(tmp_path):
     binary.write_bytes(b"G0 X0\n\xff\xfe\n")
     with pytest.raises(PrecompError, match="bin.nc:2: not UTF-8"):
         run_precompensate(binary, model_path, out, dataset=data)
+
+
+def test_building_the_models_benchmark_dataset_is_said_first(tmp_path, monkeypatch, capsys):
+    """A benchmark model's metadata comes from its training dataset; when that is not built where
+    the benchmark datasets are, precompensate says it will simulate it there before it starts."""
+    from thermbench import datasets
+    from thermbench.precompensate import resolve_metadata
+
+    monkeypatch.setenv("THERMBENCH_DATA", str(tmp_path / "bench"))
+    said_before = []
+
+    def fake_build(name, root=None, force=False):
+        said_before.append(capsys.readouterr().err)
+        d = tmp_path / "bench" / name
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "metadata.yaml").write_text(yaml.safe_dump(seed000_metadata().model_dump(mode="json", exclude_none=True)))
+        return d, None
+
+    monkeypatch.setattr(datasets, "build", fake_build)
+    assert resolve_metadata("seed000_x").machine.name == seed000_metadata().machine.name
+    assert said_before == [f"precompensate: the model's training dataset seed000_x is not at {tmp_path / 'bench' / 'seed000_x'}; "
+                           "simulating it there for its machine's metadata (--dataset DIR names one you have; "
+                           "THERMBENCH_DATA moves the benchmark datasets)\n"]  # fmt: skip
+    # built with its current config: nothing said
+    monkeypatch.setattr(datasets, "is_built", lambda name, root=None: True)
+    resolve_metadata("seed000_x")
+    assert said_before[1:] == [""] and capsys.readouterr().err == ""

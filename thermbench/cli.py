@@ -211,7 +211,7 @@ def cmd_precompensate(args) -> int:
                             truth="auto" if args.verify else None, axis=args.axis, rapid_mm_min=args.rapid,
                             sample_s=args.sample, start_mm=args.start_mm, work_offset_mm=args.work_offset,
                             ambient_C=args.ambient, decimals=args.decimals, flatten=args.flatten,
-                            tool_table=args.tool_table)  # fmt: skip
+                            tool_table=args.tool_table, ini=args.ini)  # fmt: skip
     print(format_summary(res))
     return 0
 
@@ -488,6 +488,8 @@ def _main(argv: list[str] | None) -> int:
                        "cannot follow the program and rs274 is installed; always: arcs too, as compensated chords); "
                        "the output is then the flattened program")  # fmt: skip
     p_pre.add_argument("--tool-table", default=None, help="LinuxCNC tool table for rs274 (default: tools 1-99, no offsets)")
+    p_pre.add_argument("--ini", default=None, help="the machine's LinuxCNC INI for rs274: subroutine paths, the work "
+                       "offsets of its PARAMETER_FILE (a program that switches to G55 ... needs them)")  # fmt: skip
     p_pre.add_argument("--verify", action="store_true", help="replay both programs in the simulator that made --dataset")
     p_cmp = sub.add_parser("compensator", help="OPC UA compensator: read the machine, run the exported model in the "
                            "C runtime, write the compensation (conf/compensator.yaml)")  # fmt: skip

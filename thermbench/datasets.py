@@ -147,6 +147,12 @@ def build(name: str, root: str | Path | None = None, force: bool = False) -> tup
     return _build_cached(benchmark_config(name), Path(root or default_root()) / name, force, benchmark=name)
 
 
+def is_built(name: str, root: str | Path | None = None) -> bool:
+    """Simulated benchmark dataset ``name`` is under ``root`` as its current config makes it
+    (:func:`build` would take it from there, not simulate)."""
+    return _cached_hash(Path(root or default_root()) / name) == config_hash(benchmark_config(name))
+
+
 def load_benchmark(name: str, root: str | Path | None = None) -> Dataset:
     """The validated benchmark dataset ``name`` (built on first use): simulated, or measured
     (:data:`REAL`, imported from the files shipped in the package)."""

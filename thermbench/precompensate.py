@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,11 +107,13 @@ class Block:
 
 @dataclass
 class Unsupported:
-    """A line passed through untouched whose content is (partly) not interpreted."""
+    """A line passed through untouched whose content is (partly) not interpreted. ``origin``: for a
+    flattened program, the line of the user's file it comes from (``part.ngc:12``)."""
 
     line: int
     text: str
     reason: str
+    origin: str | None = None
 
 
 @dataclass
@@ -159,6 +162,23 @@ def _split_lines(text: str) -> list[str]:
     """The lines of ``text`` with their endings (``\n`` or ``\r\n``) kept, split on
     ``\n`` only, so line numbers are those of any editor."""
     return re.findall(r"[^\n]*\n|[^\n]+$", text)
+
+
+def _not_plain(rest: str) -> str:
+    """What the line reader met where it expected a word (``rest``: the block from there): the name
+    of the language feature it does not follow."""
+    ch = rest[:1]
+    if ch in "@^":
+        return "polar coordinates @, ^"
+    if ch == "#":
+        return "parameters #"
+    if ch == "[":
+        return "expressions [...]"
+    if ch in "oO":
+        return "O-codes"
+    if re.match(r"[A-Za-z]\s*[#\[]", rest):
+        return "a word whose value is a parameter or an expression"
+    return f"a character the reader does not know here: {rest[:12]!r}"
 
 
 def _number(text: str) -> tuple[float, int]:
@@ -225,15 +245,15 @@ def parse_program(
                 words.append((m.group(1).upper(), value, m.start(3), m.end(3), decimals))
                 i = m.end()
             else:
-                junk = True
+                junk = _not_plain(code[i:])
                 break
         if junk:
             if axis in code.upper():
                 raise ProgramError(
-                    f"{where}: {line.strip()!r} is not plain G-code words (macro or variable?) and mentions "
+                    f"{where}: {line.strip()!r} is not plain G-code words ({junk}) and mentions "
                     f"{axis}; the planner cannot follow the {axis} axis through it: expected '{axis}<number>'"
                 )
-            unsupported.append(Unsupported(number, line, "not plain G-code words (macro, variable?): not interpreted"))
+            unsupported.append(Unsupported(number, line, f"not plain G-code words ({junk}): not interpreted"))
             continue
 
         reasons = ["block delete '/': interpreted as executed"] if block_delete else []
@@ -483,6 +503,12 @@ def resolve_metadata(source) -> Metadata:
             from . import datasets
 
             if str(source) in datasets.names():
+                where = datasets.default_root() / str(source)
+                if not datasets.is_built(str(source)):
+                    # a simulation that writes a directory: said before it starts (minutes, in the working directory)
+                    print(f"precompensate: the model's training dataset {source} is not at {where}; simulating it there "
+                          "for its machine's metadata (--dataset DIR names one you have; THERMBENCH_DATA moves the "
+                          "benchmark datasets)", file=sys.stderr, flush=True)  # fmt: skip
                 built, _ = datasets.build(str(source))
                 return load_metadata(built)
         except DatasetError as exc:
@@ -886,6 +912,7 @@ def run_precompensate(
     decimals: int = 4,
     flatten: str = "auto",
     tool_table=None,
+    ini=None,
 ) -> PrecompResult:
     """``thermbench precompensate``: read the program and the joblib model, write the
     rewritten program to ``out_path`` (atomically; never over a file thermbench did not
@@ -900,11 +927,13 @@ def run_precompensate(
     over a program the reader cannot follow (parameters, expressions, loops, subroutines) and
     compensates the flattened program; ``"always"`` also flattens a program it can follow (its arcs
     become compensated chords); ``"never"``.
-    ``tool_table``: LinuxCNC's tool table for rs274 (None: tools 1..99 without offsets).
+    ``tool_table``: LinuxCNC's tool table for rs274 (None: tools 1..99 without offsets); ``ini``: the
+    machine's LinuxCNC INI for rs274 (subroutine paths; its parameter file's work offsets). The
+    lines a flattened program passes through name the line of the original they come from.
     """
     program_path, model_path, out_path = Path(program_path), Path(model_path), Path(out_path)
     text = _read_program(program_path)
-    flat_note = None
+    flat_note = flat = None
     reason = _flatten_reason(text, axis, str(program_path), start_mm) if flatten == "auto" else None
     if flatten not in ("auto", "always", "never"):
         raise PrecompError(f"--flatten: expected auto, always or never, got {flatten!r}")
@@ -917,7 +946,8 @@ def run_precompensate(
                                    "--no-install-recommends linuxcnc-uspace)")  # fmt: skip
             parse_program(text, axis=axis, source=str(program_path), start_mm=start_mm)  # the reader's own error, if any
         else:
-            flat = rs274_flatten(program_path, tool_table=None if tool_table is None else Path(tool_table))
+            flat = rs274_flatten(program_path, tool_table=None if tool_table is None else Path(tool_table),
+                                 ini=None if ini is None else Path(ini))  # fmt: skip
             if flat.moves == 0:
                 raise PrecompError(f"{program_path}: LinuxCNC's interpreter finds no move in it; nothing to compensate")
             text = flat.text
@@ -950,9 +980,11 @@ def run_precompensate(
         start_mm=start_mm, work_offset_mm=work_offset_mm, ambient_C=ambient_C, decimals=decimals,
         source=str(program_path),
     )  # fmt: skip
-    if flat_note is not None:
+    if flat is not None:
         result.notes.insert(0, flat_note)
         result.settings["flattened"] = True
+        for u in result.unsupported:
+            u.origin = flat.origin(u.line)
     write_text(out_path, result.text, "part-program")
     result.settings["out_path"] = str(out_path)
     if truth_model is not None:
@@ -968,9 +1000,10 @@ def _flatten_reason(text: str, axis: str, source: str, start_mm) -> str | None:
         prog = parse_program(text, axis=axis, source=source, start_mm=start_mm)
     except ProgramError as exc:
         return f"the reader refused it: {str(exc).split(': ', 1)[-1]}"
-    if any(("macro" in u.reason or "subprogram" in u.reason) for u in prog.unsupported):
-        return "O-codes, parameters or expressions"
-    return None
+    kinds = dict.fromkeys(re.search(r"\((.*)\)", u.reason).group(1) for u in prog.unsupported
+                          if u.reason.startswith("not plain G-code words ("))  # fmt: skip
+    kinds.update(dict.fromkeys("M98/M99 subprograms" for u in prog.unsupported if "subprogram" in u.reason))
+    return ", ".join(kinds) or None
 
 
 def _duration(seconds: float) -> str:
@@ -1000,7 +1033,8 @@ def format_summary(result: PrecompResult, verification: dict | None = None, max_
     if result.unsupported:
         lines.append(f"  passed through, not (fully) interpreted: {len(result.unsupported)} line(s)")
         for u in result.unsupported[:max_lines]:
-            lines.append(f"    line {u.line}: {u.text.strip()}  -- {u.reason}")
+            at = f"line {u.line}" + (f" (from {u.origin})" if u.origin else "")
+            lines.append(f"    {at}: {u.text.strip()}  -- {u.reason}")
         if len(result.unsupported) > max_lines:
             lines.append(f"    ... and {len(result.unsupported) - max_lines} more")
     if ver:
