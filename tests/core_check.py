@@ -16,6 +16,7 @@ Prints one line per step with its wall time; exits 1 on the first failure.
 from __future__ import annotations
 
 import importlib.util
+import os
 import re
 import subprocess
 import sys
@@ -28,9 +29,10 @@ ABSENT = {"torch": "neural", "onnx": "onnx", "onnxruntime": "onnx", "asyncua": "
           "papermill": "notebooks", "psycopg": "postgres"}  # fmt: skip
 
 
-def run(args: list[str], cwd: Path, expect: int = 0) -> str:
+def run(args: list[str], cwd: Path, expect: int = 0, env: dict | None = None) -> str:
     t0 = time.perf_counter()
-    p = subprocess.run([str(BIN / "thermbench"), *args], cwd=cwd, capture_output=True, text=True)
+    p = subprocess.run([str(BIN / "thermbench"), *args], cwd=cwd, capture_output=True, text=True,
+                       env=None if env is None else {**os.environ, **env})  # fmt: skip
     took = time.perf_counter() - t0
     if p.returncode != expect:
         sys.exit(f"core-check: `thermbench {' '.join(args)}` exited {p.returncode}, expected {expect}:\n"
@@ -75,6 +77,19 @@ def main(argv: list[str]) -> int:
         tbm = list((cwd / "exp").glob("*/model.tbm"))
         if len(tbm) != 1:
             sys.exit(f"core-check: export wrote {len(tbm)} model files under exp/")
+        if "--installed" in argv:  # a user's own copy of conf/ with an option of theirs, by THERMBENCH_CONFIG_DIR
+            import shutil
+
+            from thermbench.config import config_dir
+
+            mine = cwd / "myconf"
+            shutil.copytree(config_dir(), mine)
+            (mine / "machine" / "my_axis.yaml").write_text((mine / "machine" / "seed000_x.yaml").read_text())
+            missing = run(["simulate", "machine=my_axis", "out_dir=mine"], cwd, expect=2)
+            if "my_axis" not in missing:
+                sys.exit(f"core-check: machine=my_axis should be unknown to the packaged conf/:\n{missing}")
+            run(["simulate", "machine=my_axis", "out_dir=mine"], cwd,
+                env={"THERMBENCH_CONFIG_DIR": str(mine)})  # fmt: skip
         if "--quick" in argv:
             print("core-check: passed (quick)")
             return 0

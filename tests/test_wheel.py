@@ -24,6 +24,9 @@ def test_the_wheel_runs_simulate_validate_train_export_from_an_empty_directory(t
     assert (site / "thermbench" / "conf" / "simulate.yaml").is_file()
     assert (site / "thermbench" / "embedded" / "src" / "tb_runtime.c").is_file()
     assert not list(site.glob("__editable__*thermbench*")), "installed editable, not from the wheel"
+    # a user's own copy of conf/ (THERMBENCH_CONFIG_DIR) with a machine option of theirs: refused without it, run with it
+    assert "core-check: thermbench simulate machine=my_axis out_dir=mine: exit 2" in out
+    assert "core-check: thermbench simulate machine=my_axis out_dir=mine: exit 0" in out
     assert "core-check: passed (quick)" in out
     # no extra came with the core
     assert not (site / "torch").exists() and not (site / "asyncua").exists()
