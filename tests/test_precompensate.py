@@ -122,6 +122,12 @@ def test_timing_of_a_hand_computed_program():
     np.testing.assert_allclose(moves2["t_end_s"], [100.0, 106.0, 108.0, 109.2])
     assert np.diff(log2["t_s"]).max() == pytest.approx(0.5)
     assert log2["t_s"].iloc[-1] == pytest.approx(109.2)
+    # a feed above the rapid (LinuxCNC's 3D_Chips.ngc programs F4500000) runs at the machine's top speed:
+    # 100 mm at the rapid 5000 mm/min = 1.2 s, not 100 / 4.5e6 min
+    fast = parse_program("G21 G90\nG1 X0 F4500000\nG1 X100\n", start_mm=0.0)
+    moves3, log3 = plan_motion(fast, rapid_mm_min=5000.0)
+    np.testing.assert_allclose(moves3["duration_s"], [0.0, 1.2])
+    assert log3["feed_mm_min"].max() == 5000.0
 
 
 def test_incremental_blocks_and_their_rewrite():

@@ -58,7 +58,7 @@ def _registry() -> dict:
 
 
 def default_root() -> Path:
-    return Path(os.environ.get("THERMBENCH_DATA", "data/benchmark"))
+    return Path(os.environ.get("THERMBENCH_DATA") or "data/benchmark")  # set but empty: the default
 
 
 def benchmark_config(name: str, extra_overrides: tuple[str, ...] = ()):

@@ -418,7 +418,8 @@ def plan_motion(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Time the program from feeds and distances (seed 003 §1: the planned operation).
 
-    A move takes ``|Δ| / feed · 60`` s (G0 at ``rapid_mm_min``), a G4 its dwell;
+    A move takes ``|Δ| / feed · 60`` s (G0 at ``rapid_mm_min``, and no feed faster: the rapid is the
+    machine's top speed), a G4 its dwell;
     nothing else takes time (no acceleration, tool changes, other axes' motion).
     The clock starts at ``start_s`` with the axis cold. The axis position is the
     program coordinate plus ``work_offset_mm`` (the machine coordinate the model
@@ -450,8 +451,8 @@ def plan_motion(
     for b in program.blocks:
         if b.kind == "G4":
             feed, duration = 0.0, b.dwell_s
-        else:
-            feed = rapid if b.feed_mm_min is None else b.feed_mm_min
+        else:  # no feed is faster than the machine's rapid (LinuxCNC limits it to the axis's maximum velocity)
+            feed = rapid if b.feed_mm_min is None else min(b.feed_mm_min, rapid)
             duration = abs(b.target_mm - b.start_mm) / feed * 60.0
         rows.append(
             {
@@ -749,6 +750,11 @@ def precompensate(
     moves["written_value"] = [written[i][0] if i in written else np.nan for i in range(len(moves))]
 
     notes = []
+    fast = [b for b in program.blocks if b.feed_mm_min is not None and b.feed_mm_min > float(rapid_mm_min)]
+    if fast:
+        notes.append(f"{len(fast)} move(s) programmed faster than the rapid feed {float(rapid_mm_min):g} mm/min (F"
+                     f"{max(b.feed_mm_min for b in fast):g} mm/min at line {fast[0].line} ...): timed at the rapid feed, "
+                     "the machine's top speed (--rapid)")  # fmt: skip
     if axis.upper() != str(meta.machine.axis).upper():
         notes.append(
             f"the program's axis {axis.upper()} is compensated with a model of machine axis {meta.machine.axis}"
