@@ -266,6 +266,15 @@ static inline float tbi_tanhf(float x) { return 1.0f - 2.0f / (1.0f + tbi_expf(2
 /* "no time yet" (tb_model_ready_s before the first samples) */
 #define TBI_NO_TIME TB_R(-1e30)
 
+/* the latest time strictly before t, in the build's precision: "ready for every t' < t". A fixed
+ * margin (t - 1e-6) vanishes in single precision past a few seconds (at 840 s the spacing of floats
+ * is 6.1e-5) and then says ready at t itself */
+#ifdef TB_SINGLE
+#define TBI_BEFORE(t) nextafterf((t), -HUGE_VALF)
+#else
+#define TBI_BEFORE(t) nextafter((t), -HUGE_VAL)
+#endif
+
 /* the kind table, indexed by TB_KIND_* (tb_registry.c); 0: no such kind (TB_E_KIND) */
 extern const tbi_kind *const tbi_kinds[TB_KIND_MAX + 1];
 

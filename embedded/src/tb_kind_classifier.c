@@ -385,7 +385,7 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
 static tb_real clf_ready(const tb_model *m, const clf_t *k)
 {
     if (!k->have_t0) return TBI_NO_TIME;
-    return k->t0 + (tb_real)k->g_next * PV(m, m->off[O_BODY] + 1) - TB_R(1e-6);
+    return TBI_BEFORE(k->t0 + (tb_real)k->g_next * PV(m, m->off[O_BODY] + 1)); /* the label at that grid time needs a later sample */
 }
 
 static tb_real clf_horizon(const tb_model *m) { return PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S; }
