@@ -58,3 +58,37 @@ def test_every_sample_in_float_takes_the_member_python_takes(seed002_bank, shift
         res[prec] = c["total_um"].to_numpy()
     # the same member everywhere: float and double differ by rounding alone (it was 0.71 um at 840 s)
     assert np.max(np.abs(res["float"] - res["double"])) < 1e-3
+
+
+def test_the_exports_parity_compares_float_and_double_at_every_sample(seed002_bank, tmp_path):
+    ds, bank, _ = seed002_bank
+    man = export_model(bank, tmp_path / "bank", "bank", ds, ["table6_1", "table6_2"])
+    par = man["parity"]["model"]
+    assert par["n_samples"] == len(ds.process_run("table6_1")) + len(ds.process_run("table6_2"))
+    assert par["n_samples"] > 50 * par["n_readings"]  # every sample, not the readings
+    assert par["float_vs_double_every_sample_max_abs_um"] < 1e-3
+
+
+def test_a_float_build_off_at_one_sample_is_refused_for_a_float_target(seed002_bank, tmp_path, monkeypatch):
+    """The check itself: the float build made 0.5 um wrong at one process sample (a grid time) between
+    the readings; the parity at the readings cannot see it, the every-sample comparison names it."""
+    from thermbench.export import bundle
+    from thermbench.export.bundle import TargetRefused
+
+    ds, bank, out = seed002_bank
+    real = bundle.replay_dir
+    float_exe = runtime.build("tb_replay", SINGLE_FLAGS)
+
+    def off_at_840(model_dir, data, run, queries, *a, exe=None, **k):
+        c = real(model_dir, data, run, queries, *a, exe=exe, **k)
+        if exe == float_exe:
+            c.loc[queries["t_s"].to_numpy() == 840.0, "total_um"] += 0.5
+        return c
+
+    monkeypatch.setattr(bundle, "replay_dir", off_at_840)
+    man = bundle.read_manifest(out)
+    assert not (bundle.readings_queries(ds, "table6_1")["t_s"] == 840.0).any()  # no reading at the grid time
+    with pytest.raises(TargetRefused, match=r"differs from the double build by 0\.5 um at t = 840 s of run 'table6_1' "
+                                            r"\(every process sample of \['table6_1'\] compared\)"):
+        bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "float")
+    bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "double")  # a double target: reported only
