@@ -85,6 +85,7 @@ def one(model_dir: Path, seconds: float, precision: str) -> dict:
         "parity_um": float(np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy()))) if len(q) else np.nan,
         "cycle_insn_mean": rep["step_insn_mean"], "cycle_insn_max": rep["step_insn_max"],
         "pred_insn_mean": rep["predict_insn_mean"], "pred_insn_max": rep["predict_insn_max"],
+        "finish_insn": rep["finish_insn_max"],  # tb_*_finish at the stream's end: not a control cycle
         "arena_bytes": rep["arena_bytes"], "stack_bytes": rep["stack_bytes"], "image_flash_bytes": rep["flash_bytes"],
         "calibration_insn": rep["calibrate_insn_max"],
         # the smallest one-kind firmware for a single model (no stdio): the 64 KB flash budget
@@ -117,7 +118,8 @@ def main(argv=None) -> int:
             print(f"{r['model']:<48s} {r['kind']:<12s} {precision:<6s} "
                   + (r.get("note") or f"parity {r['parity_um']:.2g} um, cycle {r['cycle_insn_mean']:.0f}/{r['cycle_insn_max']} insn "
                      f"({ms(r['cycle_insn_max']):.2f} ms), prediction {r['pred_insn_mean']:.0f}/{r['pred_insn_max']} "
-                     f"({ms(r['pred_insn_max']):.2f} ms), arena {r['arena_bytes']} B, stack {r['stack_bytes']} B, "
+                     f"({ms(r['pred_insn_max']):.2f} ms), finish {r['finish_insn']} insn, arena {r['arena_bytes']} B, "
+                     f"stack {r['stack_bytes']} B, "
                      f"min image {r['min_image_flash_bytes']} B")
                   + (f"  OVER: {r['over_budget']}" if r.get("over_budget") else ""), flush=True)  # fmt: skip
     df = pd.DataFrame(rows)

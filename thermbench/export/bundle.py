@@ -461,6 +461,7 @@ def _measure_on_target(model_dir: Path, man: dict, ds, run: str, name: str) -> d
         kind = man["kind"] if man["kind"] == "bank" else man["files"][variant]["kind"]
         cyc = budget["physics_update_insn"] if kind == "PHYSICS" else budget["cycle_insn"]
         m = {"cycle_insn_max": rep.get("step_insn_max", 0), "prediction_insn_max": rep.get("predict_insn_max", 0),
+             "finish_insn": rep.get("finish_insn_max", 0),  # the end-of-stream call, apart from the control cycle
              "arena_bytes": rep["arena_bytes"], "stack_bytes": rep["stack_bytes"],
              "image_bytes": None if man["kind"] == "bank" else tgt.image(files[0], "float").flash_bytes}  # fmt: skip
         out[variant] = m
