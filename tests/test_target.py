@@ -92,9 +92,13 @@ def test_an_export_for_the_cortex_m4f_holds_the_float_build_to_the_tolerance(ds,
     assert man["parity"]["model"]["float_max_abs_diff_um"] <= FLOAT_UM
     assert 0 < man["target"]["footprint"]["arena_bytes"] <= 16 * 1024
     # and measured on the emulated M4 against the budgets
-    got = man["target"]["measured"]["model"]
+    meas = man["target"]["measured"]
+    got = meas["model"]
     assert 0 < got["cycle_insn_max"] <= 100_000 and 0 < got["prediction_insn_max"] <= 200_000
     assert 0 < got["arena_bytes"] <= 16 * 1024 and 0 < got["image_bytes"] <= 64 * 1024
+    # over every held-out run, a query at every process sample, against the host's double build
+    assert meas["runs"] == HELDOUT and got["n_samples"] == sum(len(ds.process_run(r)) for r in HELDOUT)
+    assert got["cycle_worst_run"] in HELDOUT and 0 < got["finish_insn_max"] and got["parity_vs_host_double_um"] <= FLOAT_UM
     ill = PSOLSSVM(gamma=1e4, sigma2=5.0, max_samples=400).fit(ds, TRAIN)
     host = export_model(ill, tmp_path / "host", "ill", ds, HELDOUT, options=ExportOptions())
     assert host["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM < host["parity"]["model"]["float_max_abs_diff_um"]
@@ -162,8 +166,9 @@ def test_a_gru_over_the_prediction_budget_is_refused_with_its_measured_cost(ds, 
     from thermbench.models.neural import GRUModel
 
     gru = GRUModel(hidden_size=32, window_s=1800.0, step_s=60.0, max_epochs=1, min_epochs=1).fit(ds, TRAIN)
-    with pytest.raises(ExportError, match=r"gru: over the cortex-m4f budget, measured on the emulated M4 in float: "
-                                          r"model: prediction \d{6} instructions > 200000.*fewer lags or hidden units"):  # fmt: skip
+    with pytest.raises(ExportError, match=r"gru: over the cortex-m4f budget, measured on the emulated M4 in float over "
+                                          r"every sample of \['valid1', 'valid3'\]: model: prediction \d{6} instructions "
+                                          r"> 200000.*fewer lags or hidden units"):  # fmt: skip
         export_model(gru, tmp_path / "m4", "gru", ds, HELDOUT, options=ExportOptions(target="cortex-m4f", onnx=False))
     assert not (tmp_path / "m4").exists()
 
