@@ -55,7 +55,8 @@ MARK = ".thermbench-wheelcheck"  # a venv this command made, and may make anew
 
 def _check_venv_dir(venv: Path) -> None:
     if venv.exists() and not (venv / MARK).exists():
-        sys.exit(f"wheelcheck: {venv} exists and was not made by this command; name a new directory")
+        sys.exit(f"wheelcheck: {venv} exists and was not made by this command; name a new directory (one an older "
+                 "`make core-check` made with pip install -e: remove it yourself)")
 
 
 def install(wheel: Path, venv: Path) -> Path:

@@ -326,7 +326,7 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
     machine's LinuxCNC INI for rs274 (subroutine paths, parameter file).
 
     rs274 runs twice: as the program is, and with the machine elsewhere at the start (and its
-    G28/G30 positions elsewhere). A position that is the same in both runs is one the program sets;
+    G28/G30 positions and work offsets elsewhere). A position that is the same in both runs is one the program sets;
     one that differs depends on where the machine stands, which the interpreter only assumes. Such
     an axis is not written until the program sets it (a line ``G0 X10`` stays without Y and Z, and
     an axis the program never names is never written); a move that takes it somewhere the program
@@ -336,6 +336,8 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
     other, _ = run_rs274(program, tool_table, ini=ini, elsewhere=True)
     elsewhere = [c for c in other if c[2] == PREAMBLE_N and c[0] == "STRAIGHT_TRAVERSE"]  # the move to the other start
     other = [c for c in other if c[2] != PREAMBLE_N]
+    if not elsewhere:  # rs274 stopped before the first line (a program that is one '%' block of nothing)
+        raise FlattenError(f"{program}: LinuxCNC's interpreter runs no line of it; expected a G-code program")
     if [c[0] for c in calls] != [c[0] for c in other]:
         raise FlattenError(f"{program}: the interpreter takes another path through it when the machine starts elsewhere "
                            "(it reads the position, #5420-#5428, or a G28/G30 position): its moves depend on where the "
@@ -350,7 +352,7 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
     g5x = [dict.fromkeys(AXES, 0.0), dict.fromkeys(AXES, 0.0)]
     g92 = [dict.fromkeys(AXES, 0.0), dict.fromkeys(AXES, 0.0)]
     start: list[dict[str, float] | None] = [None, None]
-    system = [1]  # the coordinate system in use (1: G54 ... 9: G59.3)
+    system = 1  # the coordinate system in use (1: G54 ... 9: G59.3)
     system_at_start = 1
     feed: float | None = None
     written_feed: float | None = None
@@ -372,7 +374,7 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
         return {a: v + g5x[r][a] + g92[r][a] - (start[r] or {}).get(a, 0.0) for a, v in target.items()}
 
     def move(code: str, targets: tuple[dict[str, float], dict[str, float]], n: int | None) -> None:
-        nonlocal moves, written_feed, first_units, system_at_start
+        nonlocal moves, written_feed, first_units
         first_units = first_units or units
         before = [program_xyz(r, pos[r]) for r in (0, 1)]
         after = [program_xyz(r, targets[r]) for r in (0, 1)]
@@ -384,8 +386,9 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
         if all(abs(after[r][a] - before[r][a]) <= (_PRINTED if a in set_ else _MOVED[units]) for r in (0, 1) for a in AXES):
             return  # a move to where the machine is (a G28's intermediate point at the current position)
         if unset_moving:
-            words = dict(block_words(source.text(n)))
-            gs = {float(v) for k, v in block_words(source.text(n)) if k == "G" and v not in ("[", "#")}
+            said = block_words(source.text(n))
+            words = dict(said)
+            gs = {float(v) for k, v in said if k == "G" and v not in ("[", "#")}
             home = next((g for g in (28.0, 30.0) if g in gs), None)
             if code == "G0" and home is not None:  # the return to the machine's own G28/G30 position
                 named = [a for a in AXES if a in words]
@@ -398,9 +401,9 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
                 emit(f"G53 {code} " + " ".join(f"{a}{_fmt(machine[0][a])}" for a in AXES if a in words), n, True)
                 moves += 1
                 return
-            if system[0] != system_at_start:
+            if system != system_at_start:
                 raise FlattenError(f"{program.parent / source.where(n)}: {source.text(n)!r} moves in coordinate system "
-                                   f"{_SYSTEMS[system[0]]}, whose offset from {_SYSTEMS[system_at_start]} (where the "
+                                   f"{_SYSTEMS[system]}, whose offset from {_SYSTEMS[system_at_start]} (where the "
                                    "program starts) is the machine's; expected --ini naming the machine's INI (its "
                                    "PARAMETER_FILE holds the offsets), or one coordinate system")  # fmt: skip
             axes = ", ".join(unset_moving)
@@ -431,7 +434,7 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
                 emit("G20" if units == "inch" else "G21", n)
         elif name == "ON_RESET":
             if start[0] is None:
-                system_at_start = system[0]
+                system_at_start = system
             for r in (0, 1):
                 if start[r] is None:
                     start[r] = {a: g5x[r][a] + g92[r][a] for a in AXES}
@@ -439,7 +442,7 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
             emit("G20" if units == "inch" else "G21", n)
             emit("G90 G94", n)
         elif name == "SET_G5X_OFFSET":
-            system[0] = int(args[0])
+            system = int(args[0])
             g5x[0].update(zip(AXES, (float(v) for v in args[1:7])))
             g5x[1].update(zip(AXES, (float(v) for v in args1[1:7])))
         elif name == "SET_G92_OFFSET":
