@@ -36,7 +36,7 @@ from . import tracking
 from ._atomic import write_text_atomic
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
-from .models.base import FallbackWarning, thread_budget, threads_per_worker
+from .models.base import FallbackWarning, n_workers, thread_budget, threads_per_worker
 from .outputs import output_dir
 
 LOG = logging.getLogger(__name__)
@@ -89,8 +89,7 @@ def worker_threads(n_jobs: int, n_tasks: int, cores: int | None = None) -> int:
     at once (at most one per task), so workers x threads never exceeds them. ``n_jobs`` counts
     as joblib counts it (-1: one worker per core, -2: all but one, ...)."""
     cores = job_threads() if cores is None else int(cores)
-    workers = n_jobs if n_jobs > 0 else max(1, joblib.cpu_count() + 1 + n_jobs)
-    return threads_per_worker(cores, min(workers, max(1, n_tasks)))
+    return threads_per_worker(cores, min(n_workers(n_jobs), max(1, n_tasks)))
 
 
 def _call_limited(fn, threads: int, args: tuple, kwargs: Mapping):

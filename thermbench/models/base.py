@@ -53,15 +53,20 @@ def fallback(message: str) -> None:
 _THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("thermbench_threads", default=None)
 
 
-def threads_per_worker(cores: int, n_jobs: int) -> int:
-    """The threads each of ``n_jobs`` parallel workers may use so that workers x threads never
-    exceeds ``cores``: ``max(1, cores // workers)``. ``n_jobs`` counts as joblib counts it
-    (-1: one worker per core of the machine, -2: all but one, ...)."""
+def n_workers(n_jobs: int) -> int:
+    """The workers ``n_jobs`` means, counted as joblib counts it (-1: one per core of the machine,
+    -2: all but one, ...)."""
     if n_jobs < 0:
         import joblib
 
-        n_jobs = max(1, joblib.cpu_count() + 1 + n_jobs)
-    return max(1, int(cores) // max(1, int(n_jobs)))
+        return max(1, joblib.cpu_count() + 1 + n_jobs)
+    return max(1, int(n_jobs))
+
+
+def threads_per_worker(cores: int, n_jobs: int) -> int:
+    """The threads each of ``n_jobs`` parallel workers (:func:`n_workers`) may use so that
+    workers x threads never exceeds ``cores``: ``max(1, cores // workers)``."""
+    return max(1, int(cores) // n_workers(n_jobs))
 
 
 def fit_threads() -> int | None:
