@@ -200,7 +200,9 @@ def test_submitit_local_sweep_runs_each_job_in_its_own_process_and_resumes(tmp_p
                                 stderr=err, start_new_session=True)  # fmt: skip
         try:
             deadline = time.monotonic() + 240
-            while not (sweep / "0" / "result.json").exists():
+            # job 0 done: its result.json written and its process through (submitit pickled its
+            # result), so the interrupt cannot catch it half-way
+            while not ((sweep / "0" / "result.json").exists() and list((sweep / ".submitit").glob("[0-9]*/*_result.pkl"))):
                 assert proc.poll() is None, f"sweep ended before job 0 finished:\n{(tmp_path / 'err1.txt').read_text()}"
                 assert time.monotonic() < deadline, "job 0 did not finish in 240 s"
                 time.sleep(0.02)
@@ -222,8 +224,10 @@ def test_submitit_local_sweep_runs_each_job_in_its_own_process_and_resumes(tmp_p
     assert len(jobs) == 2
     ids = {p.parent.name for p in jobs}
     assert len(ids) == 2 and str(proc.pid) not in ids  # two processes, neither the launcher
-    logs = "".join(p.read_text() for p in (sweep / ".submitit").glob("*/*_log.*"))
-    assert "[train] lssvm uses sensors" in logs  # the jobs' own output went to submitit's logs
+    logs = {p.name: p.read_text() for p in sorted((sweep / ".submitit").glob("*/*_log.*"))}
+    shown = "\n".join(f"--- {name}\n{text[-2500:]}" for name, text in logs.items())
+    # the jobs' own output went to submitit's logs
+    assert any("[train] lssvm uses sensors" in text for text in logs.values()), shown
 
     done_before = finished_runs(tmp_path)
     assert len(done_before) == 1 and done_before[0].data.params["model.iters"] == "1"
