@@ -70,7 +70,7 @@ def _c_vs_python(model, model_dir, ds, runs, sanitize=False):
     return worst, n
 
 
-@pytest.mark.parametrize("name", ["mlr_seed001", "mlr_seed002", "mlr_seed004", "gru", "physics", "ar_seed003"])
+@pytest.mark.parametrize("name", ["mlr_seed001", "mlr_seed002", "mlr_seed004", "gru", "mlp", "lssvm", "physics", "ar_seed003"])
 def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, ds, name):
     """Issue 36: every process sample of a held-out run (grid and macro-step times, the stream's end)
     in the single- and the double-precision build, the run as recorded and moved to t = 2^22 s,

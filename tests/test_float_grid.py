@@ -14,7 +14,7 @@ import pytest
 
 from thermbench.data.io import Dataset
 from thermbench.datasets import load_benchmark
-from thermbench.export import export_model, replay_dir, runtime
+from thermbench.export import export_model, replay_dir, runtime, unpack
 from thermbench.export.bundle import SINGLE_FLAGS, ExportOptions, process_samples
 from thermbench.models.bank import ConditionBank
 from thermbench.models.mlr import MLRSeed002
@@ -92,3 +92,46 @@ def test_a_float_build_off_at_one_sample_is_refused_for_a_float_target(seed002_b
                                             r"\(every process sample of \['table6_1'\] compared\)"):
         bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "float")
     bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "double")  # a double target: reported only
+
+
+def test_a_float_clock_with_a_tenth_of_a_second_period_is_on_its_grid_days_later(tmp_path):
+    """A logger sampling every 0.1 s, 1.5 days into its run (t = 2^17 s, where floats are 1/64 s
+    apart): each time the float runtime receives is the nearest float to t_first + k * 0.1, up to
+    0.008 s off the exact grid. The sampling check accepts a time on the grid to the precision of
+    the build (it refused them as off the grid, TB_E_SAMPLING), the GRU counts its lags back from
+    the newest sample (it counted from the oldest, its rounding growing with the clock), and the
+    float and double builds agree at every sample at both clocks."""
+    from thermbench.datasets import load_benchmark as load
+    from thermbench.models.neural import GRUModel
+
+    base = load("seed001_vmc_x")
+
+    def every_tenth_s(shift_s: float) -> Dataset:  # seed001 (logged every 1 s) interpolated to 0.1 s
+        runs = []
+        for run, p in base.process.groupby("run_id", sort=False):
+            t = np.round(np.arange(0, 10 * (len(p) - 1) + 1) * 0.1 + p["t_s"].iloc[0], 10)
+            cols = {c: np.interp(t, p["t_s"], p[c]) for c in p.columns if c not in ("run_id", "t_s")}
+            runs.append(pd.DataFrame({"run_id": run, "t_s": t + shift_s, **cols}))
+        er = base.errors.assign(t_s=lambda d: d["t_s"] + shift_s)
+        return Dataset(base.metadata, pd.concat(runs, ignore_index=True), er, path=base.path)
+
+    ds = every_tenth_s(0.0)
+    model = GRUModel(hidden_size=4, window_s=600.0, step_s=60.0, max_epochs=5, min_epochs=2, patience=5, seed=0)
+    man = export_model(model.fit(ds, ["state1", "state2", "state3"]), tmp_path / "m", "m", ds, ["valid1"],
+                       options=ExportOptions(verify=False))  # fmt: skip
+    assert man["files"]["model"]["kind"] == "GRU"
+    assert unpack((tmp_path / "m" / "model.tbm").read_bytes()).payload[0] == np.float32(0.1)  # its sample period
+    exes = [runtime.build("tb_replay", f) for f in ((), SINGLE_FLAGS)]
+    gap = {}
+    for shift_s in (0.0, 2.0**17):
+        data = every_tenth_s(shift_s)
+        s = process_samples(data, "valid1")
+        t = s["t_s"].to_numpy()
+        q = pd.DataFrame({"t_s": t, "axis_mm": s["axis_mm"].to_numpy()})
+        double, single = (replay_dir(tmp_path / "m", data, "valid1", q, exe=e)["total_um"].to_numpy() for e in exes)
+        assert len(single) == len(double) == len(t)  # every sample answered (it was TB_E_SAMPLING, TB_E_LATE)
+        gap[shift_s] = float(np.max(np.abs(single - double)))
+    assert np.max(np.abs(t.astype(np.float32).astype(float) - t)) > 1e-3  # the float clock was off the grid
+    # float arithmetic alone (the export's parity tolerance), and the clock adds nothing to it
+    # (before, 0.26 um at 1.5 days: lags counted from rounded times fell between samples)
+    assert gap[0.0] < 0.01 and gap[2.0**17] <= gap[0.0] + 1e-4, gap

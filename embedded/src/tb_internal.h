@@ -13,6 +13,7 @@
 
 #include "tb_runtime.h"
 
+#include <float.h>
 #include <math.h>
 #include <string.h>
 
@@ -273,6 +274,15 @@ static inline float tbi_tanhf(float x) { return 1.0f - 2.0f / (1.0f + tbi_expf(2
 #define TBI_BEFORE(t) nextafterf((t), -HUGE_VALF)
 #else
 #define TBI_BEFORE(t) nextafter((t), -HUGE_VAL)
+#endif
+
+/* how far apart two times of magnitude about |t| may be by rounding alone in the build's precision
+ * (a few units in the last place): a time on a grid, computed as t_first + k * period, is "on it" to
+ * this much more than the grid's own tolerance (floats are 1/64 s apart at 1.5 days, 0.5 s at 2^22 s) */
+#ifdef TB_SINGLE
+#define TBI_TIME_SLACK(t) (TB_R(4) * FLT_EPSILON * tbm_fabs(t))
+#else
+#define TBI_TIME_SLACK(t) (TB_R(4) * DBL_EPSILON * tbm_fabs(t))
 #endif
 
 /* the kind table, indexed by TB_KIND_* (tb_registry.c); 0: no such kind (TB_E_KIND) */

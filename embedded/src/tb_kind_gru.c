@@ -11,7 +11,8 @@
 
 typedef struct { /* ring of dT at the sample period */
     uint32_t cap, n, head;
-    tb_real t_first; /* time of the oldest sample in the ring */
+    tb_real t_new; /* time of the newest sample (as received): positions are counted back from it, so a
+                     * float clock far from 0 (its rounding) never moves a lag by a fraction of a period */
     float *ring;    /* cap x S */
 } gru_t;
 
@@ -91,8 +92,7 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     tb_real period = PV(m, 0);
     if (g->n > 0) { /* samples missing in between (a dropped or rejected one): the values numpy.interp gives */
         uint32_t newest = (g->head + g->cap - 1) % g->cap, k, d;
-        tb_real t_new = g->t_first + (tb_real)(g->n - 1) * period;
-        d = (uint32_t)tbi_floor_clamp((t - t_new) / period + TB_R(0.5), 1, (tbi_int)g->cap);
+        d = (uint32_t)tbi_floor_clamp((t - g->t_new) / period + TB_R(0.5), 1, (tbi_int)g->cap);
         for (k = 1; k < d; k++) {
             tb_real w = (tb_real)k / (tb_real)d;
             for (j = 0; j < S; j++) {
@@ -101,14 +101,12 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
             }
             g->head = (g->head + 1) % g->cap;
             if (g->n < g->cap) g->n++;
-            else g->t_first += period;
         }
     }
-    if (g->n == 0) g->t_first = t;
+    g->t_new = t;
     for (j = 0; j < S; j++) g->ring[g->head * S + j] = (float)dT[j];
     g->head = (g->head + 1) % g->cap;
     if (g->n < g->cap) g->n++;
-    else g->t_first += period;
 }
 
 static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
@@ -122,18 +120,22 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
     uint32_t gate;
     tb_real p, out = 0, pw = 1;
     uint32_t oldest = (g->head + g->cap - g->n) % g->cap;
-    tb_real t_newest;
     if (g->n == 0) return TB_E_NOTREADY;
-    t_newest = g->t_first + (tb_real)(g->n - 1) * period;
     for (j = 0; j < H; j++) h[j] = 0;
     for (k = K + 1; k-- > 0;) { /* oldest lag first */
-        tb_real tau = t - (tb_real)k * step, pos;
+        /* the lag's position in samples from the oldest: (n - 1) less how far it lies behind the newest
+         * sample. A lag that falls on a sample to within the rounding of the clock is that sample
+         * (numpy.interp at a sample's own time): in float, far from t = 0, t_new - t is the difference
+         * of two rounded times (1/64 s apart at 1.5 days), not a whole number of periods */
+        tb_real back = ((g->t_new - t) + (tb_real)k * step) / period, whole = tbm_floor(back + TB_R(0.5));
+        tb_real pos;
         uint32_t i0, i1;
         tb_real w;
-        if (tau < g->t_first && g->n == g->cap) return TB_E_LATE;
-        pos = (tau - g->t_first) / period;
+        if (tbm_fabs(back - whole) * period <= TBI_TIME_SLACK(t)) back = whole;
+        pos = (tb_real)(g->n - 1) - back;
+        if (pos < 0 && g->n == g->cap) return TB_E_LATE;
         if (pos <= 0) { i0 = i1 = 0; w = 0; }
-        else if (tau >= t_newest) { i0 = i1 = g->n - 1; w = 0; }
+        else if (pos >= (tb_real)(g->n - 1)) { i0 = i1 = g->n - 1; w = 0; }
         else {
             i0 = (uint32_t)tbi_floor_clamp(pos, 0, (tbi_int)g->n - 1);
             if (i0 >= g->n - 1) i0 = g->n - 2;
