@@ -474,6 +474,7 @@ static void finish(const tb_model *m, void *ks)
     tbi_phys *p = (tbi_phys *)ks;
     tb_real macro = PP(m, P_MACRO);
     tbi_count j_stop;
+    p->ended = 1;
     if (!p->have_t0) return;
     j_stop = tbi_steps_ceil((p->prev_t - p->t0) / macro) * p->per_step;
     while ((p->j < j_stop && !p->pending_snap) || p->pending_snap) {
@@ -506,7 +507,10 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
     if (p->n_snap == 2 && t < p->snap_t[a]) return TB_E_LATE;
     w = (p->n_snap == 2 && p->snap_t[b] > p->snap_t[a]) ? (t - p->snap_t[a]) / (p->snap_t[b] - p->snap_t[a]) : 1;
     if (w < 0) w = 0;
-    if (w > 1) w = 1;
+    /* up to the newest boundary: the table interpolated in time (thermbench's model). Past it, before
+     * the next boundary exists (a live compensator asking for its own time): extrapolated from the
+     * last two, at most one step on; once the log has ended, held as thermbench holds it */
+    if (w > (p->ended ? 1 : 2)) w = p->ended ? 1 : 2;
     x = sign * (axis_mm / (tb_real)1000 - pf);
     if (x < 0) x = 0;
     if (x > L) x = L;

@@ -33,7 +33,7 @@ typedef struct {
 /* the running state of a physics model */
 typedef struct {
     uint32_t n, per_step;
-    int have_t0, pending_snap;
+    int have_t0, pending_snap, ended; /* ended: tb_model_finish ran (the log's end is known) */
     tb_real t0, prev_t;
     tb_real prev_x, prev_f, prev_load, prev_amb; /* previous sample (filtered ambient rise) */
     tbi_count j; /* next fine step */

@@ -7,12 +7,16 @@
  *   tb_replay --bank CLF M0 M1 ... < stream  a per-condition bank (members in class order)
  *   --lenient (first option): a sample the runtime refuses (bad value, off the sampling grid) is
  *   skipped, as a compensator would, and counted on stderr; otherwise it stops the replay
+ *   --live (an option before the model): every query is answered with the samples up to its time
+ *   only, before the next sample is stepped, as a compensator answers for the time it writes (a
+ *   model whose values at t are final later, e.g. the screw physics between macro steps, gives its
+ *   provisional value; one not ready yet gives its code)
  *
  * stream (text, one record per line):
  *   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   a process-log sample
  *   Q t_s axis_mm                                              a query (times nondecreasing)
- * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s),
- * the rest after tb_*_finish at the end of the stream. Output, one line per query:
+ * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s), the
+ * rest after tb_*_finish at the end of the stream (--live: see above). Output, one line per query:
  *   t_s axis_mm thermal_um total_um label rc
  */
 #include "tb_runtime.h"
@@ -76,7 +80,7 @@ static query_t *queries;
 static size_t n_q, q_done;
 
 static tb_bank bank;
-static int use_bank, lenient;
+static int use_bank, lenient, live;
 static unsigned long rejected;
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
@@ -94,18 +98,39 @@ static void answer(double upto, int all)
     }
 }
 
+/* --live: the queries before time t_next, with the samples stepped so far; none while the runtime
+ * has no state yet (tb_*_ready_s says "no time"), as the compensator writes nothing then */
+static void answer_before(double t_next)
+{
+    size_t last = q_done;
+    while (last < n_q && queries[last].t < t_next) last++;
+    if (last == q_done) return;
+    if (!(ready() > (tb_real)-1e29)) {
+        for (; q_done < last; q_done++)
+            printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+        return;
+    }
+    {
+        size_t keep = n_q;
+        n_q = last;
+        answer(0, 1);
+        n_q = keep;
+    }
+}
+
 int main(int argc, char **argv)
 {
     int i, rc, n_files = 0;
     char line[8192];
     size_t cap_q = 1024;
-    if (argc >= 2 && strcmp(argv[1], "--lenient") == 0) {
-        lenient = 1;
+    while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0)) {
+        if (strcmp(argv[1], "--lenient") == 0) lenient = 1;
+        else live = 1;
         argv++;
         argc--;
     }
     if (argc < 2) {
-        fprintf(stderr, "usage: tb_replay [--lenient] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
         return 1;
     }
     if (strcmp(argv[1], "--info") == 0) {
@@ -170,6 +195,7 @@ int main(int argc, char **argv)
             tb_sample s;
             tb_real temps[MAX_TEMPS];
             if (!tb_parse_sample(p, &s, temps, MAX_TEMPS)) continue;
+            if (live) answer_before((double)s.t_s); /* the queries this sample comes after */
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
             if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
                 rejected++;
@@ -179,10 +205,11 @@ int main(int argc, char **argv)
                 fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", (double)s.t_s, rc, tb_strerror(rc));
                 return 8;
             }
-            answer(ready(), 0);
+            if (!live) answer(ready(), 0);
         }
         free(lines_buf);
     }
+    if (live) answer(0, 1); /* after the last sample, before the end is known */
     rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
     if (rc != TB_OK) return 9;
     if (rejected) fprintf(stderr, "tb_replay: %lu sample(s) refused and skipped\n", rejected);

@@ -263,7 +263,7 @@ class CycleLogic:
         self.value_um: float | None = None
         self.ends_um: tuple[float, float] | None = None
         self.t_prev: float | None = None  # machine time of the previous cycle (held or not)
-        self.fresh_ready: float | None = None  # model time of the previous fresh value (None: the last cycle held)
+        self.fresh_ready: float | None = None  # time of the previous fresh value (None: the last cycle held)
         self.lag_um = 0.0  # written value minus the model's, at the current position
         self._saved: tuple = ()
         # what the model was stepped with since its last start: (k, axis, feed, load, measuring, temps...),
@@ -473,11 +473,14 @@ class CycleLogic:
         self.k_last = k
 
     def _predict(self, c: Cycle, t: float) -> Cycle:
+        """The model's answer for the cycle's own time ``t`` (what ``thermbench replay`` answers
+        there, tb_replay --live): with the samples up to t, never the model's last final time
+        only (the screw physics' last macro step lagged it by up to a step)."""
         ready = self.model.ready_s
         if not ready > -1e29:  # the runtime says -1e30 (or NaN) before its first state
             return self._held_from(c, Flags.NOT_READY)
         x = c.inputs["axis_mm"]
-        rc, _, total, label = self.model.predict(ready, x)
+        rc, _, total, label = self.model.predict(t, x)
         if rc < 0:
             c.rc = rc
             return self._held_from(c, Flags.NOT_READY if rc in (-14, -13) else Flags.RUNTIME)
@@ -490,7 +493,7 @@ class CycleLogic:
         if self.output in ("line", "both"):
             a, b = self.s.line_travel_mm
             xs = np.linspace(a, b, self.s.line_points)
-            rcs, tot = self.model.predict_many(ready, xs)
+            rcs, tot = self.model.predict_many(t, xs)
             if np.any(rcs < 0):
                 c.rc = int(rcs[rcs < 0][0])
                 return self._held_from(c, Flags.RUNTIME)
@@ -515,7 +518,7 @@ class CycleLogic:
             self.value_um = c.value_um = got
         if limited:
             c.flags |= Flags.RATE_LIMITED
-        self.fresh_ready = ready
+        self.fresh_ready = t
         self.t_prev = t
         return c
 

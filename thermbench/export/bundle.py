@@ -222,10 +222,12 @@ def readings_queries(ds, run: str) -> pd.DataFrame:
 
 def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
                exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
-               lenient: bool = False) -> pd.DataFrame:  # fmt: skip
-    """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory."""
+               lenient: bool = False, live: bool = False) -> pd.DataFrame:  # fmt: skip
+    """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory
+    (``live``: as the compensator answers, :func:`.runtime.replay`)."""
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
-    return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient)
+    return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient,
+                          live=live)  # fmt: skip
 
 
 def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,

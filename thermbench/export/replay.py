@@ -127,7 +127,12 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
 
 def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None) -> dict:
     """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``
-    (a format 2 dataset: the error ``channel`` the model predicts, see :func:`replay_view`)."""
+    (a format 2 dataset: the error ``channel`` the model predicts, see :func:`replay_view`).
+
+    Every control cycle (a process sample) and every reading is answered as the compensator
+    answers it, with the log up to its own time (tb_replay --live): the figures are what the
+    compensator achieves, cycle by cycle the values it writes. A model whose value at t is final
+    only later (the screw physics between its macro steps) gives its provisional value there."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
@@ -147,9 +152,13 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     q_ctrl = pd.DataFrame({"t_s": pr["t_s"].to_numpy(), "axis_mm": pr["axis_mm"].to_numpy()})
     both = pd.concat([q_read.assign(src=0), q_ctrl.assign(src=1)], ignore_index=True)
     order = np.argsort(both["t_s"].to_numpy(), kind="stable")
-    res = replay_dir(model_dir, ds, run, both.iloc[order][["t_s", "axis_mm"]].reset_index(drop=True), sanitize=sanitize)
+    # as the compensator answers (tb_replay --live): each cycle and reading with the log up to its
+    # time only; before the runtime has a state nothing is written (0)
+    res = replay_dir(model_dir, ds, run, both.iloc[order][["t_s", "axis_mm"]].reset_index(drop=True), sanitize=sanitize,
+                     live=True)  # fmt: skip
     res.index = order
     res = res.sort_index()
+    res[["thermal_um", "total_um"]] = res[["thermal_um", "total_um"]].fillna(0.0)
     src = both["src"].to_numpy()
     rd, ctrl = res[src == 0].reset_index(drop=True), res[src == 1].reset_index(drop=True)
     readings = te[["t_s", "target_mm", "error_um", "thermal_um"]].copy()

@@ -130,18 +130,28 @@ def run_tool(exe: Path, args: Sequence[str], stdin: str = "", env: dict | None =
     return res.stdout
 
 
+#: tb_runtime.h: the runtime has no state yet (before its first samples are through)
+TB_E_NOTREADY = -14
+
+
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
-           bank: bool = False, sanitize: bool = False, exe: Path | None = None, lenient: bool = False) -> pd.DataFrame:  # fmt: skip
+           bank: bool = False, sanitize: bool = False, exe: Path | None = None, lenient: bool = False,
+           live: bool = False) -> pd.DataFrame:  # fmt: skip
     """Run the C runtime over ``samples`` and answer ``queries``: a DataFrame with ``t_s``,
     ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``.
-    ``lenient``: samples the runtime refuses are skipped (as a compensator would), not an error."""
+    ``lenient``: samples the runtime refuses are skipped (as a compensator would), not an error.
+    ``live``: each query answered with the samples up to its time only, as the compensator
+    answers for the time it writes (tb_replay --live); a query before the runtime has a state
+    keeps its code ``TB_E_NOTREADY`` and NaN values (the compensator holds there)."""
     exe = exe or build("tb_replay", sanitize=sanitize)
-    args = (["--lenient"] if lenient else []) + (["--bank"] if bank else []) + [str(f) for f in files]
+    args = (["--lenient"] if lenient else []) + (["--live"] if live else []) + (["--bank"] if bank else []) + [str(f) for f in files]
     out = run_tool(exe, args, stream_text(samples, temps, queries))
     rows = [ln.split() for ln in out.splitlines() if ln.strip()]
     df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
     df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})
-    bad = df[df["rc"] != 0]
+    if live:
+        df.loc[df["rc"] == TB_E_NOTREADY, ["thermal_um", "total_um"]] = np.nan
+    bad = df[(df["rc"] != 0) & ~((df["rc"] == TB_E_NOTREADY) & live)]
     if not bad.empty:
         raise RuntimeFailed(f"the runtime could not answer {len(bad)} of {len(df)} queries (first: t={bad['t_s'].iloc[0]} s, "
                             f"code {bad['rc'].iloc[0]})")  # fmt: skip
