@@ -7,7 +7,8 @@ answers a query at every process sample on QEMU's mps2-an386 (``thermbench.expor
 Printed per model and precision, over all those runs:
 
 * ``parity_um``: max |target − host| over every sample, the host being the x86-64 double runtime
-  that the export's parity check tied to Python;
+  that the export's parity check tied to Python; for a bank, the samples whose condition label
+  differs from the host's (``label_mismatches``: every classifier grid time is a sample);
 * instructions per control cycle (``tb_*_step``) and per prediction, mean and worst (with the run
   of the worst cycle), and the end-of-stream ``tb_*_finish`` apart (not a control cycle), counted on
   the emulated M4 (``-icount shift=0``: the SysTick counts every 40 instructions, checked
@@ -21,7 +22,7 @@ Printed per model and precision, over all those runs:
 Budgets (issue 21): float physics update <= 50 000 instructions, worst control cycle <= 100 000,
 prediction <= 200 000, arena <= 16 KB, image <= 64 KB flash. Writes benchmarks/results/target.csv.
 
-    .venv/bin/python benchmarks/bench_target.py [EXPORTS] [--only SUBSTRING]
+    .venv/bin/python benchmarks/bench_target.py [EXPORTS] [--only SUBSTRING] [--precision both|double|float]
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ def one(model_dir: Path, precision: str) -> dict:
         if rep["rc"] != 0:
             return row | {"note": f"run {run}: {rep['end']}"}
         acc["parity_um"] = max(acc["parity_um"], float(np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy()))))
+        if bank:  # the condition in force at every sample (every classifier grid time among them)
+            acc["label_mismatches"] = acc.get("label_mismatches", 0) + int((got["label"].to_numpy() != ref["label"].to_numpy()).sum())
         if rep["step_insn_max"] > acc["cycle_insn_max"]:
             acc["cycle_insn_max"], acc["cycle_worst"] = rep["step_insn_max"], run
         acc["pred_insn_max"] = max(acc["pred_insn_max"], rep["predict_insn_max"])
@@ -107,6 +110,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("exports", nargs="?", default="exports/benchmark")
     ap.add_argument("--only", default="", help="only export directories whose name contains this")
+    ap.add_argument("--precision", choices=("both", "double", "float"), default="both",
+                    help="the builds to run (double is informative and slow: software double on the M4)")
     args = ap.parse_args(argv)
     try:
         target.toolchain()
@@ -119,7 +124,7 @@ def main(argv=None) -> int:
         return 2
     rows = []
     for d in dirs:
-        for precision in ("double", "float"):
+        for precision in ("double", "float") if args.precision == "both" else (args.precision,):
             rows.append(one(d, precision))
             r = rows[-1]
             if precision == "float":
@@ -130,12 +135,14 @@ def main(argv=None) -> int:
                      f"({ms(r['cycle_insn_max']):.2f} ms), prediction {r['pred_insn_mean']:.0f}/{r['pred_insn_max']} "
                      f"({ms(r['pred_insn_max']):.2f} ms), finish {r['finish_insn']} insn, arena {r['arena_bytes']} B, "
                      f"stack {r['stack_bytes']} B, "
-                     f"min image {r['min_image_flash_bytes']} B")
+                     f"min image {r['min_image_flash_bytes']} B"
+                     + (f", labels differing from the host's double {r['label_mismatches']}" if "label_mismatches" in r else ""))
                   + (f"  OVER: {r['over_budget']}" if r.get("over_budget") else ""), flush=True)  # fmt: skip
     df = pd.DataFrame(rows)
-    out = Path(__file__).parent / "results" / "target.csv"
+    part = "".join(f"-{v}" for v in (args.only, "" if args.precision == "both" else args.precision) if v)
+    out = Path(__file__).parent / "results" / f"target{part}.csv"  # a subset: its own file
     write_text_atomic(out, df.to_csv(index=False))
-    fl = df[df["precision"] == "float"]
+    fl = df[df["precision"] == "float"] if "precision" in df else df.iloc[:0]
     print(f"\nbudgets (float): cycle <= {CYCLE_BUDGET} (physics update <= {PHYS_BUDGET}), prediction <= {PRED_BUDGET} "
           f"instructions, arena <= {ARENA_BUDGET} B, one-kind image <= {IMAGE_BUDGET} B; {int((fl['over_budget'] == '').sum())}"
           f"/{len(fl)} within. Milliseconds at {MHZ} MHz assuming {CPI} cycles per instruction -> {out}")  # fmt: skip

@@ -125,14 +125,17 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     return channel_view(ds, channel)
 
 
-def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None) -> dict:
+def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None,
+               live: bool = True) -> dict:  # fmt: skip
     """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``
     (a format 2 dataset: the error ``channel`` the model predicts, see :func:`replay_view`).
 
     Every control cycle (a process sample) and every reading is answered as the compensator
     answers it, with the log up to its own time (tb_replay --live): the figures are what the
     compensator achieves, cycle by cycle the values it writes. A model whose value at t is final
-    only later (the screw physics between its macro steps) gives its provisional value there."""
+    only later (the screw physics between its macro steps) gives its provisional value there.
+    ``live=False``: every query answered once its value is final (the values the export's parity
+    check compares with the Python model)."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
@@ -155,7 +158,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     # as the compensator answers (tb_replay --live): each cycle and reading with the log up to its
     # time only; before the runtime has a state nothing is written (0)
     res = replay_dir(model_dir, ds, run, both.iloc[order][["t_s", "axis_mm"]].reset_index(drop=True), sanitize=sanitize,
-                     live=True)  # fmt: skip
+                     live=live)  # fmt: skip
     res.index = order
     res = res.sort_index()
     res[["thermal_um", "total_um"]] = res[["thermal_um", "total_um"]].fillna(0.0)
@@ -174,6 +177,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     if labels is not None:
         comp["condition"] = labels
     figures = {"model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
+               "answers": "live (the log up to each query's time)" if live else "final",
                "n_readings": len(readings), "n_control_cycles": len(comp),
                **(compensation_figures(readings) if len(readings) else {})}  # fmt: skip
     if ds.channel is not None:
@@ -279,6 +283,8 @@ def format_replay(f: dict) -> str:
         f"  after:  max |error| {f['after_max_abs_um']:.2f} µm, interval [{f['after_interval_um'][0]:.2f}, {f['after_interval_um'][1]:.2f}] µm, RMS {f['after_rmse_um']:.2f} µm",
         f"  compensation rate {100 * f['compensation_rate']:.1f} %, P-V reduced by {100 * f['pv_reduction']:.1f} %",
     ]  # fmt: skip
+    if str(f.get("answers", "")).startswith("live"):
+        lines.insert(1, "  answered as the compensator does: each cycle and reading with the log up to its time")
     if "condition_switches" in f:
         if f["first_condition_at_s"] is None:
             lines.append("  classifier: no motion window was classified (no condition model used; geometric part only)")
