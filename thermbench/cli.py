@@ -102,6 +102,8 @@ def _print_v2(path, ds, table) -> None:
     from .data.views import split_segments
 
     meta = ds.metadata
+    # everything that can still refuse the dataset first: "valid" is printed only for a dataset that is
+    seg = split_segments(ds) if any(r.condition is None for r in meta.runs.values()) else ds
     print(f"{path}: valid {meta.format} dataset, machine {meta.machine.name}, parts: {', '.join(meta.parts or [])}")
     print(f"  {len(ds.process)} process rows, {len(ds.errors)} error readings; operating inputs: "
           f"{', '.join(meta.operating_inputs()) or 'none'}; sensors: {', '.join(ds.sensor_columns) or 'none'}")  # fmt: skip
@@ -113,8 +115,7 @@ def _print_v2(path, ds, table) -> None:
         print("  bidirectional readings: thermal error per direction; the reversal value: thermbench iso230")
     print(f"\nruns  ->  {Path(path).resolve()}")
     print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
-    if any(r.condition is None for r in meta.runs.values()):
-        seg = split_segments(ds)
+    if seg is not ds:
         derived = [r for r in seg.metadata.runs if r not in meta.runs]
         if derived:
             print("\nderived segments (data/segments.py; usable as run ids in train=, dataset.states, ...):")
@@ -131,6 +132,8 @@ def cmd_import(mapping: str, out: str, file_format: str, force: bool) -> int:
     t0 = time.perf_counter()
     ds = import_dataset(mapping, out, file_format=file_format, force=force)
     print(f"imported {mapping} -> {Path(out).resolve()} in {time.perf_counter() - t0:.1f} s")
+    for note in getattr(ds, "import_notes", []):
+        print(f"  {note}")
     _print_v2(out, ds, run_summary(ds))
     return 0
 

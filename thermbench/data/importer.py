@@ -22,6 +22,7 @@ must then overlap). Readings (errors) keep their own times, shifted by their fil
 from __future__ import annotations
 
 import difflib
+import glob as globmod
 import math
 import os
 import re
@@ -38,7 +39,7 @@ from . import limits
 from .errors import DatasetError, short_repr
 from .files import check_regular_file, open_regular_file
 from .safe_yaml import YAMLInputError, dump_yaml, load_yaml
-from .schema import FORMAT_V2, Metadata
+from .schema import FORMAT_V2, Metadata, RunMeta
 
 MAPPING_FORMAT = "thermbench-import/1"
 MAPPING_MAX_BYTES = limits.METADATA_MAX_BYTES
@@ -95,14 +96,18 @@ class ColumnMap(_M):
 
 
 class TimeMap(_M):
-    column: Union[str, list[str]]  # a list: the cells joined with a space (a date and a time column)
+    column: Optional[Union[str, list[str]]] = None  # a list: the cells joined with a space (a date and a time column)
     unit: Optional[str] = None  # numbers: s (default), ms, min, h
     format: Optional[str] = None  # timestamps: a strftime format, or "iso"
     dayfirst: bool = False
+    step_s: Optional[float] = Field(None, gt=0)  # no time column: data row k of a run is at start_s + k * step_s
+    start_s: float = 0.0
 
 
 class ReadOptions(_M):
     sheet: Optional[Union[str, int]] = None  # Excel: the sheet name or 0-based index (default the first)
+    sheets: Optional[Union[Literal["all"], list[str]]] = None  # Excel: several sheets, read one after another
+    header: Optional[bool] = None  # False: no header row, columns named by 0-based position
     sep: Optional[str] = None  # CSV: the separator (default ",")
     decimal: str = "."
     thousands: Optional[str] = None
@@ -111,15 +116,24 @@ class ReadOptions(_M):
     skip_after_header: int = Field(0, ge=0)  # rows between the header and the data (a units row)
 
 
+class RunFrom(_M):
+    """Runs named after the workbook's sheets or the files a glob matched (one run each)."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    from_: Literal["sheet", "file"] = Field(alias="from")
+    map: Optional[dict[str, str]] = None  # sheet name / file stem -> run id (default: the name made a valid run id)
+
+
 class FileMap(_M):
-    path: str
+    path: str  # a glob (*, ?, [...]) names several files, read in name order
     format: Optional[Literal["csv", "excel", "parquet"]] = None  # default: from the suffix
     read: ReadOptions = ReadOptions()
     time: TimeMap
+    run: Optional[Union[str, RunFrom]] = None  # the run of every row, or one run per sheet / file
     offset_s: float = 0.0  # added to this file's clock: what makes it agree with the others
     max_gap_s: Optional[float] = Field(None, gt=0)  # default: 5 x the file's median step
     channel: Optional[str] = None  # a long errors file (error_um, target_mm): its channel
-    columns: dict[str, Union[str, ColumnMap]]
+    columns: dict[Union[int, str], Union[str, ColumnMap]]  # a column by its header, or by 0-based position
 
     @field_validator("columns")
     @classmethod
@@ -170,10 +184,16 @@ def read_mapping(path: Path) -> tuple[Mapping, dict]:
         # a misspelt key is also a missing one: name the misspelling (with its suggestion)
         e = next((x for x in errs if x["type"] == "extra_forbidden"), errs[0])
         loc = tuple(p for p in e["loc"] if p != "[key]")
-        # a union's error location names the branch tried (str, ColumnMap): drop it
-        loc = tuple(p for p in loc if p not in ("str", "ColumnMap", "function-after[_nonempty(), dict[str,union[str,ColumnMap]]]"))
+        # a union's error location names the branch tried (str, ColumnMap, ...): drop it
+        loc = tuple(p for p in loc if not _is_branch(p))
         at = _line(lines, loc)
         msg = str(e["msg"]).removeprefix("Value error, ")
+        expected = _EXPECTED.get(str(loc[-1]) if loc else "", _EXPECTED.get(str(loc[-2]) if len(loc) > 1 and loc[-2] == "columns" else "", None))
+        if e["type"] == "missing" and loc and loc[-1] == "time":
+            raise MappingError(f"{path}: key {_key(loc)!r}: missing: give time: {{column: NAME}} (the file's time "
+                               f"column) or, with no time column, time: {{step_s: S}} (rows S seconds apart){at}") from None  # fmt: skip
+        if expected is not None and e["type"] not in ("missing", "extra_forbidden"):
+            raise MappingError(f"{path}: key {_key(loc)!r}: expected {expected}, got {short_repr(e.get('input'))}{at}") from None
         if e["type"] == "extra_forbidden":
             known = _known_keys(loc[:-1])
             near = difflib.get_close_matches(str(loc[-1]), known, n=1)
@@ -185,6 +205,23 @@ def read_mapping(path: Path) -> tuple[Mapping, dict]:
     return m, lines
 
 
+#: what a key takes, said instead of pydantic's text when its value has the wrong type
+_EXPECTED = {
+    "sheet": "one sheet, by name or 0-based index (several sheets: read: {sheets: all} or sheets: [names])",
+    "sheets": "all, or a list of sheet names",
+    "header": "true or false (false: no header row; columns by 0-based position)",
+    "run": "a run id, or {from: sheet} / {from: file} (one run per sheet or file; map: renames them)",
+    "from": "sheet or file",
+    "step_s": "a time step in seconds, > 0",
+    "columns": "a dataset column (t1_C, axis_mm, ...) or {to: ..., unit: ...} / {channel: ..., unit: ...}",
+}
+
+
+def _is_branch(p) -> bool:
+    """A part of a pydantic error location that names a union branch or a validator, not a key."""
+    return isinstance(p, str) and (p in ("str", "int", "float", "ColumnMap", "RunFrom") or p.startswith(("function-", "literal[", "list[", "dict[")))
+
+
 def _known_keys(loc: tuple) -> list[str]:
     """The keys allowed where ``loc`` points (for the did-you-mean of an unknown key)."""
     if not loc:
@@ -193,6 +230,8 @@ def _known_keys(loc: tuple) -> list[str]:
         return list(FileMap.model_fields)
     if loc[0] == "files" and len(loc) >= 3 and loc[2] in ("read", "time"):
         return list((ReadOptions if loc[2] == "read" else TimeMap).model_fields)
+    if loc[0] == "files" and len(loc) >= 3 and loc[2] == "run":
+        return ["from", "map"]
     if loc[0] == "files" and len(loc) >= 4 and loc[2] == "columns":
         return list(ColumnMap.model_fields)
     if loc[0] == "align":
@@ -208,7 +247,23 @@ def _line(lines: dict, loc: tuple) -> str:
 
 
 # ------------------------------------------------------------------ files ---
-def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
+def _source_paths(f: FileMap, base_dir: Path, where: str) -> list[Path]:
+    """The file ``path`` names, or every file its glob matches (in name order)."""
+    raw = os.path.expanduser(f.path)
+    if not any(c in raw for c in "*?["):
+        p = Path(raw)
+        return [p if p.is_absolute() else base_dir / p]
+    pattern = raw if os.path.isabs(raw) else str(base_dir / raw)
+    found = sorted(Path(p) for p in globmod.glob(pattern) if os.path.isfile(p))
+    if not found:
+        raise MappingError(f"{where}.path: no file matches {f.path!r} (in {Path(pattern).parent})")
+    return found
+
+
+def _read_source(f: FileMap, path: Path, where: str) -> list[tuple[str | None, pd.DataFrame, int]]:
+    """The data of one file: ``(sheet, table, fully empty rows skipped)`` per sheet read (one, with
+    sheet None, for a CSV or Parquet file). Each table's index is its data rows' 0-based positions
+    (what ``time.step_s`` counts), fully empty rows left out."""
     if path.suffix.lower() == ".xls":
         raise MappingError(f"{where}.path: {path.name} is an Excel 97-2003 workbook (.xls), which openpyxl cannot "
                            "read; save it as .xlsx or CSV")  # fmt: skip
@@ -217,34 +272,53 @@ def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
     if fmt is None:
         raise MappingError(f"{where}.path: cannot tell the format of {path.name!r} from its suffix; "
                            "add format: csv, excel or parquet")  # fmt: skip
+    if not os.path.lexists(path):
+        raise MappingError(f"{where}.path: no such file {path} (a relative path starts from the mapping file's directory)")
     try:
         check_regular_file(path, limits.TABLE_MAX_BYTES, "a table")
     except DatasetError as exc:
         raise MappingError(f"{where}.path: {exc}") from None
     r = f.read
+    if r.sheet is not None and r.sheets is not None:
+        raise MappingError(f"{where}.read: give sheet (one sheet) or sheets (several), not both")
+    if fmt != "excel" and (r.sheet is not None or r.sheets is not None):
+        raise MappingError(f"{where}.read.{'sheet' if r.sheet is not None else 'sheets'}: a {fmt} file has no sheets")
+    header = None if r.header is False else 0
+    out: list[tuple[str | None, pd.DataFrame]] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             if fmt == "csv":
-                if r.sheet is not None:
-                    raise MappingError(f"{where}.read.sheet: a CSV file has no sheets")
                 with open_regular_file(path, limits.TABLE_MAX_BYTES, "a table") as fh:
-                    df = pd.read_csv(fh, sep=r.sep or ",", decimal=r.decimal, thousands=r.thousands,
-                                     encoding=r.encoding, skiprows=r.skip_rows, engine="python" if r.sep and len(r.sep) > 1 else "c")  # fmt: skip
+                    df = pd.read_csv(fh, sep=r.sep or ",", decimal=r.decimal, thousands=r.thousands, header=header,
+                                     encoding=r.encoding, skiprows=r.skip_rows, skip_blank_lines=False,
+                                     engine="python" if r.sep and len(r.sep) > 1 else "c")  # fmt: skip
+                out.append((None, df))
             elif fmt == "excel":
                 with pd.ExcelFile(path, engine="openpyxl") as book:
                     sheets = list(book.sheet_names)
-                    if isinstance(r.sheet, str) and r.sheet not in sheets:
-                        near = difflib.get_close_matches(r.sheet, sheets, n=1)
-                        raise MappingError(f"{where}.read.sheet: {path.name} has no sheet {r.sheet!r}; its sheets: "
-                                           f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
-                    if isinstance(r.sheet, int) and not 0 <= r.sheet < len(sheets):
-                        raise MappingError(f"{where}.read.sheet: {path.name} has {len(sheets)} sheet(s) {sheets}; "
-                                           f"index {r.sheet} is out of range (0-based)")  # fmt: skip
-                    df = book.parse(sheet_name=r.sheet if r.sheet is not None else 0, skiprows=r.skip_rows)
-                    df.attrs["sheets"] = sheets
+                    if r.sheets is not None:
+                        chosen = sheets if r.sheets == "all" else list(r.sheets)
+                        for name in chosen:
+                            if name not in sheets:
+                                near = difflib.get_close_matches(name, sheets, n=1)
+                                raise MappingError(f"{where}.read.sheets: {path.name} has no sheet {name!r}; its sheets: "
+                                                   f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
+                    else:
+                        if isinstance(r.sheet, str) and r.sheet not in sheets:
+                            near = difflib.get_close_matches(r.sheet, sheets, n=1)
+                            raise MappingError(f"{where}.read.sheet: {path.name} has no sheet {r.sheet!r}; its sheets: "
+                                               f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
+                        if isinstance(r.sheet, int) and not 0 <= r.sheet < len(sheets):
+                            raise MappingError(f"{where}.read.sheet: {path.name} has {len(sheets)} sheet(s) {sheets}; "
+                                               f"index {r.sheet} is out of range (0-based)")  # fmt: skip
+                        chosen = [sheets[r.sheet] if isinstance(r.sheet, int) else (r.sheet or sheets[0])]
+                    for name in chosen:
+                        df = book.parse(sheet_name=name, skiprows=r.skip_rows, header=header)
+                        df.attrs["sheets"] = sheets if r.sheets is None else None
+                        out.append((name, df))
             else:
-                df = pd.read_parquet(path)
+                out.append((None, pd.read_parquet(path)))
         except MappingError:
             raise
         except UnicodeDecodeError as exc:
@@ -259,21 +333,43 @@ def _read_source(f: FileMap, path: Path, where: str) -> pd.DataFrame:
         except Exception as exc:  # a corrupt file: the user's
             raise MappingError(f"{where}.path: cannot read {path.name} as {fmt} ({type(exc).__name__}: "
                                f"{short_repr(str(exc), 200)})") from None  # fmt: skip
+    return [_data_rows(df, sheet, f, path, where, fmt) for sheet, df in out]
+
+
+def _data_rows(df: pd.DataFrame, sheet: str | None, f: FileMap, path: Path, where: str, fmt: str):
+    r = f.read
+    name = path.name + (f", sheet {sheet!r}" if sheet is not None and f.read.sheets is not None else "")
     if df.shape[0] * max(df.shape[1], 1) > limits.TABLE_MAX_CELLS:
-        raise MappingError(f"{where}.path: {path.name} holds more than {limits.TABLE_MAX_CELLS} cells")
+        raise MappingError(f"{where}.path: {name} holds more than {limits.TABLE_MAX_CELLS} cells")
     sheets = df.attrs.get("sheets")
     df.columns = [str(c) for c in df.columns]
+    if r.header is None and len(df.columns) and all(_looks_numeric(c) for c in df.columns):
+        shown = ", ".join(repr(c) for c in list(df.columns)[:6]) + (", ..." if len(df.columns) > 6 else "")
+        raise MappingError(f"{where}.read.header: the first row of {name} reads as data ({shown}), not as column "
+                           "names: add read: {header: false} (columns are then named by 0-based position), or "
+                           "header: true if those are its names")  # fmt: skip
     if r.skip_after_header:
-        df = df.iloc[r.skip_after_header:].reset_index(drop=True)
+        df = df.iloc[r.skip_after_header:]
+    df = df.reset_index(drop=True)
+    empty = df.isna().all(axis=1).to_numpy()
+    df = df[~empty]
     if df.empty:
-        raise MappingError(f"{where}.path: {path.name} has no data rows")
+        raise MappingError(f"{where}.path: {name} has no data rows")
     if len(df.columns) == 1 and fmt == "csv":
-        for sep, name in ((";", "semicolon"), ("\t", "tab"), (",", "comma")):
+        for sep, sname in ((";", "semicolon"), ("\t", "tab"), (",", "comma")):
             if sep in df.columns[0] and sep != (r.sep or ","):
                 raise MappingError(f"{where}.read.sep: the header of {path.name} is one column "
-                                   f"{short_repr(df.columns[0])}: it looks {name}-separated; set sep: {sep!r}")  # fmt: skip
+                                   f"{short_repr(df.columns[0])}: it looks {sname}-separated; set sep: {sep!r}")  # fmt: skip
     df.attrs["sheets"] = sheets
-    return df
+    return sheet, df, int(empty.sum())
+
+
+def _looks_numeric(name: str) -> bool:
+    try:
+        float(name)
+    except ValueError:
+        return False
+    return True
 
 
 def _column(df: pd.DataFrame, name: str, where: str, path: Path) -> pd.Series:
@@ -318,7 +414,18 @@ def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None, de
 
 def _times(df: pd.DataFrame, f: FileMap, where: str, path: Path) -> tuple[np.ndarray, bool | str]:
     """The file's time column as seconds (timestamps: since the epoch, UTC when they carry a
-    time zone) and its kind: False (numbers), "aware" or "naive" (timestamps)."""
+    time zone) and its kind: False (numbers), "aware" or "naive" (timestamps). With no time
+    column (``time.step_s``): data row k at ``start_s + k * step_s``."""
+    tm = f.time
+    if tm.step_s is not None:
+        other = [k for k in ("column", "unit", "format") if getattr(tm, k) is not None]
+        if other:
+            raise MappingError(f"{where}.time: give either column (a time column) or step_s (a constant step, no "
+                               f"time column), not both ({other[0]} and step_s)")  # fmt: skip
+        return tm.start_s + df.index.to_numpy(dtype=float) * tm.step_s + f.offset_s, False
+    if tm.column is None:
+        raise MappingError(f"{where}.time: give column (the file's time column) or, with no time column, step_s "
+                           "(rows step_s seconds apart)")  # fmt: skip
     cols = [f.time.column] if isinstance(f.time.column, str) else list(f.time.column)
     if not cols:
         raise MappingError(f"{where}.time.column: an empty list; name the time column (or a date and a time column)")
@@ -446,20 +553,160 @@ def _metadata(m: Mapping, path: Path, lines: dict) -> Metadata:
     raw = {"format": FORMAT_V2, **m.dataset}
     if "format" in m.dataset:
         raise MappingError(f"{path}: key 'dataset.format': leave it out; import writes {FORMAT_V2}")
+    if "runs" not in m.dataset:  # the runs the files name (run: from sheet / file, a run_id column, run:)
+        raw["runs"] = {_UNDECLARED: {}}
     sub = {tuple(k[1:]): v for k, v in lines.items() if k and k[0] == "dataset"}
     try:
         meta = Metadata.model_validate(raw)
     except ValidationError as exc:
         msg = _validation_message(exc, path, sub)
         raise MappingError(msg.replace(f"{path}: key '", f"{path}: key 'dataset.", 1)) from None
-    if m.run is not None and m.run not in meta.runs:
+    if m.run is not None and m.run not in meta.runs and _UNDECLARED not in meta.runs:
         raise MappingError(f"{path}: key 'run': {m.run!r} is not a run of dataset.runs ({sorted(meta.runs)})")
     return meta
 
 
-def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.DataFrame]:
+#: the placeholder run of a mapping whose dataset declares no runs (they come from the files)
+_UNDECLARED = "undeclared-runs"
+
+
+def _as_run_id(name: str, where: str, what: str) -> str:
+    """A sheet name or file stem made a valid run id (characters outside the rule become _)."""
+    rid = re.sub(r"[^A-Za-z0-9_.-]+", "_", name.strip()).strip("._-")[: limits.RUN_ID_MAX_LEN].rstrip(".")
+    problem = limits.run_id_problem(rid)
+    if problem is not None:
+        raise MappingError(f"{where}.run: {what} {name!r} makes no valid run id ({rid!r} {problem}); name it with "
+                           f"run: {{map: {{{name!r}: <run id>}}}}")  # fmt: skip
+    return rid
+
+
+def _piece_run(f: FileMap, path: Path, sheet: str | None, where: str) -> str | None:
+    """The run every row of this file (sheet) belongs to, when the mapping says so."""
+    if f.run is None:
+        return None
+    if isinstance(f.run, str):
+        problem = limits.run_id_problem(f.run)
+        if problem is not None:
+            raise MappingError(f"{where}.run: run id {f.run!r} {problem}")
+        return f.run
+    if f.run.from_ == "sheet":
+        if sheet is None:
+            raise MappingError(f"{where}.run.from: sheet names runs after an Excel workbook's sheets; {path.name} "
+                               "has none (one run per file: from: file)")  # fmt: skip
+        name, what = sheet, "sheet"
+    else:
+        name, what = path.stem, "file"
+    if f.run.map is not None:
+        if name not in f.run.map:
+            raise MappingError(f"{where}.run.map: has no entry for {what} {name!r} (it maps {sorted(f.run.map)})")
+        rid = f.run.map[name]
+        problem = limits.run_id_problem(rid)
+        if problem is not None:
+            raise MappingError(f"{where}.run.map.{name}: run id {rid!r} {problem}")
+        return rid
+    return _as_run_id(name, where, what)
+
+
+def _piece_columns(df: pd.DataFrame, f: FileMap, src: Path, where: str, meta: Metadata, channels: dict, m: Mapping,
+                   run: str | None, declared: bool) -> dict:  # fmt: skip
+    """One table's mapped columns: process columns, wide and long error columns, its runs."""
+    proc: dict[str, np.ndarray] = {}
+    sources: dict[str, str] = {}  # dataset column -> the file's column (for messages)
+    file_channel = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
+    if file_channel is not None and file_channel not in channels:
+        raise MappingError(f"{where}.channel: {file_channel!r} is not declared in dataset.channels ({sorted(channels)})")
+    wide: dict[str, np.ndarray] = {}
+    long: dict[str, np.ndarray] = {}
+    run_col = None
+    for key, spec in f.columns.items():
+        col = str(key)
+        cw = f"{where}.columns.{col!r}"
+        cm = ColumnMap(to=spec) if isinstance(spec, str) else spec
+        if (cm.to is None) == (cm.channel is None):
+            raise MappingError(f"{cw}: give either to: <dataset column> or channel: <error channel>")
+        if isinstance(key, int) and f.read.header is not False:
+            raise MappingError(f"{cw}: a column by position (a number) needs read: {{header: false}}; with a header "
+                               "row, name the column (quote a numeric name: \"0\":)")  # fmt: skip
+        s = _column(df, col, cw, src)
+        if cm.to == "run_id":
+            if run is not None:
+                raise MappingError(f"{cw}: files.<name>.run already names this file's run; map no run_id column")
+            run_col = s.astype(str).str.strip().to_numpy()
+            unknown = [r for r in pd.unique(run_col) if r not in meta.runs] if declared else []
+            if unknown:
+                raise MappingError(f"{cw}: {src.name} holds run(s) {unknown[:5]} that "
+                                   f"dataset.runs does not declare (it declares {sorted(meta.runs)})")  # fmt: skip
+            bad = [(r, limits.run_id_problem(r)) for r in pd.unique(run_col) if limits.run_id_problem(r) is not None]
+            if bad:
+                raise MappingError(f"{cw}: {src.name} holds run id {bad[0][0]!r}, which {bad[0][1]}")
+            continue
+        values = _numbers(s, cw, src, None if cm.map is None else {k: float(v) for k, v in cm.map.items()}, f.read.decimal)
+        if cm.channel is not None:
+            if cm.channel not in channels:
+                raise MappingError(f"{cw}: channel {cm.channel!r} is not declared in dataset.channels "
+                                   f"({sorted(channels)})")  # fmt: skip
+            if channels[cm.channel].kind != "fixed_point":
+                raise MappingError(f"{cw}: channel {cm.channel!r} is along_axis: its readings need target_mm; "
+                                   "map error_um, target_mm (and direction) columns and name the channel "
+                                   f"with {where.split('key ')[-1]}.channel")  # fmt: skip
+            unit = "urad" if channels[cm.channel].unit == "urad" else "um"
+            wide[cm.channel] = _convert(values, cm, f"error_{unit}", cw)
+            _check_range(wide[cm.channel], f"error_{unit}", cm, cw, src)
+            continue
+        _target_ok(cm.to, meta, cw)
+        target = cm.to
+        if cm.to == "error_um" and file_channel is not None and channels[file_channel].unit == "urad":
+            target = "error_urad"  # a tilt channel's readings: converted to µrad, checked as tilts
+        v = _convert(values, cm, target, cw)
+        _check_range(v, target, cm, cw, src)
+        (long if cm.to in ERROR_TARGETS else proc)[cm.to] = v
+        sources[cm.to] = col
+    if long and "error_um" not in long:
+        raise MappingError(f"{where}.columns: maps {sorted(long)} but no column to error_um")
+    if long:
+        ch = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
+        if ch is None or ch not in channels:
+            raise MappingError(f"{where}.channel: name the error channel of this file's readings "
+                               f"(one of {sorted(channels)})")  # fmt: skip
+        if channels[ch].kind == "along_axis" and "target_mm" not in long:
+            raise MappingError(f"{where}.columns: channel {ch!r} is along_axis: map a column to target_mm")
+    elif f.channel is not None:
+        raise MappingError(f"{where}.channel: this file maps no error_um column")
+    if run_col is None:
+        if run is None and m.run is None and (len(meta.runs) > 1 or not declared):
+            raise MappingError(f"{where}: name the run(s) of its rows: run: <run id> or run: {{from: sheet | file}} "
+                               "(or a column mapped to run_id)")  # fmt: skip
+        run_col = np.full(len(df), run or m.run or next(iter(meta.runs)), dtype=object)
+    return {"run": run_col, "proc": proc, "wide": wide, "long": long, "src": sources}
+
+
+def _merge_pieces(pieces: list, f: FileMap, where: str, name: str) -> dict:
+    """The tables of one file entry (its files, its sheets) as one frame: rows of the same run
+    from two tables would be one run's two logs, which no clock can order."""
+    seen: dict[str, str] = {}
+    for _src, label, _t, _run, fr in pieces:
+        for r in pd.unique(fr["run"]):
+            if r in seen and seen[r] != label and f.time.step_s is not None:
+                raise MappingError(f"{where}: run {r!r} comes from both {seen[r]} and {label}, each counted from "
+                                   "time.start_s; one run per table: run: {from: sheet} or {from: file}")  # fmt: skip
+            seen.setdefault(r, label)
+
+    def cat(xs):
+        return np.concatenate(xs) if xs else np.zeros(0)
+
+    out = {"t": cat([p[2] for p in pieces]), "run": np.concatenate([p[4]["run"] for p in pieces]).astype(object)}
+    for part in ("proc", "wide", "long"):
+        cols = pieces[0][4][part].keys()
+        out[part] = {c: cat([p[4][part][c] for p in pieces]) for c in cols}
+    out.update({"channel": f.channel, "src": pieces[0][4]["src"], "where": where, "max_gap_s": f.max_gap_s,
+                "path": pieces[0][0] if len(pieces) == 1 else Path(f.path)})  # fmt: skip
+    return out
+
+
+def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.DataFrame, list[str]]:
     """Read the mapping and its files; return the dataset's metadata and tables (not yet
-    written). :class:`MappingError` names the mapping key of any mistake."""
+    written), and notes on what was left out (fully empty rows, per file). :class:`MappingError`
+    names the mapping key of any mistake."""
     path = Path(mapping_path)
     m, lines = read_mapping(path)
     meta = _metadata(m, path, lines)
@@ -467,73 +714,24 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
     frames: dict[str, dict] = {}
     channels = meta.error_channels()
     kinds = set()
+    declared = _UNDECLARED not in meta.runs
+    notes: list[str] = []
     for name, f in m.files.items():
         where = f"{path}: key files.{name}"
-        src = Path(os.path.expanduser(f.path))
-        src = src if src.is_absolute() else base_dir / src
-        df = _read_source(f, src, f"{where}")
-        t, kind = _times(df, f, where, src)
-        kinds.add(kind)
-        proc: dict[str, np.ndarray] = {}
-        sources: dict[str, str] = {}  # dataset column -> the file's column (for messages)
-        file_channel = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
-        if file_channel is not None and file_channel not in channels:
-            raise MappingError(f"{where}.channel: {file_channel!r} is not declared in dataset.channels ({sorted(channels)})")
-        wide: dict[str, np.ndarray] = {}
-        long: dict[str, np.ndarray] = {}
-        run_col = None
-        for col, spec in f.columns.items():
-            cw = f"{where}.columns.{col!r}"
-            cm = ColumnMap(to=spec) if isinstance(spec, str) else spec
-            if (cm.to is None) == (cm.channel is None):
-                raise MappingError(f"{cw}: give either to: <dataset column> or channel: <error channel>")
-            s = _column(df, col, cw, src)
-            if cm.to == "run_id":
-                run_col = s.astype(str).str.strip().to_numpy()
-                unknown = [r for r in pd.unique(run_col) if r not in meta.runs]
-                if unknown:
-                    raise MappingError(f"{cw}: {src.name} holds run(s) {unknown[:5]} that "
-                                       f"dataset.runs does not declare (it declares {sorted(meta.runs)})")  # fmt: skip
-                continue
-            values = _numbers(s, cw, src, None if cm.map is None else {k: float(v) for k, v in cm.map.items()},
-                              f.read.decimal)
-            if cm.channel is not None:
-                if cm.channel not in channels:
-                    raise MappingError(f"{cw}: channel {cm.channel!r} is not declared in dataset.channels "
-                                       f"({sorted(channels)})")  # fmt: skip
-                if channels[cm.channel].kind != "fixed_point":
-                    raise MappingError(f"{cw}: channel {cm.channel!r} is along_axis: its readings need target_mm; "
-                                       "map error_um, target_mm (and direction) columns and name the channel "
-                                       f"with files.{name}.channel")  # fmt: skip
-                unit = "urad" if channels[cm.channel].unit == "urad" else "um"
-                wide[cm.channel] = _convert(values, cm, f"error_{unit}", cw)
-                _check_range(wide[cm.channel], f"error_{unit}", cm, cw, src)
-                continue
-            _target_ok(cm.to, meta, cw)
-            target = cm.to
-            if cm.to == "error_um" and file_channel is not None and channels[file_channel].unit == "urad":
-                target = "error_urad"  # a tilt channel's readings: converted to µrad, checked as tilts
-            v = _convert(values, cm, target, cw)
-            _check_range(v, target, cm, cw, src)
-            (long if cm.to in ERROR_TARGETS else proc)[cm.to] = v
-            sources[cm.to] = col
-        if long and "error_um" not in long:
-            raise MappingError(f"{where}.columns: maps {sorted(long)} but no column to error_um")
-        if long:
-            ch = f.channel or (next(iter(channels)) if len(channels) == 1 else None)
-            if ch is None or ch not in channels:
-                raise MappingError(f"{where}.channel: name the error channel of this file's readings "
-                                   f"(one of {sorted(channels)})")  # fmt: skip
-            if channels[ch].kind == "along_axis" and "target_mm" not in long:
-                raise MappingError(f"{where}.columns: channel {ch!r} is along_axis: map a column to target_mm")
-        elif f.channel is not None:
-            raise MappingError(f"{where}.channel: this file maps no error_um column")
-        if run_col is None:
-            if m.run is None and len(meta.runs) > 1:
-                raise MappingError(f"{where}.columns: map a column to run_id, or give the mapping key 'run'")
-            run_col = np.full(len(df), m.run or next(iter(meta.runs)), dtype=object)
-        frames[name] = {"t": t, "run": run_col, "proc": proc, "wide": wide, "long": long, "channel": f.channel, "src": sources,
-                        "where": where, "max_gap_s": f.max_gap_s, "path": src}  # fmt: skip
+        pieces = []
+        for src in _source_paths(f, base_dir, where):
+            for sheet, df, dropped in _read_source(f, src, where):
+                label = src.name + (f" sheet {sheet!r}" if sheet is not None and f.read.sheets is not None else "")
+                if dropped:
+                    notes.append(f"files.{name}: {label}: {dropped} fully empty row(s) skipped")
+                t, kind = _times(df, f, where, src)
+                kinds.add(kind)
+                run = _piece_run(f, src, sheet, where)
+                pieces.append((src, label, t, run, _piece_columns(df, f, src, where, meta, channels, m, run, declared)))
+        frames[name] = _merge_pieces(pieces, f, where, name)
+    if not declared:  # the runs are those the files name, in the order met
+        order = list(dict.fromkeys(r for fr in frames.values() for r in fr["run"]))
+        meta = meta.model_copy(update={"runs": {r: RunMeta() for r in order}})
     if False in kinds and len(kinds) > 1:
         raise MappingError(f"{path}: key 'files': some files have timestamps and some seconds; a common clock needs "
                            "the same kind in every file (give each file's time the same way)")  # fmt: skip
@@ -559,7 +757,7 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
         for run, z in zero.items():  # when t_s = 0 was, on the files' clock (the base file's, offsets applied)
             stamp = pd.Timestamp(round((epoch + float(z)) * 1e6), unit="us").isoformat()
             meta.runs[run].started = stamp + zone  # an extra key of the run (pydantic extra="allow")
-    return meta, process, errors
+    return meta, process, errors, notes
 
 
 def _check_reading_times(frames: dict, process: pd.DataFrame) -> None:
@@ -604,7 +802,8 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
     for n in with_proc:
         for col in frames[n]["proc"]:
             if col in seen:
-                raise MappingError(f"{frames[n]['where']}.columns': {col!r} is mapped by files {seen[col]!r} and {n!r}")
+                raise MappingError(f"{frames[n]['where']}.columns: {col!r} is mapped by files {seen[col]!r} and {n!r}; "
+                                   "a dataset column comes from one file")  # fmt: skip
             seen[col] = n
     parts = []
     b = frames[base]
@@ -713,7 +912,7 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
         raise MappingError(f"--format: expected csv or parquet, got {file_format!r}")
     out = Path(out)
     check_output_dir(out, "dataset", force=force)
-    meta, process, errors = build_tables(mapping_path)
+    meta, process, errors, notes = build_tables(mapping_path)
     with output_dir(out, "dataset", force=force) as tmp:
         doc = meta.model_dump(mode="json", exclude_none=True) | dict(extra or {})
         (tmp / "metadata.yaml").write_text(dump_yaml(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
@@ -725,6 +924,12 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
                 df.to_csv(tmp / f"{name}.csv", index=False)
         try:
             ds = load_dataset(tmp)
+            # what validate and every command derive from it, before anything is moved into place
+            from .reference import run_summary
+            from .views import split_segments
+
+            split_segments(ds)
+            run_summary(ds)
         except DatasetError as exc:
             msg = str(exc)
             for name in ("process", "errors"):
@@ -732,4 +937,5 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
             msg = msg.replace(str(tmp / "metadata.yaml"), "dataset").replace(str(tmp), str(out))
             raise MappingError(f"{mapping_path}: the imported dataset is not valid: {msg}") from None
     ds.path = out
+    ds.import_notes = notes  # what the import left out, for the command to say
     return ds

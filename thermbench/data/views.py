@@ -64,7 +64,8 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
 
 def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     """Each format 2 run without a condition split into its derived segments (module
-    docstring); runs with a condition, and format 1 datasets, are kept as they are.
+    docstring); runs with a condition, runs of a dataset with no operating input to segment
+    by (each run is then its own state), and format 1 datasets are kept as they are.
 
     ``history``: each segment's process log starts at its run's first sample (the lead-in
     before the segment's first reading: what the machine went through before it), its
@@ -75,9 +76,8 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     if meta.version == 1 or all(r.condition is not None for r in meta.runs.values()):
         return ds
     inputs = meta.operating_inputs()
-    if not inputs:
-        raise DatasetError(f"{ds.path}: runs without a condition are segmented by an operating input; "
-                           "metadata.yaml declares none (key 'operating')")  # fmt: skip
+    if not inputs:  # nothing to segment by: each run is one loading state of its own, as it is
+        return ds
     op = inputs[0]
     runs: dict[str, RunMeta] = {}
     p_parts, e_parts = [], []
@@ -91,6 +91,11 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
             continue
         t = pr["t_s"].to_numpy()
         segs = derive_segments(t, pr[op].to_numpy(), **(meta.segmentation.kwargs() if meta.segmentation else {}))
+        if not segs and not run.segments:  # too short to derive a segment from: the run as it is
+            runs[run_id] = run
+            p_parts.append(pr)
+            e_parts.append(er)
+            continue
         names = run.segments or [segment_name(s, UNIT_NAMES.get(op, op)) for s in segs]
         if len(names) != len(segs):
             found = ", ".join(f"{s.start_s:g} s ({s.kind}{'' if s.level is None else f' {s.level:g}'})" for s in segs)
