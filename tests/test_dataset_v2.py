@@ -321,18 +321,21 @@ def test_segmentation_settings_in_the_metadata(tmp_path):
     assert seg.process_run("s02_3000rpm")["t_s"].iloc[0] == 2100.0
 
 
-def test_channel_view_keeps_each_runs_own_reference(tmp_path):
-    """Two runs of one fixed-point channel whose raw readings start at 0 and at 100 µm: the view's
-    error_um is each run's reading, not one reference averaged over the runs."""
+@pytest.mark.parametrize("mode", ["first_reading", "cold_cycle"])
+def test_channel_view_keeps_each_runs_own_reference(tmp_path, mode):
+    """Two runs of one fixed-point channel whose raw readings start at 0 and at 100 µm. With
+    first_reading (each run's zero is its own) the view's error_um, what models predict and scores
+    compare, is each run's drift from its own first reading; with cold_cycle (the reading is not
+    re-zeroed) it is each run's reading. Never one reference averaged over the runs."""
     t = np.arange(0.0, 600.0, 15.0)
     process = pd.concat([pd.DataFrame({"run_id": r, "t_s": t, "spindle_rpm": 1000.0, "T_front_C": 20.0, "T_amb_C": 20.0})
                          for r in ("r1", "r2")], ignore_index=True)  # fmt: skip
     errors = pd.concat([pd.DataFrame({"run_id": r, "t_s": t, "channel": "Z", "error_um": z0 + 0.01 * t})
                         for r, z0 in (("r1", 0.0), ("r2", 100.0))], ignore_index=True)  # fmt: skip
-    meta = {**SPINDLE_META, "channels": {"Z": SPINDLE_META["channels"]["Z"]},
+    meta = {**SPINDLE_META, "channels": {"Z": SPINDLE_META["channels"]["Z"]}, "reference": {"mode": mode},
             "runs": {"r1": {"condition": {"spindle_rpm": 1000}}, "r2": {"condition": {"spindle_rpm": 1000}}}}  # fmt: skip
     view = channel_view(load_dataset(write(tmp_path / "d", meta, process, errors)), "Z")
     for r, z0 in (("r1", 0.0), ("r2", 100.0)):
         er = view.errors_run(r)
-        np.testing.assert_allclose(er["error_um"], z0 + 0.01 * er["t_s"])
+        np.testing.assert_allclose(er["error_um"], (z0 if mode == "cold_cycle" else 0.0) + 0.01 * er["t_s"])
         np.testing.assert_allclose(er["thermal_um"], 0.01 * er["t_s"], atol=1e-12)

@@ -42,7 +42,9 @@ def test_a_segment_with_history_keeps_the_log_before_it_and_the_whole_runs_refer
     er_p, er_h = plain.errors_run("high"), hist.errors_run("high")
     np.testing.assert_allclose(er_p["thermal_um"], 0.01 * (er_p["t_s"] - 4000.0), atol=1e-9)
     np.testing.assert_allclose(er_h["thermal_um"], 0.01 * er_h["t_s"], atol=1e-9)
-    np.testing.assert_allclose(er_h["error_um"], 2.0 + 0.01 * er_h["t_s"], atol=1e-9)
+    # what is predicted and scored: the drift from the run's first reading (the frame the dataset
+    # declares, first_reading), not the reading as read (2 µm of it is the gauge's zero)
+    np.testing.assert_allclose(er_h["error_um"], 0.01 * er_h["t_s"], atol=1e-9)
     # temperature rises: from the test's first sample (0.001 K/s since 0 s), not from the block's
     rise = temperatures_at(hist, "high", ["T_front"], [5000.0], preprocess=None)
     assert rise[0, 0] == pytest.approx(5.0)
@@ -60,8 +62,9 @@ def test_history_is_a_flag_and_needs_segments(tmp_path):
 
 def test_a_model_scored_on_a_segment_with_history_sees_only_its_readings(tmp_path):
     """A least-squares line in the temperature rise, fitted on block 'low' with history: the
-    drift (2 + 0.01 t µm) is exactly 2 + 10 ΔT with ΔT = 0.001 t, so it is recovered from the
-    block alone and predicts block 'high' exactly (a hand-computed check of what is fitted)."""
+    drift from the first reading (0.01 t µm; the reading is 2 + 0.01 t) is exactly 10 ΔT with
+    ΔT = 0.001 t, so it is recovered from the block alone (no intercept: the gauge's 2 µm zero is
+    not part of it) and predicts block 'high' exactly (a hand-computed check of what is fitted)."""
     from sklearn.linear_model import LinearRegression
 
     from thermbench.models.baseline import SensorRegressor
@@ -69,6 +72,6 @@ def test_a_model_scored_on_a_segment_with_history_sees_only_its_readings(tmp_pat
     hist = dataset_view(two_blocks(tmp_path), "Z", segments=True, history=True)
     m = SensorRegressor(estimator=LinearRegression(), sensors=["T_front"]).fit(hist, ["low"])
     assert m.estimator_.coef_[0] == pytest.approx(10.0)
-    assert m.estimator_.intercept_ == pytest.approx(2.0)
+    assert m.estimator_.intercept_ == pytest.approx(0.0, abs=1e-9)
     er = hist.errors_run("high")
     np.testing.assert_allclose(m.predict(hist, "high"), er["error_um"], atol=1e-9)

@@ -99,6 +99,7 @@ def cmd_validate(path: str) -> int:
 
 def _print_v2(path, ds, table) -> None:
     """The ``validate`` summary of a format 2 dataset: parts, channels, inputs, segments."""
+    from .data.reference import frame_text
     from .data.views import split_segments
 
     meta = ds.metadata
@@ -110,7 +111,8 @@ def _print_v2(path, ds, table) -> None:
     for name, ch in meta.error_channels().items():
         print(f"  channel {name}: {ch.kind}, {ch.direction}, at {ch.location} ({'µrad' if ch.unit == 'urad' else 'µm'})")
     print(f"  thermal error counted from: {meta.reference_mode().mode}"
-          + (f" at {meta.reference_mode().t_s:g} s" if meta.reference_mode().t_s is not None else ""))  # fmt: skip
+          + (f" at {meta.reference_mode().t_s:g} s" if meta.reference_mode().t_s is not None else "")
+          + f"; models are scored on {frame_text(meta)}")  # fmt: skip
     if "direction" in ds.errors.columns:
         print("  bidirectional readings: thermal error per direction; the reversal value: thermbench iso230")
     print(f"\nruns  ->  {Path(path).resolve()}")

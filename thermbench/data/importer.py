@@ -351,7 +351,10 @@ def _data_rows(df: pd.DataFrame, sheet: str | None, f: FileMap, path: Path, wher
     if r.skip_after_header:
         df = df.iloc[r.skip_after_header:]
     df = df.reset_index(drop=True)
-    empty = df.isna().all(axis=1).to_numpy()
+    blank = df.isna()
+    for c in df.columns[df.dtypes == object]:  # a cell of spaces is empty too
+        blank[c] = blank[c] | df[c].map(lambda v: isinstance(v, str) and not v.strip())
+    empty = blank.all(axis=1).to_numpy()
     df = df[~empty]
     if df.empty:
         raise MappingError(f"{where}.path: {name} has no data rows")
@@ -732,6 +735,13 @@ def build_tables(mapping_path: str | Path) -> tuple[Metadata, pd.DataFrame, pd.D
     if not declared:  # the runs are those the files name, in the order met
         order = list(dict.fromkeys(r for fr in frames.values() for r in fr["run"]))
         meta = meta.model_copy(update={"runs": {r: RunMeta() for r in order}})
+    mapped = {c for fr in frames.values() for c in fr["proc"]}
+    if "operating" not in m.dataset and meta.operating_inputs() and not mapped & set(meta.operating_inputs()):
+        # no operating signal in the files (a test logged temperatures and a drift only): none is
+        # expected, and each run is one state of its own
+        notes.append(f"no file maps an operating input ({', '.join(meta.operating_inputs())}): the dataset has none "
+                     "(operating: []), each run is a state of its own")  # fmt: skip
+        meta = meta.model_copy(update={"operating": []})
     if False in kinds and len(kinds) > 1:
         raise MappingError(f"{path}: key 'files': some files have timestamps and some seconds; a common clock needs "
                            "the same kind in every file (give each file's time the same way)")  # fmt: skip

@@ -160,3 +160,14 @@ def run_summary_v2(ds: Dataset) -> pd.DataFrame:
             row[f"max_{ch}_{unit}"] = float(tr["thermal_um"].abs().max()) if len(tr) else float("nan")
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def frame_text(meta) -> str:
+    """The frame every score of a dataset is in (docs/dataset-format.md "Reference"): what a
+    model predicts and a residual is measured against."""
+    ref = meta.reference_mode()
+    if meta.version == 1 or ref.mode == "cold_cycle":
+        return "the error as read (each run's cold measuring cycle is the geometric error, seed 002 §3.1)"
+    if ref.mode == "first_reading":
+        return "each run's drift from its own first reading (per channel, target and direction)"
+    return f"each run's drift from its readings at {ref.t_s:g} s"

@@ -3,9 +3,11 @@
 
 - :func:`channel_view`: one error channel as a dataset of the format 1 shape: readings at
   ``target_mm`` (a fixed-point channel: the one position 0.0), ``thermal_um`` computed
-  with the dataset's reference rule and per direction of approach, and ``error_um`` =
-  ``thermal_um`` + the run's reference at that target averaged over the directions, so a
-  bidirectional run's reversal value is in neither. A process log without ``axis_mm`` / ``feed_mm_min`` (a
+  with the dataset's reference rule and per direction of approach, and ``error_um`` what the
+  models predict and every score compares: with ``cold_cycle`` the reading as read (``thermal_um``
+  + the run's reference at that target averaged over the directions, so a bidirectional run's
+  reversal value is in neither); with ``first_reading`` or ``time`` the drift ``thermal_um``
+  itself (each run's zero is its own: a first reading of 40 µm is not an error to predict). A process log without ``axis_mm`` / ``feed_mm_min`` (a
   spindle test) gets them as zeros: the spindle does not move an axis.
 - :func:`split_segments`: every run without a declared condition becomes one run per
   segment derived from its operating signal (:mod:`thermbench.data.segments`), named
@@ -47,12 +49,16 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
     er = te[te["channel"] == channel].copy() if len(te) else te.copy()
     if channels[channel].kind == "fixed_point" or "target_mm" not in er.columns:
         er["target_mm"] = 0.0
-    # per run and target, the reference averaged over the directions of approach (each counted once)
-    keys = ["run_id", "target_mm"] + (["direction"] if "direction" in er.columns else [])
-    per_direction = er.groupby(keys, sort=False)["reference_um"].first()
-    base = per_direction.groupby(level=["run_id", "target_mm"]).mean()
-    idx = pd.MultiIndex.from_arrays([er["run_id"], er["target_mm"]])
-    er["error_um"] = er["thermal_um"].to_numpy() + base.reindex(idx).to_numpy()
+    if ds.metadata.reference_mode().mode == "cold_cycle":
+        # the reading as read: per run and target, the reference (the cold cycle: the geometric
+        # error, seed 002 §3.1) averaged over the directions of approach (each counted once)
+        keys = ["run_id", "target_mm"] + (["direction"] if "direction" in er.columns else [])
+        per_direction = er.groupby(keys, sort=False)["reference_um"].first()
+        base = per_direction.groupby(level=["run_id", "target_mm"]).mean()
+        idx = pd.MultiIndex.from_arrays([er["run_id"], er["target_mm"]])
+        er["error_um"] = er["thermal_um"].to_numpy() + base.reindex(idx).to_numpy()
+    else:  # first_reading / time: each run's zero is its own (a gauge set anew): what is measured is the drift
+        er["error_um"] = er["thermal_um"].to_numpy()
     er = er[["run_id", "t_s", "target_mm", "error_um", "thermal_um", "channel"]].reset_index(drop=True)
     process = ds.process.copy()
     for col in ("axis_mm", "feed_mm_min"):

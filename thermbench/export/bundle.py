@@ -33,6 +33,7 @@ import pandas as pd
 from .. import __version__
 from ..outputs import output_dir
 from ..classify import measuring_intervals
+from ..data.reference import frame_text
 from ..models.bank import ConditionBank
 from ..models.base import ThermalErrorModel
 from . import fileformat, runtime
@@ -367,7 +368,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["outputs"] = {"thermal_um": "thermal part of the positioning error", "total_um":
                           "geometric + thermal positioning error (measured - commanded); compensation = -total_um"}  # fmt: skip
         man["training"] = {"runs": list(model.train_runs_), **({"dataset": str(ds.path), "dataset_hash": ds.content_hash(),
-                                                                "machine": ds.metadata.machine.model_dump(exclude_none=True)}
+                                                                "machine": ds.metadata.machine.model_dump(exclude_none=True),
+                                                                "frame": frame_text(ds.metadata)}
                            if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
                            **source.pop("training", {})}  # fmt: skip
         man["metrics"] = source.pop("metrics", {})

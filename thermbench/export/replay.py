@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.io import load_dataset
-from ..data.reference import thermal_errors
+from ..data.reference import frame_text, thermal_errors
 from ..metrics import cycle_curves, residual_metrics
 from ..outputs import output_dir
 from .bundle import read_manifest, replay_dir
@@ -178,6 +178,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
         comp["condition"] = labels
     figures = {"model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
                "answers": "live (the log up to each query's time)" if live else "final",
+               "frame": frame_text(ds.metadata),
                "n_readings": len(readings), "n_control_cycles": len(comp),
                **(compensation_figures(readings) if len(readings) else {})}  # fmt: skip
     if ds.channel is not None:
@@ -285,6 +286,8 @@ def format_replay(f: dict) -> str:
     ]  # fmt: skip
     if str(f.get("answers", "")).startswith("live"):
         lines.insert(1, "  answered as the compensator does: each cycle and reading with the log up to its time")
+    if f.get("frame"):
+        lines.insert(1, f"  scored on {f['frame']}")
     if "condition_switches" in f:
         if f["first_condition_at_s"] is None:
             lines.append("  classifier: no motion window was classified (no condition model used; geometric part only)")
