@@ -143,6 +143,9 @@ def main(argv=None) -> int:
     out = Path(__file__).parent / "results" / f"target{part}.csv"  # a subset: its own file
     write_text_atomic(out, df.to_csv(index=False))
     fl = df[df["precision"] == "float"] if "precision" in df else df.iloc[:0]
+    if fl.empty:  # double only: the budgets are the float build's
+        print(f"\n-> {out}")
+        return 0
     print(f"\nbudgets (float): cycle <= {CYCLE_BUDGET} (physics update <= {PHYS_BUDGET}), prediction <= {PRED_BUDGET} "
           f"instructions, arena <= {ARENA_BUDGET} B, one-kind image <= {IMAGE_BUDGET} B; {int((fl['over_budget'] == '').sum())}"
           f"/{len(fl)} within. Milliseconds at {MHZ} MHz assuming {CPI} cycles per instruction -> {out}")  # fmt: skip
