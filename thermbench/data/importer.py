@@ -344,10 +344,9 @@ def _data_rows(df: pd.DataFrame, sheet: str | None, f: FileMap, path: Path, wher
     sheets = df.attrs.get("sheets")
     df.columns = [str(c) for c in df.columns]
     if r.header is None and len(df.columns) and all(_looks_numeric(c) for c in df.columns):
-        shown = ", ".join(repr(c) for c in list(df.columns)[:6]) + (", ..." if len(df.columns) > 6 else "")
-        raise MappingError(f"{where}.read.header: the first row of {name} reads as data ({shown}), not as column "
-                           "names: add read: {header: false} (columns are then named by 0-based position), or "
-                           "header: true if those are its names")  # fmt: skip
+        raise MappingError(f"{where}.read.header: the first row of {name} reads as data (its {len(df.columns)} cells "
+                           "are all numbers), not as column names: add read: {header: false} (columns are then named "
+                           "by 0-based position), or header: true if those are its names")  # fmt: skip
     if r.skip_after_header:
         df = df.iloc[r.skip_after_header:]
     df = df.reset_index(drop=True)
