@@ -348,7 +348,7 @@ static void clf_classify_due(const tb_model *m, clf_t *k, tb_real t_now, int fin
     if (!k->have_t0) return;
     for (;;) {
         tb_real T = k->t0 + (tb_real)k->g_next * step;
-        if (!final && !(T < t_now)) break;
+        if (!final && !(T <= t_now)) break; /* a sample at T itself completes T's window (the live compensator's label at T) */
         if (final && T > k->last_t + TB_R(1e-9)) break;
         clf_label_push(k, T, clf_window(m, k, T));
         k->g_next++;
@@ -377,7 +377,8 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
     k->n++;
     k->oldest = (k->head + k->cap - k->n) % k->cap;
     k->last_t = s->t_s;
-    /* grid points before this sample can be classified now (their window and next sample are in) */
+    /* grid points up to this sample can be classified now (their window is in: a grid point between
+     * two samples needs the later one, a grid point at this sample only this one) */
     clf_classify_due(m, k, s->t_s, 0);
     return TB_OK;
 }
@@ -385,7 +386,7 @@ static int step(const tb_model *m, void *ks, const tb_sample *s)
 static tb_real clf_ready(const tb_model *m, const clf_t *k)
 {
     if (!k->have_t0) return TBI_NO_TIME;
-    return TBI_BEFORE(k->t0 + (tb_real)k->g_next * PV(m, m->off[O_BODY] + 1)); /* the label at that grid time needs a later sample */
+    return TBI_BEFORE(k->t0 + (tb_real)k->g_next * PV(m, m->off[O_BODY] + 1)); /* the label at that grid time needs the sample at it (or a later one) */
 }
 
 static tb_real clf_horizon(const tb_model *m) { return PV(m, m->off[O_BODY] + 1) + TB_MAX_GAP_S; }
