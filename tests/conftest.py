@@ -1,3 +1,10 @@
+import os
+
+# every test runs with the documented 256 MiB table cap, whatever the machine's memory (the default
+# is a quarter of it): the size guards are tested at a fixed size (tests/test_dataset.py checks the
+# default's scaling apart); set before thermbench is imported, and inherited by every subprocess
+os.environ["THERMBENCH_MAX_TABLE_MIB"] = "256"
+
 import numpy as np
 import pytest
 from omegaconf import OmegaConf

@@ -222,3 +222,24 @@ def test_metadata_ranges_apply_to_programmatic_metadata_too():
                   mounting="fixed_free")  # fmt: skip
     with pytest.raises(ValidationError, match="shorter than the screw"):
         ScrewMeta(length_m=1.0, diameter_m=0.04, nut_length_m=1.0, fixed_bearing_length_m=0.0, mounting="fixed_free")
+
+
+def test_the_table_cap_scales_with_the_machine_and_is_a_setting(monkeypatch):
+    """The guard against absurd tables (docs/dataset-format.md, Limits): a quarter of the machine's
+    memory and at least 256 MiB by default; $THERMBENCH_MAX_TABLE_MIB sets it; a bad setting is one
+    line naming the variable."""
+    from thermbench.data import limits
+
+    MiB = limits.MiB
+    monkeypatch.delenv(limits.TABLE_CAP_ENV, raising=False)
+    monkeypatch.setattr(limits, "machine_memory_bytes", lambda: 64 * 1024 * MiB)
+    assert limits.table_cap_bytes() == 16 * 1024 * MiB
+    monkeypatch.setattr(limits, "machine_memory_bytes", lambda: 512 * MiB)
+    assert limits.table_cap_bytes() == 256 * MiB  # never below 256 MiB
+    monkeypatch.setenv(limits.TABLE_CAP_ENV, "1024")
+    assert limits.table_cap_bytes() == 1024 * MiB
+    assert limits.table_cap_bytes(mib=10) == 10 * MiB
+    for bad in ("lots", "-5", "0", "nan"):
+        monkeypatch.setenv(limits.TABLE_CAP_ENV, bad)
+        with pytest.raises(DatasetError, match=rf"^\$THERMBENCH_MAX_TABLE_MIB='{bad}': expected a size in MiB, > 0$"):
+            limits.table_cap_bytes()

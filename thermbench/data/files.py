@@ -10,6 +10,7 @@ import stat
 from pathlib import Path
 from typing import BinaryIO
 
+from . import limits
 from .errors import DatasetError
 
 
@@ -53,9 +54,10 @@ def check_regular_file(path: Path, max_bytes: int, what: str) -> os.stat_result:
         target = f" (a link to {os.path.realpath(path)!r})" if os.path.islink(path) else ""
         raise DatasetError(f"{path}: is {kind}{target}, not a regular file; refused without reading it")
     if st.st_size > max_bytes:
+        more = f"; ${limits.TABLE_CAP_ENV} sets another cap in MiB" if what == "a table" else ""
         raise DatasetError(
-            f"{path}: {_size_text(st.st_size)} is too large for {what} (at most {_size_text(max_bytes)}; "
-            "docs/dataset-format.md, Limits)"
+            f"{path}: {_size_text(st.st_size)} is too large for {what} (at most {_size_text(max_bytes)}, "
+            f"docs/dataset-format.md, Limits{more})"
         )
     return st
 

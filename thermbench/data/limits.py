@@ -5,6 +5,7 @@ quantity (docs/dataset-format.md, "Limits"). One place, used by the loader
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
 
@@ -12,15 +13,51 @@ MiB = 1024 * 1024
 
 # ------------------------------------------------------------------ sizes ---
 METADATA_MAX_BYTES = 1 * MiB  # metadata.yaml; a real one is a few kB
-TABLE_MAX_BYTES = 256 * MiB  # process/errors, .csv or .parquet, on disk
+
+#: the environment variable that sets the table cap (MiB) for every command, overriding the default
+TABLE_CAP_ENV = "THERMBENCH_MAX_TABLE_MIB"
+#: the share of the machine's memory one table may take by default (never below 256 MiB)
+TABLE_MEMORY_FRACTION = 0.25
+
+
+def machine_memory_bytes() -> int:
+    """The machine's physical memory (8 GiB where the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return 8 * 1024 * MiB
+
+
+def table_cap_bytes(mib: float | None = None) -> int:
+    """The most bytes one table (a file to import, a dataset's process or errors table) may hold:
+    ``mib`` when given (an import's ``max_table_mib``), else ``$THERMBENCH_MAX_TABLE_MIB``, else a
+    quarter of the machine's memory and at least 256 MiB. A guard against absurd inputs that
+    scales with the machine (docs/dataset-format.md, "Limits")."""
+    if mib is None:
+        env = os.environ.get(TABLE_CAP_ENV, "").strip()
+        if env:
+            try:
+                mib = float(env)
+            except ValueError:
+                mib = None
+            if mib is None or not (mib > 0 and math.isfinite(mib)):
+                from .errors import DatasetError
+
+                raise DatasetError(f"${TABLE_CAP_ENV}={env!r}: expected a size in MiB, > 0")
+    if mib is not None:
+        return int(mib * MiB)
+    return max(256 * MiB, int(machine_memory_bytes() * TABLE_MEMORY_FRACTION))
+
+
+TABLE_MAX_BYTES = table_cap_bytes()  # process/errors, .csv or .parquet, on disk
 # cells (rows x columns) of one table: bounds the memory a table takes once read,
 # whatever its encoding (a parquet file of constants decodes to 8 bytes per cell
-# from almost nothing; a CSV of "0,0,0" to 4 times its size). 32 M cells: 256 MiB
-# of float64, about 3 M rows of a process log with 10 columns (35 days at 1 Hz)
-TABLE_MAX_CELLS = 32_000_000
+# from almost nothing; a CSV of "0,0,0" to 4 times its size): as many float64 cells as the
+# table cap holds (at least 32 M: about 3 M rows of a process log with 10 columns, 35 days at 1 Hz)
+TABLE_MAX_CELLS = max(32_000_000, TABLE_MAX_BYTES // 8)
 # a Parquet table's bytes once decompressed (its footer's count, checked before reading)
 # and its text columns' bytes once decoded (checked before expanding them)
-TABLE_MAX_DECODED_BYTES = 256 * MiB
+TABLE_MAX_DECODED_BYTES = TABLE_MAX_BYTES
 CSV_HEADER_MAX_BYTES = 64 * 1024  # the header line of a CSV table
 YAML_MAX_DEPTH = 32  # nesting of mappings/sequences in metadata.yaml (a dataset needs 4)
 # values (scalars, mappings, lists) in metadata.yaml: a run takes about 15, so 100 000 is
