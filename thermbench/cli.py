@@ -132,7 +132,8 @@ def cmd_import(mapping: str, out: str, file_format: str, force: bool) -> int:
     from .data.reference import run_summary
 
     t0 = time.perf_counter()
-    ds = import_dataset(mapping, out, file_format=file_format, force=force)
+    ds = import_dataset(mapping, out, file_format=file_format, force=force,
+                        progress=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     print(f"imported {mapping} -> {Path(out).resolve()} in {time.perf_counter() - t0:.1f} s")
     for note in getattr(ds, "import_notes", []):
         print(f"  {note}")
