@@ -481,3 +481,21 @@ files:
 """, encoding="utf-8")
     ds = import_dataset(tmp_path / "mapping.yaml", tmp_path / "ds")
     np.testing.assert_allclose(ds.errors["error_um"], t)  # t/1000 mrad = t µrad (the column holds µrad for a tilt)
+
+
+def test_one_measuring_cycle_for_the_reference_the_models_and_the_metrics(lab):
+    """A forward and a backward pass over the targets are one measuring cycle (the lab files'
+    truth says which cycle each reading belongs to). The cycle is computed once
+    (data.reference.reading_cycles, the ``cycle`` column of the thermal errors) and the models'
+    readings, the channel view and the metrics' per-cycle curves all take that one."""
+    from thermbench.metrics import cycle_curves
+    from thermbench.models.base import readings
+
+    truth = labfiles.readings_truth().sort_values("t_s").reset_index(drop=True)
+    te = thermal_errors(lab).sort_values("t_s").reset_index(drop=True)
+    np.testing.assert_array_equal(te["cycle"].to_numpy(), truth["cycle"].to_numpy())
+    view = lab.channel_view("X")
+    rd = readings(view, view.run_ids).sort_values("t_s").reset_index(drop=True)
+    np.testing.assert_array_equal(rd["cycle"].to_numpy(), truth["cycle"].to_numpy())
+    curves = cycle_curves(rd, np.zeros(len(rd)))
+    assert list(curves["cycle"]) == sorted(truth["cycle"].unique())

@@ -593,18 +593,18 @@ def measuring_intervals(process_run: pd.DataFrame, errors_run: pd.DataFrame, mar
     features: from the start of the approach to the cycle's first target to the end
     of the return from its last target, plus ``margin_s`` each side.
 
-    The cycles are those of :func:`thermbench.data.reference.measuring_cycles` on the
+    The cycles are those of :func:`thermbench.data.reference.reading_cycles` on the
     reading times (not their values: a compensator knows when it measured). The
     approach is the monotone move that ends at the first target's dwell, the return
     the monotone move that starts after the last target's dwell (both can be at the
     work feed, e.g. seed 002 #1 works at the 800 mm/min measuring feed).
     """
-    from .data.reference import measuring_cycles
+    from .data.reference import reading_cycles
 
     er_t = errors_run["t_s"].to_numpy(dtype=float)
     if er_t.size == 0:
         return np.empty((0, 2))
-    cyc = measuring_cycles(er_t, errors_run["target_mm"].to_numpy(dtype=float))
+    cyc = errors_run["cycle"].to_numpy() if "cycle" in errors_run.columns else reading_cycles(errors_run)
     t = process_run["t_s"].to_numpy(dtype=float)
     x = process_run["axis_mm"].to_numpy(dtype=float)
     n = t.size

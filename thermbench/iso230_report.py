@@ -25,7 +25,7 @@ import pandas as pd
 
 from . import iso230
 from .data.io import Dataset, load_dataset
-from .data.reference import measuring_cycles, thermal_errors
+from .data.reference import thermal_errors
 from .outputs import check_output_dir, output_dir
 
 
@@ -164,7 +164,7 @@ def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
                         entry["environmental"] = {**ev, "at_rest_s": float(np.sum(np.diff(tk)[rest[1:] & rest[:-1]]))}
             else:
                 direction = g["direction"].to_numpy() if "direction" in g.columns else None
-                cyc = measuring_cycles(g["t_s"].to_numpy(), g["target_mm"].to_numpy(), direction)
+                cyc = g["cycle"].to_numpy()  # data.reference.reading_cycles (direction-aware)
                 rd = pd.DataFrame({"target_mm": g["target_mm"].to_numpy(), "cycle": cyc, "t_s": g["t_s"].to_numpy(),
                                    "deviation_um": g["thermal_um"].to_numpy()})  # fmt: skip
                 lines = iso230.error_lines(rd)

@@ -48,9 +48,9 @@ def residual_metrics(measured_um, predicted_um, thermal_um=None) -> dict[str, fl
 def cycle_curves(readings: pd.DataFrame, predicted_um) -> pd.DataFrame:
     """Per measuring cycle of one run: ``before_um`` = max |thermal error| (uncompensated)
     and ``after_um`` = max |measured - predicted| (compensated), at the cycle's mean time."""
-    from .data.reference import measuring_cycles
+    from .data.reference import reading_cycles
 
-    cyc = measuring_cycles(readings["t_s"].to_numpy(), readings["target_mm"].to_numpy())
+    cyc = readings["cycle"].to_numpy() if "cycle" in readings.columns else reading_cycles(readings)
     df = pd.DataFrame(
         {
             "cycle": cyc,

@@ -35,10 +35,28 @@ def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray, direction: np.ndarr
     return out
 
 
+def reading_cycles(er: pd.DataFrame) -> np.ndarray:
+    """The measuring cycle of every reading of an errors table: :func:`measuring_cycles` per run
+    (and channel), with the direction of approach when the table has one (a forward and a backward
+    pass make one cycle). The one computation of cycles: :func:`thermal_errors` keeps it as the
+    ``cycle`` column, and the reference, the models, the metrics and the reports read that."""
+    out = np.zeros(len(er), dtype=int)
+    if er.empty:
+        return out
+    keys = [c for c in ("run_id", "channel") if c in er.columns]
+    t = er["t_s"].to_numpy(dtype=float)
+    x = er["target_mm"].to_numpy(dtype=float) if "target_mm" in er.columns else np.zeros(len(er))
+    d = er["direction"].fillna(0.0).to_numpy(dtype=float) if "direction" in er.columns else None
+    groups = er.groupby(keys, sort=False).indices.values() if keys else [np.arange(len(er))]
+    for idx in groups:
+        out[idx] = measuring_cycles(t[idx], x[idx], None if d is None else d[idx])
+    return out
+
+
 def cold_reference(errors_run: pd.DataFrame) -> pd.Series:
     """Per target, the mean reading of the run's first measuring cycle (the cold
-    reference, :func:`measuring_cycles` cycle 0)."""
-    cyc = measuring_cycles(errors_run["t_s"].to_numpy(), errors_run["target_mm"].to_numpy())
+    reference, :func:`reading_cycles` cycle 0)."""
+    cyc = reading_cycles(errors_run)
     return errors_run[cyc == 0].groupby("target_mm")["error_um"].mean()
 
 
@@ -49,14 +67,16 @@ def thermal_errors(ds: Dataset) -> pd.DataFrame:
     dataset's reference rule. A channel view (:meth:`Dataset.channel_view`) carries its
     ``thermal_um`` already."""
     if "thermal_um" in ds.errors.columns:
-        return ds.errors.copy()
+        er = ds.errors.copy()
+        return er if "cycle" in er.columns else er.assign(cycle=reading_cycles(er))
     if ds.metadata.version == 2:
         return thermal_errors_v2(ds)
     parts = []
     for run_id in ds.run_ids:
         er = ds.errors_run(run_id)
-        ref = cold_reference(er)
-        er = er.assign(thermal_um=er["error_um"] - er["target_mm"].map(ref).fillna(0.0).to_numpy())
+        cyc = reading_cycles(er)
+        ref = er[cyc == 0].groupby("target_mm")["error_um"].mean()  # the cold reference (seed 002 §3.1)
+        er = er.assign(thermal_um=er["error_um"] - er["target_mm"].map(ref).fillna(0.0).to_numpy(), cycle=cyc)
         parts.append(er)
     return pd.concat(parts, ignore_index=True)
 
@@ -96,7 +116,8 @@ def _group_keys(er: pd.DataFrame) -> pd.Series:
     return key
 
 
-def reference_values(er: pd.DataFrame, mode: str, t_ref_s: float | None, along_axis: bool) -> pd.Series:
+def reference_values(er: pd.DataFrame, mode: str, t_ref_s: float | None, along_axis: bool,
+                     cycles: np.ndarray | None = None) -> pd.Series:  # fmt: skip
     """The reference of each reading of one run and channel (format 2, docs/dataset-format.md
     "Reference"): per target and direction, the mean of the first measuring cycle
     (``cold_cycle``; a fixed-point channel's cycle is one reading), the first reading
@@ -105,8 +126,7 @@ def reference_values(er: pd.DataFrame, mode: str, t_ref_s: float | None, along_a
     keys = _group_keys(er)
     ref = pd.Series(np.nan, index=er.index)
     if mode == "cold_cycle" and along_axis:
-        direction = er["direction"].fillna(0.0).to_numpy() if "direction" in er.columns else None
-        cyc = measuring_cycles(er["t_s"].to_numpy(), er["target_mm"].to_numpy(dtype=float), direction)
+        cyc = reading_cycles(er) if cycles is None else cycles
         first = er[cyc == 0].groupby(keys[cyc == 0])["error_um"].mean()
         return keys.map(first)
     for _, idx in er.groupby(keys, sort=False).groups.items():
@@ -126,14 +146,17 @@ def thermal_errors_v2(ds: Dataset) -> pd.DataFrame:
     never enters the thermal error (it is reported by ``thermbench iso230``)."""
     er = ds.errors
     if er.empty:
-        return er.assign(thermal_um=pd.Series(dtype=float), reference_um=pd.Series(dtype=float))
+        return er.assign(thermal_um=pd.Series(dtype=float), reference_um=pd.Series(dtype=float),
+                         cycle=pd.Series(dtype=int))  # fmt: skip
     ref_meta = ds.metadata.reference_mode()
     channels = ds.metadata.error_channels()
+    cycles = pd.Series(reading_cycles(er), index=er.index)
     ref = pd.Series(np.nan, index=er.index)
     for (_, ch), g in er.groupby(["run_id", "channel"], sort=False):
-        ref.loc[g.index] = reference_values(g, ref_meta.mode, ref_meta.t_s, channels[ch].kind == "along_axis")
+        ref.loc[g.index] = reference_values(g, ref_meta.mode, ref_meta.t_s, channels[ch].kind == "along_axis",
+                                            cycles.loc[g.index].to_numpy())  # fmt: skip
     ref = ref.fillna(er["error_um"] * 0.0)  # a target missing from the cold cycle: the raw reading (format 1's rule)
-    return er.assign(thermal_um=er["error_um"] - ref, reference_um=ref)
+    return er.assign(thermal_um=er["error_um"] - ref, reference_um=ref, cycle=cycles.to_numpy())
 
 
 def run_summary_v2(ds: Dataset) -> pd.DataFrame:

@@ -59,7 +59,7 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
         er["error_um"] = er["thermal_um"].to_numpy() + base.reindex(idx).to_numpy()
     else:  # first_reading / time: each run's zero is its own (a gauge set anew): what is measured is the drift
         er["error_um"] = er["thermal_um"].to_numpy()
-    er = er[["run_id", "t_s", "target_mm", "error_um", "thermal_um", "channel"]].reset_index(drop=True)
+    er = er[["run_id", "t_s", "target_mm", "error_um", "thermal_um", "channel", "cycle"]].reset_index(drop=True)
     process = ds.process.copy()
     for col in ("axis_mm", "feed_mm_min"):
         if col not in process.columns:

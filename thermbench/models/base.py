@@ -29,7 +29,7 @@ from sklearn.base import BaseEstimator
 from threadpoolctl import threadpool_limits
 
 from ..data.io import Dataset
-from ..data.reference import measuring_cycles, thermal_errors
+from ..data.reference import thermal_errors
 
 
 class ModelError(ValueError):
@@ -228,13 +228,8 @@ def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
 
 
 def _readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
-    te = thermal_errors(ds)
-    te = te[te["run_id"].isin(list(runs))].copy()
-    te["cycle"] = 0
-    for r in runs:
-        m = (te["run_id"] == r).to_numpy()
-        te.loc[m, "cycle"] = measuring_cycles(te.loc[m, "t_s"].to_numpy(), te.loc[m, "target_mm"].to_numpy())
-    return te.reset_index(drop=True)
+    te = thermal_errors(ds)  # with each reading's measuring cycle (data.reference.reading_cycles)
+    return te[te["run_id"].isin(list(runs))].reset_index(drop=True)
 
 
 def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess) -> pd.DataFrame:
