@@ -746,7 +746,9 @@ def build_tables(mapping_path: str | Path, progress=None) -> tuple[Metadata, pd.
                 kinds.add(kind)
                 run = _piece_run(f, src, sheet, where)
                 pieces.append((src, label, t, run, _piece_columns(df, f, src, where, meta, channels, m, run, declared)))
+            del read, df  # the tables read: only the mapped columns go on (a large log is not held twice)
         frames[name] = _merge_pieces(pieces, f, where, name)
+        del pieces
     if not declared:  # the runs are those the files name, in the order met
         order = list(dict.fromkeys(r for fr in frames.values() for r in fr["run"]))
         meta = meta.model_copy(update={"runs": {r: RunMeta() for r in order}})
@@ -948,11 +950,14 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
         doc = meta.model_dump(mode="json", exclude_none=True) | dict(extra or {})
         (tmp / "metadata.yaml").write_text(dump_yaml(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
         tables = [("process", process)] + ([("errors", errors)] if len(errors) else [])
-        for name, df in tables:
+        del process, errors  # written, then read back to be checked: not held twice
+        while tables:
+            name, df = tables.pop(0)
             if file_format == "parquet":
                 df.to_parquet(tmp / f"{name}.parquet", index=False)
             else:
                 df.to_csv(tmp / f"{name}.csv", index=False)
+            del df
         try:
             ds = load_dataset(tmp)
             # what validate and every command derive from it, before anything is moved into place
