@@ -174,7 +174,9 @@ def run_summary_v2(ds: Dataset) -> pd.DataFrame:
             "duration_h": float(t[-1] - t[0]) / 3600.0,
             "samples": len(t),
             "step_s": float(np.median(np.diff(t))) if len(t) > 1 else float("nan"),
-            "condition": ", ".join(f"{k} {v:g}" for k, v in cond.items()) if cond else "derived",
+            # no condition: derived from the operating signal's segments, or (none to segment by) its own state
+            "condition": (", ".join(f"{k} {v:g}" for k, v in cond.items()) if cond
+                          else "derived" if ds.metadata.operating_inputs() else "own state"),
             "readings": int((te["run_id"] == run_id).sum()) if len(te) else 0,
         }
         for ch, meta in channels.items():
