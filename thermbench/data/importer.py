@@ -406,6 +406,8 @@ def _numbers(s: pd.Series, where: str, path: Path, codes: dict | None = None, de
         return mapped.to_numpy(dtype=float)
     if pd.api.types.is_bool_dtype(s.dtype):
         raise MappingError(f"{where}: column holds true/false values in {path.name}; expected numbers")
+    if pd.api.types.is_float_dtype(s.dtype):  # read as numbers already: taken as it is (no copy of a long log)
+        return s.to_numpy(dtype=float, copy=False)
     text = s
     if decimal != "." and (s.dtype == object or pd.api.types.is_string_dtype(s.dtype)):
         # a column pandas left as text (one bad cell in it): its numbers still have the declared decimal mark
@@ -505,8 +507,10 @@ def _convert(values: np.ndarray, cm: ColumnMap, target: str, where: str) -> np.n
             raise MappingError(f"{where}.unit: cannot convert {cm.unit!r} to {unit.replace('_', '/')}; "
                                f"known: {', '.join(table)}")  # fmt: skip
         factor, off = table[cm.unit]
-        values = values * factor + off
-    values = values * cm.scale + cm.offset
+        if (factor, off) != (1.0, 0.0):
+            values = values * factor + off
+    if (cm.scale, cm.offset) != (1.0, 0.0):  # (an identity makes no copy: a long log's columns are large)
+        values = values * cm.scale + cm.offset
     return np.abs(values) if cm.abs else values
 
 
@@ -700,10 +704,10 @@ def _merge_pieces(pieces: list, f: FileMap, where: str, name: str) -> dict:
                                    "time.start_s; one run per table: run: {from: sheet} or {from: file}")  # fmt: skip
             seen.setdefault(r, label)
 
-    def cat(xs):
-        return np.concatenate(xs) if xs else np.zeros(0)
+    def cat(xs):  # (one table, a long log: its arrays as they are)
+        return xs[0] if len(xs) == 1 else np.concatenate(xs) if xs else np.zeros(0)
 
-    out = {"t": cat([p[2] for p in pieces]), "run": np.concatenate([p[4]["run"] for p in pieces]).astype(object)}
+    out = {"t": cat([p[2] for p in pieces]), "run": cat([p[4]["run"] for p in pieces]).astype(object, copy=False)}
     for part in ("proc", "wide", "long"):
         cols = pieces[0][4][part].keys()
         out[part] = {c: cat([p[4][part][c] for p in pieces]) for c in cols}
@@ -837,10 +841,12 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
             seen[col] = n
     parts = []
     b = frames[base]
-    for run in pd.unique(b["run"]):
-        sel = b["run"] == run
+    runs = pd.unique(b["run"])
+    for run in runs:
+        # (a one-run file in time order, a long log: its columns are taken as they are, not copied)
+        sel = slice(None) if len(runs) == 1 else b["run"] == run
         t = b["t"][sel]
-        order = np.argsort(t, kind="stable")
+        order = slice(None) if np.all(np.diff(t) > 0) else np.argsort(t, kind="stable")
         t = t[order]
         if np.any(np.diff(t) <= 0):
             i = int(np.flatnonzero(np.diff(t) <= 0)[0])
@@ -909,9 +915,9 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
                               f"{np.max(frames[n]['t'][frames[n]['run'] == run]):.6g} s" for n in with_proc)
             raise MappingError(f"{path}: key 'files': the process files of run {run!r} do not overlap in time ({spans}, "
                                "offsets applied); check each file's offset_s and time column (and its format)")  # fmt: skip
-        parts.append(pd.DataFrame(out)[keep])
-    process = pd.concat(parts, ignore_index=True)
-    return process
+        part = pd.DataFrame(out, copy=False)
+        parts.append(part if keep.all() else part[keep])
+    return parts[0].reset_index(drop=True) if len(parts) == 1 else pd.concat(parts, ignore_index=True)
 
 
 def _errors(frames: dict, channels: dict) -> pd.DataFrame:
