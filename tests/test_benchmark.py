@@ -132,6 +132,9 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert "mlr_seed001" in out and "report:" in out
     report = (tmp_path / "reports" / "report.md").read_text()
     assert "seed001_vmc_x" in report and "figures/" in report
+    # the frame of every score, per dataset (format 1: the error as read, cold cycle = geometric error)
+    row = next(ln for ln in report.splitlines() if ln.startswith("| scored on "))
+    assert "seed001_vmc_x: the error as read (each run's cold measuring cycle is the geometric error" in row
     # the seed 001 finding: MLR of seed 001 fails across moving states; its matrix has a negative cell
     results = pd.read_csv(MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db").download_artifacts(
         res.mlflow_run_id, "results.csv", str(tmp_path)))

@@ -56,6 +56,7 @@ from .experiment import (
     run_workers,
     save_models,
 )
+from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError
 
@@ -156,6 +157,7 @@ def run_task(
         "curves": pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(),
         "models": models,
         "dataset_hash": ds.content_hash(),
+        "frame": frame_text(ds.metadata),  # what every score of this dataset is of (data.reference)
         "seconds": time.perf_counter() - t0,
         "errors": errors,
     }
@@ -519,6 +521,9 @@ def benchmark(cfg: DictConfig) -> JobResult:
         + " (best worst-case rate on the validation runs; chosen on the runs reported, so not an independent estimate"
         + (f"; baselines {', '.join(baselines)} are for comparison, never chosen)" if baselines else ")"),
     }
+    frames = sorted({f"{o['dataset']}: {o['frame']}" for o in done_tasks if o.get("frame")})
+    if frames:
+        meta["scored on"] = "; ".join(frames)
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
