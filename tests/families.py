@@ -28,3 +28,27 @@ def families():
     }
 
 
+
+
+def shifted_run(ds, run: str, by_s: float):
+    """Run ``run`` of ``ds`` alone, its clock moved by ``by_s`` (a float clock far from 0)."""
+    from thermbench.data.io import Dataset
+
+    pr = ds.process_run(run).assign(t_s=lambda d: d["t_s"] + by_s)
+    er = ds.errors_run(run).assign(t_s=lambda d: d["t_s"] + by_s)
+    return Dataset(ds.metadata, pr.reset_index(drop=True), er.reset_index(drop=True), path=ds.path)
+
+
+def double_and_float_at_every_sample(ds, run: str, shift_s: float, replay):
+    """The double and the single-precision build's total error at every process sample of ``run``
+    moved by ``shift_s``: ``replay(data, queries, exe)`` runs one build (an export's replay_dir)."""
+    import pandas as pd
+
+    from thermbench.export import runtime
+    from thermbench.export.bundle import SINGLE_FLAGS, process_samples
+
+    data = shifted_run(ds, run, shift_s) if shift_s else ds
+    s = process_samples(data, run)
+    q = pd.DataFrame({"t_s": s["t_s"].to_numpy(), "axis_mm": s["axis_mm"].to_numpy()})
+    exes = (runtime.build("tb_replay"), runtime.build("tb_replay", SINGLE_FLAGS))
+    return tuple(replay(data, q, e)["total_um"].to_numpy() for e in exes)

@@ -75,20 +75,14 @@ def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, ds, nam
     """Issue 36: every process sample of a held-out run (grid and macro-step times, the stream's end)
     in the single- and the double-precision build, the run as recorded and moved to t = 2^22 s,
     where floats are 0.5 s apart: the same answers to rounding (measured: at most 4e-4 um)."""
-    from thermbench.data.io import Dataset
-    from thermbench.export.bundle import SINGLE_FLAGS, process_samples
+    from .families import double_and_float_at_every_sample
 
     _, model_dir, man = exported[name]
     assert man["parity"]["model"]["float_vs_double_every_sample_max_abs_um"] < 1e-3  # the export's own check
-    exes = (runtime.build("tb_replay"), runtime.build("tb_replay", SINGLE_FLAGS))
     for shift_s in (0.0, 2.0**22):
-        pr = ds.process_run("valid1").assign(t_s=lambda d: d["t_s"] + shift_s)
-        er = ds.errors_run("valid1").assign(t_s=lambda d: d["t_s"] + shift_s)
-        data = Dataset(ds.metadata, pr.reset_index(drop=True), er.reset_index(drop=True), path=ds.path)
-        s = process_samples(data, "valid1")
-        q = pd.DataFrame({"t_s": s["t_s"].to_numpy(), "axis_mm": s["axis_mm"].to_numpy()})
-        double, single = (replay_dir(model_dir, data, "valid1", q, exe=e)["total_um"].to_numpy() for e in exes)
-        assert len(double) == len(pr) and np.max(np.abs(single - double)) < 1e-3, shift_s
+        double, single = double_and_float_at_every_sample(
+            ds, "valid1", shift_s, lambda data, q, exe: replay_dir(model_dir, data, "valid1", q, exe=exe))
+        assert len(double) == len(ds.process_run("valid1")) and np.max(np.abs(single - double)) < 1e-3, shift_s
 
 
 # ------------------------------------------------------------ format ---

@@ -289,18 +289,12 @@ def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, spindle
     end) in the single- and the double-precision build, the run as recorded and moved to
     t = 2^22 s (floats 0.5 s apart there): the float build's times step the network as the
     double build's do, so the answers agree to rounding at both clocks."""
-    from thermbench.data.io import Dataset
-    from thermbench.export.bundle import SINGLE_FLAGS
+    from tests.families import double_and_float_at_every_sample
 
     model, model_dir, man = exported[name]
     assert man["parity"]["model"]["float_vs_double_every_sample_max_abs_um"] < 1e-3  # the export's own check
-    exes = (runtime.build("tb_replay"), runtime.build("tb_replay", SINGLE_FLAGS))
     for shift_s in (0.0, 2.0**22):
-        pr = spindle.process_run("h").assign(t_s=lambda d: d["t_s"] + shift_s)
-        er = spindle.errors_run("h").assign(t_s=lambda d: d["t_s"] + shift_s)
-        data = Dataset(spindle.metadata, pr.reset_index(drop=True), er.reset_index(drop=True), path=spindle.path)
-        s = process_samples(data, "h")
-        q = pd.DataFrame({"t_s": s["t_s"].to_numpy(), "axis_mm": s["axis_mm"].to_numpy()})
         with lumped_hooks(model):
-            double, single = (bundle.replay_dir(model_dir, data, "h", q, exe=e)["total_um"].to_numpy() for e in exes)
-        assert len(double) == len(pr) and np.max(np.abs(single - double)) < 1e-3, shift_s
+            double, single = double_and_float_at_every_sample(
+                spindle, "h", shift_s, lambda data, q, exe: bundle.replay_dir(model_dir, data, "h", q, exe=exe))
+        assert len(double) == len(spindle.process_run("h")) and np.max(np.abs(single - double)) < 1e-3, shift_s

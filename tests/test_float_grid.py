@@ -19,6 +19,8 @@ from thermbench.export.bundle import SINGLE_FLAGS, ExportOptions, process_sample
 from thermbench.models.bank import ConditionBank
 from thermbench.models.mlr import MLRSeed002
 
+from .families import shifted_run
+
 TRAIN = [f"c{k}" for k in range(1, 10)]
 
 
@@ -31,18 +33,11 @@ def seed002_bank(tmp_path_factory):
     return ds, bank, out
 
 
-def _shifted(ds, run: str, by_s: float) -> Dataset:
-    """Run ``run`` of ``ds`` alone, its clock moved by ``by_s``."""
-    pr = ds.process_run(run).assign(t_s=lambda d: d["t_s"] + by_s)
-    er = ds.errors_run(run).assign(t_s=lambda d: d["t_s"] + by_s)
-    return Dataset(ds.metadata, pr.reset_index(drop=True), er.reset_index(drop=True), path=ds.path)
-
-
 @pytest.mark.parametrize("shift_s", [0.0, 2.0**22])
 def test_every_sample_in_float_takes_the_member_python_takes(seed002_bank, shift_s):
     ds, bank, out = seed002_bank
     run = "table6_1"
-    data = _shifted(ds, run, shift_s) if shift_s else ds
+    data = shifted_run(ds, run, shift_s) if shift_s else ds
     s = process_samples(data, run)
     q = pd.DataFrame({"t_s": s["t_s"].to_numpy(), "axis_mm": s["axis_mm"].to_numpy()})
     py = [str(c) for c in bank.conditions_at(data, run, q["t_s"].to_numpy())]
