@@ -33,7 +33,6 @@ from thermbench.export.replay import replay_view
 def one(model_dir: Path) -> dict:
     man = read_manifest(model_dir)
     full = load_dataset(man["training"]["dataset"])
-    macro_s = None
     live_d, hold_d = [], []
     for run in man["parity"]["runs"]:
         ds = replay_view(full, man, run, None, Path(man["training"]["dataset"])) if full.metadata.version == 2 else full

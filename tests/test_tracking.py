@@ -612,3 +612,32 @@ def test_an_attempt_killed_mid_run_is_closed_by_the_next_attempt_of_the_same_job
     assert tracking.close_interrupted(exp, "h1") == 1
     status = {r: c.get_run(r).info.status for r in (killed, elsewhere, another_config)}
     assert status == {killed: "KILLED", elsewhere: "RUNNING", another_config: "RUNNING"}
+
+
+def test_a_dataset_inserted_meanwhile_by_a_parallel_job_is_linked_on_a_second_try(monkeypatch):
+    """Two jobs of a joblib sweep log the same dataset to one store: the slower one's insert fails
+    on MLflow's unique key (seen in make test). log_dataset tries again and links it; any other
+    MLflow error is raised at once."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    from thermbench import tracking
+
+    monkeypatch.setattr(tracking, "dataset_input", lambda ds, name, digest=None: ("input", name))
+    calls = []
+
+    def flaky(inp, context=None):
+        calls.append(inp)
+        if len(calls) == 1:
+            raise MlflowException("(sqlite3.IntegrityError) UNIQUE constraint failed: datasets.experiment_id, ...")
+
+    monkeypatch.setattr(mlflow, "log_input", flaky)
+    tracking.log_dataset(object(), "seed001_vmc_x")
+    assert calls == [("input", "seed001_vmc_x")] * 2
+
+    def broken(inp, context=None):
+        raise MlflowException("RESOURCE_DOES_NOT_EXIST: run not found")
+
+    monkeypatch.setattr(mlflow, "log_input", broken)
+    with pytest.raises(MlflowException, match="run not found"):
+        tracking.log_dataset(object(), "seed001_vmc_x")

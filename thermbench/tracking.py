@@ -281,8 +281,19 @@ def log_dataset(dataset, name: str, context: str = "training", digest: str | Non
     """Record ``dataset`` (:func:`dataset_input`) as an input of the active run, with
     ``context`` (``training``, ``evaluation``) as MLflow's ``mlflow.data.context`` tag."""
     import mlflow
+    from mlflow.exceptions import MlflowException
 
-    mlflow.log_input(dataset_input(dataset, name, digest), context=context)
+    inp = dataset_input(dataset, name, digest)
+    for attempt in range(3):
+        try:
+            mlflow.log_input(inp, context=context)
+            return
+        except MlflowException as exc:
+            # parallel jobs of a sweep logging the same dataset to one store: MLflow looks for it,
+            # then inserts it, and the slower job's insert fails on the unique key. The dataset is
+            # there now, so another try links it to this run.
+            if "UNIQUE constraint failed: datasets" not in str(exc) or attempt == 2:
+                raise
 
 
 def log_config(cfg: Mapping[str, Any]) -> None:

@@ -85,12 +85,20 @@ static unsigned long rejected;
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
-static void answer(double upto, int all)
+/* the queries up to time upto (all: every one left; before: strictly before upto, --live), each
+ * with the runtime's answer, or TB_E_NOTREADY while it has no state yet (--live: the compensator
+ * writes nothing then) */
+static void answer_until(double upto, int all, int before)
 {
-    while (q_done < n_q && (all || queries[q_done].t <= upto)) {
+    while (q_done < n_q && (all || (before ? queries[q_done].t < upto : queries[q_done].t <= upto))) {
         tb_real th = 0, tot = 0;
         int32_t lab = -1;
         int rc;
+        if (live && !(ready() > (tb_real)-1e29)) {
+            printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+            q_done++;
+            continue;
+        }
         if (use_bank) rc = tb_bank_predict(&bank, (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot, &lab);
         else rc = tb_model_predict(&models[0], (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot);
         printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
@@ -98,25 +106,7 @@ static void answer(double upto, int all)
     }
 }
 
-/* --live: the queries before time t_next, with the samples stepped so far; none while the runtime
- * has no state yet (tb_*_ready_s says "no time"), as the compensator writes nothing then */
-static void answer_before(double t_next)
-{
-    size_t last = q_done;
-    while (last < n_q && queries[last].t < t_next) last++;
-    if (last == q_done) return;
-    if (!(ready() > (tb_real)-1e29)) {
-        for (; q_done < last; q_done++)
-            printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
-        return;
-    }
-    {
-        size_t keep = n_q;
-        n_q = last;
-        answer(0, 1);
-        n_q = keep;
-    }
-}
+static void answer(double upto, int all) { answer_until(upto, all, 0); }
 
 int main(int argc, char **argv)
 {
@@ -195,7 +185,7 @@ int main(int argc, char **argv)
             tb_sample s;
             tb_real temps[MAX_TEMPS];
             if (!tb_parse_sample(p, &s, temps, MAX_TEMPS)) continue;
-            if (live) answer_before((double)s.t_s); /* the queries this sample comes after */
+            if (live) answer_until((double)s.t_s, 0, 1); /* the queries this sample comes after */
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
             if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
                 rejected++;

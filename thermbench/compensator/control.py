@@ -263,7 +263,7 @@ class CycleLogic:
         self.value_um: float | None = None
         self.ends_um: tuple[float, float] | None = None
         self.t_prev: float | None = None  # machine time of the previous cycle (held or not)
-        self.fresh_ready: float | None = None  # time of the previous fresh value (None: the last cycle held)
+        self.fresh_t_s: float | None = None  # time of the previous fresh value (None: the last cycle held)
         self.lag_um = 0.0  # written value minus the model's, at the current position
         self._saved: tuple = ()
         # what the model was stepped with since its last start: (k, axis, feed, load, measuring, temps...),
@@ -331,7 +331,7 @@ class CycleLogic:
         self.value_um = state.get("value_um")
         self.ends_um = tuple(state["ends_um"]) if state.get("ends_um") else None
         self.cold = bool(state.get("cold"))
-        self.fresh_ready = None
+        self.fresh_t_s = None
 
     # ------------------------------------------------------------- controller ---
     def resume(self, value_um: float | None = None, line: "Line | None" = None) -> None:
@@ -353,7 +353,7 @@ class CycleLogic:
     def undo(self) -> None:
         """The last cycle's values were not written (the write failed): forget them."""
         if self._saved:
-            self.value_um, self.ends_um, self.t_prev, self.fresh_ready, self.lag_um = self._saved
+            self.value_um, self.ends_um, self.t_prev, self.fresh_t_s, self.lag_um = self._saved
 
     # ------------------------------------------------------------------ inputs ---
     def _accept(self, name: str, r: Reading | None, ts_now: float) -> tuple[float | None, bool]:
@@ -375,7 +375,7 @@ class CycleLogic:
         c = Cycle(t_s=t_s, flags=int(flags | Flags.HELD | (Flags.COLD if self.cold else 0)))
         c.value_um = self.value_um
         c.line = self._line_from_ends(self.ends_um) if self.ends_um is not None else None
-        self.fresh_ready = None  # the controller now holds one value at every position
+        self.fresh_t_s = None  # the controller now holds one value at every position
         if math.isfinite(t_s):
             self.t_prev = t_s
         return c
@@ -395,7 +395,7 @@ class CycleLogic:
         return c
 
     def _cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
-        self._saved = (self.value_um, self.ends_um, self.t_prev, self.fresh_ready, self.lag_um)
+        self._saved = (self.value_um, self.ends_um, self.t_prev, self.fresh_t_s, self.lag_um)
         ts = self._machine_ts(readings, now_wall_s, now_epoch_s)
         restarted = False
         back = self.last_ts is not None and ts < self.last_ts - 1e-9
@@ -407,7 +407,7 @@ class CycleLogic:
             # the server's clock restarted (after a reconnection, or for longer than a glitch): new timeline
             self._restart()
             self.cold = True
-            self.t0_ts = self.last_ts = self.k_last = self.t_prev = self.fresh_ready = None
+            self.t0_ts = self.last_ts = self.k_last = self.t_prev = self.fresh_t_s = None
             self.back_since_wall, back, restarted = None, False, True
         self.resync = False
         if back:
@@ -452,7 +452,7 @@ class CycleLogic:
             self._restart()
             self.cold = True  # a gap the runtime does not bridge: the machine is warm, the model starts from it
             c.flags |= Flags.RESTARTED
-            self.fresh_ready = None  # a new model state: ramp from what the controller holds
+            self.fresh_t_s = None  # a new model state: ramp from what the controller holds
         i = c.inputs
         temps = [i[f"{s}_C"] for s in self.model.temperatures]
         args = (k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps)
@@ -463,7 +463,7 @@ class CycleLogic:
             self._restart()
             self.cold = True
             c.flags |= Flags.RESTARTED
-            self.fresh_ready = None
+            self.fresh_t_s = None
             rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring, **kw)
         if rc < 0:
             c.flags |= Flags.RUNTIME
@@ -507,8 +507,8 @@ class CycleLogic:
         if self.output in ("value", "both"):
             want = self.sign * total
             base = None
-            if self.fresh_ready is not None:  # what the ramp would give here with the previous model state
-                rc_p, _, tot_p, _ = self.model.predict(self.fresh_ready, x)
+            if self.fresh_t_s is not None:  # what the ramp would give here with the previous model state
+                rc_p, _, tot_p, _ = self.model.predict(self.fresh_t_s, x)
                 base = self.sign * tot_p + self.lag_um if rc_p == 0 else None
             if base is None:  # start-up, or after a hold: the value the controller holds
                 base = 0.0 if self.value_um is None else self.value_um
@@ -518,14 +518,14 @@ class CycleLogic:
             self.value_um = c.value_um = got
         if limited:
             c.flags |= Flags.RATE_LIMITED
-        self.fresh_ready = t
+        self.fresh_t_s = t
         self.t_prev = t
         return c
 
     def dropped(self, c: Cycle, flag: Flags) -> Cycle:
         """The controller holds no compensation any more (LinuxCNC drops external offsets at
         machine off): 0 is what it holds, and the next values ramp from 0 at the rate limit."""
-        self.value_um, self.ends_um, self.fresh_ready, self.lag_um = 0.0, None, None, 0.0
+        self.value_um, self.ends_um, self.fresh_t_s, self.lag_um = 0.0, None, None, 0.0
         c.value_um, c.line = 0.0, None
         c.flags = int(c.flags | flag | Flags.HELD)
         return c

@@ -304,22 +304,18 @@ def _read_source(f: FileMap, path: Path, where: str) -> list[tuple[str | None, p
             elif fmt == "excel":
                 with pd.ExcelFile(path, engine="openpyxl") as book:
                     sheets = list(book.sheet_names)
+                    if isinstance(r.sheet, int) and not 0 <= r.sheet < len(sheets):
+                        raise MappingError(f"{where}.read.sheet: {path.name} has {len(sheets)} sheet(s) {sheets}; "
+                                           f"index {r.sheet} is out of range (0-based)")  # fmt: skip
                     if r.sheets is not None:
-                        chosen = sheets if r.sheets == "all" else list(r.sheets)
-                        for name in chosen:
-                            if name not in sheets:
-                                near = difflib.get_close_matches(name, sheets, n=1)
-                                raise MappingError(f"{where}.read.sheets: {path.name} has no sheet {name!r}; its sheets: "
-                                                   f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
+                        key, chosen = "sheets", sheets if r.sheets == "all" else list(r.sheets)
                     else:
-                        if isinstance(r.sheet, str) and r.sheet not in sheets:
-                            near = difflib.get_close_matches(r.sheet, sheets, n=1)
-                            raise MappingError(f"{where}.read.sheet: {path.name} has no sheet {r.sheet!r}; its sheets: "
+                        key, chosen = "sheet", [sheets[r.sheet] if isinstance(r.sheet, int) else (r.sheet or sheets[0])]
+                    for name in chosen:
+                        if name not in sheets:
+                            near = difflib.get_close_matches(name, sheets, n=1)
+                            raise MappingError(f"{where}.read.{key}: {path.name} has no sheet {name!r}; its sheets: "
                                                f"{sheets}" + (f"; did you mean {near[0]!r}?" if near else ""))  # fmt: skip
-                        if isinstance(r.sheet, int) and not 0 <= r.sheet < len(sheets):
-                            raise MappingError(f"{where}.read.sheet: {path.name} has {len(sheets)} sheet(s) {sheets}; "
-                                               f"index {r.sheet} is out of range (0-based)")  # fmt: skip
-                        chosen = [sheets[r.sheet] if isinstance(r.sheet, int) else (r.sheet or sheets[0])]
                     for name in chosen:
                         df = book.parse(sheet_name=name, skiprows=r.skip_rows, header=header)
                         df.attrs["sheets"] = sheets if r.sheets is None else None
@@ -693,11 +689,12 @@ def _piece_columns(df: pd.DataFrame, f: FileMap, src: Path, where: str, meta: Me
     return {"run": run_col, "proc": proc, "wide": wide, "long": long, "src": sources}
 
 
-def _merge_pieces(pieces: list, f: FileMap, where: str, name: str) -> dict:
-    """The tables of one file entry (its files, its sheets) as one frame: rows of the same run
-    from two tables would be one run's two logs, which no clock can order."""
+def _merge_pieces(pieces: list, f: FileMap, where: str) -> dict:
+    """The tables of one file entry (its files, its sheets), ``(path, label, t, columns)`` each, as
+    one frame. Rows of one run from two tables counted from ``time.start_s`` each would be two
+    logs on one clock: refused."""
     seen: dict[str, str] = {}
-    for _src, label, _t, _run, fr in pieces:
+    for _src, label, _t, fr in pieces:
         for r in pd.unique(fr["run"]):
             if r in seen and seen[r] != label and f.time.step_s is not None:
                 raise MappingError(f"{where}: run {r!r} comes from both {seen[r]} and {label}, each counted from "
@@ -707,11 +704,11 @@ def _merge_pieces(pieces: list, f: FileMap, where: str, name: str) -> dict:
     def cat(xs):  # (one table, a long log: its arrays as they are)
         return xs[0] if len(xs) == 1 else np.concatenate(xs) if xs else np.zeros(0)
 
-    out = {"t": cat([p[2] for p in pieces]), "run": cat([p[4]["run"] for p in pieces]).astype(object, copy=False)}
+    out = {"t": cat([p[2] for p in pieces]), "run": cat([p[3]["run"] for p in pieces]).astype(object, copy=False)}
     for part in ("proc", "wide", "long"):
-        cols = pieces[0][4][part].keys()
-        out[part] = {c: cat([p[4][part][c] for p in pieces]) for c in cols}
-    out.update({"channel": f.channel, "src": pieces[0][4]["src"], "where": where, "max_gap_s": f.max_gap_s,
+        cols = pieces[0][3][part].keys()
+        out[part] = {c: cat([p[3][part][c] for p in pieces]) for c in cols}
+    out.update({"channel": f.channel, "src": pieces[0][3]["src"], "where": where, "max_gap_s": f.max_gap_s,
                 "path": pieces[0][0] if len(pieces) == 1 else Path(f.path)})  # fmt: skip
     return out
 
@@ -749,9 +746,9 @@ def build_tables(mapping_path: str | Path, progress=None) -> tuple[Metadata, pd.
                 t, kind = _times(df, f, where, src)
                 kinds.add(kind)
                 run = _piece_run(f, src, sheet, where)
-                pieces.append((src, label, t, run, _piece_columns(df, f, src, where, meta, channels, m, run, declared)))
+                pieces.append((src, label, t, _piece_columns(df, f, src, where, meta, channels, m, run, declared)))
             del read, df  # the tables read: only the mapped columns go on (a large log is not held twice)
-        frames[name] = _merge_pieces(pieces, f, where, name)
+        frames[name] = _merge_pieces(pieces, f, where)
         del pieces
     if not declared:  # the runs are those the files name, in the order met
         order = list(dict.fromkeys(r for fr in frames.values() for r in fr["run"]))
