@@ -32,7 +32,7 @@ def families():
 
 def shifted_run(ds, run: str, by_s: float):
     """Run ``run`` of ``ds`` alone, its clock moved by ``by_s`` (a float clock far from 0)."""
-    from thermbench.data.io import Dataset
+    from thermbench.data.dataset import Dataset
 
     pr = ds.process_run(run).assign(t_s=lambda d: d["t_s"] + by_s)
     er = ds.errors_run(run).assign(t_s=lambda d: d["t_s"] + by_s)

@@ -7,7 +7,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from thermbench.data.io import Dataset
+from thermbench.data.dataset import Dataset
 from thermbench.data.schema import FORMAT, Metadata
 
 

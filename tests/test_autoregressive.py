@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from sklearn.base import clone
 
 from tests.synth import make_dataset
-from thermbench.data.io import Dataset
+from thermbench.data.dataset import Dataset
 from thermbench.data.schema import Metadata
 from thermbench.data.views import channel_view
 from thermbench.models.autoregressive import AutoRegressiveSeed003, parse_operating

@@ -310,7 +310,7 @@ def spindle_dataset(runs: dict, declare: bool = True):
     """A format 2 spindle test seen through its fixed-point channel Z. ``runs[id] = (phases,
     gain)``: phases [(rpm, seconds)], readings every 900 s of gain * the rise of T1. A
     one-phase run declares its speed as its condition (``declare``)."""
-    from thermbench.data.io import Dataset
+    from thermbench.data.dataset import Dataset
     from thermbench.data.schema import Metadata
     from thermbench.data.views import channel_view
 

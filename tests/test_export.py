@@ -40,7 +40,7 @@ def ds(seed001_data_root):
 @pytest.fixture(scope="module")
 def loaded_ds(ds):
     """seed001 with an axial load column (for the load-dependent heat effect and the AR load term)."""
-    from thermbench.data.io import Dataset
+    from thermbench.data.dataset import Dataset
 
     pr = ds.process.copy()
     pr["load_N"] = 800.0 + 0.05 * pr["feed_mm_min"] + 100.0 * np.sin(pr["t_s"] / 900.0)
@@ -371,7 +371,7 @@ def test_export_in_two_processes_writes_what_one_process_writes(exported, seed00
 def _without_row(ds, run: str, t_s: float):
     """``ds`` with the process sample of ``run`` at ``t_s`` removed (what a compensator that
     skipped that sample has seen)."""
-    from thermbench.data.io import Dataset
+    from thermbench.data.dataset import Dataset
 
     pr = ds.process
     keep = ~((pr["run_id"] == run) & (pr["t_s"] == t_s))

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.data.io import Dataset
+from thermbench.data.dataset import Dataset
 from thermbench.datasets import load_benchmark
 from thermbench.export import export_model, replay_dir, runtime, unpack
 from thermbench.export.bundle import SINGLE_FLAGS, ExportOptions, process_samples

@@ -15,7 +15,7 @@ from sklearn.base import clone
 
 from tests.synth import make_dataset
 from thermbench.config import config_dir
-from thermbench.data.io import Dataset
+from thermbench.data.dataset import Dataset
 from thermbench.data.schema import Metadata
 from thermbench.data.views import channel_view
 from thermbench.models.base import ModelError

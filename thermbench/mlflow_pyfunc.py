@@ -36,7 +36,7 @@ class ThermbenchPyfunc(mlflow.pyfunc.PythonModel):
             raise DatasetError(f"{path}: expected a mapping (the dataset's metadata), got {type(self.metadata).__name__}")
 
     def predict(self, context, model_input: pd.DataFrame, params=None) -> pd.DataFrame:
-        from thermbench.data.io import Dataset
+        from thermbench.data.dataset import Dataset
         from thermbench.data.schema import Metadata
 
         log = model_input.copy()

@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 
 from .outputs import check_output_file, write_text
-from .data.io import Dataset
+from .data.dataset import Dataset
 from .data.schema import FORMAT, Metadata
 from .models.base import ModelError, ThermalErrorModel
 from .sim.model import Motion, ScrewThermalModel

@@ -36,11 +36,16 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..errors import UserError
+from ..outputs import check_output_dir, output_dir
 from . import limits
 from .errors import DatasetError, short_repr
 from .files import check_regular_file, open_regular_file
+from .io import load_dataset
+from .reference import run_summary
 from .safe_yaml import YAMLInputError, dump_yaml, load_yaml
 from .schema import FORMAT_V2, Metadata, RunMeta
+from .tables import validation_message
+from .views import split_segments
 
 MAPPING_FORMAT = "thermbench-import/1"
 MAPPING_MAX_BYTES = limits.METADATA_MAX_BYTES
@@ -557,8 +562,6 @@ def _target_ok(target: str, meta: Metadata, where: str) -> None:
 
 # ----------------------------------------------------------------- import ---
 def _metadata(m: Mapping, path: Path, lines: dict) -> Metadata:
-    from .io import _validation_message
-
     raw = {"format": FORMAT_V2, **m.dataset}
     if "format" in m.dataset:
         raise MappingError(f"{path}: key 'dataset.format': leave it out; import writes {FORMAT_V2}")
@@ -568,7 +571,7 @@ def _metadata(m: Mapping, path: Path, lines: dict) -> Metadata:
     try:
         meta = Metadata.model_validate(raw)
     except ValidationError as exc:
-        msg = _validation_message(exc, path, sub)
+        msg = validation_message(exc, path, sub)
         raise MappingError(msg.replace(f"{path}: key '", f"{path}: key 'dataset.", 1)) from None
     if m.run is not None and m.run not in meta.runs and _UNDECLARED not in meta.runs:
         raise MappingError(f"{path}: key 'run': {m.run!r} is not a run of dataset.runs ({sorted(meta.runs)})")
@@ -939,9 +942,6 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
     """Build the dataset the mapping describes and write it to ``out`` (one output of kind
     ``dataset``, :mod:`thermbench.outputs`), validated before it is moved into place.
     ``progress``: called with one line at each long step (large files, a long alignment)."""
-    from ..outputs import check_output_dir, output_dir
-    from .io import load_dataset
-
     if file_format not in ("csv", "parquet"):
         raise MappingError(f"--format: expected csv or parquet, got {file_format!r}")
     out = Path(out)
@@ -952,10 +952,10 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
     with output_dir(out, "dataset", force=force) as tmp:
         doc = meta.model_dump(mode="json", exclude_none=True) | dict(extra or {})
         (tmp / "metadata.yaml").write_text(dump_yaml(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
-        tables = [("process", process)] + ([("errors", errors)] if len(errors) else [])
+        pieces = [("process", process)] + ([("errors", errors)] if len(errors) else [])
         del process, errors  # written, then read back to be checked: not held twice
-        while tables:
-            name, df = tables.pop(0)
+        while pieces:
+            name, df = pieces.pop(0)
             if file_format == "parquet":
                 df.to_parquet(tmp / f"{name}.parquet", index=False)
             else:
@@ -964,9 +964,6 @@ def import_dataset(mapping_path: str | Path, out: str | Path, file_format: str =
         try:
             ds = load_dataset(tmp)
             # what validate and every command derive from it, before anything is moved into place
-            from .reference import run_summary
-            from .views import split_segments
-
             split_segments(ds)
             run_summary(ds)
         except DatasetError as exc:

@@ -9,6 +9,8 @@ import os
 import re
 from dataclasses import dataclass
 
+from .errors import DatasetError
+
 MiB = 1024 * 1024
 
 # ------------------------------------------------------------------ sizes ---
@@ -41,8 +43,6 @@ def table_cap_bytes(mib: float | None = None) -> int:
             except ValueError:
                 mib = None
             if mib is None or not (mib > 0 and math.isfinite(mib)):
-                from .errors import DatasetError
-
                 raise DatasetError(f"${TABLE_CAP_ENV}={env!r}: expected a size in MiB, > 0")
     if mib is not None:
         return int(mib * MiB)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .io import Dataset
+from .dataset import Dataset
 
 
 def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:

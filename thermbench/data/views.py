@@ -27,8 +27,10 @@ import numpy as np
 import pandas as pd
 
 from .errors import DatasetError
-from .io import Dataset
+from .dataset import Dataset
+from .reference import thermal_errors
 from .schema import Condition, RunMeta
+from .segments import derive_segments, segment_name
 
 __all__ = ["channel_view", "split_segments"]
 
@@ -37,8 +39,6 @@ UNIT_NAMES = {"spindle_rpm": "rpm", "feed_mm_min": "mm_min", "load_N": "N"}
 
 def channel_view(ds: Dataset, channel: str) -> Dataset:
     """The dataset as seen through one error channel (module docstring)."""
-    from .reference import thermal_errors
-
     channels = ds.metadata.error_channels()
     if channel not in channels:
         raise DatasetError(f"{ds.path or ds.metadata.machine.name}: no error channel {channel!r}; "
@@ -76,8 +76,6 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     ``history``: each segment's process log starts at its run's first sample (the lead-in
     before the segment's first reading: what the machine went through before it), its
     errors are those inside the segment only."""
-    from .segments import derive_segments, segment_name
-
     meta = ds.metadata
     if meta.version == 1 or all(r.condition is not None for r in meta.runs.values()):
         return ds

@@ -107,7 +107,7 @@ from scipy.optimize import least_squares
 from annotated_types import Ge
 from scipy.signal import lfilter
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, curve_degree, fallback, readings, require
 from .mlr import lstsq_fit
 from .params import Degree, Int, Number, Params, PositiveNumber, check_params

@@ -54,7 +54,7 @@ from ..classify import (
     operating_window_features,
     window_features,
 )
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, check_runs
 from .params import Expect, Number, Params, PositiveNumber, check_params
 

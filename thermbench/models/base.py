@@ -28,7 +28,7 @@ from numpy.polynomial import Polynomial
 from sklearn.base import BaseEstimator
 from threadpoolctl import threadpool_limits
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from ..data.reference import thermal_errors
 
 

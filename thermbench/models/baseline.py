@@ -32,7 +32,7 @@ from annotated_types import Len
 from numpy.polynomial import Polynomial
 from sklearn.base import RegressorMixin, clone
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, readings, temperatures_at
 from .params import Bool, Expect, Params, Seed, check_params
 

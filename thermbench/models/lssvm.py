@@ -39,7 +39,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .params import (
     Bool,

@@ -101,7 +101,7 @@ from scipy.optimize import least_squares
 from scipy.signal import lfilter
 from threadpoolctl import threadpool_limits
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, _name, fallback, readings, require, sensor_series, temperatures_at
 from .mlr import lstsq_fit
 from .params import Degree, Expect, Int, Params, PositiveNumber, check_params, pair_bounds

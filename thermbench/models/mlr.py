@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 from annotated_types import Ge, Le
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from .base import (
     curve_degree,
     fallback,

@@ -61,7 +61,7 @@ import numpy as np
 import pandas as pd
 from annotated_types import Ge, Len, Lt
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from ..extras import require as require_extra
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params

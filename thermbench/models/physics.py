@@ -36,7 +36,7 @@ from annotated_types import Ge
 from pydantic import model_validator
 from scipy.optimize import lsq_linear, minimize
 
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
 from ..sim.model import Motion, ScrewThermalModel, ThermalHistory, run_prepared_many
 from ..sim.parts import CoreParams, Material, Numerics, Screw

@@ -17,7 +17,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import ConfigError
-from ..data.io import Dataset
+from ..data.dataset import Dataset
 from ..data.schema import FORMAT, Metadata
 from .duty import Measuring, Phase, Trajectory, build_run, random_phases
 from .effects import Effect, effects_from_config
