@@ -246,6 +246,30 @@ def test_iso230_tilt_by_position_and_drift_from_a_time_reference(tmp_path):
     assert z["max_from_reference_um"] == pytest.approx(75.0) and z["max_from_reference_signed_um"] == pytest.approx(-75.0)
 
 
+@pytest.mark.parametrize("mode", ["first_reading", "cold_cycle"])
+def test_iso230_outputs_name_the_frame(tmp_path, monkeypatch, mode):
+    """report.md, figures.json and every figure's title name the frame the dataset declares
+    (data.reference.frame_text): a first_reading test is never said to count from a cold cycle."""
+    import json
+
+    from thermbench import report
+    from thermbench.data.reference import frame_text
+    from thermbench.iso230_report import iso230_report
+
+    titles, save = [], report._save
+    monkeypatch.setattr(report, "_save", lambda fig, path: (titles.append(fig.axes[0].get_title()), save(fig, path))[1])
+    p, e = spindle_tables()
+    ds = load_dataset(write(tmp_path / "d", {**SPINDLE_META, "reference": {"mode": mode}}, p, e))
+    iso230_report(ds.path, tmp_path / "iso")
+    frame = frame_text(ds.metadata)
+    said, other = ("first reading", "cold measuring cycle") if mode == "first_reading" else ("cold measuring cycle", "first reading")
+    assert said in frame and other not in frame
+    md = (tmp_path / "iso" / "report.md").read_text(encoding="utf-8")
+    assert f"\nScored on: {frame} — " in md and other not in md
+    assert json.loads((tmp_path / "iso" / "figures.json").read_text(encoding="utf-8"))["frame"] == frame
+    assert titles == [f"vmc_spindle · run r1\nscored on {frame}"]
+
+
 def test_iso230_unidirectional_run_gets_its_one_direction_figures(tmp_path):
     from thermbench.iso230_report import compute
 

@@ -122,9 +122,16 @@ def test_negative_control_names_nothing_and_logs_to_mlflow(clean_data, tmp_path)
     assert json.loads(inputs[0].dataset.source)["uri"].endswith(str(Path(clean_data).resolve()))
 
 
-def test_declared_split_and_base_effects(clean_data, tmp_path):
+def test_declared_split_and_base_effects(clean_data, tmp_path, capsys):
+    from thermbench.data.reference import frame_text
+
     d = run_cli(clean_data, tmp_path / "out", "--base", "ambient_drift", "--max-effects", "1",
                 "cv={train: [run1, run2], test: [run3]}")  # fmt: skip
+    # format 1: every score is of the error as read, its cold cycle the geometric error; the outputs say so
+    frame = frame_text(load_dataset(clean_data).metadata)
+    assert d["frame"] == frame and "cold measuring cycle" in frame
+    assert f"- scored on: {frame}\n" in (tmp_path / "out" / "report.md").read_text()
+    assert f"\nscored on {frame}\n" in capsys.readouterr().out
     assert d["base_effects"] == ["ambient_drift"]
     assert d["cv"]["kind"] == "split" and d["cv"]["fit_runs"] == ["run1", "run2"]
     # two training runs do not predict the third within the floor (measured: 6x): an honest verdict says so
@@ -136,6 +143,37 @@ def test_declared_split_and_base_effects(clean_data, tmp_path):
     assert "ambient_drift" not in {c["effect"] for c in d["scans"][0]["candidates"]}
     # the model with the measured ambient was identified: the ambient sensor is its input
     assert d["final"]["effects"] == ["ambient_drift"]
+
+
+@pytest.mark.parametrize("mode", ["first_reading", "cold_cycle"])
+def test_the_outputs_name_the_frame_the_dataset_declares(clean_data, tmp_path, capsys, mode):
+    """The clean world written as format 2 with a declared reference: diagnosis.json, report.md
+    and the terminal verdict name its frame (data.reference.frame_text), so a first_reading
+    dataset's residuals are never said to be of the error read against a cold cycle."""
+    import shutil
+
+    import yaml
+
+    from thermbench.data.reference import frame_text
+
+    meta = yaml.safe_load((clean_data / "metadata.yaml").read_text())
+    meta = {**{k: v for k, v in meta.items() if k != "simulation"}, "format": "thermbench-dataset/2", "parts": ["axis"],
+            "channels": {"X": {"kind": "along_axis", "direction": "X", "location": "table"}},
+            "reference": {"mode": mode}}  # fmt: skip
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "metadata.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    for f in ("process.csv", "errors.csv"):
+        shutil.copy(clean_data / f, data / f)
+    # no search and one fold: the frame is all this test is about (about 1 s)
+    d = run_cli(data, tmp_path / "out", "--max-effects", "0", "cv={train: [run1, run2], test: [run3]}")
+    frame = frame_text(load_dataset(data).metadata)
+    said, other = ("first reading", "cold measuring cycle") if mode == "first_reading" else ("cold measuring cycle", "first reading")
+    assert said in frame and other not in frame
+    report = (tmp_path / "out" / "report.md").read_text()
+    terminal = capsys.readouterr().out
+    assert d["frame"] == frame and f"- scored on: {frame}\n" in report and f"\nscored on {frame}\n" in terminal
+    assert other not in report and other not in terminal
 
 
 def test_two_hidden_effects_are_both_named(tmp_path):

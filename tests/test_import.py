@@ -143,6 +143,9 @@ def test_iso230_on_the_lab_files(lab, tmp_path):
     last = e["error_lines"][-1]
     assert last["slope_um_per_m"] == pytest.approx(float(labfiles.slope_um_per_m(last["t_s"])), rel=0.01)
     assert (tmp_path / "iso" / "report.md").is_file() and (tmp_path / "iso" / "drift_warmup_6000.png").is_file()
+    # the lab declares cold_cycle: the frame named is the error as read, its cold cycle the geometric error
+    assert "cold measuring cycle" in figs["frame"] and "first reading" not in figs["frame"]
+    assert f"Scored on: {figs['frame']} — " in (tmp_path / "iso" / "report.md").read_text(encoding="utf-8")
 
 
 def test_iso230_on_the_spindle_test(fl, workbook, tmp_path, capsys):
@@ -150,6 +153,10 @@ def test_iso230_on_the_spindle_test(fl, workbook, tmp_path, capsys):
     import json
 
     figs = json.loads((tmp_path / "iso" / "figures.json").read_text(encoding="utf-8"))
+    # the spindle test declares first_reading: its drift is each run's from its first reading, not a cold cycle's
+    assert figs["frame"].startswith("each run's drift from its own first reading") and "cold" not in figs["frame"]
+    md = (tmp_path / "iso" / "report.md").read_text(encoding="utf-8")
+    assert f"Scored on: {figs['frame']} — " in md and "cold measuring cycle" not in md
     ch3 = workbook["ch3(um)"].astype(float).to_numpy()
     drift = next(r for r in figs["runs"]["test"]["channels"]["ch3"]["drift"] if r["block"] == "all")
     assert drift["max_from_reference_um"] == pytest.approx(np.max(np.abs(ch3 - ch3[0])), abs=1e-3)

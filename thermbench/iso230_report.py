@@ -116,12 +116,15 @@ def _table_md(df: pd.DataFrame, cols: list[str]) -> str:
 def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
     """All figures of the dataset, as plain data (what ``figures.json`` holds); ``te``: its
     :func:`_readings`, when already computed."""
+    from .data.reference import frame_text
+
     te = _readings(ds) if te is None else te
     meta = ds.metadata
     channels = meta.error_channels()
     ambient = next((s for s, loc in meta.sensors.items() if loc == "ambient"), None)
     out: dict = {"dataset": str(ds.path), "machine": meta.machine.name, "format": meta.format,
-                 "reference": meta.reference_mode().mode if meta.version == 2 else "cold_cycle", "runs": {}}  # fmt: skip
+                 "reference": meta.reference_mode().mode if meta.version == 2 else "cold_cycle",
+                 "frame": frame_text(meta), "runs": {}}  # fmt: skip
     if te.empty:
         out["note"] = "the dataset has no readings: nothing to evaluate"
         return out
@@ -233,9 +236,9 @@ def _figures(ds: Dataset, te: pd.DataFrame, figs: dict, out: Path) -> list[str]:
                     ax.plot(gd["t_s"] / 3600.0, gd["thermal_um"], ".", ms=3, label=f"{ch} {'↑' if dval > 0 else '↓'}")
             else:
                 ax.plot(g["t_s"] / 3600.0, g["thermal_um"], lw=1.0, label=str(ch))
-        ax.set_ylabel("thermal drift, µm")
+        ax.set_ylabel("thermal drift from the reference, µm")
         ax.legend(fontsize=7, ncols=3)
-        ax.set_title(f"{ds.metadata.machine.name} · run {run}")
+        ax.set_title(f"{ds.metadata.machine.name} · run {run}\nscored on {figs['frame']}", fontsize=9)
         ops = [c for c in ds.metadata.operating_inputs() if c in pr.columns]
         for c in ops:
             ax2.plot(pr["t_s"] / 3600.0, pr[c], lw=0.8, label=c)
@@ -259,6 +262,7 @@ def _report_md(figs: dict, images: list[str]) -> str:
     lines = [f"# ISO 230 evaluation: {figs['machine']}", "",
              f"Dataset `{figs['dataset']}` ({figs['format']}); thermal error counted from: {figs['reference']}. "
              "Definitions and where they differ from the standards: docs/iso230.md.", ""]  # fmt: skip
+    lines += [f"Scored on: {figs['frame']} — what a model of this dataset predicts and is scored on.", ""]
     if "note" in figs:
         lines.append(figs["note"])
     for run, res in figs["runs"].items():

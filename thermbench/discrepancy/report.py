@@ -116,6 +116,8 @@ def _loc_md(loc: dict) -> str:
 
 def write_markdown(d: dict, out: Path) -> Path:
     md = [f"# Diagnosis of `{d['dataset']}`", "", f"**{verdict_line(d)}**", ""]
+    if d.get("frame"):
+        md.append(f"- scored on: {d['frame']}")
     md += [f"- base model: seed 000 core (fixed-bearing heat, nut heat, convection, constant ambient)"
            f"{''.join(' + ' + e for e in d['base_effects'])}",  # fmt: skip
            f"- noise floor: {d['noise_floor_um']:.3f} um ({d['noise']['method']}; per-reading scatter "
@@ -211,6 +213,8 @@ def gap_md(d: dict) -> list[str]:
 
 def terminal_verdict(d: dict, out: Path | None = None) -> str:
     lines = ["", f"== diagnosis: {d['dataset']} ==", verdict_line(d)]
+    if d.get("frame"):
+        lines.append(f"scored on {d['frame']}")
     lines.append(f"noise floor {d['noise_floor_um']:.3f} um ({d['noise']['method']}); "
                  f"base: core{''.join(' + ' + e for e in d['base_effects'])}")  # fmt: skip
     for k, s in enumerate(d["steps"], 1):

@@ -102,6 +102,8 @@ def run_diagnosis(
     noise_min_groups: int = 20,
 ) -> dict:
     """The discrepancy workflow on a dataset; returns the diagnosis (see module docstring)."""
+    from ..data.reference import frame_text
+
     settings = settings or Settings()
     say = settings.say
     t_start = time.perf_counter()
@@ -224,6 +226,7 @@ def run_diagnosis(
     gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise, current.effects)
     return {
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
+        "frame": frame_text(ds.metadata),  # the frame of every score (data.reference.frame_text)
         "base_effects": list(base),
         "noise_floor_um": floor,
         "noise": noise.to_dict(),
