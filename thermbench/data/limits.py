@@ -32,8 +32,9 @@ def machine_memory_bytes() -> int:
 
 def table_cap_bytes(mib: float | None = None) -> int:
     """The most bytes one table (a file to import, a dataset's process or errors table) may hold:
-    ``mib`` when given (an import's ``max_table_mib``), else ``$THERMBENCH_MAX_TABLE_MIB``, else a
-    quarter of the machine's memory and at least 256 MiB. A guard against absurd inputs that
+    ``mib`` when given, else ``$THERMBENCH_MAX_TABLE_MIB`` (for one command:
+    ``THERMBENCH_MAX_TABLE_MIB=2048 thermbench import ...``), else a quarter of the machine's
+    memory and at least 256 MiB. A guard against absurd inputs that
     scales with the machine (docs/dataset-format.md, "Limits")."""
     if mib is None:
         env = os.environ.get(TABLE_CAP_ENV, "").strip()
