@@ -44,7 +44,7 @@ from .io import load_dataset
 from .reference import run_summary
 from .safe_yaml import YAMLInputError, dump_yaml, load_yaml
 from .schema import FORMAT_V2, Metadata, RunMeta
-from .tables import validation_message
+from .tables import CSV_NA_VALUES, validation_message
 from .views import split_segments
 
 MAPPING_FORMAT = "thermbench-import/1"
@@ -297,14 +297,17 @@ def _read_source(f: FileMap, path: Path, where: str) -> list[tuple[str | None, p
         warnings.simplefilter("ignore")
         try:
             if fmt == "csv":
-                # Arrow's reader (multithreaded, columns built without Python objects: a 1-Hz month
-                # of 16 temperatures reads in seconds) where the options allow it; else pandas' own
+                # Arrow's reader (columns built without Python objects: a 1-Hz month of 16
+                # temperatures reads in seconds, in little more memory than its table, through
+                # _read_csv_arrow) where the options allow it; else pandas' own
                 arrow = r.decimal == "." and r.thousands is None and len(r.sep or ",") == 1
                 engine = "pyarrow" if arrow else ("python" if r.sep and len(r.sep) > 1 else "c")
                 kw = {} if arrow else {"decimal": r.decimal, "thousands": r.thousands}
                 with open_regular_file(path, limits.TABLE_MAX_BYTES, "a table") as fh:
-                    df = pd.read_csv(fh, sep=r.sep or ",", header=header, encoding=r.encoding, skiprows=r.skip_rows,
-                                     skip_blank_lines=False, engine=engine, **kw)  # fmt: skip
+                    df = _read_csv_arrow(path, r.sep or ",", header, r.encoding, r.skip_rows) if arrow else None
+                    if df is None:  # pandas' reader: any file the lean one above does not take, as it is
+                        df = pd.read_csv(fh, sep=r.sep or ",", header=header, encoding=r.encoding, skiprows=r.skip_rows,
+                                         skip_blank_lines=False, engine=engine, **kw)  # fmt: skip
                 out.append((None, df))
             elif fmt == "excel":
                 with pd.ExcelFile(path, engine="openpyxl") as book:
@@ -344,6 +347,112 @@ def _read_source(f: FileMap, path: Path, where: str) -> list[tuple[str | None, p
     return [_data_rows(df, sheet, f, path, where, fmt) for sheet, df in out]
 
 
+#: the lean CSV reader takes its columns' types from this much of the file's start (pandas' Arrow
+#: engine reads in blocks of 1 MiB); a file no longer is read from it alone
+ARROW_PROBE_BYTES = 1 << 20
+
+
+def _read_csv_arrow(path: Path, sep: str, header: int | None, encoding: str, skip_rows: int) -> pd.DataFrame | None:
+    """The CSV file as ``pandas.read_csv(..., engine="pyarrow")`` reads it with these options (the
+    same Arrow options, column names, types and values), in little more memory than the table it
+    makes; None when this reader does not take the file, which pandas then reads (as before, with
+    its messages).
+
+    pandas' Arrow engine infers each column's type over the whole file, and Arrow holds every block
+    it parsed until the end to do so (about the file's size again), before pandas copies the table
+    into its own blocks. Here the types come from the file's first MiB (a column empty there is
+    read as numbers), the file is read block by block (Arrow's streaming reader), and each number
+    column goes straight into one numpy array. A type under which every value of a column converts
+    is the type Arrow's inference gives that column (it takes the first kind of null, integer,
+    boolean, real, date, time, timestamp, text under which every value converts), and a column
+    empty at the start that holds numbers later is one of numbers and empty cells for pandas too
+    (float64, NaN where empty). Any value that does not convert (text after numbers), a parse
+    error, an empty or repeated header name, no data row: None."""
+    try:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+    except ImportError:  # pragma: no cover - a core dependency
+        return None
+
+    def options(types=None):
+        return (pacsv.ReadOptions(autogenerate_column_names=header is None, skip_rows=skip_rows, encoding=encoding),
+                pacsv.ParseOptions(delimiter=sep, quote_char='"', ignore_empty_lines=False),
+                pacsv.ConvertOptions(null_values=CSV_NA_VALUES, strings_can_be_null=True, decimal_point=".",
+                                     column_types=types or {}))  # fmt: skip
+
+    try:
+        # a handle of its own: Arrow's streaming reader reads ahead in a thread of its own, and the
+        # caller's handle must stay where it is for pandas
+        with open_regular_file(path, limits.TABLE_MAX_BYTES, "a table") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            head = fh.read(ARROW_PROBE_BYTES + 1)
+            whole = len(head) <= ARROW_PROBE_BYTES
+            if not whole:  # the complete lines of the start (Arrow's blocks end at a line break too)
+                head = head[: head.rfind(b"\n") + 1]
+                if not head:
+                    return None
+            probe = pacsv.read_csv(pa.BufferReader(head), *options())
+            names = probe.column_names
+            if not names or (header is not None and ("" in names or len(set(names)) != len(names))):
+                return None  # pandas names them (Unnamed: i, x.1)
+            types = {n: pa.float64() if pa.types.is_null(t) else t for n, t in zip(names, probe.schema.types)}
+            if whole:
+                batches = probe.cast(pa.schema([(n, types[n]) for n in names])).to_batches()
+                est = probe.num_rows
+            else:  # the rows the file holds, estimated from its start
+                est = int(probe.num_rows * size / len(head) * 1.05) + 1024
+                del probe
+                fh.seek(0)
+                batches = pacsv.open_csv(fh, *options(types))
+            floats = [i for i, n in enumerate(names) if types[n] == pa.float64()]
+            others = {i: [] for i in range(len(names)) if types[names[i]] != pa.float64()}
+            segments: list[list] = []  # [rows filled, an array per number column]; more if the estimate is short
+            cap = n = 0
+            for batch in batches:
+                m = batch.num_rows
+                if not segments or segments[-1][0] + m > cap:
+                    cap = max(m, est - n if not segments else n // 2)
+                    segments.append([0, [np.empty(cap) for _ in floats]])
+                seg = segments[-1]
+                for a, i in zip(seg[1], floats):
+                    a[seg[0]:seg[0] + m] = batch.column(i).to_numpy(zero_copy_only=False)
+                for i, chunks in others.items():
+                    chunks.append(batch.column(i))
+                seg[0] += m
+                n += m
+            del batches
+        if n == 0:
+            return None
+        data: dict = {}
+        for j, i in enumerate(floats):
+            parts = [(seg[1][j], seg[0]) for seg in segments if seg[0]]
+            if len(parts) == 1:
+                a, k = parts[0]
+                if k < len(a):
+                    a.resize(k, refcheck=False)  # in place: the unused end is given back
+            else:
+                a = np.concatenate([p[:k] for p, k in parts])
+            del parts
+            for seg in segments:
+                seg[1][j] = None
+            data[i] = a
+        if others:
+            from pandas.io._util import arrow_table_to_pandas  # pandas' own conversion (ImportError: pandas reads)
+
+            for i, chunks in others.items():
+                col = pa.chunked_array(chunks, type=types[names[i]])
+                others[i] = None
+                data[i] = arrow_table_to_pandas(pa.table({names[i]: col}), null_to_int64=True).iloc[:, 0]
+                del col, chunks
+        labels = range(len(names)) if header is None else names
+        df = pd.DataFrame({labels[i]: data.pop(i) for i in range(len(names))}, copy=False)
+        return df
+    except Exception:
+        return None
+    finally:
+        pa.default_memory_pool().release_unused()  # what Arrow's pool kept of the blocks read: back to the system
+
+
 def _data_rows(df: pd.DataFrame, sheet: str | None, f: FileMap, path: Path, where: str, fmt: str):
     r = f.read
     name = path.name + (f", sheet {sheet!r}" if sheet is not None and f.read.sheets is not None else "")
@@ -358,11 +467,15 @@ def _data_rows(df: pd.DataFrame, sheet: str | None, f: FileMap, path: Path, wher
     if r.skip_after_header:
         df = df.iloc[r.skip_after_header:]
     df = df.reset_index(drop=True)
-    blank = df.isna()
-    for c in df.columns[df.dtypes == object]:  # a cell of spaces is empty too
-        blank[c] = blank[c] | df[c].map(lambda v: isinstance(v, str) and not v.strip())
-    empty = blank.all(axis=1).to_numpy()
-    df = df[~empty]
+    empty = np.ones(len(df), dtype=bool)
+    for k, dtype in enumerate(df.dtypes):  # column by column: no copy of a long table
+        s = df.iloc[:, k]
+        blank = s.isna().to_numpy()
+        if dtype == object:  # a cell of spaces is empty too
+            blank = blank | s.map(lambda v: isinstance(v, str) and not v.strip()).to_numpy(dtype=bool)
+        empty &= blank
+    if empty.any():
+        df = df[~empty]
     if df.empty:
         raise MappingError(f"{where}.path: {name} has no data rows")
     if len(df.columns) == 1 and fmt == "csv":
@@ -688,8 +801,16 @@ def _piece_columns(df: pd.DataFrame, f: FileMap, src: Path, where: str, meta: Me
         if run is None and m.run is None and (len(meta.runs) > 1 or not declared):
             raise MappingError(f"{where}: name the run(s) of its rows: run: <run id> or run: {{from: sheet | file}} "
                                "(or a column mapped to run_id)")  # fmt: skip
-        run_col = np.full(len(df), run or m.run or next(iter(meta.runs)), dtype=object)
+        run_col = _filled(len(df), run or m.run or next(iter(meta.runs)))
     return {"run": run_col, "proc": proc, "wide": wide, "long": long, "src": sources}
+
+
+def _filled(n: int, value) -> np.ndarray:
+    """``n`` times ``value`` as an object array: the one object in every row (``np.full`` would
+    make ``n`` copies of a text, some 70 bytes each: 180 MB for a month at 1 Hz)."""
+    out = np.empty(n, dtype=object)
+    out.fill(value)
+    return out
 
 
 def _merge_pieces(pieces: list, f: FileMap, where: str) -> dict:
@@ -851,7 +972,7 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
         if np.any(np.diff(t) <= 0):
             i = int(np.flatnonzero(np.diff(t) <= 0)[0])
             raise MappingError(f"{b['where']}.time.column: time {t[i]:g} s appears twice in run {run!r}")
-        out = {"run_id": np.full(t.size, run, dtype=object), "t_s": t}
+        out = {"run_id": _filled(t.size, run), "t_s": t}
         for col, v in b["proc"].items():
             v = v[sel][order]
             if np.isnan(v).any():
