@@ -81,6 +81,23 @@ def thermal_errors(ds: Dataset) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True)
 
 
+def run_rows(df: pd.DataFrame, run_id: str) -> pd.DataFrame:
+    """The rows of run ``run_id``, indexed from 0: :meth:`Dataset.process_run` of a process table,
+    without a copy of them when they are one block (a long log of one run is not held twice)."""
+    mask = (df["run_id"] == run_id).to_numpy()
+    if mask.dtype == bool:
+        return rows_where(df, mask).reset_index(drop=True)
+    return df[df["run_id"] == run_id].reset_index(drop=True)
+
+
+def rows_where(df: pd.DataFrame, mask: np.ndarray) -> pd.DataFrame:
+    """``df[mask]``, as a slice of ``df`` (no copy) when the rows ``mask`` selects are one block."""
+    idx = np.flatnonzero(mask)
+    if idx.size and idx[-1] - idx[0] + 1 == idx.size:
+        return df.iloc[int(idx[0]) : int(idx[-1]) + 1]
+    return df[mask]
+
+
 def run_summary(ds: Dataset) -> pd.DataFrame:
     """One row per run: duration, condition, max |thermal error| measured (format 2:
     :func:`run_summary_v2`)."""
@@ -166,8 +183,7 @@ def run_summary_v2(ds: Dataset) -> pd.DataFrame:
     channels = ds.metadata.error_channels()
     rows = []
     for run_id, run in ds.metadata.runs.items():
-        pr = ds.process_run(run_id)
-        t = pr["t_s"].to_numpy()
+        t = run_rows(ds.process, run_id)["t_s"].to_numpy()
         cond = run.condition.levels() if run.condition is not None else None
         row = {
             "run_id": run_id,

@@ -28,7 +28,7 @@ import pandas as pd
 
 from .errors import DatasetError
 from .dataset import Dataset
-from .reference import thermal_errors
+from .reference import rows_where, run_rows, thermal_errors
 from .schema import Condition, RunMeta
 from .segments import derive_segments, segment_name
 
@@ -86,7 +86,7 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     runs: dict[str, RunMeta] = {}
     p_parts, e_parts = [], []
     for run_id, run in meta.runs.items():
-        pr = ds.process_run(run_id)
+        pr = run_rows(ds.process, run_id)
         er = ds.errors_run(run_id)
         if run.condition is not None:
             runs[run_id] = run
@@ -118,9 +118,10 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
             if history:
                 note += f" (its log from {t[0]:g} s: the history before it)"
             runs[name] = RunMeta(condition=cond, notes=note)
-            p_parts.append(pr[pm].assign(run_id=name))
+            p_parts.append(rows_where(pr, pm).assign(run_id=name))
             e_parts.append(er[em].assign(run_id=name))
     new_meta = meta.model_copy(update={"runs": runs})
+    pr = er = None  # (the last run's rows: not held while the split table is built)
     process = pd.concat(p_parts, ignore_index=True)
     errors = pd.concat(e_parts, ignore_index=True) if e_parts else ds.errors.iloc[:0]
     return Dataset(new_meta, process, errors, ds.path, channel=ds.channel)
