@@ -92,10 +92,17 @@ def run_rows(df: pd.DataFrame, run_id: str) -> pd.DataFrame:
 
 def rows_where(df: pd.DataFrame, mask: np.ndarray) -> pd.DataFrame:
     """``df[mask]``, as a slice of ``df`` (no copy) when the rows ``mask`` selects are one block."""
+    span = block(mask)
+    return df.iloc[span[0] : span[1]] if span is not None else df[mask]
+
+
+def block(mask: np.ndarray) -> tuple[int, int] | None:
+    """``(first, last + 1)`` of the rows a boolean ``mask`` selects when they are one block of at
+    least one row; else None."""
     idx = np.flatnonzero(mask)
     if idx.size and idx[-1] - idx[0] + 1 == idx.size:
-        return df.iloc[int(idx[0]) : int(idx[-1]) + 1]
-    return df[mask]
+        return int(idx[0]), int(idx[-1]) + 1
+    return None
 
 
 def run_summary(ds: Dataset) -> pd.DataFrame:

@@ -28,7 +28,7 @@ import pandas as pd
 
 from .errors import DatasetError
 from .dataset import Dataset
-from .reference import rows_where, run_rows, thermal_errors
+from .reference import block, rows_where, run_rows, thermal_errors
 from .schema import Condition, RunMeta
 from .segments import derive_segments, segment_name
 
@@ -85,12 +85,16 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     op = inputs[0]
     runs: dict[str, RunMeta] = {}
     p_parts, e_parts = [], []
+    spans: list[tuple[int, int] | None] = []  # the rows of ds.process each part is, while it is a block of them
     for run_id, run in meta.runs.items():
         pr = run_rows(ds.process, run_id)
         er = ds.errors_run(run_id)
+        mask = (ds.process["run_id"] == run_id).to_numpy()
+        at = block(mask) if mask.dtype == bool else None  # where pr starts in ds.process, when it is a slice of it
         if run.condition is not None:
             runs[run_id] = run
             p_parts.append(pr)
+            spans.append(at)
             e_parts.append(er)
             continue
         t = pr["t_s"].to_numpy()
@@ -98,6 +102,7 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
         if not segs and not run.segments:  # too short to derive a segment from: the run as it is
             runs[run_id] = run
             p_parts.append(pr)
+            spans.append(at)
             e_parts.append(er)
             continue
         names = run.segments or [segment_name(s, UNIT_NAMES.get(op, op)) for s in segs]
@@ -119,12 +124,37 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
                 note += f" (its log from {t[0]:g} s: the history before it)"
             runs[name] = RunMeta(condition=cond, notes=note)
             p_parts.append(rows_where(pr, pm).assign(run_id=name))
+            seg_rows = block(pm) if at is not None else None
+            spans.append(None if seg_rows is None else (at[0] + seg_rows[0], at[0] + seg_rows[1]))
             e_parts.append(er[em].assign(run_id=name))
     new_meta = meta.model_copy(update={"runs": runs})
     pr = er = None  # (the last run's rows: not held while the split table is built)
-    process = pd.concat(p_parts, ignore_index=True)
+    process = _stacked(ds.process, p_parts, spans)
     errors = pd.concat(e_parts, ignore_index=True) if e_parts else ds.errors.iloc[:0]
     return Dataset(new_meta, process, errors, ds.path, channel=ds.channel)
+
+
+def _stacked(process: pd.DataFrame, parts: list[pd.DataFrame], spans: list) -> pd.DataFrame:
+    """``pd.concat(parts, ignore_index=True)`` of the split runs' rows, each a block of rows of
+    ``process`` (``spans``: ``(first, last + 1)``, None when it is not one), with a run id of its own.
+    When the blocks follow one another and pandas copies on write (a table shared by two frames is
+    copied before either changes it): those rows of ``process`` as they are, not a copy of a long log,
+    with the parts' run ids; the same table."""
+    follow = all(s is not None for s in spans) and all(a < b for a, b in spans) and all(
+        spans[k][1] == spans[k + 1][0] for k in range(len(spans) - 1))  # fmt: skip
+    if not (parts and follow and _copy_on_write()):
+        return pd.concat(parts, ignore_index=True)
+    run_id = pd.concat([p["run_id"] for p in parts], ignore_index=True)
+    return process.iloc[spans[0][0] : spans[-1][1]].reset_index(drop=True).assign(run_id=run_id)
+
+
+def _copy_on_write() -> bool:
+    """Whether pandas copies a table shared by two frames before either changes it (always from
+    pandas 3, by its option in pandas 2)."""
+    try:
+        return int(pd.__version__.split(".")[0]) >= 3 or pd.get_option("mode.copy_on_write") is True
+    except (ValueError, KeyError):
+        return False
 
 
 def has_readings(ds: Dataset, run: str) -> bool:
