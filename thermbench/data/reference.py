@@ -85,15 +85,10 @@ def run_rows(df: pd.DataFrame, run_id: str) -> pd.DataFrame:
     """The rows of run ``run_id``, indexed from 0: :meth:`Dataset.process_run` of a process table,
     without a copy of them when they are one block (a long log of one run is not held twice)."""
     mask = (df["run_id"] == run_id).to_numpy()
-    if mask.dtype == bool:
-        return rows_where(df, mask).reset_index(drop=True)
-    return df[df["run_id"] == run_id].reset_index(drop=True)
-
-
-def rows_where(df: pd.DataFrame, mask: np.ndarray) -> pd.DataFrame:
-    """``df[mask]``, as a slice of ``df`` (no copy) when the rows ``mask`` selects are one block."""
-    span = block(mask)
-    return df.iloc[span[0] : span[1]] if span is not None else df[mask]
+    rows = block(mask) if mask.dtype == bool else None
+    if rows is None:
+        return df[df["run_id"] == run_id].reset_index(drop=True)
+    return df.iloc[rows[0] : rows[1]].reset_index(drop=True)
 
 
 def block(mask: np.ndarray) -> tuple[int, int] | None:

@@ -28,7 +28,7 @@ import pandas as pd
 
 from .errors import DatasetError
 from .dataset import Dataset
-from .reference import block, rows_where, run_rows, thermal_errors
+from .reference import block, run_rows, thermal_errors
 from .schema import Condition, RunMeta
 from .segments import derive_segments, segment_name
 
@@ -123,9 +123,9 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
             if history:
                 note += f" (its log from {t[0]:g} s: the history before it)"
             runs[name] = RunMeta(condition=cond, notes=note)
-            p_parts.append(rows_where(pr, pm).assign(run_id=name))
-            seg_rows = block(pm) if at is not None else None
-            spans.append(None if seg_rows is None else (at[0] + seg_rows[0], at[0] + seg_rows[1]))
+            rows = block(pm)  # pr[pm], as a slice of pr when it is one block (no copy of a long log)
+            p_parts.append((pr[pm] if rows is None else pr.iloc[rows[0] : rows[1]]).assign(run_id=name))
+            spans.append(None if rows is None or at is None else (at[0] + rows[0], at[0] + rows[1]))
             e_parts.append(er[em].assign(run_id=name))
     new_meta = meta.model_copy(update={"runs": runs})
     pr = er = None  # (the last run's rows: not held while the split table is built)
