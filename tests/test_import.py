@@ -506,3 +506,34 @@ def test_one_measuring_cycle_for_the_reference_the_models_and_the_metrics(lab):
     np.testing.assert_array_equal(rd["cycle"].to_numpy(), truth["cycle"].to_numpy())
     curves = cycle_curves(rd, np.zeros(len(rd)))
     assert list(curves["cycle"]) == sorted(truth["cycle"].unique())
+
+
+@pytest.mark.parametrize("header, retyped", [(0, 2), (None, 2), (0, 5)])  # 5 > ARROW_RETYPES: one full read
+def test_the_lean_csv_reader_reads_what_pandas_reads_when_types_change_after_its_probe(tmp_path, header, retyped):
+    """The long-log reader (importer._read_csv_arrow) takes its types from the file's first MiB;
+    a file whose columns change after that (numbers then text, empty then numbers, integers then
+    reals, a missing-value word late) must read as pandas' own Arrow engine reads it: with a few
+    such columns (each retyped) and with more than the reader retypes one by one."""
+    from thermbench.data import importer
+
+    n = 80_000  # about 2.5 MiB: most rows after the first MiB
+    rng = np.random.default_rng(3)
+    t = np.arange(n, dtype=float)
+    late = n - 5
+    df = pd.DataFrame({
+        "t_s": t,
+        "T1": np.round(20 + rng.standard_normal(n), 3),
+        "empty_then_numbers": [""] * late + ["1.5"] * (n - late),
+        "numbers_then_text": [f"{v:.2f}" for v in rng.standard_normal(late)] + ["sensor off"] * (n - late),
+        "ints_then_reals": [str(k) for k in range(late)] + ["0.25"] * (n - late),
+        "na_late": ["2.0"] * late + ["NA"] * (n - late),
+    })
+    for k in range(retyped - 2):
+        df[f"text_late_{k}"] = ["1.0"] * late + [f"x{k}"] * (n - late)
+    path = tmp_path / "log.csv"
+    df.to_csv(path, index=False, header=header is not None)
+    assert path.stat().st_size > 2 * importer.ARROW_PROBE_BYTES
+    lean = importer._read_csv_arrow(path, ",", header, "utf-8", 0)
+    ref = pd.read_csv(path, header=header, engine="pyarrow")
+    assert lean is not None  # taken by the lean reader, not handed back
+    pd.testing.assert_frame_equal(lean, ref)

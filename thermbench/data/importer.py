@@ -496,7 +496,7 @@ def _read_csv_arrow(path: Path, sep: str, header: int | None, encoding: str, ski
                 del col, chunks
         labels = range(len(names)) if header is None else names
         return pd.DataFrame({labels[i]: data.pop(i) for i in range(len(names))}, copy=False)
-    except Exception:
+    except (pa.ArrowException, ImportError):  # what Arrow refuses (a parse error, a bad value): pandas reads it
         return None
     finally:
         pa.default_memory_pool().release_unused()  # what Arrow's pool kept of the blocks read: back to the system
