@@ -9,10 +9,14 @@ sixteen temperatures):
 
 * ``baseline_ols``: ordinary least squares (:class:`sklearn.linear_model.LinearRegression`);
 * ``baseline_rf``: :class:`sklearn.ensemble.RandomForestRegressor` (seeded);
-* ``baseline_hgb``: :class:`sklearn.ensemble.HistGradientBoostingRegressor` (seeded).
+* ``baseline_hgb``: :class:`sklearn.ensemble.HistGradientBoostingRegressor` (seeded);
+* ``baseline_ridge``: what a careful user writes in ten lines: :class:`~sklearn.preprocessing.StandardScaler`
+  and :class:`~sklearn.linear_model.RidgeCV` (alphas 1e-3..1e3, 13 on a log scale) on the rises and
+  the same rises 30 min earlier (``lags_s``: a thermal lag, zero before the run's first 30 min).
 
 :class:`SensorRegressor` wraps any scikit-learn regressor. Features at a reading (t, P):
-the rises ΔT_j(t) of every sensor of the dataset (or of ``sensors``); on an axis with
+the rises ΔT_j(t) of every sensor of the dataset (or of ``sensors``), and with ``lags_s`` the
+same rises ``lag`` seconds earlier, ΔT_j(t - lag) (0 before the run's first sample); on an axis with
 several measuring targets also the position P and, for the linear model, P·ΔT_j (a thermal
 error that grows along the axis). The target is the reading itself (``error_um``); the
 geometric part is left in the regressor (``geometric_`` is 0), as a user fitting a
@@ -25,12 +29,13 @@ run with the thread count of the job that fits it, like every family's
 
 from __future__ import annotations
 
-from typing import Annotated, Optional, Sequence
+from typing import Annotated, Any, Optional, Sequence
 
 import numpy as np
-from annotated_types import Len
+from annotated_types import Gt, Len
 from numpy.polynomial import Polynomial
-from sklearn.base import RegressorMixin, clone
+from pydantic import AfterValidator
+from sklearn.base import clone, is_regressor
 
 from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, readings, temperatures_at
@@ -39,12 +44,24 @@ from .params import Bool, Expect, Params, Seed, check_params
 __all__ = ["SensorRegressor"]
 
 
+def _regressor(est):
+    """A scikit-learn regressor, or a pipeline that ends in one (``is_regressor``)."""
+    try:
+        ok = is_regressor(est)
+    except AttributeError:  # not a scikit-learn estimator at all
+        ok = False
+    if not ok:
+        raise ValueError("not a regressor")
+    return est
+
+
 class SensorRegressorParams(Params):
-    estimator: Annotated[RegressorMixin, Expect("a scikit-learn regressor")]
+    estimator: Annotated[Any, AfterValidator(_regressor), Expect("a scikit-learn regressor (or a pipeline ending in one)")]
     sensors: Annotated[Optional[Annotated[Sequence[str], Len(min_length=1)]],
                        Expect("None or a non-empty list of sensor names")]  # fmt: skip
     seed: Optional[Seed]  # the estimator's random_state
     interactions: Bool
+    lags_s: Annotated[Sequence[Annotated[float, Gt(0)]], Expect("a list of lags in seconds, each > 0")]
 
 
 class SensorRegressor(ThermalErrorModel):
@@ -61,6 +78,9 @@ class SensorRegressor(ThermalErrorModel):
         ``benchmark`` set it from their top-level ``seed``).
     interactions : bool
         With several measuring targets: also P·ΔT_j (for a linear estimator).
+    lags_s : list of float
+        Also the rises this many seconds earlier, one set per lag (0 before the run's first
+        sample: the rise of a machine that had not started).
 
     Fitted: ``estimator_``, ``sensors_``, ``targets_mm_`` (the distinct measuring targets),
     ``uses_position_`` and ``geometric_`` (0: the regressor predicts the whole reading).
@@ -71,14 +91,18 @@ class SensorRegressor(ThermalErrorModel):
     reference_only = True
     params_model = SensorRegressorParams
 
-    def __init__(self, estimator=None, sensors=None, seed=None, interactions=False):
+    def __init__(self, estimator=None, sensors=None, seed=None, interactions=False, lags_s=()):
         self.estimator = estimator
         self.sensors = sensors
         self.seed = seed
         self.interactions = interactions
+        self.lags_s = lags_s
 
     def _features(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
-        dT = temperatures_at(ds, run, self.sensors_, t_s, preprocess=None, delta=True)
+        t = np.asarray(t_s, dtype=float)
+        # np.interp holds the first sample before it: a rise of 0 before the run's first sample
+        dT = np.hstack([temperatures_at(ds, run, self.sensors_, t - lag, preprocess=None, delta=True)
+                        for lag in (0.0, *self.lags_s)])  # fmt: skip
         if not self.uses_position_:
             return dT
         p = np.asarray(axis_mm, dtype=float)[:, None]
