@@ -45,6 +45,7 @@ from .experiment import (
     JobResult,
     _finish,
     build_model,
+    dataset_option,
     fit_evaluate,
     group_option,
     headline_metrics,
@@ -177,12 +178,21 @@ def families_by_dataset(cfg, datasets: Sequence[str]) -> dict[str, list[str]]:
         return {d: fams for d in datasets}
     out = {}
     for d in datasets:
-        own = group_option("dataset", d).get("benchmark_families")
-        if own is None:
+        option, dcfg = dataset_option(d, "datasets")
+        own = dcfg.get("benchmark_families")
+        if own is None and option is not None and option != "path":
             raise ExperimentError(f"config key 'families': null, and conf/dataset/{d}.yaml has no benchmark_families; "
                                   f"give the families, e.g. families=[mlr_seed002]")  # fmt: skip
+        if own is None:  # a dataset directory: every family (tasks() skips, in one line each, those it cannot serve)
+            own = [f for f in _options("model") if not _is_bank_option(f)]
         out[d] = _names({"benchmark_families": own}, "benchmark_families", _options("model"))
     return out
+
+
+def _is_bank_option(family: str) -> bool:
+    """A model option that is a bank of another family (``bank_mlr_seed002``): the benchmark's
+    ``bank`` approaches build banks of every family, so it is not a family of its own there."""
+    return str(group_option("model", family).get("_target_", "")).endswith("ConditionBank")
 
 
 def channels_of(ds, dcfg: Mapping) -> list[str]:
@@ -210,7 +220,7 @@ def tasks(cfg: DictConfig) -> list[dict]:
     approaches = _names(cfg, "approaches", list(APPROACHES))
     if not approaches:
         raise ExperimentError(f"config key 'approaches': empty; choose among {', '.join(APPROACHES)}")
-    datasets = _names(cfg, "datasets", _options("dataset"))
+    datasets = _dataset_entries(cfg)
     per_dataset = families_by_dataset(cfg, datasets)
     families = list(dict.fromkeys(f for fams in per_dataset.values() for f in fams))
     # with each dataset's own families (families: null), bank families a dataset does not run are ignored there
@@ -227,8 +237,8 @@ def tasks(cfg: DictConfig) -> list[dict]:
     classifier = OmegaConf.to_container(cfg.classifier, resolve=True) if cfg.get("classifier") else None
     version = tracking.code_version()
     out = []
-    for dname in cfg.datasets:
-        dcfg = group_option("dataset", str(dname))
+    for dname in datasets:
+        dcfg = dataset_option(dname, "datasets")[1]
         raw = load_source(dcfg)[0]
         for channel in channels_of(raw, dcfg):
             ccfg = dcfg if channel == "all" else {**dcfg, "channel": channel}
@@ -255,6 +265,19 @@ def tasks(cfg: DictConfig) -> list[dict]:
                     )
                 )
     return out
+
+
+def _dataset_entries(cfg) -> list[str]:
+    """``cfg.datasets``: dataset options by name or dataset directories (each checked here, one line)."""
+    value = cfg.get("datasets")
+    if isinstance(value, str) or not OmegaConf.is_list(value) and not isinstance(value, (list, tuple)):
+        raise ExperimentError(f"config key 'datasets': expected a list, e.g. datasets=[{value}], got {value!r}")
+    if not value:
+        raise ExperimentError("config key 'datasets': empty; give dataset options or directories, e.g. datasets=[fl_thermal]")
+    entries = [str(v) for v in value]
+    for e in entries:
+        dataset_option(e, "datasets")
+    return entries
 
 
 def model_config(family: str, dcfg: Mapping, dname: str) -> dict:
@@ -511,7 +534,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
         "datasets": ", ".join(map(str, cfg.datasets)),
-        "families": "; ".join(f"{d}: {', '.join(f)}" for d, f in families_by_dataset(cfg, list(map(str, cfg.datasets))).items()),
+        "families": "; ".join(f"{d}: {', '.join(f)}" for d, f in families_by_dataset(cfg, _dataset_entries(cfg)).items()),
         "approaches": ", ".join(map(str, cfg.approaches)),
         "thermbench version": __version__,
         "git commit": tracking.git_commit(),

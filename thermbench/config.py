@@ -491,6 +491,9 @@ class _Composer:
         if base is None:
             return f"unknown config key '{key}'"
         parts = key.split(".")
+        if parts[0] == "dataset" and "datasets" in base and "dataset" not in base:  # the benchmark's list
+            return (f"unknown config key '{key}': this command takes datasets=[...], each a dataset option or a "
+                    "dataset directory, e.g. \"datasets=[data/my_axis]\"")
         node = base
         for i, seg in enumerate(parts):
             if isinstance(node, DictConfig) and seg in node.keys():

@@ -162,6 +162,31 @@ def group_option(group: str, name: str) -> dict:
     return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
 
 
+def dataset_option(entry: str, key: str) -> tuple[str | None, dict]:
+    """The dataset config an entry names, and its option name: a ``conf/dataset`` option by name,
+    or a dataset directory (one holding ``metadata.yaml``), read through the ``path`` option and
+    named by its ``machine.name`` (None here). A name that is an option is the option unless it is
+    written as a path (``./fl_thermal``). A mistake is one line naming ``key``."""
+    names = sorted(p.stem for p in (config_dir() / "dataset").glob("*.yaml"))
+    entry = str(entry)
+    path = Path(entry)
+    if entry in names and "/" not in entry and path.name == entry:
+        cfg = group_option("dataset", entry)
+        if str((cfg.get("source") or {}).get("path")) == "???":  # the `path` option itself: a directory is wanted
+            raise ExperimentError(f"config key '{key}': option {entry!r} reads a dataset directory: give the "
+                                  f"directory itself, e.g. {key}=[data/my_axis]")  # fmt: skip
+        return entry, cfg
+    if not (path / "metadata.yaml").is_file():
+        what = "no such directory" if not path.exists() else "no metadata.yaml in it"
+        near = difflib.get_close_matches(entry, names, n=1)
+        hint = f"; did you mean {near[0]!r}?" if near else ""
+        raise ExperimentError(f"config key '{key}': {entry!r} is neither a dataset option ({', '.join(names)}) nor a "
+                              f"dataset directory ({what}; a lab's files come in with thermbench import){hint}")  # fmt: skip
+    cfg = group_option("dataset", "path")
+    cfg["source"] = {**cfg["source"], "path": str(path)}
+    return None, cfg
+
+
 def choice(cfg: DictConfig, group: str, default: str = "custom") -> str:
     """The option picked for ``group`` (``hydra.runtime.choices``), as ``model=lssvm`` names it."""
     hc = hydra_runtime()

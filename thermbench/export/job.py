@@ -169,24 +169,18 @@ def _dataset_config(e: dict, info: dict, key: str, model=None) -> tuple[str | No
     ``export.dataset`` (a conf/dataset option or a dataset directory; a directory's name is
     None: the loaded split names it), else the MLflow run's logged dataset config, else the
     benchmark dataset the key names. Checked here, loaded by :func:`_load_split_cached`."""
-    from ..experiment import dataset_config_for, group_option
+    from ..experiment import dataset_config_for, dataset_option, group_option
 
     given = e.get("dataset")
     logged = info.pop("dataset_config", None)
     name = info.pop("dataset_name", None)
     if given:
-        path = Path(str(given))
-        if str(given) not in _dataset_names() and (path.is_dir() or "/" in str(given) or path.suffix):
-            if not (path / "metadata.yaml").is_file():
-                raise ConfigError(f"config key 'export.dataset': {given} is neither a conf/dataset option "
-                                  f"({_dataset_names()}) nor a dataset directory (no metadata.yaml)")  # fmt: skip
-            cfg = {"name": None, "source": {"_target_": "thermbench.data.io.load_dataset", "path": str(path)},
-                   "channel": e.get("channel")}  # fmt: skip
-            return None, dataset_config_for(model, cfg, "export.channel")
-        cfg = dict(group_option("dataset", str(given)))
-        if e.get("channel") is not None:
+        option, cfg = dataset_option(str(given), "export.dataset")
+        if option is None:  # a directory: its own channel unless one is given
             cfg["channel"] = e.get("channel")
-        return str(given), dataset_config_for(model, cfg, "export.channel")
+        elif e.get("channel") is not None:
+            cfg["channel"] = e.get("channel")
+        return option, dataset_config_for(model, cfg, "export.channel")
     if logged is not None:
         src = logged["source"]
         if src.get("_target_") == "thermbench.data.io.load_dataset" and not Path(str(src.get("path"))).is_dir():

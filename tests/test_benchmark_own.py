@@ -1,0 +1,60 @@
+"""The benchmark pointed at a user's own dataset (issue 38): an entry of ``datasets`` that is a
+dataset directory is that dataset, named by its machine; with ``families: null`` it gets every
+family, and each it cannot serve is said in one line. Each mistake is one line naming the key."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.test_benchmark import _cfg
+from tests.test_import_shapes import shape1
+from thermbench import benchmark as bm
+from thermbench.data.importer import import_dataset
+from thermbench.experiment import ExperimentError, dataset_option
+
+
+@pytest.fixture(scope="module")
+def lathe(tmp_path_factory):
+    root = tmp_path_factory.mktemp("lathe")
+    mapping, _ = shape1(root / "files")
+    import_dataset(mapping, root / "lathe_d")
+    return root / "lathe_d"
+
+
+def test_a_directory_is_a_dataset_named_by_its_machine_with_every_family(lathe, tmp_path, capsys):
+    option, dcfg = dataset_option(str(lathe), "datasets")
+    assert option is None and dcfg["source"]["path"] == str(lathe) and dcfg["name"] is None
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=null", "bank_families=[]")
+    todo = bm.tasks(cfg)
+    families = {t["family"] for t in todo}
+    # every model option but the bank preset (the bank approaches build banks of each family) ...
+    assert "bank_mlr_seed002" not in families and {"baseline_ridge", "baseline_ols", "mlr_seed002", "lssvm"} <= families
+    # ... but those that need what a spindle test on a lathe lacks: skipped, one line each
+    err = capsys.readouterr().err
+    for fam in ("physics", "mlr_seed001"):
+        assert fam not in families and err.count(f"skipped {fam} on {lathe}") == 1
+    out = bm.run_task(**{**next(t for t in todo if t["family"] == "baseline_ols"), "approaches": ["global"]})
+    assert out["dataset"] == "lathe_d" and set(out["results"]["run_id"]) == {"Day_1", "Day_2", "Day_3"}
+
+
+@pytest.mark.parametrize("entry, message", [
+    ("path", "config key 'datasets': option 'path' reads a dataset directory: give the directory itself"),
+    ("fl_thermall", "config key 'datasets': 'fl_thermall' is neither a dataset option (fl_thermal, "),
+    ("no/such/dir", "nor a dataset directory (no such directory; a lab's files come in with thermbench import)"),
+])
+def test_a_wrong_entry_is_one_line(tmp_path, entry, message):
+    with pytest.raises(ExperimentError) as exc:
+        bm.tasks(_cfg(tmp_path, f"datasets=[{entry}]", "families=[baseline_ols]", "bank_families=[]"))
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_dataset_source_path_on_the_benchmark_says_what_it_takes(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "thermbench.cli", "benchmark", "dataset.source.path=x"],
+                          capture_output=True, text=True, cwd=tmp_path)  # fmt: skip
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "this command takes datasets=[...], each a dataset option or a dataset directory" in lines[0]
+    assert "did you mean" not in lines[0]
