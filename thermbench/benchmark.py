@@ -73,6 +73,8 @@ def run_task(
     code_version: str = __version__,
     verbose: bool = False,
     channel: str = "all",
+    cv: str | None = None,
+    cv_folds: int = 5,
 ) -> dict[str, Any]:
     """Fit and score one family on one dataset (see module docstring).
 
@@ -80,25 +82,40 @@ def run_task(
     source) are not used here: with the configs they are the key of the on-disk cache,
     so changed data or code is never served from it. ``verbose`` prints a line per fit.
     ``channel``: the error channel (``dataset_cfg`` names it) as the results label it.
+    ``cv``: how ``global`` and the banks are scored (:mod:`thermbench.cv`): ``declared`` fits them
+    on the loading states and scores them on every run; ``loro`` / ``group_kfold`` (``cv_folds``
+    folds) fit them once per fold on its training runs and score them on its held-out runs
+    (``kind`` validation, ``fold`` the held-out runs), then once more on every run: the model
+    to deploy. Null: :func:`thermbench.cv.resolve_cv`.
 
     Returns ``results`` (one row per fitted model x test run, the columns of
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
     for global and bank), ``models`` (fitted global/bank models), ``seconds`` and ``errors``.
     """
+    from .cv import folds as cv_folds_of, resolve_cv
+
     t0 = time.perf_counter()
     split = load_split(dataset_cfg)
     ds = split.dataset
     model = build_model(model_cfg, seed=seed)
     rows, curves, models, errors = [], [], {}, []
+    cv = resolve_cv(cv, split.validation)
+    scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
+    folds = [] if cv == "declared" else cv_folds_of([r for r in ds.run_ids if r in scored], split.validation, cv, cv_folds)
 
-    def tag(df: pd.DataFrame, approach: str, train: str, fitted=None) -> pd.DataFrame:
+    def tag(df: pd.DataFrame, approach: str, train: str, fitted=None, fold=None) -> pd.DataFrame:
         df = df.copy()
         df.insert(0, "approach", approach)
         df.insert(0, "family", family)
         df.insert(0, "channel", channel)
         df.insert(0, "dataset", split.name)
         df["train"] = train
-        df["kind"] = [split.kind(r) for r in df["run_id"]]
+        if fold is None:  # the declared split: the validation runs are each a fold of their own
+            df["kind"] = [split.kind(r) for r in df["run_id"]]
+            df["fold"] = ["+".join(split.validation) if k == "validation" else "" for k in df["kind"]]
+        else:  # a fold's held-out runs
+            df["kind"] = "validation"
+            df["fold"] = fold
         if fitted is not None:  # the sensors it reads (e.g. those seed 002's selection chose)
             df["sensors"] = " ".join(fitted.required_inputs().sensors)
         return df
@@ -111,8 +128,9 @@ def run_task(
 
     singles, single_fit_s = {}, {}
     banks = [a for a in approaches if a in BANKS]
+    states = split.states if cv == "declared" else sorted({r for f in folds for r in f.held_out}, key=ds.run_ids.index)
     if "single" in approaches or banks:
-        for state in split.states:
+        for state in states:
             try:
                 fitted, res, _ = fit_evaluate(model, ds, [state])
             except ModelError as exc:
@@ -123,7 +141,7 @@ def run_task(
             say(f"single {state}", single_fit_s[state])
             if "single" in approaches:
                 rows.append(tag(res, "single", state, fitted))
-    if "global" in approaches and len(split.states) > 1:
+    if "global" in approaches and len(states) > 1 and cv == "declared":
         try:
             fitted, res, cur = fit_evaluate(model, ds, split.states, curves=True)
             rows.append(tag(res, "global", "all", fitted))
@@ -132,7 +150,46 @@ def run_task(
             say("global", float(res["fit_s"].iloc[0]))
         except ModelError as exc:
             errors.append(f"{where}/{family}/global: {exc}")
-    for approach in banks if len(singles) > 1 and classifier_cfg is not None else []:
+    elif "global" in approaches:
+        for fold in folds:  # one fit per fold, scored on the runs it holds out
+            try:
+                fitted, res, cur = fit_evaluate(model, ds, fold.train, fold.held_out, curves=True)
+                rows.append(tag(res, "global", "all", fitted, fold=fold.name))
+                curves.append(tag(cur, "global", "all", fold=fold.name))
+                say(f"global without {fold.name}", float(res["fit_s"].iloc[0]))
+            except ModelError as exc:
+                errors.append(f"{where}/{family}/global fold {fold.name}: {exc}")
+        try:  # the model to deploy: on every run
+            models["global"] = clone(model).fit(ds, states)
+        except ModelError as exc:
+            errors.append(f"{where}/{family}/global: {exc}")
+    for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv != "declared" else []:
+        from .models.bank import ConditionBank
+
+        def new_bank():
+            return ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
+                                 blend=BANKS[approach])  # fmt: skip
+
+        for fold in folds:  # the members of the fold's training runs: none has seen a held-out run
+            members = {s: m for s, m in singles.items() if s in fold.train}
+            if len(members) < 2:
+                errors.append(f"{where}/{family}/{approach} fold {fold.name}: fewer than 2 members to choose among")
+                continue
+            try:
+                bank = new_bank().fit_from_fitted(ds, members)
+                res, cur = evaluate_runs(bank, ds, list(fold.held_out), curves=True)
+                res.insert(1, "own", False)
+                res["fit_s"] = sum(single_fit_s[s] for s in members)
+                rows.append(tag(res, approach, "all", bank, fold=fold.name))
+                curves.append(tag(cur, approach, "all", fold=fold.name))
+            except ModelError as exc:
+                errors.append(f"{where}/{family}/{approach} fold {fold.name}: {exc}")
+        try:
+            models[approach] = new_bank().fit_from_fitted(ds, singles)
+            say(f"{approach} classifier", 0.0)
+        except ModelError as exc:
+            errors.append(f"{where}/{family}/{approach}: {exc}")
+    for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv == "declared" else []:
         from .models.bank import ConditionBank
 
         bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
@@ -159,6 +216,7 @@ def run_task(
         "models": models,
         "dataset_hash": ds.content_hash(),
         "frame": frame_text(ds.metadata),  # what every score of this dataset is of (data.reference)
+        "cv": cv,
         "seconds": time.perf_counter() - t0,
         "errors": errors,
     }
@@ -262,6 +320,8 @@ def tasks(cfg: DictConfig) -> list[dict]:
                         code_version=version,
                         verbose=bool(cfg.get("progress", True)),
                         channel=channel,
+                        cv=None if cfg.get("cv") is None else str(cfg.get("cv")),
+                        cv_folds=cfg.get("cv_folds", 5),
                     )
                 )
     return out

@@ -1,0 +1,70 @@
+"""Cross-validation over runs (thermbench/cv.py, issue 38): whole runs held out, each once, and
+the benchmark's held-out scores checked against scikit-learn fitted by hand on the same runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.linear_model import LinearRegression
+
+from tests.test_benchmark_own import lathe  # noqa: F401  (the fixture: shape 1 imported)
+from tests.test_import_shapes import DAYS, _day
+from thermbench import benchmark as bm
+from thermbench.cv import folds, resolve_cv
+from thermbench.experiment import ExperimentError, dataset_option, group_option
+
+RUNS = ["a", "b", "c", "d", "e"]
+
+
+def test_loro_holds_each_run_out_once_and_trains_on_the_others():
+    fs = folds(RUNS, [], "loro")
+    assert [f.held_out for f in fs] == [(r,) for r in RUNS]
+    assert all(set(f.train) == set(RUNS) - set(f.held_out) for f in fs)
+    assert [f.name for f in fs] == RUNS
+
+
+def test_group_kfold_splits_whole_runs_into_disjoint_folds():
+    fs = folds(RUNS, [], "group_kfold", k=2)
+    assert len(fs) == 2
+    held = [r for f in fs for r in f.held_out]
+    assert sorted(held) == RUNS  # each run held out exactly once
+    assert all(not set(f.train) & set(f.held_out) and set(f.train) | set(f.held_out) == set(RUNS) for f in fs)
+
+
+def test_declared_is_the_datasets_own_split_and_null_picks_by_the_dataset():
+    (f,) = folds(RUNS, ["e"], "declared")
+    assert f.name == "e" and f.held_out == ("e",) and f.train == tuple(RUNS[:4])
+    assert resolve_cv(None, ["tail"]) == "declared" and resolve_cv(None, []) == "loro"
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: resolve_cv("kfold", []), "config key 'cv': expected one of loro, group_kfold, declared or null, got 'kfold'"),
+    (lambda: folds(RUNS, [], "declared"), "config key 'cv': declared, but the dataset declares no validation runs"),
+    (lambda: folds(RUNS, [], "group_kfold", k=6), "config key 'cv_folds': expected an integer from 2 to the number of runs (5), got 6"),
+    (lambda: folds(["a"], [], "loro"), "config key 'cv': loro needs at least 2 runs with readings, the dataset has 1"),
+])
+def test_mistakes_are_one_line(call, message):
+    with pytest.raises(ExperimentError) as exc:
+        call()
+    assert str(exc.value).startswith(message)
+
+
+def test_loro_scores_of_least_squares_equal_sklearn_fitted_by_hand(lathe):  # noqa: F811
+    """baseline_ols, global, leave-one-run-out on the three days of shape 1: each held-out day's
+    RMSE equals LinearRegression fitted on the other two days' rises (computed from the numbers
+    written into the workbook) and scored on that day's drift from its first reading."""
+    _, dcfg = dataset_option(str(lathe), "datasets")
+    out = bm.run_task(dcfg, "baseline_ols", group_option("model", "baseline_ols"), ["global"], None, seed=0,
+                      channel="dia", cv="loro")  # fmt: skip
+    res = out["results"]
+    assert out["cv"] == "loro" and set(res["kind"]) == {"validation"} and not res["own"].any()
+    assert list(res["fold"]) == list(res["run_id"]) == ["Day_1", "Day_2", "Day_3"]
+    days = {d.replace(" ", "_"): _day(k, n, zero) for k, (d, (n, zero)) in enumerate(DAYS.items())}
+    for held in days:
+        X = np.vstack([t - t[0] for d, (t, _) in days.items() if d != held])
+        y = np.concatenate([u - u[0] for d, (_, u) in days.items() if d != held])
+        t, u = days[held]
+        pred = LinearRegression().fit(X, y).predict(t - t[0])
+        rmse = float(np.sqrt(np.mean((pred - (u - u[0])) ** 2)))
+        assert res.set_index("run_id").loc[held, "rmse_um"] == pytest.approx(rmse, rel=1e-9)
+    assert out["models"]["global"].train_runs_ == ["Day_1", "Day_2", "Day_3"]  # the model to deploy: every run
