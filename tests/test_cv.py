@@ -68,3 +68,58 @@ def test_loro_scores_of_least_squares_equal_sklearn_fitted_by_hand(lathe):  # no
         rmse = float(np.sqrt(np.mean((pred - (u - u[0])) ** 2)))
         assert res.set_index("run_id").loc[held, "rmse_um"] == pytest.approx(rmse, rel=1e-9)
     assert out["models"]["global"].train_runs_ == ["Day_1", "Day_2", "Day_3"]  # the model to deploy: every run
+
+
+# ------------------------------------------------------------ nested choice ---
+def _inner(rows):
+    import pandas as pd
+
+    return pd.DataFrame([{"dataset": "d", "channel": "all", "fold": fo, "family": f, "approach": a,
+                          "inner_fold": ifo, "run_id": r, "rmse_um": v} for fo, f, a, ifo, r, v in rows])  # fmt: skip
+
+
+def test_the_nested_choice_takes_the_smallest_median_inner_rmse_of_complete_finite_candidates():
+    rows = []
+    for fold in ("A", "B"):
+        runs = [r for r in ("A", "B", "C") if r != fold]
+        for k, r in enumerate(runs):
+            rows += [(fold, "lssvm", "global", r, r, 1.0 + k), (fold, "mlp", "global", r, r, 0.5 + 3 * k)]
+            rows += [(fold, "gru", "global", r, r, 0.1)] if k == 0 else []  # incomplete: not a candidate
+            rows += [(fold, "mlr", "bank", r, r, float("nan") if k else 0.01)]  # non-finite: not a candidate
+    choice = bm.nested_choice(_inner(rows))
+    # medians: lssvm (1, 2) -> 1.5, mlp (0.5, 3.5) -> 2.0
+    assert list(zip(choice["fold"], choice["family"], choice["approach"])) == [("A", "lssvm", "global"), ("B", "lssvm", "global")]
+    assert list(choice["inner_median_rmse_um"]) == [1.5, 1.5]
+    blocked = bm.nested_choice(_inner(rows), blocked=[("d", "lssvm", "global")])
+    assert set(blocked["family"]) == {"mlp"}
+
+
+def test_inner_folds_never_hold_or_train_on_the_outer_held_out_run(lathe):  # noqa: F811
+    _, dcfg = dataset_option(str(lathe), "datasets")
+    out = bm.run_task(dcfg, "mlr_seed002", group_option("model", "mlr_seed002"), ["global"], None, seed=0,
+                      channel="dia", cv="loro")  # fmt: skip
+    inner = out["inner"]
+    assert set(inner["fold"]) == {"Day_1", "Day_2", "Day_3"}
+    for fold, g in inner.groupby("fold"):
+        assert fold not in set(g["run_id"]) and fold not in set(g["inner_fold"])  # what the choice scores on
+        assert sorted(g["run_id"]) == sorted({"Day_1", "Day_2", "Day_3"} - {fold})  # each other run once
+    base = bm.run_task(dcfg, "baseline_ols", group_option("model", "baseline_ols"), ["global"], None, seed=0,
+                       channel="dia", cv="loro")  # fmt: skip
+    assert base["inner"].empty  # a baseline is never chosen: no inner folds spent on it
+
+
+def test_the_held_out_summary_against_a_hand_count():
+    import pandas as pd
+
+    rows = []
+    for fold, (chosen, ridge, none) in {"r1": (1.0, 2.0, 10.0), "r2": (3.0, 2.5, 12.0), "r3": (1.5, 1.0, 1.2)}.items():
+        for fam, v in (("lssvm", chosen), ("baseline_ridge", ridge), ("baseline_ols", ridge + 1)):
+            rows.append({"dataset": "d", "channel": "all", "family": fam, "approach": "global", "kind": "validation",
+                         "fold": fold, "run_id": fold, "rmse_um": v, "rms_error_um": none})  # fmt: skip
+    choice = pd.DataFrame({"case": "d", "fold": ["r1", "r2", "r3"], "family": "lssvm", "approach": "global"})
+    (row,) = bm.held_out_summary(pd.DataFrame(rows), choice, ["baseline_ridge", "baseline_ols"]).to_dict("records")
+    assert row["folds"] == 3 and row["best_baseline"] == "baseline_ridge (global)"
+    assert (row["chosen_median_rmse_um"], row["chosen_worst_rmse_um"]) == (1.5, 3.0)
+    assert (row["baseline_median_rmse_um"], row["baseline_worst_rmse_um"]) == (2.0, 2.5)
+    assert (row["none_median_rmse_um"], row["none_worst_rmse_um"]) == (10.0, 12.0)
+    assert row["beat_best_baseline"] == "1/3" and row["beat_no_compensation"] == "2/3"

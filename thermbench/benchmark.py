@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import joblib
+import numpy as np
 import pandas as pd
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -92,7 +93,7 @@ def run_task(
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
     for global and bank), ``models`` (fitted global/bank models), ``seconds`` and ``errors``.
     """
-    from .cv import folds as cv_folds_of, resolve_cv
+    from .cv import Fold, folds as cv_folds_of, inner_folds, resolve_cv
 
     t0 = time.perf_counter()
     split = load_split(dataset_cfg)
@@ -102,6 +103,10 @@ def run_task(
     cv = resolve_cv(cv, split.validation)
     scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
     folds = [] if cv == "declared" else cv_folds_of([r for r in ds.run_ids if r in scored], split.validation, cv, cv_folds)
+    # the folds a choice is made for: each outer fold, or the declared split (states against validation runs)
+    outer = folds or ([Fold("+".join(split.validation), tuple(split.states), tuple(split.validation))]
+                      if split.validation else [])  # fmt: skip
+    inner_rows = []
 
     def tag(df: pd.DataFrame, approach: str, train: str, fitted=None, fold=None) -> pd.DataFrame:
         df = df.copy()
@@ -207,6 +212,29 @@ def run_task(
             say(f"{approach} classifier", time.perf_counter() - t1)
         except ModelError as exc:
             errors.append(f"{where}/{family}/{approach}: {exc}")
+    if not reference_only_model(model):  # a candidate of the nested choice: scored by the inner folds
+        for f in outer:
+            for g in inner_folds(f.train):
+                for approach in [a for a in approaches if a != "single"]:
+                    try:
+                        if approach == "global":
+                            fitted = clone(model).fit(ds, list(g.train))
+                        else:
+                            members = {s: m for s, m in singles.items() if s in g.train}
+                            if len(members) < 2 or classifier_cfg is None:
+                                continue
+                            from .models.bank import ConditionBank
+
+                            fitted = ConditionBank(model=clone(model), blend=BANKS[approach],
+                                                   classifier=instantiate(dict(classifier_cfg), _convert_="all"),
+                                                   ).fit_from_fitted(ds, members)  # fmt: skip
+                        res = evaluate_runs(fitted, ds, list(g.held_out))
+                    except ModelError as exc:
+                        errors.append(f"{where}/{family}/{approach} fold {f.name}, inner fold {g.name}: {exc}")
+                        continue
+                    inner_rows.append(res.assign(dataset=split.name, channel=channel, family=family,
+                                                 approach=approach, fold=f.name, inner_fold=g.name))  # fmt: skip
+            say(f"inner folds of {f.name}", 0.0)
     return {
         "dataset": split.name,
         "channel": channel,
@@ -217,6 +245,7 @@ def run_task(
         "dataset_hash": ds.content_hash(),
         "frame": frame_text(ds.metadata),  # what every score of this dataset is of (data.reference)
         "cv": cv,
+        "inner": pd.concat(inner_rows, ignore_index=True) if inner_rows else pd.DataFrame(),
         "seconds": time.perf_counter() - t0,
         "errors": errors,
     }
@@ -422,6 +451,12 @@ def _with_case(results: pd.DataFrame) -> pd.DataFrame:
     return results.assign(case=[case_label(d, c) for d, c in zip(results["dataset"], channel)])
 
 
+def reference_only_model(model) -> bool:
+    """True for a baseline model (``reference_only`` on its class, or on a bank's members)."""
+    inner = getattr(model, "model", None)
+    return bool(getattr(model, "reference_only", False) or getattr(inner, "reference_only", False))
+
+
 def reference_only(family: str) -> bool:
     """True for a baseline family (``reference_only`` on its class): in the tables for
     comparison, never chosen for deployment."""
@@ -482,6 +517,90 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
     )
     agg = agg.reset_index().sort_values(["case", "worst_rate", "max_residual_um"], ascending=[True, False, True])
     return agg.groupby("case").head(1).reset_index(drop=True)
+
+
+def nested_choice(inner: pd.DataFrame, blocked: Iterable[tuple[str, str, str]] = ()) -> pd.DataFrame:
+    """Per dataset, channel and outer fold, the (family, approach) thermbench would deploy, chosen
+    without seeing the fold's held-out runs: the smallest median RMSE over the inner folds' held-out
+    runs (:func:`thermbench.cv.inner_folds`, on the fold's training runs only; ties: the smaller
+    worst). Candidates: the non-baseline families (only they have inner scores) with a score on
+    every inner held-out run of the fold and none non-finite, and not in ``blocked`` (the C runtime
+    cannot run it). Columns: ``dataset``, ``channel``, ``case``, ``fold``, ``family``, ``approach``,
+    ``inner_median_rmse_um``."""
+    cols = ["dataset", "channel", "case", "fold", "family", "approach", "inner_median_rmse_um"]
+    if inner.empty:
+        return pd.DataFrame(columns=cols)
+    inner = _with_case(inner)
+    blocked = set(blocked)
+    keys = ["dataset", "channel", "case", "fold"]
+    out = []
+    for key, g in inner.groupby(keys, sort=False):
+        need = g[["inner_fold", "run_id"]].drop_duplicates().shape[0]  # every inner held-out run of the fold
+        best = None
+        for (fam, app), c in g.groupby(["family", "approach"], sort=False):
+            if (key[2], fam, app) in blocked or len(c) < need or not np.isfinite(c["rmse_um"]).all():
+                continue
+            score = (float(c["rmse_um"].median()), float(c["rmse_um"].max()))
+            if best is None or score < best[0]:
+                best = (score, fam, app)
+        if best is not None:
+            out.append(dict(zip(keys, key)) | {"family": best[1], "approach": best[2], "inner_median_rmse_um": best[0][0]})
+    return pd.DataFrame(out, columns=cols)
+
+
+def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Sequence[str]) -> pd.DataFrame:
+    """Per dataset and channel, over the folds: thermbench's nested choice (the held-out RMSE of the
+    model chosen in each fold), the best baseline (the baseline family and approach of smallest
+    median held-out RMSE over the folds) and no compensation; median and worst over the folds, and
+    on how many folds the choice beat the best baseline and beat no compensation (a fold's RMSE:
+    the root of the mean square over its held-out runs' readings, approximated by the mean of the
+    runs' RMSE when a fold holds out several runs)."""
+    r = _with_case(results)
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
+        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean")).reset_index()  # fmt: skip
+    out = []
+    for case, g in per_fold.groupby("case", sort=False):
+        ch = choice[choice["case"] == case]
+        chosen = g.merge(ch[["fold", "family", "approach"]], on=["fold", "family", "approach"])
+        base = g[g["family"].isin(list(baselines))]
+        row = {"case": case, "folds": int(g["fold"].nunique())}
+        none = g.groupby("fold")["rms_error_um"].first()
+        row |= {"none_median_rmse_um": float(none.median()), "none_worst_rmse_um": float(none.max())}
+        if not chosen.empty:
+            c = chosen.set_index("fold")["rmse_um"]
+            row |= {"chosen_median_rmse_um": float(c.median()), "chosen_worst_rmse_um": float(c.max()),
+                    "chosen": "; ".join(f"{f}: {a} {b}" for f, a, b in chosen[["fold", "family", "approach"]].itertuples(index=False)),
+                    "beat_no_compensation": f"{int((c < none.reindex(c.index)).sum())}/{len(c)}"}  # fmt: skip
+        if not base.empty:
+            med = base.groupby(["family", "approach"])["rmse_um"].median().sort_values()
+            fam, app = med.index[0]
+            b = base[(base["family"] == fam) & (base["approach"] == app)].set_index("fold")["rmse_um"]
+            row |= {"best_baseline": f"{fam} ({app})", "baseline_median_rmse_um": float(b.median()),
+                    "baseline_worst_rmse_um": float(b.max())}  # fmt: skip
+            if not chosen.empty:
+                common = c.index.intersection(b.index)
+                row["beat_best_baseline"] = f"{int((c[common] < b[common]).sum())}/{len(common)}"
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def _summary_text(row: Mapping) -> str:
+    """One line of :func:`held_out_summary`."""
+
+    def pair(prefix: str) -> str:
+        med, worst = row.get(f"{prefix}_median_rmse_um"), row.get(f"{prefix}_worst_rmse_um")
+        return "-" if med is None or pd.isna(med) else f"{med:.2f} / {worst:.2f}"
+
+    parts = [f"{row['folds']} folds", f"choice {pair('chosen')}"]
+    if isinstance(row.get("best_baseline"), str):
+        parts.append(f"best baseline {row['best_baseline']} {pair('baseline')}")
+    parts.append(f"no compensation {pair('none')}")
+    if isinstance(row.get("beat_best_baseline"), str):
+        parts.append(f"choice beat the best baseline on {row['beat_best_baseline']} folds")
+    if isinstance(row.get("beat_no_compensation"), str):
+        parts.append(f"no compensation on {row['beat_no_compensation']}")
+    return "; ".join(parts)
 
 
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
@@ -590,6 +709,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
             if why:
                 blockers[(case_label(o["dataset"], o.get("channel", "all")), o["family"], a)] = why
     chosen = choose(results, exclude=baselines, blocked=blockers)
+    parts = [o["inner"] for o in done_tasks if not o.get("inner", pd.DataFrame()).empty]
+    nested = nested_choice(pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(), blocked=blockers)
+    key = _with_case(results)
+    mark = set(zip(nested["case"], nested["fold"], nested["family"], nested["approach"]))
+    results["chosen"] = [(c, fo, f, a) in mark and k == "validation" for c, fo, f, a, k in
+                         zip(key["case"], results["fold"], results["family"], results["approach"], results["kind"])]  # fmt: skip
+    summary = held_out_summary(results, nested, baselines)
     flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
@@ -607,6 +733,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     frames = sorted({f"{o['dataset']}: {o['frame']}" for o in done_tasks if o.get("frame")})
     if frames:
         meta["scored on"] = "; ".join(frames)
+    for row in summary.to_dict("records"):  # the nested choice against the best baseline and no compensation
+        meta[f"held out, {row['case']}"] = _summary_text(row)
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
@@ -673,6 +801,11 @@ def benchmark(cfg: DictConfig) -> JobResult:
             tracking.set_alias(name, alias, version)  # 'champion' only for the shipped settings
             registered[d] = f"models:/{name}@{alias}"
     print(terminal_summary(results, reference=baselines))
+    if not summary.empty:
+        print("\nheld-out RMSE over the folds, median / worst (µm): thermbench's choice made without the held-out "
+              "run (nested), the best baseline, no compensation")
+        for row in summary.to_dict("records"):
+            print(f"  {row['case']}: {_summary_text(row)}")
     for line in flag_lines:
         print(f"flagged (never chosen): {line}")
     for d in unchosen:

@@ -67,3 +67,22 @@ def folds(runs: Sequence[str], validation: Sequence[str], cv: str, k: int = 5) -
         held = tuple(runs[i] for i in sorted(test))
         out.append(Fold("+".join(held), tuple(runs[i] for i in sorted(train)), held))
     return out
+
+
+#: an outer fold's training runs up to this many: the inner cross-validation holds each out once
+INNER_LORO_MAX_RUNS = 6
+#: more training runs: this many inner folds of whole runs (GroupKFold)
+INNER_FOLDS = 3
+
+
+def inner_folds(train: Sequence[str]) -> list[Fold]:
+    """The inner cross-validation of one outer fold, on its training runs only (the nested choice
+    never sees the runs the fold holds out): each run held out once for up to
+    :data:`INNER_LORO_MAX_RUNS` runs, else :data:`INNER_FOLDS` folds of whole runs. None for
+    fewer than 2 runs (nothing to choose on)."""
+    train = list(train)
+    if len(train) < 2:
+        return []
+    if len(train) <= INNER_LORO_MAX_RUNS:
+        return folds(train, [], "loro")
+    return folds(train, [], "group_kfold", k=INNER_FOLDS)

@@ -36,6 +36,7 @@ def residual_metrics(measured_um, predicted_um, thermal_um=None) -> dict[str, fl
     max_res = float(np.max(np.abs(r)))
     return {
         "rmse_um": float(np.sqrt(np.mean(r**2))),
+        "rms_error_um": float(np.sqrt(np.mean(m**2))),  # the rmse_um of no compensation
         "max_abs_residual_um": max_res,
         "pv_residual_um": float(np.ptp(r)),
         "max_abs_error_um": max_err,
