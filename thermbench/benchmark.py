@@ -592,7 +592,7 @@ def _summary_text(row: Mapping) -> str:
         med, worst = row.get(f"{prefix}_median_rmse_um"), row.get(f"{prefix}_worst_rmse_um")
         return "-" if med is None or pd.isna(med) else f"{med:.2f} / {worst:.2f}"
 
-    parts = [f"{row['folds']} folds", f"choice {pair('chosen')}"]
+    parts = [f"{row['folds']} fold{'s' if row['folds'] != 1 else ''}", f"choice {pair('chosen')}"]
     if isinstance(row.get("best_baseline"), str):
         parts.append(f"best baseline {row['best_baseline']} {pair('baseline')}")
     parts.append(f"no compensation {pair('none')}")
