@@ -172,7 +172,7 @@ def test_the_messages_say_what_is_expected(ds):
          "MLPModel.activation: expected one of ['tanh', 'relu', 'gelu', 'silu', 'sigmoid'], got 'softsign'"),
         (GRUModel(batch_size=0), "GRUModel.batch_size: expected None or an integer >= 1, got 0"),
         (SensorRegressor(estimator=LogisticRegression()),
-         "SensorRegressor.estimator: expected a scikit-learn regressor, got a LogisticRegression"),
+         "SensorRegressor.estimator: expected a scikit-learn regressor (or a pipeline ending in one), got a LogisticRegression"),
         (PhysicsModel(dt_s=0.3, macro_dt_s=10.0),
          "PhysicsModel: macro_dt_s must be a whole multiple of dt_s, got macro_dt_s=10, dt_s=0.3"),
     ]  # fmt: skip
