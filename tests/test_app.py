@@ -190,9 +190,9 @@ def test_submitit_local_sweep_runs_each_job_in_its_own_process_and_resumes(tmp_p
     process started by submitit from its pickled job file, tracked in MLflow. Ctrl-C (SIGINT to
     the whole process group, as a terminal sends it) after job 0 finished stops the sweep with
     exit 130; the same command again resumes it: job 0 is skipped (its MLflow run reused) and
-    job 1 runs to the end. Job 1 is the same LSSVM with 1500 PSO iterations instead of 1
-    (about 10 s more of fitting), so it is still running when job 0 is done."""
-    args = ["train", "-m", "hydra/launcher=submitit_local", "model=lssvm", "model.iters=1,1500", "model.n_particles=5",
+    job 1 runs to the end. Job 1 is the same LSSVM with 4000 PSO iterations instead of 1
+    (about 25 s more of fitting; with 1500 it once finished within the moment between the check and the interrupt on a loaded machine), so it is still running when job 0 is done."""
+    args = ["train", "-m", "hydra/launcher=submitit_local", "model=lssvm", "model.iters=1,4000", "model.n_particles=5",
             "train=state2", *store_overrides(tmp_path)]  # fmt: skip
     sweep = tmp_path / "sweep"
     with open(tmp_path / "out1.txt", "w") as out, open(tmp_path / "err1.txt", "w") as err:
@@ -245,7 +245,7 @@ def test_submitit_local_sweep_runs_each_job_in_its_own_process_and_resumes(tmp_p
     assert len(list((sweep / ".submitit").glob("[0-9]*/*_result.pkl"))) >= 2  # submitit's results of the resumed jobs
 
     runs = finished_runs(tmp_path)
-    assert sorted(r.data.params["model.iters"] for r in runs) == ["1", "1500"]
+    assert sorted(r.data.params["model.iters"] for r in runs) == ["1", "4000"]
     assert len({r.data.tags["thermbench.config_hash"] for r in runs}) == 2
     assert {r.info.run_id for r in runs} == {r0["mlflow_run_id"], r1["mlflow_run_id"]}
     c = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db")
