@@ -123,3 +123,18 @@ def test_the_held_out_summary_against_a_hand_count():
     assert (row["baseline_median_rmse_um"], row["baseline_worst_rmse_um"]) == (2.0, 2.5)
     assert (row["none_median_rmse_um"], row["none_worst_rmse_um"]) == (10.0, 12.0)
     assert row["beat_best_baseline"] == "1/3" and row["beat_no_compensation"] == "2/3"
+
+
+def test_held_out_flags_name_worse_than_nothing_and_worse_than_the_best_baseline():
+    import pandas as pd
+
+    rows = []
+    for fold, (lssvm, ridge, mlp, none) in {"r1": (1.0, 2.0, 0.5, 10.0), "r2": (13.0, 2.5, 1.0, 12.0),
+                                            "r3": (3.5, 1.0, 0.9, 5.0)}.items():  # fmt: skip
+        for fam, v in (("lssvm", lssvm), ("baseline_ridge", ridge), ("mlp", mlp)):
+            rows.append({"dataset": "d", "channel": "all", "family": fam, "approach": "global", "kind": "validation",
+                         "fold": fold, "run_id": fold, "rmse_um": v, "rms_error_um": none})  # fmt: skip
+    lines = bm.held_out_flags(pd.DataFrame(rows), ["baseline_ridge"])
+    # lssvm: 13 > 12 on r2; median 3.5 > the ridge's 2.0. mlp: never worse than either.
+    assert lines == ["d/lssvm/global: worse than no compensation on held-out run(s) ['r2']",
+                     "d/lssvm/global: median held-out RMSE 3.50 µm, worse than the best baseline baseline_ridge (global) 2.00 µm"]

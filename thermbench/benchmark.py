@@ -585,6 +585,31 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     return pd.DataFrame(out)
 
 
+def held_out_flags(results: pd.DataFrame, baselines: Sequence[str]) -> list[str]:
+    """What the held-out scores say against a family, never hidden: per dataset, channel, family
+    and approach (not ``single``), the held-out runs where it made the error worse than no
+    compensation (its RMSE above the run's ``rms_error_um``), and a median held-out RMSE over the
+    folds above the best baseline's (:func:`held_out_summary`'s best baseline). One line each."""
+    r = _with_case(results)
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    if v.empty or "rms_error_um" not in v:
+        return []
+    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False)["rmse_um"].mean()
+    lines = []
+    for case, g in v.groupby("case", sort=False):
+        med = per_fold.loc[case].groupby(level=["family", "approach"], sort=False).median()
+        base = med[[f in baselines for f, _ in med.index]].sort_values()
+        best = (base.index[0], float(base.iloc[0])) if len(base) else None
+        for (fam, app), c in g.groupby(["family", "approach"], sort=False):
+            worse = c.loc[c["rmse_um"] > c["rms_error_um"], "run_id"].tolist()
+            if worse:
+                lines.append(f"{case}/{fam}/{app}: worse than no compensation on held-out run(s) {worse}")
+            if best is not None and fam not in baselines and float(med[(fam, app)]) > best[1]:
+                lines.append(f"{case}/{fam}/{app}: median held-out RMSE {float(med[(fam, app)]):.2f} µm, worse than the "
+                             f"best baseline {best[0][0]} ({best[0][1]}) {best[1]:.2f} µm")  # fmt: skip
+    return lines
+
+
 def _summary_text(row: Mapping) -> str:
     """One line of :func:`held_out_summary`."""
 
@@ -735,6 +760,9 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta["scored on"] = "; ".join(frames)
     for row in summary.to_dict("records"):  # the nested choice against the best baseline and no compensation
         meta[f"held out, {row['case']}"] = _summary_text(row)
+    held_flags = held_out_flags(results, baselines)
+    if held_flags:
+        meta["flagged on held-out runs"] = " | ".join(held_flags)
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
@@ -806,6 +834,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
               "run (nested), the best baseline, no compensation")
         for row in summary.to_dict("records"):
             print(f"  {row['case']}: {_summary_text(row)}")
+    for line in held_flags:
+        print(f"flagged on held-out runs: {line}")
     for line in flag_lines:
         print(f"flagged (never chosen): {line}")
     for d in unchosen:
