@@ -168,20 +168,20 @@ def run_task(
             models["global"] = clone(model).fit(ds, states)
         except ModelError as exc:
             errors.append(f"{where}/{family}/global: {exc}")
-    for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv != "declared" else []:
+    def new_bank(approach: str):
         from .models.bank import ConditionBank
 
-        def new_bank():
-            return ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
-                                 blend=BANKS[approach])  # fmt: skip
+        return ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
+                             blend=BANKS[approach])  # fmt: skip
 
+    for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv != "declared" else []:
         for fold in folds:  # the members of the fold's training runs: none has seen a held-out run
             members = {s: m for s, m in singles.items() if s in fold.train}
             if len(members) < 2:
                 errors.append(f"{where}/{family}/{approach} fold {fold.name}: fewer than 2 members to choose among")
                 continue
             try:
-                bank = new_bank().fit_from_fitted(ds, members)
+                bank = new_bank(approach).fit_from_fitted(ds, members)
                 res, cur = evaluate_runs(bank, ds, list(fold.held_out), curves=True)
                 res.insert(1, "own", False)
                 res["fit_s"] = sum(single_fit_s[s] for s in members)
@@ -190,15 +190,12 @@ def run_task(
             except ModelError as exc:
                 errors.append(f"{where}/{family}/{approach} fold {fold.name}: {exc}")
         try:
-            models[approach] = new_bank().fit_from_fitted(ds, singles)
+            models[approach] = new_bank(approach).fit_from_fitted(ds, singles)
             say(f"{approach} classifier", 0.0)
         except ModelError as exc:
             errors.append(f"{where}/{family}/{approach}: {exc}")
     for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv == "declared" else []:
-        from .models.bank import ConditionBank
-
-        bank = ConditionBank(model=clone(model), classifier=instantiate(dict(classifier_cfg), _convert_="all"),
-                             blend=BANKS[approach])  # fmt: skip
+        bank = new_bank(approach)
         try:
             t1 = time.perf_counter()
             bank.fit_from_fitted(ds, singles)
@@ -223,11 +220,7 @@ def run_task(
                             members = {s: m for s, m in singles.items() if s in g.train}
                             if len(members) < 2 or classifier_cfg is None:
                                 continue
-                            from .models.bank import ConditionBank
-
-                            fitted = ConditionBank(model=clone(model), blend=BANKS[approach],
-                                                   classifier=instantiate(dict(classifier_cfg), _convert_="all"),
-                                                   ).fit_from_fitted(ds, members)  # fmt: skip
+                            fitted = new_bank(approach).fit_from_fitted(ds, members)
                         res = evaluate_runs(fitted, ds, list(g.held_out))
                     except ModelError as exc:
                         errors.append(f"{where}/{family}/{approach} fold {f.name}, inner fold {g.name}: {exc}")
