@@ -36,6 +36,12 @@ def test_a_directory_is_a_dataset_named_by_its_machine_with_every_family(lathe, 
     err = capsys.readouterr().err
     for fam in ("physics", "mlr_seed001"):
         assert fam not in families and err.count(f"skipped {fam} on {lathe}") == 1
+    # no operating input (the shape-1 import declares operating: []): the families driven by one
+    for fam in ("ar_seed003", "physics_spindle", "physics_spindle_hybrid"):
+        assert fam not in families and err.count(f"skipped {fam} on {lathe}: needs an operating input") == 1
+    # no sensor at seed 004's screw locations (bearing housings, nut)
+    assert "mlr_seed004" not in families
+    assert err.count(f"skipped mlr_seed004 on {lathe}: needs temperature sensors at fixed_bearing_housing") == 1
     out = bm.run_task(**{**next(t for t in todo if t["family"] == "baseline_ols"), "approaches": ["global"]})
     assert out["dataset"] == "lathe_d" and set(out["results"]["run_id"]) == {"Day_1", "Day_2", "Day_3"}
 

@@ -258,7 +258,7 @@ def test_seed004_bad_input(ds004):
         MLRSeed004(sensors=["Tn", "T_missing"]).fit(ds004)
     only_ambient = _cycle_dataset({"r": {"Ta": lambda t: 20 + 0 * t}}, lambda T, p, r: 0 * p, duration_s=3600)
     only_ambient.metadata.sensors["Ta"] = "ambient"
-    with pytest.raises(ModelError, match="sensors.*no sensor at"):
+    with pytest.raises(ModelError, match="MLRSeed004 needs temperature sensors at fixed_bearing_housing.*sensors.*has none"):
         MLRSeed004().fit(only_ambient)
     short = _cycle_dataset(seed004_temps(), seed004_error, mounting="fixed_fixed", duration_s=2000)
     with pytest.raises(ModelError, match="too few samples"):

@@ -414,14 +414,17 @@ def family_lacks(family: str, ds) -> str | None:
     """What dataset ``ds`` lacks that model family ``family`` needs (its class's ``needs``,
     :func:`thermbench.models.base.missing_needs`), as text; None when it has everything."""
     from .extras import MissingExtra
-    from .models.base import NEEDS, missing_needs
+    from .models.base import missing_needs, needs_text
 
     try:
         cls = family_class(family)
     except MissingExtra as exc:  # e.g. gru on the core install: the other families still run
         return str(exc)
-    missing = missing_needs(cls, ds) if cls is not None else []
-    return "needs " + "; and ".join(NEEDS[m] for m in missing) if missing else None
+    params = dict(group_option("model", family))
+    if str(params.get("_target_", "")).endswith("ConditionBank"):  # a bank option: its members' parameters
+        params = dict(params.get("model") or {})
+    missing = missing_needs(cls, ds, params) if cls is not None else []
+    return "needs " + needs_text(cls, missing) if missing else None
 
 
 def flagged(results: pd.DataFrame) -> dict[tuple[str, str, str, str], list[str]]:

@@ -272,6 +272,7 @@ class AutoRegressiveSeed003(ThermalErrorModel):
     """
 
     params_model = AutoRegressiveSeed003Params
+    needs = ("operating",)  # its only inputs: the operating columns (its own parameter or the dataset's)
 
     def __init__(
         self,

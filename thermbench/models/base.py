@@ -20,7 +20,7 @@ import contextlib
 import contextvars
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -271,6 +271,10 @@ def temperatures_at(
 NEEDS = {
     "screw": "a screw block (metadata 'screw': the ball screw's geometry)",
     "along_axis": "readings along a linear axis at target positions (an along_axis error channel)",
+    "operating": "an operating input (metadata 'operating': the process column that drives the heat, e.g. "
+    "spindle_rpm), or the family's own 'operating' parameter",
+    "sensor_locations": "temperature sensors at the locations it reads (the class's sensor_locations), or the "
+    "family's own 'sensors' parameter",
 }
 
 
@@ -282,27 +286,42 @@ def is_fixed_point(ds: Dataset) -> bool:
     return ds.metadata.error_channels()[ds.channel].kind == "fixed_point"
 
 
-def missing_needs(cls, ds: Dataset) -> list[str]:
-    """What model class ``cls`` needs (its ``needs``) that dataset ``ds`` lacks."""
+def missing_needs(cls, ds: Dataset, params: Mapping | None = None) -> list[str]:
+    """What model class ``cls`` needs (its ``needs``, keys of :data:`NEEDS`) that dataset ``ds``
+    lacks. ``params``: the family's parameters (a model's ``get_params()`` or its conf/model
+    option): an explicit ``operating`` or ``sensors`` there stands in for the dataset's own."""
+    params = params or {}
     out = []
     for need in getattr(cls, "needs", ()):
         if need == "screw" and ds.metadata.screw is None:
             out.append(need)
         elif need == "along_axis" and (is_fixed_point(ds) or not ds.metadata.has_axis):
             out.append(need)
+        elif need == "operating" and params.get("operating") is None and not ds.metadata.operating_inputs():
+            out.append(need)
+        elif need == "sensor_locations" and params.get("sensors") is None and not (
+            set(getattr(cls, "sensor_locations", ())) & set(ds.metadata.sensors.values())
+        ):
+            out.append(need)
     return out
+
+
+def needs_text(cls, missing: Sequence[str]) -> str:
+    """The missing needs of :func:`missing_needs` in words (``sensor_locations`` names the class's)."""
+    text = {**NEEDS, "sensor_locations": f"temperature sensors at {', '.join(getattr(cls, 'sensor_locations', ()))} "
+                                         "(metadata 'sensors'), or the family's own 'sensors' parameter"}  # fmt: skip
+    return "; and ".join(text[m] for m in missing)
 
 
 def check_needs(model, ds: Dataset) -> None:
     """One line naming what ``model`` needs and ``ds`` lacks (e.g. the screw physics model
     on a spindle test); nothing when it has everything."""
-    missing = missing_needs(type(model), ds)
+    missing = missing_needs(type(model), ds, model.get_params(deep=False))
     if missing:
         parts = ", ".join(ds.metadata.parts or []) or "a linear axis"
-        what = "; and ".join(NEEDS[m] for m in missing)
         where = f", channel {ds.channel!r}" if ds.channel else ""
-        raise ModelError(f"{type(model).__name__} needs {what}; dataset {_name(ds)}{where} (a test of: {parts}) "
-                         "has none")  # fmt: skip
+        raise ModelError(f"{type(model).__name__} needs {needs_text(type(model), missing)}; dataset {_name(ds)}{where} "
+                         f"(a test of: {parts}) has none")  # fmt: skip
 
 
 def curve_degree(ds: Dataset, mounting: str | None = None) -> int:

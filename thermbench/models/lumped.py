@@ -266,7 +266,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
     ``geometric_``, ``n_evaluations_``, ``fit_s_``, ``optimizer_message_``.
     """
 
-    needs: tuple[str, ...] = ()
+    needs = ("operating",)  # the heat comes from an operating signal (its own parameter or the dataset's)
     params_model = LumpedThermalNetworkParams
 
     def __init__(

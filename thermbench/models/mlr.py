@@ -341,6 +341,8 @@ class MLRSeed004(_CurveRegression):
     """
 
     params_model = MLRSeed004Params
+    needs = ("sensor_locations",)  # seed 004's three sensors, or the user's own (``sensors``)
+    sensor_locations = SEED004_LOCATIONS
 
     def __init__(self, sensors=None, mounting=None, geometric_degree=None, preprocess="default", origin_mm=0.0):
         self.sensors = sensors
