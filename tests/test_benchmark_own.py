@@ -64,3 +64,20 @@ def test_dataset_source_path_on_the_benchmark_says_what_it_takes(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "this command takes datasets=[...], each a dataset option or a dataset directory" in lines[0]
     assert "did you mean" not in lines[0]
+
+
+def test_a_directory_gets_the_benchmarks_budget_for_costly_families(lathe, tmp_path):
+    """conf/benchmark.yaml's benchmark_models: on a dataset directory (no option of its own to set it)
+    each lssvm / gru fit of the ~90 per family takes the budget; a mistake in it names the key."""
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[lssvm,gru,mlp]", "bank_families=[]")
+    by = {t["family"]: t["model_cfg"] for t in bm.tasks(cfg)}
+    assert (by["lssvm"]["max_samples"], by["lssvm"]["iters"]) == (600, 20)
+    assert (by["gru"]["max_samples"], by["gru"]["max_epochs"]) == (600, 300)
+    assert by["mlp"] == bm.group_option("model", "mlp")  # no budget given: the option as it is
+    # a dataset option keeps its own (fl_thermal's lssvm subsample is 300)
+    cfg = _cfg(tmp_path, "datasets=[fl_thermal]", "families=[lssvm]", "bank_families=[]")
+    assert bm.tasks(cfg)[0]["model_cfg"]["max_samples"] == 300
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[gru]", "bank_families=[]", "+benchmark_models.gru.max_epoch=5")
+    with pytest.raises(ExperimentError, match=r"^config key 'benchmark_models.gru.max_epoch': conf/model/gru.yaml has no "
+                                              r"parameter 'max_epoch'"):  # fmt: skip
+        bm.tasks(cfg)

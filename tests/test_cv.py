@@ -138,3 +138,55 @@ def test_held_out_flags_name_worse_than_nothing_and_worse_than_the_best_baseline
     # lssvm: 13 > 12 on r2; median 3.5 > the ridge's 2.0. mlp: never worse than either.
     assert lines == ["d/lssvm/global: worse than no compensation on held-out run(s) ['r2']",
                      "d/lssvm/global: median held-out RMSE 3.50 µm, worse than the best baseline baseline_ridge (global) 2.00 µm"]
+
+
+def test_the_held_out_table_against_a_hand_count(tmp_path):
+    """The report's held-out section: one row for the nested choice, one per family and approach, one
+    for no compensation, each counted by hand; and write_report puts it in report.md."""
+    import pandas as pd
+
+    from thermbench.report import write_report
+
+    rows = []
+    for fold, (lssvm, ridge, ols, none) in {"r1": (1.0, 2.0, 3.0, 10.0), "r2": (3.0, 2.5, 3.5, 12.0),
+                                            "r3": (1.5, 1.0, 2.0, 1.2)}.items():  # fmt: skip
+        for fam, v in (("lssvm", lssvm), ("mlp", lssvm + 0.25), ("baseline_ridge", ridge), ("baseline_ols", ols)):
+            rows.append({"dataset": "d", "channel": "all", "family": fam, "approach": "global", "kind": "validation",
+                         "fold": fold, "run_id": fold, "train": "all", "own": False, "rmse_um": v, "rms_error_um": none,
+                         "compensation_rate": 0.5, "max_abs_residual_um": 2 * v})  # fmt: skip
+    # the choice: lssvm in r1 and r3, mlp in r2 (3.25)
+    choice = pd.DataFrame({"case": "d", "fold": ["r1", "r2", "r3"], "family": ["lssvm", "mlp", "lssvm"],
+                           "approach": "global"})  # fmt: skip
+    t = bm.held_out_table(pd.DataFrame(rows), choice, ["baseline_ridge", "baseline_ols"]).set_index("model")
+    assert list(t.index) == ["thermbench's choice (nested)", "lssvm (global)", "mlp (global)",
+                             "baseline_ridge (global) (baseline), the best baseline", "baseline_ols (global) (baseline)",
+                             "no compensation"]  # fmt: skip
+    c = t.loc["thermbench's choice (nested)"]  # 1.0, 3.25, 1.5
+    assert (c["folds"], c["median_rmse_um"], c["worst_rmse_um"]) == (3, 1.5, 3.25)
+    assert (c["beat_no_compensation"], c["beat_best_baseline"]) == ("2/3", "1/3")  # 1.5 > 1.2 on r3; only r1 < ridge
+    m = t.loc["mlp (global)"]  # 1.25, 3.25, 1.75
+    assert (m["median_rmse_um"], m["beat_no_compensation"], m["beat_best_baseline"]) == (1.75, "2/3", "1/3")
+    assert t.loc["baseline_ridge (global) (baseline), the best baseline", "beat_best_baseline"] == "-"
+    assert t.loc["baseline_ols (global) (baseline)", "beat_best_baseline"] == "0/3"
+    n = t.loc["no compensation"]
+    assert (n["median_rmse_um"], n["worst_rmse_um"], n["beat_no_compensation"]) == (10.0, 12.0, "-")
+    md = write_report(pd.DataFrame(rows), None, tmp_path / "rep", reference=["baseline_ridge", "baseline_ols"],
+                      held_out=bm.held_out_table(pd.DataFrame(rows), choice, ["baseline_ridge", "baseline_ols"])).read_text()
+    section = md[md.index("## Held out"):md.index("## Headline")]
+    lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
+    assert lines[0] == ["model", "folds", "median RMSE µm", "worst RMSE µm", "beat no compensation",
+                        "beat the best baseline"]  # fmt: skip
+    assert lines[2] == ["thermbench's choice (nested)", "3", "1.50", "3.25", "2/3", "1/3"]
+
+
+def test_a_dataset_with_nothing_to_classify_skips_the_banks_in_one_line(lathe, tmp_path, capsys):  # noqa: F811
+    from tests.test_benchmark import _cfg
+
+    skipped = []
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[baseline_ols,mlr_seed002]", "bank_families=[mlr_seed002]")
+    todo = bm.tasks(cfg, skipped)
+    assert all(t["approaches"] == ["single", "global"] for t in todo)
+    assert all(t["dataset_cfg"]["name"] == "lathe_d" for t in todo)  # named by its machine
+    assert skipped == [f"bank, bank_soft on {lathe}: the bank's runs declare no condition and the dataset no operating "
+                       "input (metadata 'operating'): nothing to classify"]  # fmt: skip
+    assert capsys.readouterr().err.count("skipped bank, bank_soft") == 1

@@ -291,12 +291,21 @@ def case_label(dataset: str, channel: str) -> str:
     return str(dataset) if channel == "all" else f"{dataset}-{channel}"
 
 
-def tasks(cfg: DictConfig) -> list[dict]:
+def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
     """One task per (dataset, channel, family) of ``cfg.datasets`` x their error channels x ``cfg.families``.
 
     Each dataset is loaded (built on first use) here, once, before any task runs, so
     parallel workers never build the same dataset at the same time; its content hash
-    and the code version join the task's cache key."""
+    and the code version join the task's cache key. What a dataset cannot serve (a family
+    whose needs it lacks, the bank approaches when it has nothing to classify) is said in one
+    line each on stderr, and appended to ``skipped``."""
+    from .models.bank import condition_inputs
+
+    def skip(line: str) -> None:
+        print(f"[benchmark] skipped {line}", file=sys.stderr, flush=True)
+        if skipped is not None:
+            skipped.append(line)
+
     approaches = _names(cfg, "approaches", list(APPROACHES))
     if not approaches:
         raise ExperimentError(f"config key 'approaches': empty; choose among {', '.join(APPROACHES)}")
@@ -318,24 +327,36 @@ def tasks(cfg: DictConfig) -> list[dict]:
     version = tracking.code_version()
     out = []
     for dname in datasets:
-        dcfg = dataset_option(dname, "datasets")[1]
+        option, dcfg = dataset_option(dname, "datasets")
+        if option is None:  # a dataset directory: the benchmark's own settings of the costly families
+            dcfg = {**dcfg, "benchmark_models": plain_value(cfg.get("benchmark_models"))}
         raw = load_source(dcfg)[0]
         for channel in channels_of(raw, dcfg):
             ccfg = dcfg if channel == "all" else {**dcfg, "channel": channel}
-            ds = load_split(ccfg).dataset
+            split = load_split(ccfg)
+            ccfg = {**ccfg, "name": split.name}  # a dataset directory: named by its machine
+            ds, first = split.dataset, channel == channels_of(raw, dcfg)[0]
             data_hash = ds.content_hash()
+            banked = [a for a in approaches if a in BANKS]
+            try:
+                if banked:
+                    condition_inputs(ds, list(ds.run_ids), require=False)
+            except ModelError as exc:  # e.g. runs without conditions and no operating input: nothing to classify
+                if first:
+                    skip(f"{', '.join(banked)} on {dname}: {exc}")
+                banked = []
             for fam in per_dataset[str(dname)]:
                 lacks = family_lacks(fam, ds)
                 if lacks:  # e.g. the screw physics model on a spindle test: skipped there, and said so
-                    if channel == channels_of(raw, dcfg)[0]:
-                        print(f"[benchmark] skipped {fam} on {dname}: {lacks}", file=sys.stderr, flush=True)
+                    if first:
+                        skip(f"{fam} on {dname}: {lacks}")
                     continue
                 out.append(
                     dict(
                         dataset_cfg=ccfg,
                         family=fam,
-                        model_cfg=model_config(fam, dcfg, str(dname)),
-                        approaches=[a for a in approaches if a not in BANKS or fam in bank_families],
+                        model_cfg=model_config(fam, dcfg, str(dname) if option else None),
+                        approaches=[a for a in approaches if a not in BANKS or (fam in bank_families and a in banked)],
                         classifier_cfg=classifier,
                         seed=int(cfg.seed),
                         dataset_hash=data_hash,
@@ -362,30 +383,37 @@ def _dataset_entries(cfg) -> list[str]:
     return entries
 
 
-def model_config(family: str, dcfg: Mapping, dname: str) -> dict:
-    """The model option ``family`` with the settings the dataset option gives it
-    (``benchmark_models.<family>`` in ``conf/dataset/<dname>.yaml``: e.g. fewer epochs or a
-    smaller LSSVM subsample on a 46 h log). An unknown family or parameter names the key."""
+def model_config(family: str, dcfg: Mapping, dname: str | None) -> dict:
+    """The model option ``family`` with the settings the benchmark gives it on this dataset
+    (``benchmark_models.<family>``: in ``conf/dataset/<dname>.yaml`` for a dataset option, e.g.
+    fewer epochs or a smaller LSSVM subsample on a 46 h log; the benchmark's own key for a
+    dataset directory, ``dname`` None). An unknown family or parameter names the key."""
     import difflib
 
+    where = f"conf/dataset/{dname}.yaml: key 'benchmark_models" if dname else "config key 'benchmark_models"
     base = dict(group_option("model", family))
     extra = dcfg.get("benchmark_models") or {}
     if not isinstance(extra, Mapping):
-        raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models': expected a mapping family -> "
-                              f"settings, got {extra!r}")  # fmt: skip
+        raise ExperimentError(f"{where}': expected a mapping family -> settings, got {extra!r}")
     known = _options("model")
     for fam in extra:
         if fam not in known:
             near = difflib.get_close_matches(str(fam), known, n=1)
-            raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models.{fam}': no model option "
-                                  f"{fam!r}{f'; did you mean {near[0]!r}?' if near else ''}")  # fmt: skip
+            raise ExperimentError(f"{where}.{fam}': no model option {fam!r}{f'; did you mean {near[0]!r}?' if near else ''}")
     settings = extra.get(family) or {}
+    if not isinstance(settings, Mapping):
+        raise ExperimentError(f"{where}.{family}': expected a mapping parameter -> value, got {settings!r}")
     for k, v in dict(settings).items():
         if k not in base:
-            raise ExperimentError(f"conf/dataset/{dname}.yaml: key 'benchmark_models.{family}.{k}': conf/model/"
-                                  f"{family}.yaml has no parameter {k!r}; it has {sorted(base)}")  # fmt: skip
+            raise ExperimentError(f"{where}.{family}.{k}': conf/model/{family}.yaml has no parameter {k!r}; "
+                                  f"it has {sorted(base)}")  # fmt: skip
         base[k] = OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
     return base
+
+
+def plain_value(value):
+    """A config node as plain data (a container resolved), anything else as it is."""
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
 def family_class(family: str):
@@ -581,6 +609,47 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     return pd.DataFrame(out)
 
 
+def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Sequence[str]) -> pd.DataFrame:
+    """The report's held-out table: per case (dataset and channel), a row for thermbench's nested
+    choice, one per family and approach (not ``single``) and one for no compensation; columns the
+    folds scored, the median and worst held-out RMSE over them (a fold's RMSE as in
+    :func:`held_out_summary`), and on how many folds it beat no compensation and the best
+    baseline (the best baseline's own row: '-')."""
+    r = _with_case(results)
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    if v.empty:
+        return pd.DataFrame()
+    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
+        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean")).reset_index()  # fmt: skip
+    out = []
+    for case, g in per_fold.groupby("case", sort=False):
+        none = g.groupby("fold", sort=False)["rms_error_um"].first()
+        base = g[g["family"].isin(list(baselines))]
+        best = None
+        if not base.empty:
+            fam, app = base.groupby(["family", "approach"])["rmse_um"].median().sort_values().index[0]
+            best = (fam, app, base[(base["family"] == fam) & (base["approach"] == app)].set_index("fold")["rmse_um"])
+        ch = choice[choice["case"] == case] if not choice.empty else choice
+        chosen = g.merge(ch[["fold", "family", "approach"]], on=["fold", "family", "approach"]) if len(ch) else g.iloc[:0]
+
+        def row(label: str, scores: pd.Series, is_best: bool = False) -> dict:
+            common = scores.index.intersection(best[2].index) if best is not None else []
+            return {"case": case, "model": label, "folds": len(scores), "median_rmse_um": float(scores.median()),
+                    "worst_rmse_um": float(scores.max()),
+                    "beat_no_compensation": f"{int((scores < none.reindex(scores.index)).sum())}/{len(scores)}",
+                    "beat_best_baseline": "-" if best is None or is_best else
+                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"}  # fmt: skip
+
+        if not chosen.empty:
+            out.append(row("thermbench's choice (nested)", chosen.set_index("fold")["rmse_um"]))
+        for (fam, app), m in g.groupby(["family", "approach"], sort=False):
+            label = f"{fam} ({app})" + (" (baseline)" if fam in baselines else "")
+            is_best = best is not None and (fam, app) == best[:2]
+            out.append(row(label + (", the best baseline" if is_best else ""), m.set_index("fold")["rmse_um"], is_best))
+        out.append({**row("no compensation", none), "beat_no_compensation": "-"})
+    return pd.DataFrame(out)
+
+
 def held_out_flags(results: pd.DataFrame, baselines: Sequence[str]) -> list[str]:
     """What the held-out scores say against a family, never hidden: per dataset, channel, family
     and approach (not ``single``), the held-out runs where it made the error worse than no
@@ -693,7 +762,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     alias = "champion" if name == "benchmark" else re.sub(r"[^A-Za-z0-9_-]", "_", name)
     exp_id = tracking.connect(cfg.tracking)
     conf = plain(cfg)
-    todo = tasks(cfg)
+    skipped: list[str] = []
+    todo = tasks(cfg, skipped)
     if not todo:
         raise ExperimentError("config keys 'datasets' and 'families': nothing to run")
     data_hashes = sorted({f"{case_label(t['dataset_cfg'].get('name'), t['channel'])}={t['dataset_hash']}" for t in todo})
@@ -741,7 +811,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
         "datasets": ", ".join(map(str, cfg.datasets)),
-        "families": "; ".join(f"{d}: {', '.join(f)}" for d, f in families_by_dataset(cfg, _dataset_entries(cfg)).items()),
+        "families": "; ".join(f"{d}: {', '.join(dict.fromkeys(t['family'] for t in todo if t['dataset_cfg']['name'] == d))}"
+                              for d in dict.fromkeys(t["dataset_cfg"]["name"] for t in todo)),  # fmt: skip
         "approaches": ", ".join(map(str, cfg.approaches)),
         "thermbench version": __version__,
         "git commit": tracking.git_commit(),
@@ -751,6 +822,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         + " (best worst-case rate on the validation runs; chosen on the runs reported, so not an independent estimate"
         + (f"; baselines {', '.join(baselines)} are for comparison, never chosen)" if baselines else ")"),
     }
+    if skipped:
+        meta["skipped"] = "; ".join(skipped)
     frames = sorted({f"{o['dataset']}: {o['frame']}" for o in done_tasks if o.get("frame")})
     if frames:
         meta["scored on"] = "; ".join(frames)
@@ -771,7 +844,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
     report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
-                          n_jobs=int(cfg.n_jobs))  # with results.csv
+                          n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines))  # with results.csv
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]

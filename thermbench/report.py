@@ -1322,14 +1322,29 @@ def results_table(results: pd.DataFrame, reference: Sequence[str] = ()) -> pd.Da
     return r[lead + [col for col in r.columns if col not in lead]]
 
 
+HELD_OUT_MD = (
+    "## Held out: every score on runs the model never saw\n\n"
+    "Per dataset and channel, over the folds of the cross-validation (`cv`): the held-out RMSE (µm) of each family "
+    "and approach fitted without the fold's runs, and of *thermbench's choice*, the family and approach picked in "
+    "each fold by an inner cross-validation on that fold's training runs only (nested: the choice never sees the "
+    "runs it is scored on; `chosen` in results.csv). *Beat*: on how many folds its RMSE was below no compensation's "
+    "(the RMS of the error itself) and below the best baseline's (the baseline of smallest median)."
+)
+HELD_OUT_COLUMNS = {"model": "model", "folds": "folds", "median_rmse_um": "median RMSE µm",
+                    "worst_rmse_um": "worst RMSE µm", "beat_no_compensation": "beat no compensation",
+                    "beat_best_baseline": "beat the best baseline"}  # fmt: skip
+
+
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
-                 force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1) -> Path:
+                 force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
+                 held_out: pd.DataFrame | None = None) -> Path:
     """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
     ``out_dir/results.csv`` (:func:`results_table`); return the report path.
 
     ``reference``: the baseline families (compared, never chosen): marked in the tables
     and figures, ``reference`` true in results.csv. ``n_jobs``: processes that draw the
-    figures (:class:`_Drawing`).
+    figures (:class:`_Drawing`). ``held_out``: the benchmark's held-out table
+    (:func:`thermbench.benchmark.held_out_table`), a section of its own after the summary.
 
     Layout: header (``meta``), how to read, the terminal summary, the headline
     tables (:func:`headline`, one per dataset), then per dataset: single vs
@@ -1385,6 +1400,10 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     md += [f"The scores behind every table, one row per (fitted model, test run), are in [{CSV_NAME}]({CSV_NAME}).",
            ""]  # fmt: skip
     md += ["## At a glance", "", "```text", terminal_summary(r, reference=ref), "```", ""]
+    if held_out is not None and not held_out.empty:
+        md += [HELD_OUT_MD, ""]
+        for case, g in held_out.groupby("case", sort=False):
+            md += [f"### {case}", "", markdown_table(g.drop(columns="case"), index=False, headers=HELD_OUT_COLUMNS), ""]
     md += ["## Headline: unseen cycles", ""]
     md += [
         "Per dataset, family and approach: mean rate on the training runs (reference), worst and mean rate and worst "
