@@ -105,8 +105,16 @@ def test_multirun_basic_launcher(tmp_path, env):
     assert "[sweep] 4 jobs" in proc.stdout
     progress = [ln.rsplit(";", 1)[1].strip() for ln in proc.stdout.splitlines() if ln.startswith("[sweep] job #")]
     assert progress == [f"{i}/4 finished" for i in range(1, 5)]
-
     shutil.rmtree(stale)
+    # each job's line says what it found: the RMSE on its held-out (validation) runs, as its result.json has it
+    found = {ln.split("(", 1)[1].split(")", 1)[0]: ln.split("held-out RMSE ", 1)[1].split(" µm")[0]
+             for ln in proc.stdout.splitlines() if ln.startswith("[sweep] job #")}  # fmt: skip
+    results = job_results(sweep)
+    assert len(found) == 4 and {k: f"{v['metrics']['validation_mean_rmse_um']:.2f}" for k, v in results.items()} == {
+        " ".join(o for o in k.split() if o.startswith(("model=", "train="))): v for k, v in found.items()}
+    header = proc.stdout.split("[sweep] summary", 1)[1].strip().splitlines()[0].split()
+    assert "validation_mean_rmse_um" in header  # and the final table
+
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
     results = job_results(sweep)
     assert set(results) == expected_keys()

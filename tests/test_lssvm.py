@@ -383,3 +383,27 @@ def test_too_few_samples():
     # with both hyper-parameters given, no hold-out is needed
     m = PSOLSSVM(sensors=["T1"], gamma=10.0, sigma2=1.0).fit(one_cycle, "r")
     assert m.n_support_ == 11
+
+
+def test_a_long_swarm_shows_its_progress_only_when_a_job_asks(clean_ds, capsys, monkeypatch):
+    """issue 38: fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
+    One step per swarm iteration, as many as ``iters``; outside show_fit_progress nothing is drawn."""
+    from thermbench.models import base
+
+    import tqdm.auto
+
+    monkeypatch.setattr(base, "FIT_PROGRESS_DELAY_S", 0.0)
+    counted = []
+
+    class Counting(tqdm.auto.tqdm):  # the steps each bar counted
+        def close(self):
+            counted.append((self.desc, self.n, self.total))  # (tqdm closes a bar twice: its own and ours)
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Counting)
+    PSOLSSVM(preprocess=None, sensors=["T1", "T2"], n_particles=4, iters=7, seed=0).fit(clean_ds, ["r1"])
+    assert "LSSVM swarm" not in capsys.readouterr().err
+    with base.show_fit_progress(disable=False):
+        PSOLSSVM(preprocess=None, sensors=["T1", "T2"], n_particles=4, iters=7, seed=0).fit(clean_ds, ["r1"])
+    err = capsys.readouterr().err
+    assert "LSSVM swarm" in err and set(counted) == {("LSSVM swarm", 7, 7)}

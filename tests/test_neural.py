@@ -321,3 +321,28 @@ def test_preprocess_filters_the_inputs(cls, kw):
     np.testing.assert_allclose(filtered.predict_at(ds, "spiky", t, p), filtered.predict_at(ds, "clean", t, p), atol=0.05)
     raw = cls(sensors=["Ta", "Tb"], preprocess=None, max_epochs=30, **kw).fit(ds, "clean")
     assert np.max(np.abs(raw.predict_at(ds, "spiky", t, p) - raw.predict_at(ds, "clean", t, p))) > 1.0
+
+
+def test_a_long_training_shows_its_epochs_only_when_a_job_asks(clean_ds, capsys, monkeypatch):
+    """issue 38: fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
+    One step per epoch: no validation split, so all max_epochs run; none drawn outside show_fit_progress."""
+    from thermbench.models import base
+
+    import tqdm.auto
+
+    monkeypatch.setattr(base, "FIT_PROGRESS_DELAY_S", 0.0)
+    counted = []
+
+    class Counting(tqdm.auto.tqdm):  # the steps each bar counted
+        def close(self):
+            counted.append((self.desc, self.n, self.total))  # (tqdm closes a bar twice: its own and ours)
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Counting)
+    kw = dict(preprocess=None, sensors=["Ta", "Tb"], max_epochs=9, min_epochs=1, val_fraction=0.0, seed=0)
+    MLPModel(**kw).fit(clean_ds, ["r1"])
+    assert "MLPModel fit" not in capsys.readouterr().err
+    with base.show_fit_progress(disable=False):
+        m = MLPModel(**kw).fit(clean_ds, ["r1"])
+    err = capsys.readouterr().err
+    assert m.n_epochs_ == 9 and "MLPModel fit" in err and set(counted) == {("MLPModel fit", 9, 9)}

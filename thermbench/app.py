@@ -272,7 +272,11 @@ class SweepProgress(Callback):
         user_error = mine.exists() and "error" in json.loads(mine.read_text(encoding="utf-8"))
         state = "failed" if user_error or (status is not None and status.name == "FAILED") else "done"
         overrides = " ".join(hc.overrides.task)
-        print(f"[sweep] job #{hc.job.num} {state} ({overrides}); {done}/{n if n is not None else '?'} finished", flush=True)
+        metrics = json.loads(mine.read_text(encoding="utf-8")).get("metrics", {}) if mine.exists() else {}
+        held = metrics.get("validation_mean_rmse_um")  # what the job found: its score on the runs it held out
+        found = f"; held-out RMSE {held:.2f} µm" if held is not None else ("; no validation runs" if state == "done" else "")
+        print(f"[sweep] job #{hc.job.num} {state} ({overrides}){found}; {done}/{n if n is not None else '?'} finished",
+              flush=True)  # fmt: skip
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         import pandas as pd

@@ -36,14 +36,15 @@ from . import tracking
 from ._atomic import write_text_atomic
 from .config import config_dir
 from .metrics import evaluate as evaluate_runs
-from .models.base import FallbackWarning, n_workers, thread_budget, threads_per_worker
+from .models.base import FallbackWarning, n_workers, show_fit_progress, thread_budget, threads_per_worker
 from .outputs import output_dir
 
 LOG = logging.getLogger(__name__)
 
 
 #: the metrics a job's terminal summary and a sweep's summary table show
-HEADLINE = ("validation_worst_compensation_rate", "validation_max_abs_residual_um", "unseen_worst_compensation_rate",
+#: the metrics a job's summary and a sweep's table show: the held-out RMSE (on the validation runs) first
+HEADLINE = ("validation_mean_rmse_um", "validation_worst_compensation_rate", "validation_max_abs_residual_um", "unseen_worst_compensation_rate",
             "unseen_max_abs_residual_um", "own_mean_rmse_um", "fit_s")
 
 
@@ -586,7 +587,8 @@ def train(cfg: DictConfig) -> JobResult:
         tracking.log_config(conf)
         tracking.log_dataset(split.dataset, split.label, "training", digest=data_hash)
         # the job's share of the cores (a multirun's parallel jobs share them): every family runs with it
-        with warnings.catch_warnings(record=True) as caught, thread_budget(job_threads()):
+        # a fit longer than 10 s (an LSSVM's swarm, a network's epochs) shows its progress on a terminal
+        with warnings.catch_warnings(record=True) as caught, thread_budget(job_threads()), show_fit_progress():
             warnings.simplefilter("always", FallbackWarning)
             fitted, rows, curves = fit_evaluate(model, split.dataset, train_runs, eval_runs, curves=True)
         for w in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, FallbackWarning)):

@@ -53,6 +53,44 @@ def fallback(message: str) -> None:
 _THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("thermbench_threads", default=None)
 
 
+#: a job that shows fit progress (:func:`show_fit_progress`): tqdm's ``disable`` for its bars (None: on a
+#: terminal only); unset: no bars (the benchmark's workers, tests, the library used directly)
+_PROGRESS: contextvars.ContextVar[tuple[bool | None] | None] = contextvars.ContextVar("thermbench_fit_progress",
+                                                                                     default=None)  # fmt: skip
+#: a fit's progress bar appears only once the fit has run this long
+FIT_PROGRESS_DELAY_S = 10.0
+
+
+@contextlib.contextmanager
+def show_fit_progress(disable: bool | None = None) -> Iterator[None]:
+    """In the block, a fit that runs longer than :data:`FIT_PROGRESS_DELAY_S` (an LSSVM's swarm,
+    a network's epochs) shows a progress bar on stderr (:func:`fit_progress`); ``disable`` as
+    tqdm takes it (None: on a terminal only). ``thermbench train`` fits in one."""
+    token = _PROGRESS.set((disable,))
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
+
+
+@contextlib.contextmanager
+def fit_progress(total: int, desc: str, unit: str) -> Iterator:
+    """The step counter of one fit's loop (``total`` steps of ``unit``): yields ``step(n=1)``.
+    A tqdm bar, drawn only inside :func:`show_fit_progress` and only after
+    :data:`FIT_PROGRESS_DELAY_S`, removed when the fit ends."""
+    shown = _PROGRESS.get()
+    if shown is None:
+        yield lambda n=1: None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit=unit, delay=FIT_PROGRESS_DELAY_S, disable=shown[0], leave=False)
+    try:
+        yield bar.update
+    finally:
+        bar.close()
+
+
 def n_workers(n_jobs: int) -> int:
     """The workers ``n_jobs`` means, counted as joblib counts it (-1: one per core of the machine,
     -2: all but one, ...)."""

@@ -40,7 +40,7 @@ from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, choose_sensors, fit_progress, last_cycles_mask, readings, require, temperatures_at
 from .params import (
     Bool,
     Degree,
@@ -352,15 +352,18 @@ def tune_lssvm(
     flo, fhi = lo[free], hi[free]
     # hundreds of small factorisations: BLAS threads cost more than they gain there
     blas = threadpool_limits(limits=1, user_api="blas") if yt.size < 1000 else contextlib.nullcontext()
-    with blas, _pyswarms_private(p.seed) as GlobalBestPSO:
+    with blas, _pyswarms_private(p.seed) as GlobalBestPSO, fit_progress(p.iters, "LSSVM swarm", "iteration") as step:
         corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(flo, fhi)])).reshape(free.size, -1).T
         starts = np.vstack([corners, (flo + fhi) / 2])[: p.n_particles]
         rand = flo + (fhi - flo) * np.random.random_sample((p.n_particles - len(starts), free.size))
         init = np.clip(np.vstack([starts, rand]), flo, fhi)
         opt = GlobalBestPSO(n_particles=p.n_particles, dimensions=int(free.size), options=opts, bounds=(flo, fhi),
                             bh_strategy="nearest", init_pos=init)  # fmt: skip
-        best_cost, best_pos = opt.optimize(lambda P: np.array([rmse(*params(q)) for q in P]), iters=p.iters,
-                                           verbose=False)  # fmt: skip
+        def swarm_cost(P: np.ndarray) -> np.ndarray:  # one call per iteration of the swarm
+            step()
+            return np.array([rmse(*params(q)) for q in P])
+
+        best_cost, best_pos = opt.optimize(swarm_cost, iters=p.iters, verbose=False)
         history = np.asarray(opt.cost_history, dtype=float)
     g, s = params(np.asarray(best_pos, dtype=float))
     return TuneResult(float(g), float(s), float(best_cost), history, val)

@@ -63,7 +63,7 @@ from annotated_types import Ge, Len, Lt
 
 from ..data.dataset import Dataset
 from ..extras import require as require_extra
-from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, last_cycles_mask, readings, require, temperatures_at
+from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, fit_progress, last_cycles_mask, readings, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
 from .separation import line_separated_geometric, shape_degree
 
@@ -283,26 +283,28 @@ class _NeuralModel(ThermalErrorModel):
         has_val = y_val.shape[0] > 0
         best, best_epoch, best_state = math.inf, 0, None
         epoch = 0
-        for epoch in range(1, opts["max_epochs"] + 1):
-            net.train()
-            batches = [None] if bs is None or bs >= n else torch.randperm(n, generator=gen).split(bs)
-            for b in batches:
-                xb = x_tr if b is None else [x[b] for x in x_tr]
-                yb = y_tr if b is None else y_tr[b]
-                optim.zero_grad(set_to_none=True)
-                loss = torch.mean((net(*xb) - yb) ** 2)
-                loss.backward()
-                optim.step()
-            if not has_val or epoch < opts["min_epochs"]:
-                continue
-            net.eval()
-            with torch.no_grad():
-                v = float(torch.sqrt(torch.mean((net(*x_val) - y_val) ** 2))) * self.y_scale_um_
-            if v < best:
-                best, best_epoch = v, epoch
-                best_state = {k: t.detach().clone() for k, t in net.state_dict().items()}
-            elif epoch - best_epoch >= opts["patience"]:
-                break
+        with fit_progress(opts["max_epochs"], f"{type(self).__name__} fit", "epoch") as step:
+            for epoch in range(1, opts["max_epochs"] + 1):
+                step()
+                net.train()
+                batches = [None] if bs is None or bs >= n else torch.randperm(n, generator=gen).split(bs)
+                for b in batches:
+                    xb = x_tr if b is None else [x[b] for x in x_tr]
+                    yb = y_tr if b is None else y_tr[b]
+                    optim.zero_grad(set_to_none=True)
+                    loss = torch.mean((net(*xb) - yb) ** 2)
+                    loss.backward()
+                    optim.step()
+                if not has_val or epoch < opts["min_epochs"]:
+                    continue
+                net.eval()
+                with torch.no_grad():
+                    v = float(torch.sqrt(torch.mean((net(*x_val) - y_val) ** 2))) * self.y_scale_um_
+                if v < best:
+                    best, best_epoch = v, epoch
+                    best_state = {k: t.detach().clone() for k, t in net.state_dict().items()}
+                elif epoch - best_epoch >= opts["patience"]:
+                    break
         if best_state is not None:
             net.load_state_dict(best_state)
         self.n_epochs_ = epoch
