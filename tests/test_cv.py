@@ -1,4 +1,4 @@
-"""Cross-validation over runs (thermbench/cv.py, issue 38): whole runs held out, each once, and
+"""Cross-validation over runs (thermbench/splits.py, issue 38): whole runs held out, each once, and
 the benchmark's held-out scores checked against scikit-learn fitted by hand on the same runs."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from sklearn.linear_model import LinearRegression
 from tests.test_benchmark_own import lathe  # noqa: F401  (the fixture: shape 1 imported)
 from tests.test_import_shapes import DAYS, _day
 from thermbench import benchmark as bm
-from thermbench.cv import folds, resolve_cv
+from thermbench.splits import folds, resolve_cv
 from thermbench.experiment import ExperimentError, dataset_option, group_option
 
 RUNS = ["a", "b", "c", "d", "e"]

@@ -53,3 +53,30 @@ def test_each_module_imports_on_its_own():
     """Any of them first, in a fresh interpreter: no order of imports is needed."""
     for m in sorted(p.stem for p in DATA.glob("*.py")):
         subprocess.run([sys.executable, "-c", f"import thermbench.data.{m}"], check=True)
+
+
+def _thermbench_imports(path: Path) -> set[str]:
+    """The thermbench modules ``path`` imports, anywhere in it (functions too), as dotted names."""
+    pkg = path.relative_to(DATA.parent.parent).with_suffix("").parts[:-1]  # ("thermbench", "export")
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = list(pkg[: len(pkg) - node.level + 1])
+            out.add(".".join(base + ([node.module] if node.module else [])))
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("thermbench"):
+            out.add(node.module)
+    return out
+
+
+def test_splits_and_views_are_shared_from_one_module_below_the_jobs():
+    """issue 38: the runs and views the jobs fit on (thermbench.splits), the workers
+    (thermbench.parallel): the benchmark, the export and the replay take them from there; none of
+    those, nor splits, imports the Hydra-job module thermbench.experiment back (no import circle)."""
+    root = DATA.parent
+    for mod in ("splits.py", "parallel.py", "config.py", "export/job.py", "export/replay.py"):
+        assert "thermbench.experiment" not in _thermbench_imports(root / mod), mod
+    assert "thermbench.splits" in _thermbench_imports(root / "export/job.py")
+    assert "thermbench.splits" in _thermbench_imports(root / "export/replay.py")
+    assert "thermbench.splits" in _thermbench_imports(root / "benchmark.py")
+    for m in ("splits", "parallel", "export.job", "export.replay"):
+        subprocess.run([sys.executable, "-c", f"import thermbench.{m}"], check=True)

@@ -20,7 +20,7 @@ channels (``channel: null`` in its option) is benchmarked on each channel: one t
 dataset). Tasks run in parallel (joblib), each cached on disk by its arguments
 (joblib.Memory), so an interrupted benchmark resumes where it stopped. Each of the ``n_jobs``
 workers runs its fits on its share of the job's cores
-(:func:`thermbench.experiment.worker_threads`), so parallel tasks never oversubscribe them.
+(:func:`thermbench.parallel.worker_threads`), so parallel tasks never oversubscribe them.
 """
 
 from __future__ import annotations
@@ -41,23 +41,11 @@ from sklearn.base import clone
 from tqdm.auto import tqdm
 
 from . import __version__, tracking
-from .experiment import (
-    ExperimentError,
-    JobResult,
-    _finish,
-    build_model,
-    dataset_option,
-    fit_evaluate,
-    group_option,
-    headline_metrics,
-    hydra_runtime,
-    load_source,
-    load_split,
-    model_flags,
-    plain,
-    run_workers,
-    save_models,
-)
+from .config import group_option
+from .errors import ExperimentError
+from .experiment import JobResult, _finish, build_model, fit_evaluate, headline_metrics, model_flags, plain, save_models
+from .parallel import hydra_runtime, run_workers
+from .splits import dataset_option, load_source, load_split
 from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError
@@ -83,17 +71,17 @@ def run_task(
     source) are not used here: with the configs they are the key of the on-disk cache,
     so changed data or code is never served from it. ``verbose`` prints a line per fit.
     ``channel``: the error channel (``dataset_cfg`` names it) as the results label it.
-    ``cv``: how ``global`` and the banks are scored (:mod:`thermbench.cv`): ``declared`` fits them
+    ``cv``: how ``global`` and the banks are scored (:mod:`thermbench.splits`): ``declared`` fits them
     on the loading states and scores them on every run; ``loro`` / ``group_kfold`` (``cv_folds``
     folds) fit them once per fold on its training runs and score them on its held-out runs
     (``kind`` validation, ``fold`` the held-out runs), then once more on every run: the model
-    to deploy. Null: :func:`thermbench.cv.resolve_cv`.
+    to deploy. Null: :func:`thermbench.splits.resolve_cv`.
 
     Returns ``results`` (one row per fitted model x test run, the columns of
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
     for global and bank), ``models`` (fitted global/bank models), ``seconds`` and ``errors``.
     """
-    from .cv import Fold, folds as cv_folds_of, inner_folds, resolve_cv
+    from .splits import Fold, folds as cv_folds_of, inner_folds, resolve_cv
 
     t0 = time.perf_counter()
     split = load_split(dataset_cfg)
@@ -546,7 +534,7 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
 def nested_choice(inner: pd.DataFrame, blocked: Iterable[tuple[str, str, str]] = ()) -> pd.DataFrame:
     """Per dataset, channel and outer fold, the (family, approach) thermbench would deploy, chosen
     without seeing the fold's held-out runs: the smallest median RMSE over the inner folds' held-out
-    runs (:func:`thermbench.cv.inner_folds`, on the fold's training runs only; ties: the smaller
+    runs (:func:`thermbench.splits.inner_folds`, on the fold's training runs only; ties: the smaller
     worst). Candidates: the non-baseline families (only they have inner scores) with a score on
     every inner held-out run of the fold and none non-finite, and not in ``blocked`` (the C runtime
     cannot run it). Columns: ``dataset``, ``channel``, ``case``, ``fold``, ``family``, ``approach``,
@@ -696,7 +684,7 @@ def _summary_text(row: Mapping) -> str:
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
     cache = cfg.get("cache_dir")
     fn = joblib.Memory(str(cache), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
-    # each worker on its share of the job's cores (experiment.worker_threads); results as they finish
+    # each worker on its share of the job's cores (parallel.worker_threads); results as they finish
     return run_workers(fn, [((), t) for t in todo], int(cfg.get("n_jobs", 1)), ordered=False)
 
 

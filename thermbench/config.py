@@ -22,7 +22,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ._resources import project_dir
-from .errors import UserError, one_line
+from .errors import ExperimentError, UserError, one_line
 
 
 class ConfigError(UserError):
@@ -516,3 +516,59 @@ class _Composer:
             return f"unknown config key '{key}'; {section}: {_listing(sorted(set(known)))} (a new key is added with +{key}=...)"
         return f"unknown config key '{key}'"
 
+
+def group_option(group: str, name: str) -> dict:
+    """The plain config of option ``name`` of group ``group`` (``conf/<group>/<name>.yaml``)."""
+    path = config_dir() / group / f"{name}.yaml"
+    if not path.exists():
+        known = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+        raise ExperimentError(f"config key '{group}': no option {name!r}; known: {known}")
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+
+
+def _parameters(target) -> list[str] | None:
+    """The keyword parameters ``target`` (a class or function) takes; None when it takes any
+    (``**kwargs``) or its signature cannot be read."""
+    import inspect
+
+    try:
+        sig = inspect.signature(target)
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
+        return None
+    return [n for n, p in sig.parameters.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+
+
+def check_targets(node, key: str) -> None:
+    """Every ``_target_`` in the config ``node`` (at config key ``key``) can be imported and
+    takes the keys given with it, checked before anything is instantiated: a typo such as
+    ``+model.bogus=1`` is an :class:`ExperimentError` naming the key and the parameters
+    there are, not Hydra's ``TypeError`` traceback from inside the constructor."""
+    import difflib
+
+    from hydra._internal.utils import _locate  # what instantiate() uses, without its error log
+
+    if isinstance(node, Mapping):
+        target = node.get("_target_")
+        if target is not None:
+            try:
+                obj = _locate(str(target))
+            except Exception as exc:
+                why = exc.__cause__ or exc
+                raise ExperimentError(f"config key '{key}._target_': cannot import {target!r}: {why}") from None
+            names = _parameters(obj)
+            given = [str(k) for k in node if not (str(k).startswith("_") and str(k).endswith("_"))]
+            bad = [k for k in given if names is not None and k not in names]
+            if bad:
+                owner = getattr(obj, "__name__", str(target))
+                near = difflib.get_close_matches(bad[0], names, n=1)
+                hint = f" (did you mean {near[0]!r}?)" if near else ""
+                raise ExperimentError(f"config key '{key}.{bad[0]}': {owner} has no parameter {bad[0]!r}{hint}; "
+                                      f"its parameters: {', '.join(names)}")  # fmt: skip
+        for k, v in node.items():
+            if not str(k).startswith("_"):
+                check_targets(v, f"{key}.{k}")
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            check_targets(v, f"{key}[{i}]")

@@ -35,6 +35,10 @@ class UserError(ValueError):
     can, what to do instead."""
 
 
+class ExperimentError(UserError):
+    """A user mistake in an experiment config (a job's, the benchmark's); the message names the key."""
+
+
 class StdoutClosed(SystemExit):
     """Standard output was closed by its reader (``thermbench ... | head``).
 
@@ -51,7 +55,6 @@ _MODULE_ERRORS = (
     ("config", "ConfigError"),
     ("data.io", "DatasetError"),
     ("data.errors", "DatasetError"),
-    ("experiment", "ExperimentError"),
     ("models.base", "ModelError"),
     ("preprocess.filters", "PreprocessError"),  # a filter parameter or input series, named
     ("tracking", "TrackingError"),

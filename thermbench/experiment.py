@@ -12,7 +12,6 @@ Each takes the composed config (a ``DictConfig``) and returns a :class:`JobResul
 
 from __future__ import annotations
 
-import difflib
 import json
 import logging
 import sys
@@ -27,16 +26,26 @@ import joblib
 import numpy as np
 import pandas as pd
 import yaml
-from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
 from ._atomic import write_text_atomic
-from .config import config_dir
+from .config import check_targets, config_dir, group_option  # noqa: F401  (group_option: the jobs' API)
+from .errors import ExperimentError  # noqa: F401  (raised by the jobs; thermbench.errors holds it)
+from .parallel import hydra_runtime, job_threads, run_workers, worker_threads  # noqa: F401
+from .splits import (  # noqa: F401  (the runs and views the jobs fit and score on: thermbench.splits)
+    Split,
+    dataset_config_for,
+    dataset_option,
+    dataset_view,
+    load_source,
+    load_split,
+    resolve_runs,
+)
 from .metrics import evaluate as evaluate_runs
-from .models.base import FallbackWarning, n_workers, show_fit_progress, thread_budget, threads_per_worker
+from .models.base import FallbackWarning, show_fit_progress, thread_budget
 from .outputs import output_dir
 
 LOG = logging.getLogger(__name__)
@@ -46,75 +55,6 @@ LOG = logging.getLogger(__name__)
 #: the metrics a job's summary and a sweep's table show: the held-out RMSE (on the validation runs) first
 HEADLINE = ("validation_mean_rmse_um", "validation_worst_compensation_rate", "validation_max_abs_residual_um", "unseen_worst_compensation_rate",
             "unseen_max_abs_residual_um", "own_mean_rmse_um", "fit_s")
-
-
-def hydra_runtime():
-    """The running Hydra job's config (``HydraConfig``), or None outside ``hydra.main``."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        hc = HydraConfig.get()
-        hc.runtime.output_dir  # noqa: B018 -- a config left behind by an earlier in-process Hydra call has none
-        return hc
-    except Exception:
-        return None
-
-
-def job_threads(hc=None, cores: int | None = None) -> int:
-    """The threads (per OpenMP and BLAS thread pool) this job may use: the cores it sees
-    (``cores``; default :func:`joblib.cpu_count`, which honours CPU affinity and a cgroup quota)
-    shared with the jobs a Hydra multirun runs beside it on this machine
-    (``hydra/launcher=joblib``: ``hydra.launcher.n_jobs`` at once), and at most the launcher's
-    ``cpus_per_task`` (submitit) when it sets one. ``hc``: the Hydra config (default: the
-    running job's, :func:`hydra_runtime`); outside Hydra every core."""
-    if cores is None:
-        cores = joblib.cpu_count()
-    cores = max(1, int(cores))
-    hc = hydra_runtime() if hc is None else hc
-    launcher = OmegaConf.select(hc, "launcher", default=None) if hc is not None else None
-    if launcher is None:
-        return cores
-    mode = OmegaConf.select(hc, "mode", default=None)
-    multirun = getattr(mode, "name", str(mode).rsplit(".", 1)[-1]) == "MULTIRUN"
-    if multirun and str(launcher.get("_target_", "")).endswith(".JoblibLauncher"):
-        cores = threads_per_worker(cores, int(launcher.get("n_jobs") or -1))
-    per_task = launcher.get("cpus_per_task")
-    if multirun and isinstance(per_task, int) and not isinstance(per_task, bool) and per_task > 0:
-        cores = min(cores, per_task)
-    return cores
-
-
-def worker_threads(n_jobs: int, n_tasks: int, cores: int | None = None) -> int:
-    """The threads each of ``n_jobs`` parallel workers may use (per OpenMP and BLAS thread
-    pool): the job's cores (:func:`job_threads`, or ``cores``) shared by the workers that run
-    at once (at most one per task), so workers x threads never exceeds them. ``n_jobs`` counts
-    as joblib counts it (-1: one worker per core, -2: all but one, ...)."""
-    cores = job_threads() if cores is None else int(cores)
-    return threads_per_worker(cores, min(n_workers(n_jobs), max(1, n_tasks)))
-
-
-def _call_limited(fn, threads: int, args: tuple, kwargs: Mapping):
-    """``fn(*args, **kwargs)`` with every fit (and whatever else runs there) on ``threads`` threads."""
-    with thread_budget(threads):
-        return fn(*args, **kwargs)
-
-
-def run_workers(fn, calls: Sequence[tuple[tuple, Mapping]], n_jobs: int, ordered: bool = True):
-    """``fn(*args, **kwargs)`` for each ``(args, kwargs)`` of ``calls``, each on its worker's
-    share of the cores (:func:`worker_threads`): one after the other in this process for
-    ``n_jobs=1`` (lazily), else in ``n_jobs`` joblib workers, results in the calls' order
-    (``ordered``) or as they finish. Where every job that fits models in parallel dispatches them."""
-    calls = list(calls)
-    threads = worker_threads(n_jobs, len(calls))
-    if n_jobs == 1:
-        return (_call_limited(fn, threads, a, k) for a, k in calls)
-    how = "generator" if ordered else "generator_unordered"
-    work = (joblib.delayed(_call_limited)(fn, threads, a, k) for a, k in calls)
-    return joblib.Parallel(n_jobs=n_jobs, return_as=how)(work)
-
-
-class ExperimentError(ValueError):
-    """A user mistake in an experiment config; the message names the key."""
 
 
 @dataclass
@@ -154,40 +94,6 @@ def model_from_config(name_or_cfg) -> object:
     return instantiate(name_or_cfg, _convert_="all")
 
 
-def group_option(group: str, name: str) -> dict:
-    """The plain config of option ``name`` of group ``group`` (``conf/<group>/<name>.yaml``)."""
-    path = config_dir() / group / f"{name}.yaml"
-    if not path.exists():
-        known = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
-        raise ExperimentError(f"config key '{group}': no option {name!r}; known: {known}")
-    return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-
-
-def dataset_option(entry: str, key: str) -> tuple[str | None, dict]:
-    """The dataset config an entry names, and its option name: a ``conf/dataset`` option by name,
-    or a dataset directory (one holding ``metadata.yaml``), read through the ``path`` option and
-    named by its ``machine.name`` (None here). A name that is an option is the option unless it is
-    written as a path (``./fl_thermal``). A mistake is one line naming ``key``."""
-    names = sorted(p.stem for p in (config_dir() / "dataset").glob("*.yaml"))
-    entry = str(entry)
-    path = Path(entry)
-    if entry in names and "/" not in entry and path.name == entry:
-        cfg = group_option("dataset", entry)
-        if str((cfg.get("source") or {}).get("path")) == "???":  # the `path` option itself: a directory is wanted
-            raise ExperimentError(f"config key '{key}': option {entry!r} reads a dataset directory: give the "
-                                  f"directory itself, e.g. {key}=[data/my_axis]")  # fmt: skip
-        return entry, cfg
-    if not (path / "metadata.yaml").is_file():
-        what = "no such directory" if not path.exists() else "no metadata.yaml in it"
-        near = difflib.get_close_matches(entry, names, n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else ""
-        raise ExperimentError(f"config key '{key}': {entry!r} is neither a dataset option ({', '.join(names)}) nor a "
-                              f"dataset directory ({what}; a lab's files come in with thermbench import){hint}")  # fmt: skip
-    cfg = group_option("dataset", "path")
-    cfg["source"] = {**cfg["source"], "path": str(path)}
-    return None, cfg
-
-
 def choice(cfg: DictConfig, group: str, default: str = "custom") -> str:
     """The option picked for ``group`` (``hydra.runtime.choices``), as ``model=lssvm`` names it."""
     hc = hydra_runtime()
@@ -206,54 +112,6 @@ def plain(cfg: DictConfig | Mapping) -> dict:
             if k != "hydra"
         }
     return {k: v for k, v in dict(cfg).items() if k != "hydra"}
-
-
-def _parameters(target) -> list[str] | None:
-    """The keyword parameters ``target`` (a class or function) takes; None when it takes any
-    (``**kwargs``) or its signature cannot be read."""
-    import inspect
-
-    try:
-        sig = inspect.signature(target)
-    except (TypeError, ValueError):
-        return None
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
-        return None
-    return [n for n, p in sig.parameters.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-
-
-def check_targets(node, key: str) -> None:
-    """Every ``_target_`` in the config ``node`` (at config key ``key``) can be imported and
-    takes the keys given with it, checked before anything is instantiated: a typo such as
-    ``+model.bogus=1`` is an :class:`ExperimentError` naming the key and the parameters
-    there are, not Hydra's ``TypeError`` traceback from inside the constructor."""
-    import difflib
-
-    from hydra._internal.utils import _locate  # what instantiate() uses, without its error log
-
-    if isinstance(node, Mapping):
-        target = node.get("_target_")
-        if target is not None:
-            try:
-                obj = _locate(str(target))
-            except Exception as exc:
-                why = exc.__cause__ or exc
-                raise ExperimentError(f"config key '{key}._target_': cannot import {target!r}: {why}") from None
-            names = _parameters(obj)
-            given = [str(k) for k in node if not (str(k).startswith("_") and str(k).endswith("_"))]
-            bad = [k for k in given if names is not None and k not in names]
-            if bad:
-                owner = getattr(obj, "__name__", str(target))
-                near = difflib.get_close_matches(bad[0], names, n=1)
-                hint = f" (did you mean {near[0]!r}?)" if near else ""
-                raise ExperimentError(f"config key '{key}.{bad[0]}': {owner} has no parameter {bad[0]!r}{hint}; "
-                                      f"its parameters: {', '.join(names)}")  # fmt: skip
-        for k, v in node.items():
-            if not str(k).startswith("_"):
-                check_targets(v, f"{key}.{k}")
-    elif isinstance(node, (list, tuple)):
-        for i, v in enumerate(node):
-            check_targets(v, f"{key}[{i}]")
 
 
 def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = None, key: str = "model"):
@@ -276,162 +134,6 @@ def build_model(model_cfg: Mapping, preprocess_steps=None, seed: int | None = No
     if seed is not None:
         model.set_params(**{k: int(seed) for k in keys("seed")})
     return model
-
-
-@dataclass
-class Split:
-    """A loaded dataset with its loading states (trainable) and validation runs (never trained on)."""
-
-    name: str
-    dataset: Any
-    states: list[str]
-    validation: list[str]
-    own: bool = False  # loaded from a directory (dataset=path), not a shipped benchmark dataset
-    history: bool = False  # dataset.history: segments keep their run's log from the start
-
-    def registry_name(self, model_name: str) -> str:
-        """The registered-model name of ``model_name`` fitted on this dataset: never shared by
-        models of different datasets (an own dataset's content hash is part of it) or of
-        different error channels."""
-        parts = ["thermbench", self.name]
-        if self.dataset.channel is not None:  # a format 2 channel view
-            parts.append(self.dataset.channel)
-        if self.own:
-            parts.append(self.dataset.content_hash()[:8])
-        return "-".join([*parts, model_name])
-
-    def kind(self, run: str) -> str:
-        return "validation" if run in self.validation else "state"
-
-    @property
-    def label(self) -> str:
-        """The dataset's name as the MLflow runs give it (their dataset input): the name, with
-        ``-<channel>`` for one error channel of a format 2 dataset (as the benchmark's cases)."""
-        channel = self.dataset.channel
-        return self.name if channel is None else f"{self.name}-{channel}"
-
-
-def load_source(dcfg: Mapping):
-    """The dataset ``dataset.source`` loads (instantiated), as stored, and the source config."""
-    if "source" not in dcfg:
-        raise ExperimentError("config key 'dataset.source': expected a loader with _target_")
-    source = OmegaConf.to_container(dcfg["source"], resolve=True) if OmegaConf.is_config(dcfg["source"]) else dcfg["source"]
-    if not (isinstance(source, Mapping) and source.get("_target_")):
-        raise ExperimentError(f"config key 'dataset.source': expected a loader with _target_, got {source!r}")
-    check_targets(source, "dataset.source")
-    try:
-        ds = instantiate(source, _convert_="all")
-    except InstantiationException as exc:  # hydra wraps the loader's own (clear) error
-        from .errors import user_errors
-
-        cause = exc.__cause__
-        if not isinstance(cause, user_errors()):  # a bug in the loader: its traceback
-            raise
-        msg = str(cause)  # a dataset, file or config mistake: one line naming it
-        raise ExperimentError(msg if msg.startswith("config key") else f"config key 'dataset.source': {msg}") from None
-    return ds, source
-
-
-def load_split(dcfg: Mapping) -> Split:
-    """Load ``dataset.source`` (instantiate), take the view the models see (:func:`dataset_view`)
-    and check ``dataset.states`` / ``dataset.validation``."""
-    dcfg = dict(dcfg)
-    ds, source = load_source(dcfg)
-    ds = dataset_view(ds, dcfg.get("channel"), dcfg.get("segments", True), dcfg.get("history", False))
-    runs = list(ds.run_ids)
-    validation = list(dcfg.get("validation") or [])
-    scored = set(ds.errors["run_id"]) if len(ds.errors) else set()  # runs without readings: prediction only
-    states = list(dcfg.get("states") or [r for r in runs if r not in validation and r in scored])
-    for key, lst in (("states", states), ("validation", validation)):
-        unknown = [r for r in lst if r not in runs]
-        if unknown:
-            raise ExperimentError(f"config key 'dataset.{key}': runs {unknown} are not in the dataset; its runs: {runs}")
-    both = sorted(set(states) & set(validation))
-    if both:
-        raise ExperimentError(f"config keys 'dataset.states' and 'dataset.validation' share runs {both}")
-    own = str(source.get("_target_")) == "thermbench.data.io.load_dataset"
-    return Split(str(dcfg.get("name") or ds.metadata.machine.name), ds, states, validation, own=own,
-                 history=bool(dcfg.get("history", False)) and ds.metadata.version == 2)  # fmt: skip
-
-
-def dataset_view(ds, channel, segments=True, history=False):
-    """What the models see of a format 2 dataset (:mod:`thermbench.data.views`): its runs
-    split into derived segments (``dataset.segments``) and one error channel
-    (``dataset.channel``; null: the only one). ``dataset.history``: each segment keeps the
-    log of its run from the start and the whole run's thermal error (temperature rises and
-    thermal errors count from the start of the test, as a compensator running since power-on
-    sees them); false: each segment counts from its own start. A format 1 dataset is used
-    as it is."""
-    from .data.views import channel_view, split_segments
-
-    meta = ds.metadata
-    if meta.version == 1:
-        if channel is not None and channel not in meta.error_channels():
-            raise ExperimentError(f"config key 'dataset.channel': a format 1 dataset has one channel "
-                                  f"({next(iter(meta.error_channels()))!r}); leave it null")  # fmt: skip
-        return ds
-    for key, v in (("segments", segments), ("history", history)):
-        if not isinstance(v, bool):
-            raise ExperimentError(f"config key 'dataset.{key}': expected true or false, got {v!r}")
-    if history and not segments:
-        raise ExperimentError("config key 'dataset.history': true needs dataset.segments=true (the history is "
-                              "the log before each segment)")  # fmt: skip
-    channels = sorted(meta.error_channels())
-    if channel is None:
-        if len(channels) != 1:
-            listed = ",".join(channels) if channels else "(none)"
-            raise ExperimentError(f"config key 'dataset.channel': the dataset has {len(channels)} error channels "
-                                  f"({listed}); name one, or sweep them: -m dataset.channel={listed}")  # fmt: skip
-        channel = channels[0]
-    if channel not in channels:
-        near = difflib.get_close_matches(str(channel), channels, n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else ""
-        raise ExperimentError(f"config key 'dataset.channel': no channel {channel!r}; channels: {channels}{hint}")
-    if history:  # the thermal error of the whole run first, then the segments with their past
-        return split_segments(channel_view(ds, channel), history=True)
-    if segments:
-        ds = split_segments(ds)
-    return channel_view(ds, channel)
-
-
-def dataset_config_for(model, dcfg, key: str = "dataset.channel") -> dict:
-    """``dcfg`` with the error channel ``model`` was fitted on (``channel_``) when none is given;
-    a different one is one line: scoring a Z model on Y compares unlike quantities."""
-    d = OmegaConf.to_container(dcfg, resolve=True) if OmegaConf.is_config(dcfg) else dict(dcfg)
-    fitted = getattr(model, "channel_", None)
-    if fitted is None:
-        return d
-    if d.get("channel") is None:
-        d["channel"] = fitted
-    elif d["channel"] != fitted:
-        raise ExperimentError(f"config key {key!r}: the model predicts error channel {fitted!r} (it was fitted on "
-                              f"it), not {d['channel']!r}; leave the key out to score it on {fitted!r}")  # fmt: skip
-    return d
-
-
-def resolve_runs(spec, split: Split, key: str) -> list[str]:
-    """``all`` = every loading state; ``a+b`` or a list = those runs; null = every run with
-    readings (a format 2 run without readings is for prediction and replay only)."""
-    with_readings = set(split.dataset.errors["run_id"]) if len(split.dataset.errors) else set()
-    if spec is None:
-        runs = [r for r in split.dataset.run_ids if r in with_readings]
-        if not runs:
-            raise ExperimentError(f"config key '{key}': no run of dataset {split.name!r} has readings to score")
-        return runs
-    if isinstance(spec, str):
-        spec = split.states if spec == "all" else [s for s in spec.split("+") if s]
-    runs = [str(r) for r in spec]
-    unknown = [r for r in runs if r not in split.dataset.run_ids]
-    if unknown or not runs:
-        raise ExperimentError(
-            f"config key '{key}': runs {unknown or runs} not in dataset {split.name!r}; "
-            f"its loading states: {split.states}, validation runs: {split.validation}, or 'all'"
-        )
-    bare = [r for r in runs if r not in with_readings]
-    if bare:
-        raise ExperimentError(f"config key '{key}': runs {bare} of dataset {split.name!r} have no readings "
-                              "(prediction and replay only): nothing to fit or score there")  # fmt: skip
-    return runs
 
 
 # ------------------------------------------------------- fit and evaluate ---

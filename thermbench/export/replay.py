@@ -99,7 +99,7 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     else the one in its manifest, else the only one) and, when ``run`` names a derived
     segment, the run split into its segments (with the log before each, when the model was
     trained that way: ``training.history`` in its manifest)."""
-    from ..data.views import channel_view, split_segments
+    from ..splits import model_view
 
     channels = sorted(ds.metadata.error_channels())
     channel = channel or man.get("training", {}).get("channel")
@@ -110,19 +110,14 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
         channel = channels[0] if channels else None
     if channel is not None and channel not in channels:
         raise ExportError(f"--channel {channel!r}: not a channel of {data_dir}; its channels: {channels}")
-    if run not in ds.run_ids and channel is not None and man.get("training", {}).get("history"):
-        # trained with dataset.history: the segment keeps its run's log from the start, and the
-        # whole run's thermal error, as the model saw its training segments
-        seg = split_segments(channel_view(ds, channel), history=True)
-        if run in seg.run_ids:
-            return seg
-    if run not in ds.run_ids:
-        seg = split_segments(ds)
-        if run in seg.run_ids:
-            ds = seg
-    if channel is None:  # no readings and no channel declared: a log to predict on
-        return ds
-    return channel_view(ds, channel)
+    if run in ds.run_ids:  # a whole run
+        return model_view(ds, channel, segments=False)
+    # a derived segment: split as the model was trained (with the log before it: training.history)
+    history = channel is not None and bool(man.get("training", {}).get("history"))
+    view = model_view(ds, channel, segments=True, history=history)
+    if history and run not in view.run_ids:  # not a segment of the history split: try the plain one
+        view = model_view(ds, channel, segments=True)
+    return view if run in view.run_ids else model_view(ds, channel, segments=False)  # no such run: the runs as they are
 
 
 def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None,
