@@ -190,3 +190,40 @@ def test_a_dataset_with_nothing_to_classify_skips_the_banks_in_one_line(lathe, t
     assert skipped == [f"bank, bank_soft on {lathe}: the bank's runs declare no condition and the dataset no operating "
                        "input (metadata 'operating'): nothing to classify"]  # fmt: skip
     assert capsys.readouterr().err.count("skipped bank, bank_soft") == 1
+
+
+def test_runs_regressor_is_a_scikit_learn_estimator_over_whole_runs(lathe):  # noqa: F811
+    """The thin adapter (issue 38): clone keeps the dataset by reference; scikit-learn's
+    cross_val_predict with LeaveOneGroupOut gives, per held-out run, the RMSE thermbench's own
+    scoring (metrics.evaluate) gives for a fit on the other runs; GridSearchCV over a model
+    parameter picks the value of smaller held-out RMSE, as the hand loop does."""
+    from sklearn.base import clone
+    from sklearn.model_selection import GridSearchCV, LeaveOneGroupOut, cross_val_predict
+
+    from thermbench.experiment import build_model, load_split
+    from thermbench.metrics import evaluate
+    from thermbench.splits import DatasetRef, RunsRegressor, run_rows
+
+    ds = load_split(dataset_option(str(lathe), "datasets")[1]).dataset
+    model = build_model(group_option("model", "baseline_ols"), seed=0)
+    est = RunsRegressor(model, DatasetRef(ds))
+    twin = clone(est)
+    assert twin.dataset is est.dataset and twin.model is not est.model and twin.get_params()["model"] is not None
+    runs = list(ds.run_ids)
+    X, y, groups = run_rows(ds, runs)
+    pred = cross_val_predict(est, X, y, groups=groups, cv=LeaveOneGroupOut())
+    for r in runs:
+        m = groups == r
+        by_hand = evaluate(clone(model).fit(ds, [o for o in runs if o != r]), ds, [r])["rmse_um"].iloc[0]
+        assert np.sqrt(np.mean((y[m] - pred[m]) ** 2)) == pytest.approx(by_hand, rel=1e-12)
+
+    def loro_rmse(lags):
+        m = clone(model).set_params(lags_s=lags)
+        return np.mean([evaluate(clone(m).fit(ds, [o for o in runs if o != r]), ds, [r])["rmse_um"].iloc[0]
+                        for r in runs])  # fmt: skip
+
+    search = GridSearchCV(est, {"model__lags_s": [[], [600]]}, cv=LeaveOneGroupOut(),
+                          scoring="neg_root_mean_squared_error").fit(X, y, groups=groups)  # fmt: skip
+    hand = {str(lags): loro_rmse(lags) for lags in ([], [600])}
+    assert -search.cv_results_["mean_test_score"] == pytest.approx([hand["[]"], hand["[600]"]], rel=1e-12)
+    assert str(search.best_params_["model__lags_s"]) == min(hand, key=hand.get)

@@ -81,7 +81,9 @@ def run_task(
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
     for global and bank), ``models`` (fitted global/bank models), ``seconds`` and ``errors``.
     """
-    from .splits import Fold, folds as cv_folds_of, inner_folds, resolve_cv
+    from sklearn.model_selection import cross_val_predict
+
+    from .splits import DatasetRef, Fold, RunsRegressor, folds as cv_folds_of, inner_folds, resolve_cv, run_rows
 
     t0 = time.perf_counter()
     split = load_split(dataset_cfg)
@@ -198,23 +200,35 @@ def run_task(
         except ModelError as exc:
             errors.append(f"{where}/{family}/{approach}: {exc}")
     if not reference_only_model(model):  # a candidate of the nested choice: scored by the inner folds
+        ref = DatasetRef(ds)
         for f in outer:
-            for g in inner_folds(f.train):
-                for approach in [a for a in approaches if a != "single"]:
+            inner = inner_folds(f.train)
+            if not inner:
+                continue
+            tag_inner = dict(dataset=split.name, channel=channel, family=family, fold=f.name)
+            X, y, groups = run_rows(ds, f.train)
+            fold_of = {r: g.name for g in inner for r in g.held_out}
+            if "global" in approaches:  # scikit-learn drives the inner folds over whole runs (splits.RunsRegressor)
+                cv_idx = [(np.flatnonzero(np.isin(groups, g.train)), np.flatnonzero(np.isin(groups, g.held_out)))
+                          for g in inner]  # fmt: skip
+                try:
+                    pred = cross_val_predict(RunsRegressor(model, ref), X, y, groups=groups, cv=cv_idx)
+                    sq = pd.Series((y - pred) ** 2).groupby(groups, sort=False).mean()
+                    inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
+                                      .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
+                except ModelError as exc:
+                    errors.append(f"{where}/{family}/global fold {f.name}, inner folds: {exc}")
+            for approach in [a for a in approaches if a in BANKS] if classifier_cfg is not None else []:
+                for g in inner:  # the bank of the single models of the inner fold's training runs
+                    members = {s: m for s, m in singles.items() if s in g.train}
+                    if len(members) < 2:
+                        continue
                     try:
-                        if approach == "global":
-                            fitted = clone(model).fit(ds, list(g.train))
-                        else:
-                            members = {s: m for s, m in singles.items() if s in g.train}
-                            if len(members) < 2 or classifier_cfg is None:
-                                continue
-                            fitted = new_bank(approach).fit_from_fitted(ds, members)
-                        res = evaluate_runs(fitted, ds, list(g.held_out))
+                        res = evaluate_runs(new_bank(approach).fit_from_fitted(ds, members), ds, list(g.held_out))
                     except ModelError as exc:
                         errors.append(f"{where}/{family}/{approach} fold {f.name}, inner fold {g.name}: {exc}")
                         continue
-                    inner_rows.append(res.assign(dataset=split.name, channel=channel, family=family,
-                                                 approach=approach, fold=f.name, inner_fold=g.name))  # fmt: skip
+                    inner_rows.append(res.assign(**tag_inner, approach=approach, inner_fold=g.name))
             say(f"inner folds of {f.name}", 0.0)
     return {
         "dataset": split.name,

@@ -27,6 +27,7 @@ import numpy as np
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
+from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.model_selection import GroupKFold, LeaveOneGroupOut
 
 from .config import check_targets, config_dir, group_option
@@ -292,3 +293,76 @@ def inner_folds(train: Sequence[str]) -> list[Fold]:
     if len(train) <= INNER_LORO_MAX_RUNS:
         return folds(train, [], "loro")
     return folds(train, [], "group_kfold", k=INNER_FOLDS)
+
+
+# --------------------------------------------- a thermbench model as a scikit-learn regressor ---
+class DatasetRef:
+    """A dataset held by reference in an estimator's parameters: :func:`sklearn.base.clone` deep-copies
+    every parameter that is not an estimator, and a copy of a 46 h log per fold and candidate is
+    what this avoids (a copy of the reference is the reference itself)."""
+
+    def __init__(self, dataset) -> None:
+        self.dataset = dataset
+
+    def __deepcopy__(self, memo) -> "DatasetRef":
+        return self
+
+    def __repr__(self) -> str:
+        return f"DatasetRef({getattr(self.dataset.metadata.machine, 'name', '?')!r})"
+
+
+def run_rows(ds, runs: Sequence[str]):
+    """The readings of ``runs`` as scikit-learn's ``X, y, groups``: ``X`` a frame of ``run_id`` and
+    ``row`` (the reading's place in its run, as the run's predictions come: the reference frame
+    of :func:`thermbench.data.reference.thermal_errors`), ``y`` the measured error (µm) there,
+    ``groups`` the run ids (what a group splitter holds out whole)."""
+    import pandas as pd
+
+    from .data.reference import thermal_errors
+
+    te = thermal_errors(ds)
+    parts = [te.loc[te["run_id"] == r, ["run_id", "error_um"]].assign(row=np.arange(int((te["run_id"] == r).sum())))
+             for r in runs]  # fmt: skip
+    rows = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=["run_id", "error_um", "row"])
+    return rows[["run_id", "row"]], rows["error_um"].to_numpy(dtype=float), rows["run_id"].to_numpy()
+
+
+class RunsRegressor(RegressorMixin, BaseEstimator):
+    """A thermbench model (``model``: a :class:`~thermbench.models.base.ThermalErrorModel`) as a
+    scikit-learn regressor over readings (:func:`run_rows`), so scikit-learn's group splitters,
+    ``cross_val_predict``, ``cross_validate`` and ``GridSearchCV`` drive it over whole runs:
+    ``fit(X, y)`` fits a clone of ``model`` on the runs ``X`` names (``y`` is not read: the model
+    reads its dataset), ``predict(X)`` predicts each reading from its run's log. ``dataset``: a
+    :class:`DatasetRef` (a plain dataset is wrapped), never copied by ``clone``. Its score is R²
+    (scikit-learn's default); pass ``scoring="neg_root_mean_squared_error"`` for the RMSE.
+
+        X, y, groups = run_rows(ds, ds.run_ids)
+        search = GridSearchCV(RunsRegressor(model, DatasetRef(ds)), {"model__lags_s": [[], [1800]]},
+                              cv=LeaveOneGroupOut(), scoring="neg_root_mean_squared_error")
+        search.fit(X, y, groups=groups)
+    """
+
+    def __init__(self, model=None, dataset=None):
+        self.model = model
+        self.dataset = dataset
+
+    def _ds(self):
+        return self.dataset.dataset if isinstance(self.dataset, DatasetRef) else self.dataset
+
+    def fit(self, X, y=None):
+        from sklearn.base import clone
+
+        runs = list(dict.fromkeys(X["run_id"]))
+        self.model_ = clone(self.model).fit(self._ds(), runs)
+        self.runs_ = runs
+        return self
+
+    def predict(self, X):
+        from sklearn.utils.validation import check_is_fitted
+
+        check_is_fitted(self, "model_")
+        out = np.empty(len(X))
+        rows = X["row"].to_numpy()
+        for run, idx in X.groupby("run_id", sort=False).indices.items():
+            out[idx] = np.asarray(self.model_.predict(self._ds(), run), dtype=float)[rows[idx]]
+        return out

@@ -179,12 +179,13 @@ class Fitted:
 
 
 def folds_for(runs: Sequence[str], cv) -> list[tuple[list[str], list[str]]]:
-    """Leave-one-run-out folds, or the declared split ``{train: [...], test: [...]}``."""
+    """Leave-one-run-out folds (:func:`thermbench.splits.folds`, the benchmark's), or the declared
+    split ``{train: [...], test: [...]}``, as (train runs, held-out runs) pairs."""
+    from ..splits import folds
+
     runs = list(runs)
     if cv in (None, "loro"):
-        if len(runs) < 2:
-            raise ValueError(f"cv=loro needs at least 2 runs, the dataset has {runs}")
-        return [([r for r in runs if r != h], [h]) for h in runs]
+        return [(list(f.train), list(f.held_out)) for f in folds(runs, [], "loro")]
     if isinstance(cv, dict) and {"train", "test"} <= set(cv):
         train, test = [str(r) for r in cv["train"]], [str(r) for r in cv["test"]]
         bad = [r for r in train + test if r not in runs]

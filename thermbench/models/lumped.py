@@ -99,6 +99,8 @@ from scipy import sparse
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
+from sklearn.linear_model import LinearRegression
+from sklearn.model_selection import LeaveOneGroupOut, cross_val_predict
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
@@ -468,14 +470,10 @@ class LumpedThermalNetwork(ThermalErrorModel):
         if np.unique(fold).size < 2:  # one run: five consecutive parts of it
             fold = np.minimum((np.arange(y.size) * 5) // max(y.size, 1), 4)
 
-        def cv_rmse(cols: list[int]) -> float:
+        def cv_rmse(cols: list[int]) -> float:  # the gains by least squares, each run held out once
             X = np.column_stack([phi, rises[:, cols], np.ones(y.size)])
-            sq = 0.0
-            for f in np.unique(fold):
-                te = fold == f
-                coef = np.linalg.lstsq(X[~te], y[~te], rcond=None)[0]
-                sq += float(np.sum((X[te] @ coef - y[te]) ** 2))
-            return math.sqrt(sq / y.size)
+            pred = cross_val_predict(LinearRegression(fit_intercept=False), X, y, groups=fold, cv=LeaveOneGroupOut())
+            return math.sqrt(float(np.mean((pred - y) ** 2)))
 
         if not auto:  # the given sensors: only scored
             return cv_rmse(list(range(len(cands)))), None, []
