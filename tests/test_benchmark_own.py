@@ -81,3 +81,14 @@ def test_a_directory_gets_the_benchmarks_budget_for_costly_families(lathe, tmp_p
     with pytest.raises(ExperimentError, match=r"^config key 'benchmark_models.gru.max_epoch': conf/model/gru.yaml has no "
                                               r"parameter 'max_epoch'"):  # fmt: skip
         bm.tasks(cfg)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["cv=lomo"], "config key 'cv': expected one of loro, group_kfold, declared or null, got 'lomo'"),
+    (["cv=group_kfold", "cv_folds=7"], "config key 'cv_folds': expected an integer from 2 to the number of runs (3), got 7"),
+])  # fmt: skip
+def test_a_cv_mistake_is_one_line_before_any_fit(lathe, tmp_path, extra, message):
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[baseline_ols]", "bank_families=[]", *extra)
+    with pytest.raises(ExperimentError) as err:
+        bm.tasks(cfg)
+    assert str(err.value) == message

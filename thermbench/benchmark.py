@@ -302,6 +302,7 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
     whose needs it lacks, the bank approaches when it has nothing to classify) is said in one
     line each on stderr, and appended to ``skipped``."""
     from .models.bank import condition_inputs
+    from .splits import folds as cv_folds_of, resolve_cv
 
     def skip(line: str) -> None:
         print(f"[benchmark] skipped {line}", file=sys.stderr, flush=True)
@@ -339,6 +340,11 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
             ccfg = {**ccfg, "name": split.name}  # a dataset directory: named by its machine
             ds, first = split.dataset, channel == channels_of(raw, dcfg)[0]
             data_hash = ds.content_hash()
+            if first:  # cv and cv_folds checked here, in one line, before any worker starts
+                scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
+                kind = resolve_cv(None if cfg.get("cv") is None else str(cfg.get("cv")), split.validation)
+                if kind != "declared":
+                    cv_folds_of([r for r in ds.run_ids if r in scored], split.validation, kind, cfg.get("cv_folds", 5))
             banked = [a for a in approaches if a in BANKS]
             try:
                 if banked:
