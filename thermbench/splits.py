@@ -295,6 +295,25 @@ def inner_folds(train: Sequence[str]) -> list[Fold]:
     return folds(train, [], "group_kfold", k=INNER_FOLDS)
 
 
+#: one run only: validation on this many contiguous blocks of it (a time series is never shuffled)
+SINGLE_RUN_BLOCKS = 5
+
+
+def row_folds(run_of_row: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The validation folds of a model's own tuning, as (train rows, held-out rows) index pairs
+    over rows whose runs are ``run_of_row``: whole runs held out, as :func:`inner_folds` holds them
+    (each run once up to :data:`INNER_LORO_MAX_RUNS` runs, else :data:`INNER_FOLDS` folds of
+    runs); a single run: :data:`SINGLE_RUN_BLOCKS` contiguous blocks of it, each held out once.
+    Never rows of a run the fold trains on (issue 39)."""
+    groups = np.asarray(run_of_row)
+    runs = list(dict.fromkeys(groups.tolist()))
+    if len(runs) == 1:  # one run: consecutive parts of it
+        block = np.minimum((np.arange(groups.size) * SINGLE_RUN_BLOCKS) // max(groups.size, 1), SINGLE_RUN_BLOCKS - 1)
+        return [(np.flatnonzero(block != b), np.flatnonzero(block == b)) for b in np.unique(block)]
+    return [(np.flatnonzero(np.isin(groups, f.train)), np.flatnonzero(np.isin(groups, f.held_out)))
+            for f in inner_folds(runs)]  # fmt: skip
+
+
 # --------------------------------------------- a thermbench model as a scikit-learn regressor ---
 class DatasetRef:
     """A dataset held by reference in an estimator's parameters: :func:`sklearn.base.clone` deep-copies

@@ -100,10 +100,11 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 from sklearn.linear_model import LinearRegression
-from sklearn.model_selection import LeaveOneGroupOut, cross_val_predict
+from sklearn.model_selection import cross_val_predict
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
+from ..splits import row_folds
 from .base import Inputs, ModelError, ThermalErrorModel, _name, fallback, readings, require, sensor_series, temperatures_at
 from .mlr import lstsq_fit
 from .params import Degree, Expect, Int, Params, PositiveNumber, check_params, pair_bounds
@@ -467,12 +468,11 @@ class LumpedThermalNetwork(ThermalErrorModel):
             y.append(rd.loc[m, "error_um"].to_numpy(dtype=float))
             fold.append(np.full(t.size, i))
         phi, rises, y, fold = np.vstack(phi), np.vstack(rises), np.concatenate(y), np.concatenate(fold)
-        if np.unique(fold).size < 2:  # one run: five consecutive parts of it
-            fold = np.minimum((np.arange(y.size) * 5) // max(y.size, 1), 4)
+        folds = row_folds(fold)  # whole runs held out (one run: five consecutive parts of it)
 
-        def cv_rmse(cols: list[int]) -> float:  # the gains by least squares, each run held out once
+        def cv_rmse(cols: list[int]) -> float:  # the gains by least squares on each fold's training runs
             X = np.column_stack([phi, rises[:, cols], np.ones(y.size)])
-            pred = cross_val_predict(LinearRegression(fit_intercept=False), X, y, groups=fold, cv=LeaveOneGroupOut())
+            pred = cross_val_predict(LinearRegression(fit_intercept=False), X, y, cv=folds)
             return math.sqrt(float(np.mean((pred - y) ** 2)))
 
         if not auto:  # the given sensors: only scored

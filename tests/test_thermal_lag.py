@@ -1,0 +1,120 @@
+"""The thermal-lag family (issue 39): exact first-order lags, inputs chosen as groups and the time
+constants and penalty chosen by cross-validation over whole runs, checked against a planted lagged
+truth computed by an ODE solver (a second implementation of the lag)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from tests.synth import rise
+from tests.test_lumped import spindle_dataset
+from thermbench.metrics import evaluate
+from thermbench.models.base import ModelError
+from thermbench.models.thermal_lag import ThermalLag, first_order_lag
+
+DT_S = 60.0
+TAU_TRUE_S = 3600.0
+NOISE_UM = 0.05
+
+
+def test_first_order_lag_of_a_step_is_the_exponential_on_regular_and_irregular_logs():
+    tau = 900.0
+    t = np.arange(0.0, 7200.0 + 1, 60.0)
+    u = np.ones_like(t)  # on from the first interval: y(t) = 1 - exp(-t / tau)
+    np.testing.assert_allclose(first_order_lag(t, u, tau), 1 - np.exp(-t / tau), atol=1e-12)
+    ti = np.cumsum(np.r_[0.0, np.random.default_rng(0).uniform(10, 120, 80)])
+    np.testing.assert_allclose(first_order_lag(ti, np.ones_like(ti), tau), 1 - np.exp(-ti / tau), atol=1e-12)
+    np.testing.assert_array_equal(first_order_lag(t, u, 0.0), u)
+
+
+def _lag_ode(t_s: np.ndarray, f, tau_s: float) -> np.ndarray:
+    """y' = (f(t) - y) / tau from y(0) = 0, by scipy's ODE solver on the continuous input."""
+    sol = solve_ivp(lambda t, y: (f(t) - y) / tau_s, (0.0, float(t_s[-1])), [0.0], t_eval=t_s, rtol=1e-10, atol=1e-12,
+                    max_step=30.0)  # fmt: skip
+    return sol.y[0]
+
+
+def _runs(specs, seed=0):
+    """Runs of a spindle test: T_a and T_b heat and cool (different timings per run), T_c wanders;
+    the error = 2.0 x lag_3600(rise of T_a) + 1.0 x rise of T_b + noise (T_c plays no part)."""
+    rng = np.random.default_rng(seed)
+    runs = {}
+    for k, (amp_a, on_a, off_a, amp_b, on_b, off_b) in enumerate(specs):
+        t = np.arange(0.0, 6 * 3600.0 + 1, DT_S)
+
+        def fa(tt, amp_a=amp_a, on_a=on_a, off_a=off_a):
+            return rise(tt, amp_a, 1200.0, on_a, off_a)
+
+        ta, tb = fa(t), rise(t, amp_b, 900.0, on_b, off_b)
+        tc = 0.8 * np.sin(t / 5000.0 + k) + 0.02 * rng.standard_normal(t.size)
+        err = 2.0 * _lag_ode(t, fa, TAU_TRUE_S) + 1.0 * tb + NOISE_UM * rng.standard_normal(t.size)
+        runs[f"r{k}"] = {"t_s": t, "spindle_rpm": np.full(t.size, 1000.0 * (k + 1)), "read_t_s": t, "error_um": err,
+                         "T_a_C": 20 + ta, "T_b_C": 21 + tb, "T_c_C": 20.5 + tc - tc[0]}  # fmt: skip
+    return runs
+
+
+SPECS = [(4.0, 600, 12000, 2.0, 3000, 15000), (6.0, 1800, 9000, 1.0, 600, 20000), (3.0, 300, 18000, 3.0, 6000, 10000),
+         (5.0, 3600, 14000, 2.5, 1200, 8000), (2.0, 900, 20000, 1.5, 2400, 16000)]  # fmt: skip
+SENSORS = {"T_a": "spindle", "T_b": "structure", "T_c": "ambient"}
+
+
+@pytest.fixture(scope="module")
+def planted():
+    return spindle_dataset(_runs(SPECS), sensors=SENSORS, operating=[])
+
+
+def test_it_recovers_the_planted_inputs_and_time_constant_and_reaches_the_noise_floor(planted):
+    train, held = ["r0", "r1", "r2", "r3"], "r4"
+    m = ThermalLag(taus_s=[[0.0], [0.0, 1800.0], [0.0, 3600.0], [0.0, 900.0, 3600.0, 14400.0]]).fit(planted, train)
+    assert sorted(m.inputs_) == ["T_a", "T_b"]  # T_c (no part in the error) never enters
+    assert 3600.0 in m.taus_s_  # the planted time constant
+    assert [s for s, _ in m.selection_][0] == "(none)" and m.selection_[-1][1] == pytest.approx(m.cv_rmse_um_)
+    rmse = evaluate(m, planted, [held])["rmse_um"].iloc[0]
+    assert rmse < 1.5 * NOISE_UM  # the noise floor on a run it never saw
+    assert m.required_inputs().sensors == tuple(m.inputs_)
+
+
+def test_its_validation_folds_hold_whole_runs_out():
+    """splits.row_folds, what thermal_lag (and the lumped network's selection) tunes on: each fold
+    holds out whole runs and trains on the others only; a single run: contiguous blocks."""
+    from thermbench.splits import row_folds
+
+    runs = np.repeat(["a", "b", "c"], 4)
+    folds = row_folds(runs)
+    assert len(folds) == 3
+    for tr, te in folds:  # each fold holds out one whole run and trains on the other two only
+        assert len(set(runs[te])) == 1 and not set(runs[te]) & set(runs[tr])
+    one = row_folds(np.array(["a"] * 10))  # one run: 5 contiguous blocks
+    assert [list(te) for _, te in one] == [[0, 1], [2, 3], [4, 5], [6, 7], [8, 9]]
+
+
+def test_mistakes_are_one_line(planted):
+    with pytest.raises(ModelError, match=r"sensors: \['T_x'\] are not sensors of the dataset"):
+        ThermalLag(sensors=["T_x"]).fit(planted, ["r0", "r1"])
+    with pytest.raises(ModelError, match="taus_s"):
+        ThermalLag(taus_s=[[-1.0]]).fit(planted, ["r0", "r1"])
+    with pytest.raises(ModelError, match="operating: column 'feed' is not in the process log"):
+        ThermalLag(operating=["feed"]).fit(planted, ["r0", "r1"])
+
+
+def test_the_fold_ridge_equals_scikit_learn_standardised_on_the_training_rows():
+    """_FoldGram's held-out error for any subset of columns and any penalty: scikit-learn's
+    StandardScaler (fitted on the fold's training rows) + Ridge, predicting the held-out rows."""
+    from sklearn.linear_model import Ridge
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    from thermbench.models.thermal_lag import _FoldGram
+
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((60, 5)) * [1.0, 10.0, 0.1, 3.0, 1.0] + [0.0, 5.0, -2.0, 0.0, 1.0]
+    y = X @ [1.0, 0.2, -3.0, 0.0, 0.5] + 0.3 * rng.standard_normal(60)
+    train, test = np.arange(40), np.arange(40, 60)
+    g = _FoldGram(X, y, train, test)
+    cols, alphas = np.array([0, 2, 3]), [0.01, 1.0, 30.0]
+    for a, sse in zip(alphas, g.sse(cols, alphas)):
+        pipe = make_pipeline(StandardScaler(), Ridge(alpha=a)).fit(X[np.ix_(train, cols)], y[train])
+        assert sse == pytest.approx(float(np.sum((pipe.predict(X[np.ix_(test, cols)]) - y[test]) ** 2)), rel=1e-9)
+    assert g.sse(np.array([], dtype=int), [1.0])[0] == pytest.approx(float(np.sum((y[test] - y[train].mean()) ** 2)))

@@ -1,0 +1,290 @@
+"""Thermal-lag regression: the thermal error as a sum of first-order responses to measured inputs.
+
+Thermal error is a lagged response to heat (issue 39; the adaptive ARX models with automatic
+input selection of the ETH Zurich machine-tool group write it as a sum of first-order responses
+to measured temperatures and operating signals). Here::
+
+    E(t) = b + Σ_g Σ_τ w_gτ · lag_τ(u_g)(t)
+
+* ``u_g``: an input, the rise ΔT of a temperature sensor above the run's first sample, or an
+  operating signal of the process log (spindle speed, feed) divided by its largest training
+  value; ``lag_0`` is the input itself;
+* ``lag_τ``: the exact first-order filter of time constant τ run forward in time from 0 at the
+  run's start (the input held over each sample interval, :func:`first_order_lag`), as the
+  compensator runs it sample by sample;
+* the inputs are chosen **as groups** (an input enters or leaves with all its lags) by forward
+  selection, each step the group that lowers the cross-validated RMSE most, stopping when no
+  group lowers it by ``min_gain``; the weights by ridge regression on standardised lags, the
+  penalty ``alpha`` from ``alphas`` and the set of time constants from ``taus_s`` chosen by the
+  same cross-validation over **whole runs** (:func:`thermbench.splits.row_folds`: each run held
+  out once up to 6 runs, else 3 folds of runs; one run: 5 contiguous blocks), never on rows of
+  a run the fold trains on.
+
+Along an axis with several measuring targets, the position P and P x each lag join the features
+(the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
+inputs, in the order they entered), ``taus_s_``, ``alpha_``, ``selection_`` (each step: the
+input added and the cross-validated RMSE after it), ``cv_rmse_um_``, ``coef_``/``intercept_``
+(on the standardised features ``mean_``/``scale_``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Optional, Sequence
+
+import numpy as np
+from annotated_types import Ge, Gt, Len
+from numpy.polynomial import Polynomial
+from scipy.signal import lfilter
+
+from ..data.dataset import Dataset
+from .base import Inputs, ModelError, ThermalErrorModel, _name, derived, readings, sensor_series
+from .params import Expect, Int, Params, check_params
+
+__all__ = ["ThermalLag", "first_order_lag"]
+
+#: the default candidate sets of time constants (s): the rise alone, then 30 min, then 15 min /
+#: 1 h, then 15 min / 1 h / 4 h beside it (a spindle test's drift moves over minutes to hours)
+DEFAULT_TAUS_S = ((0.0,), (0.0, 1800.0), (0.0, 900.0, 3600.0), (0.0, 900.0, 3600.0, 14400.0))
+
+
+def first_order_lag(t_s: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
+    """``y' = (u - y) / τ`` from ``y = 0`` before the first sample, exact for an input held at
+    each sample's value over the interval that ends there: ``y_k = a_k y_{k-1} + (1 - a_k) u_k``,
+    ``a_k = exp(-(t_k - t_{k-1}) / τ)`` (the first sample: ``y_0 = 0``: the machine had not
+    started). ``tau_s = 0``: the input itself."""
+    u = np.asarray(u, dtype=float)
+    if tau_s == 0:
+        return u.copy()
+    t = np.asarray(t_s, dtype=float)
+    if t.size == 0:
+        return np.zeros(0)
+    dt = np.diff(t)
+    y = np.zeros(u.size)
+    if dt.size and np.allclose(dt, dt[0], rtol=1e-9, atol=0.0):  # a regular log: one linear filter
+        a = float(np.exp(-dt[0] / tau_s))
+        y[1:] = lfilter([1.0 - a], [1.0, -a], u[1:])
+        return y
+    a = np.exp(-dt / tau_s)
+    for k in range(1, u.size):
+        y[k] = a[k - 1] * y[k - 1] + (1.0 - a[k - 1]) * u[k]
+    return y
+
+
+class ThermalLagParams(Params):
+    sensors: Annotated[Optional[Annotated[Sequence[str], Len(min_length=1)]],
+                       Expect("None or a non-empty list of sensor names")]  # fmt: skip
+    operating: Annotated[Optional[Sequence[str]], Expect("None or a list of process columns")]
+    taus_s: Annotated[Sequence[Annotated[Sequence[Annotated[float, Ge(0)]], Len(min_length=1)]], Len(min_length=1),
+                      Expect("a non-empty list of sets of time constants in seconds, each >= 0")]  # fmt: skip
+    alphas: Annotated[Sequence[Annotated[float, Gt(0)]], Len(min_length=1), Expect("a non-empty list of penalties > 0")]
+    max_inputs: Annotated[Int, Ge(1)]
+    min_gain: Annotated[float, Ge(0), Expect("a fraction >= 0 (0.02: a 2 % lower cross-validated RMSE)")]
+
+
+class ThermalLag(ThermalErrorModel):
+    """Thermal-lag regression (module docstring).
+
+    Parameters
+    ----------
+    sensors : list of str or None
+        The temperature sensors whose rises are candidate inputs; None: every sensor.
+    operating : list of str or None
+        Process columns that are candidate inputs too; None: the dataset's operating inputs
+        (``metadata.operating``); ``[]``: none.
+    taus_s : list of lists of float
+        Candidate sets of time constants (s); 0 is the input itself. One set is chosen.
+    alphas : list of float
+        Candidate ridge penalties (on standardised lags).
+    max_inputs : int
+        At most this many inputs enter.
+    min_gain : float
+        An input enters only when it lowers the cross-validated RMSE by this fraction.
+    """
+
+    params_model = ThermalLagParams
+
+    def __init__(self, sensors=None, operating=None, taus_s=DEFAULT_TAUS_S, alphas=tuple(np.logspace(-3, 3, 13)),
+                 max_inputs=6, min_gain=0.02):  # fmt: skip
+        self.sensors = sensors
+        self.operating = operating
+        self.taus_s = taus_s
+        self.alphas = alphas
+        self.max_inputs = max_inputs
+        self.min_gain = min_gain
+
+    # ------------------------------------------------------------ features ---
+    def _input_series(self, ds: Dataset, run: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(t, u) of input ``name`` over the run's log: a sensor's rise, or an operating column scaled."""
+        if name in self.sensor_names_:
+            s = sensor_series(ds, run, [name], None)
+            col = s[ds.metadata.sensor_column(name)].to_numpy(dtype=float)
+            return s["t_s"].to_numpy(dtype=float), col - (col[0] if col.size else 0.0)
+        pr = ds.process_run(run)
+        if name not in pr.columns:
+            raise ModelError(f"operating: column {name!r} is not in the process log of run {run!r}; "
+                             f"columns: {list(pr.columns)}")  # fmt: skip
+        u = np.asarray(pr[name], dtype=float)
+        if not np.isfinite(u).all():
+            raise ModelError(f"operating: column {name!r} of run {run!r} has non-numeric or missing values")
+        return pr["t_s"].to_numpy(dtype=float), u / self.scale_of_[name]
+
+    def _lags(self, ds: Dataset, run: str, name: str, taus: Sequence[float], t_s: np.ndarray) -> np.ndarray:
+        """The lags of input ``name`` at times ``t_s`` of ``run``, one column per τ (computed once)."""
+
+        def make():
+            t, u = self._input_series(ds, run, name)
+            return t, {tau: first_order_lag(t, u, tau) for tau in self.all_taus_}
+
+        key = ("thermal_lag", run, name, self.scale_of_.get(name, 1.0), tuple(self.all_taus_))
+        t, by_tau = derived(ds, key, make, copy=False)
+        return np.column_stack([np.interp(t_s, t, by_tau[tau]) for tau in taus])
+
+    def _features(self, ds: Dataset, run: str, inputs: Sequence[str], taus, t_s, axis_mm) -> np.ndarray:
+        t = np.asarray(t_s, dtype=float)
+        cols = [self._lags(ds, run, name, taus, t) for name in inputs]
+        z = np.hstack(cols) if cols else np.zeros((t.size, 0))
+        if not self.uses_position_:
+            return z
+        p = np.asarray(axis_mm, dtype=float)[:, None]
+        return np.hstack([p, z, p * z])
+
+    # ----------------------------------------------------------------- fit ---
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        from ..splits import row_folds
+
+        p = check_params(self, self.params_model)
+        sensors = list(ds.metadata.sensors) if p.sensors is None else list(p.sensors)
+        unknown = [s for s in sensors if s not in ds.metadata.sensors]
+        if unknown:
+            raise ModelError(f"sensors: {unknown} are not sensors of the dataset {_name(ds)}; it has "
+                             f"{list(ds.metadata.sensors)}")  # fmt: skip
+        operating = list(ds.metadata.operating_inputs() if p.operating is None else p.operating)
+        operating = [c for c in operating if c not in sensors]
+        if not sensors and not operating:
+            raise ModelError(f"the dataset {_name(ds)} has no temperature sensor and no operating input: "
+                             "nothing to lag")  # fmt: skip
+        self.sensor_names_ = sensors
+        self.scale_of_ = {}
+        for c in operating:  # each operating signal over its largest training value
+            top = 0.0
+            for run in runs:
+                pr = ds.process_run(run)
+                if c not in pr.columns:
+                    raise ModelError(f"operating: column {c!r} is not in the process log of run {run!r}; "
+                                     f"columns: {list(pr.columns)}")  # fmt: skip
+                top = max(top, float(np.nanmax(np.abs(np.asarray(pr[c], dtype=float)), initial=0.0)))
+            self.scale_of_[c] = top if top > 0 else 1.0
+        candidates = sensors + operating
+        self.all_taus_ = sorted({float(t) for s in p.taus_s for t in s})
+        rd = readings(ds, runs)
+        self.uses_position_ = np.unique(rd["target_mm"].to_numpy()).size > 1
+        y = rd["error_um"].to_numpy(dtype=float)
+        run_of = rd["run_id"].to_numpy()
+        # every candidate's lags at every reading, once: column (input, tau)
+        full = {name: np.vstack([self._lags(ds, r, name, self.all_taus_, rd.loc[run_of == r, "t_s"].to_numpy())
+                                 for r in runs]) for name in candidates}  # fmt: skip
+        pos = rd["target_mm"].to_numpy(dtype=float)[:, None]
+        folds = row_folds(run_of)
+        best = None
+        for taus in p.taus_s:
+            idx = [self.all_taus_.index(float(t)) for t in taus]
+            blocks = {name: full[name][:, idx] for name in candidates}
+            if self.uses_position_:
+                blocks = {name: np.hstack([b, pos * b]) for name, b in blocks.items()}
+            fixed = pos if self.uses_position_ else np.zeros((y.size, 0))
+            chosen, score, steps = _forward_groups(blocks, fixed, y, folds, p.alphas, p.max_inputs, p.min_gain)
+            if best is None or score[0] < best[1][0]:
+                best = (tuple(float(t) for t in taus), score, chosen, steps)
+        self.taus_s_, (self.cv_rmse_um_, self.alpha_), self.inputs_, self.selection_ = best
+        X = np.vstack([self._features(ds, r, self.inputs_, self.taus_s_, rd.loc[run_of == r, "t_s"].to_numpy(),
+                                      rd.loc[run_of == r, "target_mm"].to_numpy()) for r in runs])  # fmt: skip
+        self.mean_, self.scale_, self.coef_, self.intercept_ = _ridge(X, y, self.alpha_)
+        self.geometric_ = Polynomial([0.0])
+
+    def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
+        X = self._features(ds, run, self.inputs_, self.taus_s_, t_s, axis_mm)
+        return ((X - self.mean_) / self.scale_) @ self.coef_ + self.intercept_
+
+    def _model_inputs(self) -> Inputs:
+        return Inputs(sensors=tuple(i for i in self.inputs_ if i in self.sensor_names_),
+                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_))  # fmt: skip
+
+
+def _ridge(X: np.ndarray, y: np.ndarray, alpha: float):
+    """Ridge on standardised columns (a constant column keeps scale 1): (mean, scale, coef, intercept)."""
+    mean = X.mean(axis=0) if X.size else np.zeros(X.shape[1])
+    scale = X.std(axis=0) if X.size else np.ones(X.shape[1])
+    scale = np.where(scale > 0, scale, 1.0)
+    Z = (X - mean) / scale
+    ym = float(y.mean())
+    coef = np.linalg.solve(Z.T @ Z + alpha * np.eye(Z.shape[1]), Z.T @ (y - ym)) if Z.shape[1] else np.zeros(0)
+    return mean, scale, coef, ym
+
+
+class _FoldGram:
+    """One fold's training sums over every candidate column (the Gram matrix, the column sums and
+    squares, and their products with y) and its held-out rows: a ridge on any subset of columns,
+    standardised on the fold's training rows, costs a solve of the subset's size."""
+
+    def __init__(self, X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray) -> None:
+        Xt, yt = X[train], y[train]
+        self.n = yt.size
+        self.s = Xt.sum(axis=0)
+        self.G = Xt.T @ Xt
+        self.c = Xt.T @ yt
+        self.ys = float(yt.sum())
+        self.Xte, self.yte = X[test], y[test]
+
+    def sse(self, cols: np.ndarray, alphas: Sequence[float]) -> np.ndarray:
+        """Held-out sum of squared errors of the ridge on ``cols``, one per penalty."""
+        ym = self.ys / self.n
+        if cols.size == 0:
+            return np.full(len(alphas), float(np.sum((self.yte - ym) ** 2)))
+        mu = self.s[cols] / self.n
+        cov = self.G[np.ix_(cols, cols)] - self.n * np.outer(mu, mu)
+        sd = np.sqrt(np.clip(np.diag(cov) / self.n, 0.0, None))
+        sd = np.where(sd > 0, sd, 1.0)
+        A = cov / np.outer(sd, sd)
+        b = (self.c[cols] - mu * self.ys) / sd
+        Zte = (self.Xte[:, cols] - mu) / sd
+        lam, V = np.linalg.eigh(A)  # every penalty from one decomposition: w(a) = V (V'b / (lam + a))
+        P, q = Zte @ V, V.T @ b
+        W = q[:, None] / (np.clip(lam, 0.0, None)[:, None] + np.asarray(alphas)[None, :])
+        return np.sum((P @ W + (ym - self.yte)[:, None]) ** 2, axis=0)
+
+
+def _forward_groups(blocks: dict[str, np.ndarray], fixed: np.ndarray, y: np.ndarray, folds, alphas, max_inputs: int,
+                    min_gain: float):  # fmt: skip
+    """Forward selection of input groups (each ``blocks[name]``: its columns) by the pooled held-out
+    RMSE of the ridge over ``folds`` (the best of ``alphas`` at each step); ``fixed`` columns are
+    always in. Returns (chosen names, (RMSE, alpha), steps [(name, RMSE)])."""
+    names = list(blocks)
+    X = np.hstack([fixed, *[blocks[n] for n in names]]) if names else fixed
+    start, spans = fixed.shape[1], {}
+    for n in names:
+        spans[n] = np.arange(start, start + blocks[n].shape[1])
+        start += blocks[n].shape[1]
+    grams = [_FoldGram(X, y, tr, te) for tr, te in folds]
+    n_rows = sum(g.yte.size for g in grams)
+    alphas = [float(a) for a in alphas]
+
+    def score(chosen: list[str]) -> tuple[float, float]:
+        cols = np.concatenate([np.arange(fixed.shape[1]), *[spans[n] for n in chosen]]).astype(int)
+        sse = sum(g.sse(cols, alphas) for g in grams)
+        k = int(np.argmin(sse))
+        return float(np.sqrt(sse[k] / n_rows)), alphas[k]
+
+    chosen: list[str] = []
+    best = score(chosen)
+    steps = [("(none)", best[0])]
+    while len(chosen) < min(max_inputs, len(names)):
+        trial = min((score(chosen + [n]), n) for n in names if n not in chosen)
+        if trial[0][0] > (1.0 - min_gain) * best[0]:
+            break
+        chosen.append(trial[1])
+        best = trial[0]
+        steps.append((trial[1], best[0]))
+    every = score(names)  # every input at once, the ridge alone keeping the weights small
+    if len(names) > len(chosen) and every[0] < best[0]:
+        return names, every, steps + [("(every input)", every[0])]
+    return chosen, best, steps
