@@ -118,3 +118,18 @@ def test_the_fold_ridge_equals_scikit_learn_standardised_on_the_training_rows():
         pipe = make_pipeline(StandardScaler(), Ridge(alpha=a)).fit(X[np.ix_(train, cols)], y[train])
         assert sse == pytest.approx(float(np.sum((pipe.predict(X[np.ix_(test, cols)]) - y[test]) ** 2)), rel=1e-9)
     assert g.sse(np.array([], dtype=int), [1.0])[0] == pytest.approx(float(np.sum((y[test] - y[train].mean()) ** 2)))
+
+
+def test_the_gaussian_process_on_the_lags_predicts_and_knows_its_noise(planted):
+    """gp: the planted truth on a run it never saw near the noise floor; its predictive standard
+    deviation is about the planted noise where the inputs are inside the training range."""
+    from thermbench.models.gp import GaussianProcessLag
+
+    m = GaussianProcessLag(max_samples=300, seed=0).fit(planted, ["r0", "r1", "r2", "r3"])
+    assert sorted(m.lag_.inputs_) == ["T_a", "T_b"]
+    assert evaluate(m, planted, ["r4"])["rmse_um"].iloc[0] < 2.0 * NOISE_UM
+    er = planted.errors_run("r4")
+    std = m.predict_std(planted, "r4", er["t_s"].to_numpy(), er["target_mm"].to_numpy())
+    assert std.shape == (len(er),) and 0.5 * NOISE_UM < float(np.median(std)) < 3 * NOISE_UM
+    again = GaussianProcessLag(max_samples=300, seed=0).fit(planted, ["r0", "r1", "r2", "r3"])
+    np.testing.assert_array_equal(again.predict(planted, "r4"), m.predict(planted, "r4"))  # seeded
