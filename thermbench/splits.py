@@ -305,7 +305,7 @@ def row_folds(run_of_row: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
     (each run once up to :data:`INNER_LORO_MAX_RUNS` runs, else :data:`INNER_FOLDS` folds of
     runs); a single run: :data:`SINGLE_RUN_BLOCKS` contiguous blocks of it, each held out once.
     Never rows of a run the fold trains on (issue 39)."""
-    groups = np.asarray(run_of_row)
+    groups = np.asarray(run_of_row).astype(str)  # run ids, or any labels of them (indices)
     runs = list(dict.fromkeys(groups.tolist()))
     if len(runs) == 1:  # one run: consecutive parts of it
         block = np.minimum((np.arange(groups.size) * SINGLE_RUN_BLOCKS) // max(groups.size, 1), SINGLE_RUN_BLOCKS - 1)

@@ -496,6 +496,26 @@ def last_cycles_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
     return held
 
 
+def validation_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
+    """The readings a family tunes on (early stopping, a swarm's objective), never rows of a run it
+    trains on (issue 39: rows of one time series are autocorrelated, so a hold-out of rows between
+    training rows rewards interpolation): with several training runs, **whole runs**, the last
+    ones in training order whose readings come closest to ``fraction`` of all (at least one held
+    out, at least one kept); with one run, its last ``fraction`` of measuring cycles
+    (:func:`last_cycles_mask`: a contiguous block at its end, an extrapolation in time)."""
+    runs = list(dict.fromkeys(rd["run_id"]))
+    if fraction == 0.0 or len(runs) < 2:
+        return last_cycles_mask(rd, fraction)
+    sizes = rd.groupby("run_id", sort=False).size()
+    target, held, n = fraction * len(rd), [], 0
+    for r in reversed(runs[1:]):  # the first run always trains
+        if held and abs(n + sizes[r] - target) >= abs(n - target):
+            break
+        held.append(r)
+        n += int(sizes[r])
+    return rd["run_id"].isin(held).to_numpy()
+
+
 def choose_sensors(
     ds: Dataset,
     runs: Sequence[str],

@@ -40,7 +40,7 @@ from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, fit_progress, last_cycles_mask, readings, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, choose_sensors, fit_progress, readings, validation_mask, require, temperatures_at
 from .params import (
     Bool,
     Degree,
@@ -392,11 +392,12 @@ class PSOLSSVM(ThermalErrorModel):
     gamma, sigma2 : the LSSVM's penalty factor and kernel width; None (default) =
         tuned by PSO (:func:`tune_lssvm`) within ``gamma_bounds`` / ``sigma2_bounds``
         with ``n_particles``, ``iters`` and ``seed``. Giving one tunes only the other.
-    val_fraction : PSO hold-out: in every training run, the last ``val_fraction`` of
-        its measuring cycles (at least one, when the run has two or more) — a time
-        block, so the tuning rewards extrapolating to later thermal states rather
-        than interpolating between neighbouring readings. After tuning, the LSSVM
-        is refitted on all training readings.
+    val_fraction : PSO hold-out (:func:`thermbench.models.base.validation_mask`): whole
+        training runs, the last ones making up about ``val_fraction`` of the readings;
+        with a single run, the last ``val_fraction`` of its measuring cycles (a time
+        block). Never rows between training rows of the same run: the tuning rewards
+        what holds on another run, not interpolating between neighbouring readings.
+        After tuning, the LSSVM is refitted on all training readings.
     max_samples : the LSSVM costs O(n³) time and O(n²) memory; with more readings
         than this a seeded (``seed``) random subset of ``max_samples`` readings is
         used for tuning and fitting (``subsampled_`` records it).
@@ -455,7 +456,7 @@ class PSOLSSVM(ThermalErrorModel):
             m = (rd["run_id"] == r).to_numpy()
             g = rd[m]
             X[m] = self._features(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
-        val = last_cycles_mask(rd, p.val_fraction)
+        val = validation_mask(rd, p.val_fraction)  # whole training runs held out (one run: its last cycles)
         y = rd["error_um"].to_numpy() - self.geometric_(rd["target_mm"].to_numpy())
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         require(int(ok.sum()), 10, "finite (temperature, error) readings in the training runs")

@@ -27,13 +27,14 @@ Training discipline (both, choices of thermbench — the papers are silent):
   so the global torch RNG is neither used nor changed; same parameters → the same
   bits (float64 throughout; one torch thread during fit and predict, see below);
 * Adam on the mean squared standardised error, ``weight_decay`` as Adam's L2 term;
-* early stopping: the last ``val_fraction`` of the measuring cycles *of every
-  training run* (a contiguous block at the end, at least one cycle when
-  ``val_fraction > 0``) is held out; training stops once the validation RMSE has
-  not improved for ``patience`` epochs and the weights of the best validation
-  epoch are kept. Holding out the end of each run (rather than random readings)
-  makes the validation an honest extrapolation in time; those cycles are then
-  not used for gradient steps. ``val_fraction=0`` trains ``max_epochs`` epochs
+* early stopping: whole training runs making up about ``val_fraction`` of the
+  readings are held out (the last ones; with a single training run, the last
+  ``val_fraction`` of its measuring cycles, at least one: a contiguous block,
+  :func:`thermbench.models.base.validation_mask`); training stops once the
+  validation RMSE has not improved for ``patience`` epochs and the weights of the
+  best validation epoch are kept. Holding out whole runs (never random readings
+  between training readings of the same run) makes the validation an honest
+  estimate on another run; the held-out readings are then not used for gradient steps. ``val_fraction=0`` trains ``max_epochs`` epochs
   and keeps the last weights. The first ``min_epochs`` epochs are a warm-up
   (Keras' ``start_from_epoch``): their validation scores are not candidates,
   because early in training the output sweeps through the target range and the
@@ -63,7 +64,7 @@ from annotated_types import Ge, Len, Lt
 
 from ..data.dataset import Dataset
 from ..extras import require as require_extra
-from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, fit_progress, last_cycles_mask, readings, require, temperatures_at
+from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, fit_progress, readings, validation_mask, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
 from .separation import line_separated_geometric, shape_degree
 
@@ -132,18 +133,19 @@ def _torch_threads(n: int):
 
 
 def _validation_mask(rd: pd.DataFrame, val_fraction: float) -> np.ndarray:
-    """True for the readings of the last ``val_fraction`` of the measuring cycles of each run
-    (at least one cycle when ``val_fraction > 0``; at least one cycle stays for training)."""
-    if val_fraction > 0.0:
+    """The early-stopping hold-out (:func:`thermbench.models.base.validation_mask`): whole training
+    runs, or of a single run its last ``val_fraction`` of measuring cycles (at least one cycle
+    held out, at least one kept: a single run needs >= 2 cycles)."""
+    if val_fraction > 0.0 and rd["run_id"].nunique() < 2:
         for run, g in rd.groupby("run_id", sort=False):
             n_cycles = g["cycle"].nunique()
             if n_cycles < 2:
                 raise ModelError(
                     f"too few samples: run {run!r} has {n_cycles} measuring cycle(s); val_fraction="
-                    f"{val_fraction} holds out whole cycles at the end of each run, so each run needs >= 2 "
+                    f"{val_fraction} holds out whole cycles at the end of a single training run, so it needs >= 2 "
                     "(or pass val_fraction=0)"
                 )
-    return last_cycles_mask(rd, val_fraction)
+    return validation_mask(rd, val_fraction)
 
 
 def _scaler(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
