@@ -100,7 +100,6 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 from sklearn.linear_model import LinearRegression
-from sklearn.model_selection import cross_val_predict
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
@@ -224,9 +223,9 @@ class LumpedThermalNetwork(ThermalErrorModel):
     ----------
     n_nodes : number of thermal nodes in the chain (1..6; default 2), or a list of
         candidates: each is identified on the operating input alone (with its own sensor
-        selection when ``sensors="auto"``) and scored by the same leave-one-run-out RMSE as
-        the sensors (see ``max_sensors``); the lowest wins (``node_selection_``: each
-        candidate's score).
+        selection when ``sensors="auto"``) and scored by the same cross-validated RMSE as
+        the sensors (see ``max_sensors``: whole runs held out, each fold's network identified
+        on its own training runs); the lowest wins (``node_selection_``: each candidate's score).
     operating : process column of the heat-producing operating signal (e.g.
         ``"spindle_rpm"``); None = the dataset's first operating input
         (``metadata.operating_inputs()[0]``).
@@ -436,7 +435,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
             if len(candidates) == 1 and self.sensors != "auto":
                 self._identify(ds, runs, None, candidates[0])
                 return
-            # leave-one-run-out RMSE of each node count (with its own sensor selection): the lowest wins
+            # the cross-validated RMSE over runs of each node count (with its own sensor selection): the lowest wins
             scored = [(*self._select(ds, runs, n), n) for n in candidates]
             cv, sensors, steps, n = min(scored, key=lambda r: r[0])
             self._identify(ds, runs, sensors, n)
@@ -449,31 +448,37 @@ class LumpedThermalNetwork(ThermalErrorModel):
         (``sensors="auto"``: forward selection by cross-validated RMSE, see ``max_sensors``;
         else the given ones) scored with it. Returns (cross-validated RMSE, sensors, steps)."""
         k_max = check_params(self, self.params_model).max_sensors
-        base = type(self)(**{**self.get_params(), "sensors": None, "n_nodes": n})
-        base._identify(ds, runs, [], n)
-        base.train_runs_ = list(runs)
         auto = self.sensors == "auto"
         cands = list(ds.metadata.sensors) if auto else self._sensor_names(ds)
         if auto and not cands:
             raise ModelError(f"sensors: 'auto' needs temperature sensors; the dataset {_name(ds)} has none")
         rd = readings(ds, runs)
-        phi, rises, y, fold = [], [], [], []
-        for i, run in enumerate(runs):
-            m = (rd["run_id"] == run).to_numpy()
-            if not m.any():
-                continue
-            t = rd.loc[m, "t_s"].to_numpy(dtype=float)
-            phi.append(base.simulate(ds, run, t))
-            rises.append(temperatures_at(ds, run, cands, t, self.preprocess, delta=True))
-            y.append(rd.loc[m, "error_um"].to_numpy(dtype=float))
-            fold.append(np.full(t.size, i))
-        phi, rises, y, fold = np.vstack(phi), np.vstack(rises), np.concatenate(y), np.concatenate(fold)
-        folds = row_folds(fold)  # whole runs held out (one run: five consecutive parts of it)
+        scored = [r for r in runs if (rd["run_id"] == r).any()]
+        times = {r: rd.loc[rd["run_id"] == r, "t_s"].to_numpy(dtype=float) for r in scored}
+        rises = np.vstack([temperatures_at(ds, r, cands, times[r], self.preprocess, delta=True) for r in scored])
+        y = np.concatenate([rd.loc[rd["run_id"] == r, "error_um"].to_numpy(dtype=float) for r in scored])
+        run_of = np.concatenate([np.full(times[r].size, r, dtype=object) for r in scored])
+        folds = row_folds(run_of)  # whole runs held out (one run: five consecutive parts of it)
 
-        def cv_rmse(cols: list[int]) -> float:  # the gains by least squares on each fold's training runs
-            X = np.column_stack([phi, rises[:, cols], np.ones(y.size)])
-            pred = cross_val_predict(LinearRegression(fit_intercept=False), X, y, cv=folds)
-            return math.sqrt(float(np.mean((pred - y) ** 2)))
+        def network_on(train_runs: list[str]) -> np.ndarray:
+            """The network identified on the operating input alone on ``train_runs``, simulated at every reading."""
+            base = type(self)(**{**self.get_params(), "sensors": None, "n_nodes": n})
+            base._identify(ds, train_runs, [], n)
+            base.train_runs_ = list(train_runs)
+            return np.vstack([base.simulate(ds, r, times[r]) for r in scored])
+
+        # each fold's network identified on its own training runs (its time constants and exponent never
+        # see the runs it holds out, issue 39); one run: identified on it, only the gains are cross-validated
+        every = network_on(scored)
+        phis = [network_on(list(dict.fromkeys(run_of[tr]))) if len(scored) > 1 else every for tr, _ in folds]
+
+        def cv_rmse(cols: list[int]) -> float:  # the gains by least squares on each fold's training rows
+            sq = 0.0
+            for (tr, te), phi in zip(folds, phis):
+                X = np.column_stack([phi, rises[:, cols], np.ones(y.size)])
+                fit = LinearRegression(fit_intercept=False).fit(X[tr], y[tr])
+                sq += float(np.sum((fit.predict(X[te]) - y[te]) ** 2))
+            return math.sqrt(sq / y.size)
 
         if not auto:  # the given sensors: only scored
             return cv_rmse(list(range(len(cands)))), None, []
