@@ -12,6 +12,7 @@ import pytest
 
 from thermbench.datasets import load_benchmark
 from thermbench.export import ExportOptions, bundle, export_model, read_manifest, target
+from thermbench.export.fileformat import Kind
 from thermbench.export.native import TB_E_ALIGN
 from thermbench.models.mlr import MLRSeed001, MLRSeed002
 
@@ -21,8 +22,7 @@ pytestmark = pytest.mark.target
 
 RUN = "valid1"
 FLOAT_UM = 0.01  # issue 21: single-precision parity for every kind
-KIND_OF = {"MLR_CURVE": 1, "MLR_SEED001": 2, "LSSVM": 3, "MLP": 4, "GRU": 5, "PHYSICS": 6, "AR": 7, "CLASSIFIER": 8,
-           "LUMPED": 9}  # the manifest's kind -> TB_KIND_* of tb_runtime.h
+KIND_OF = {k.name: int(k) for k in Kind}  # the manifest's kind -> TB_KIND_* of tb_runtime.h (test_runtime_contract)
 
 
 @pytest.fixture(scope="module")

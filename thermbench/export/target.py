@@ -26,6 +26,7 @@ from typing import Sequence
 import pandas as pd
 
 from .runtime import RuntimeFailed, RuntimeUnavailable, cache_dir, embedded_dir, runtime_sources, stream_text
+from .fileformat import Kind
 
 CC = "arm-none-eabi-gcc"
 QEMU = "qemu-system-arm"
@@ -164,8 +165,9 @@ def _objects(precision: str) -> list[Path]:
     return sorted(out_dir.glob("*.o"))
 
 
-KIND_CODES = {1: "mlr_curve", 2: "mlr_seed001", 3: "lssvm", 4: "mlp", 5: "gru", 6: "physics", 7: "ar",
-              8: "classifier", 9: "lumped"}  # TB_KIND_* (tb_runtime.h) -> the kind's name in tb_registry.def
+#: TB_KIND_* (tb_runtime.h) -> the kind's name in tb_registry.def: fileformat.Kind's, lower case
+#: (tests/test_runtime_contract.py checks the header and the registry against it)
+KIND_CODES = {int(k): k.name.lower() for k in Kind}
 
 
 def image(file: Path, precision: str = "float", arena_bytes: int = 16384) -> Firmware:
