@@ -18,7 +18,7 @@ REGISTRY = (embedded_dir() / "src" / "tb_registry.def").read_text()
 LIMIT_MACROS = {"sensors": "SENSORS", "poly": "POLY", "table": "TABLE", "support": "SUPPORT", "layers": "LAYERS",
                 "width": "WIDTH", "gru_hidden": "GRU_HIDDEN", "lags": "LAGS", "nodes": "NODES", "ar_order": "AR_ORDER",
                 "levels": "LEVELS", "conditions": "CONDITIONS", "window_samples": "WINDOW",
-                "lumped_nodes": "LUMPED_NODES"}  # fmt: skip
+                "lumped_nodes": "LUMPED_NODES", "lag_taus": "LAG_TAUS"}  # fmt: skip
 
 
 def test_the_kind_codes_are_one_list_on_both_sides():

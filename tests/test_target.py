@@ -315,3 +315,45 @@ def test_a_one_kind_image_fits_64_kb_and_holds_only_its_kind(family_exports):
         syms = subprocess.run(["arm-none-eabi-nm", str(fw.elf)], capture_output=True, text=True, check=True).stdout
         kinds = {ln.split()[-1] for ln in syms.splitlines() if " tbi_kind_" in ln}
         assert kinds == {f"tbi_kind_{target.KIND_CODES[KIND_OF[man['kind']]]}"}, (family, kinds)
+
+
+@pytest.fixture(scope="module")
+def thermal_lag_export(tmp_path_factory):
+    """The thermal-lag family (THERMAL_LAG kind: three sensors' lags and the spindle speed's) on the
+    planted runs of tests/test_thermal_lag.py; run "r4" held out."""
+    from thermbench.models.thermal_lag import ThermalLag
+
+    from .test_lumped import spindle_dataset
+    from .test_thermal_lag import SENSORS, SPECS, _runs
+
+    ds = spindle_dataset(_runs(SPECS), sensors=SENSORS, operating=["spindle_rpm"])
+    model = ThermalLag(max_inputs=4, min_gain=0.0).fit(ds, ["r0", "r1", "r2", "r3"])
+    out = tmp_path_factory.mktemp("thermal_lag") / "tl"
+    export_model(model, out, "tl", ds=ds, heldout=["r4"])
+    return ds, out
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_the_thermal_lag_kind_runs_on_the_target(thermal_lag_export, precision):
+    """THERMAL_LAG from flash on the emulated Cortex-M4F over the held-out run: the host's numbers
+    in double, within 0.01 µm in float."""
+    ds, model_dir = thermal_lag_export
+    q = bundle.readings_queries(ds, "r4")
+    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, "r4")
+    ref = bundle.replay_dir(model_dir, ds, "r4", q)
+    got, rep = target.replay(files, samples, temps, q, precision=precision)
+    assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > 300 and (got["rc"] == 0).all()
+    tol = 5e-10 if precision == "double" else FLOAT_UM
+    assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
+
+
+def test_a_thermal_lag_export_for_the_cortex_m4f_is_within_its_budget(thermal_lag_export, tmp_path):
+    """export.target=cortex-m4f measures the THERMAL_LAG model on the emulated M4 in float over every
+    sample of the held-out run and holds it to the budget (RAM, file, cycle and prediction instructions)."""
+    from thermbench.models.thermal_lag import ThermalLag
+
+    ds, _ = thermal_lag_export
+    model = ThermalLag(max_inputs=4, min_gain=0.0).fit(ds, ["r0", "r1", "r2", "r3"])
+    man = export_model(model, tmp_path / "m4", "tl", ds=ds, heldout=["r4"],
+                       options=ExportOptions(target="cortex-m4f", onnx=False))  # fmt: skip
+    assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM

@@ -133,3 +133,36 @@ def test_the_gaussian_process_on_the_lags_predicts_and_knows_its_noise(planted):
     assert std.shape == (len(er),) and 0.5 * NOISE_UM < float(np.median(std)) < 3 * NOISE_UM
     again = GaussianProcessLag(max_samples=300, seed=0).fit(planted, ["r0", "r1", "r2", "r3"])
     np.testing.assert_array_equal(again.predict(planted, "r4"), m.predict(planted, "r4"))  # seeded
+
+
+@pytest.fixture(scope="module")
+def with_speed():
+    """The planted runs with the spindle speed declared as an operating input (a candidate input)."""
+    return spindle_dataset(_runs(SPECS), sensors=SENSORS, operating=["spindle_rpm"])
+
+
+@pytest.mark.parametrize("operating", [[], ["spindle_rpm"]])
+def test_the_c_runtime_kind_reproduces_python_in_both_precisions(planted, with_speed, operating, tmp_path):
+    """THERMAL_LAG (embedded/src/tb_kind_thermal_lag.c, a second implementation of the lags and the
+    weights): the export's parity check replays the held-out run through the C runtime; double to
+    1e-9 µm, float within the 0.01 µm tolerance, as Python scores it."""
+    from thermbench.export import export_model
+
+    ds = with_speed if operating else planted
+    m = ThermalLag(operating=operating, max_inputs=4, min_gain=0.0).fit(ds, ["r0", "r1", "r2", "r3"])
+    assert ("spindle_rpm" in m.inputs_) == bool(operating)  # min_gain 0: every input up to 4 enters
+    man = export_model(m, tmp_path / "tl", "tl", ds=ds, heldout=["r4"])
+    p = man["parity"]["model"]
+    assert man["kind"] == "THERMAL_LAG" and p["n_readings"] > 300
+    assert p["max_abs_diff_um"] < 1e-9 and p["float_max_abs_diff_um"] < 0.01
+    assert p["heldout_rmse_um_c"] == pytest.approx(evaluate(m, ds, ["r4"])["rmse_um"].iloc[0], abs=1e-9)
+    assert man["operating"] == operating
+
+
+def test_two_operating_inputs_are_refused_in_one_line(with_speed):
+    from thermbench.export.encoding import ExportError, encode
+
+    m = ThermalLag(operating=["spindle_rpm"], max_inputs=4, min_gain=0.0).fit(with_speed, ["r0", "r1", "r2", "r3"])
+    m.inputs_ = [*m.inputs_, "other_rpm"]  # as a model that chose two would be
+    with pytest.raises(ExportError, match=r"chose 2 operating inputs \['spindle_rpm', 'other_rpm'\]; the C runtime"):
+        encode(m)

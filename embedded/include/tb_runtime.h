@@ -79,6 +79,7 @@ typedef TB_REAL tb_real;
 #define TB_MAX_NODES 4096u
 #define TB_MAX_AR_ORDER 64u
 #define TB_MAX_LUMPED_NODES 8u   /* nodes of a lumped network's chain (thermbench fits 1..6) */
+#define TB_MAX_LAG_TAUS 8u       /* time constants of a thermal-lag model */
 #define TB_MIN_LUMPED_STEP_S ((tb_real)1.0) /* shortest grid step of a lumped network (its state ring is 60 s / step) */
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
@@ -106,7 +107,8 @@ enum {
     TB_KIND_AR = 7,         /* seed 003 ARX on operating parameters */
     TB_KIND_CLASSIFIER = 8, /* seed 002 eq. 15-19 proximity naive Bayes */
     TB_KIND_LUMPED = 9,     /* lumped thermal network of a spindle (docs/concepts.md, physics_spindle) */
-    TB_KIND_MAX = 9
+    TB_KIND_THERMAL_LAG = 10, /* first-order lags of the rises and an operating input (thermal_lag) */
+    TB_KIND_MAX = 10
 };
 
 /* error codes (all < 0) */

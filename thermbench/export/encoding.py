@@ -43,7 +43,7 @@ SENSOR_VALS = 1 + FSTEP_VALS * MAX_FILTER_STEPS
 #: the C runtime's limits (tb_runtime.h); a model beyond them is refused at export, not by the loader
 LIMITS = {"sensors": 16, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
           "lags": 4096, "nodes": 4096, "ar_order": 64, "ar_terms": 8, "levels": 64, "conditions": 64,
-          "window_samples": 20000, "lumped_nodes": 8, "effects": 8}  # fmt: skip
+          "window_samples": 20000, "lumped_nodes": 8, "effects": 8, "lag_taus": 8}  # fmt: skip
 ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
 
 
@@ -85,6 +85,7 @@ KIND_LIMITS: dict[Kind, Callable[[list[int]], list[tuple[str, int]]]] = {
     Kind.AR: lambda d: [("poly", d[0] + 1), ("ar_order", d[1]), ("ar_order", d[2]), ("ar_terms", d[3])],
     Kind.CLASSIFIER: lambda d: [("conditions", d[0]), ("levels", max(d[1:4]))],
     Kind.LUMPED: lambda d: [("lumped_nodes", d[0]), ("sensors", d[1])],
+    Kind.THERMAL_LAG: lambda d: [("sensors", d[0]), ("lag_taus", d[2])],
 }
 
 

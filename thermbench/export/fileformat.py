@@ -54,6 +54,7 @@ class Kind(enum.IntEnum):
     AR = 7
     CLASSIFIER = 8
     LUMPED = 9  # lumped thermal network of a spindle (docs/concepts.md; :mod:`.lumped_encoding`)
+    THERMAL_LAG = 10  # first-order lags of the rises and an operating input (:mod:`.lag_encoding`)
 
 
 #: kinds whose latest payload layout is beyond version 1 (tbi_kind.max_version in the C runtime)

@@ -205,6 +205,12 @@ class ThermalLag(ThermalErrorModel):
         X = self._features(ds, run, self.inputs_, self.taus_s_, t_s, axis_mm)
         return ((X - self.mean_) / self.scale_) @ self.coef_ + self.intercept_
 
+    def export_encoding(self, channels, period_s, where):
+        """The C runtime's ``THERMAL_LAG`` kind (:func:`thermbench.export.lag_encoding.encode_thermal_lag`)."""
+        from ..export.lag_encoding import encode_thermal_lag
+
+        return encode_thermal_lag(self, channels, period_s, where)
+
     def _model_inputs(self) -> Inputs:
         return Inputs(sensors=tuple(i for i in self.inputs_ if i in self.sensor_names_),
                       operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_))  # fmt: skip

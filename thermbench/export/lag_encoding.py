@@ -1,0 +1,95 @@
+"""The thermal-lag family (:class:`thermbench.models.thermal_lag.ThermalLag`) as the C runtime's
+``THERMAL_LAG`` kind (``embedded/src/tb_kind_thermal_lag.c``).
+
+What the runtime does is what the model does: each input (a sensor's rise above the run's first
+sample, or the operating input over its training scale) is filtered at each chosen time constant
+from 0 at the run's first process sample, ``y_k = a y_{k-1} + (1 - a) u_k`` with
+``a = exp(-(t_k - t_{k-1}) / tau)`` (:func:`~thermbench.models.thermal_lag.first_order_lag`); the
+error at (t, x) is ``A(t) + x B(t)``, with the ridge's standardisation folded in here:
+
+    A = a0 + sum wA_i y_i,  wA_i = coef_i / scale_i,  a0 = intercept - sum coef_i mean_i / scale_i
+    B = b0 + sum wB_i y_i   (position terms: the x x lag columns and x itself; 0 at a fixed point)
+
+and a query interpolates A and B linearly between samples (numpy.interp over the log).
+
+Payload, after the sample period (0: any; the lags take each sample's own interval), the sensor block (the sensor inputs, no filters) and
+the geometric block (0: the regression predicts the whole reading) of :mod:`.encoding`; every
+real ``R`` a float32 (hi, lo) pair::
+
+    u_source   0 feed_mm_min, 1 axis_mm, 2 load_N (tb_sample fields), 3 an input channel
+    u_channel  that channel's index in tb_sample.temps_C (0 unless u_source 3)
+    u_scale R  (1 without an operating input)
+    tau        NT R (s; 0: the input itself)
+    inputs     NI codes: a sensor's index in the block, or S: the operating input
+    a0 R, b0 R
+    wA         NI x NT R (input-major, as the model's features)
+    wB         NI x NT R (with position terms only)
+
+dims ``[S, NI, NT, P, U]``. At most one operating input: a model that chose two is refused in one
+line (the runtime carries one operating value per sample).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .encoding import Encoded, ExportError, _channels_for, geometric_block, sensor_block
+from .fileformat import Kind
+from .lumped_encoding import CHANNEL_SOURCE, MAX_CHANNEL, SAMPLE_SOURCES, _pair
+
+#: tb_runtime.h TB_MAX_LAG_TAUS
+MAX_TAUS = 8
+
+
+def encode_thermal_lag(model, channels: dict[str, int] | None = None, period_s: float = 0.0,
+                       where: str = "model") -> Encoded:  # fmt: skip
+    """The ``THERMAL_LAG`` model file of a fitted thermal-lag model (module docstring)."""
+    if not hasattr(model, "coef_"):
+        raise ExportError(f"{where}: the thermal-lag model is not fitted")
+    inputs = list(model.inputs_)
+    sensors = [i for i in inputs if i in model.sensor_names_]
+    ops = [i for i in inputs if i not in model.sensor_names_]
+    if len(ops) > 1:
+        raise ExportError(f"{where}: it chose {len(ops)} operating inputs {ops}; the C runtime carries one per "
+                          "sample (fit it with operating=[one column])")  # fmt: skip
+    taus = [float(t) for t in model.taus_s_]
+    if len(taus) > MAX_TAUS:
+        raise ExportError(f"{where}: {len(taus)} time constants exceed the C runtime's {MAX_TAUS} (THERMAL_LAG)")
+    S, NI, NT, P, U = len(sensors), len(inputs), len(taus), int(bool(model.uses_position_)), int(bool(ops))
+    ch = _channels_for(sensors, channels)
+    source, channel, scale, operating = 0, 0, 1.0, []
+    if ops:
+        op = ops[0]
+        scale = float(model.scale_of_[op])
+        if op in SAMPLE_SOURCES:
+            source = SAMPLE_SOURCES[op]
+        else:
+            source, operating = CHANNEL_SOURCE, [op]
+            if channels is not None and op in channels:
+                channel = int(channels[op])
+            else:  # the operating inputs follow every exported channel
+                channel = max([*ch.values(), -1]) + 1 if channels is not None else S
+            if channel > MAX_CHANNEL:
+                raise ExportError(f"{where}: operating input {op!r} at channel {channel}, beyond the C runtime's {MAX_CHANNEL}")
+            if any(ch[s] == channel for s in sensors):
+                raise ExportError(f"{where}: operating input {op!r} and a temperature share input channel {channel}")
+    coef = np.asarray(model.coef_, dtype=float) / np.asarray(model.scale_, dtype=float)
+    mean = np.asarray(model.mean_, dtype=float)
+    a0 = float(model.intercept_) - float(coef @ mean)
+    n = NI * NT
+    if P:  # features [x, lags (n), x * lags (n)]
+        b0, wA, wB = float(coef[0]), coef[1 : 1 + n], coef[1 + n : 1 + 2 * n]
+    else:
+        b0, wA, wB = 0.0, coef, np.zeros(0)
+    body = [float(source), float(channel), *_pair(scale)]
+    for t in taus:
+        body += _pair(t)
+    body += [float(sensors.index(i)) if i in sensors else float(S) for i in inputs]
+    body += [*_pair(a0), *_pair(b0)]
+    for w in wA:
+        body += _pair(float(w))
+    for w in wB:
+        body += _pair(float(w))
+    payload = [0.0, *sensor_block(sensors, None, ch, where), *geometric_block(model.geometric_, where), *body]
+    return Encoded(Kind.THERMAL_LAG, [S, NI, NT, P, U], payload, sensors, needs_load=bool(ops) and ops[0] == "load_N",
+                   notes={"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}})
