@@ -166,3 +166,10 @@ def test_two_operating_inputs_are_refused_in_one_line(with_speed):
     m.inputs_ = [*m.inputs_, "other_rpm"]  # as a model that chose two would be
     with pytest.raises(ExportError, match=r"chose 2 operating inputs \['spindle_rpm', 'other_rpm'\]; the C runtime"):
         encode(m)
+
+
+def test_train_says_which_inputs_and_time_constants_it_chose(planted):
+    m = ThermalLag().fit(planted, ["r0", "r1", "r2", "r3"])
+    line = m.fit_summary()
+    assert line.startswith(f"chose inputs {m.inputs_} at time constants {[round(t) for t in m.taus_s_]} s, ridge alpha")
+    assert "3600" in line and f"{m.cv_rmse_um_:.3f} µm" in line

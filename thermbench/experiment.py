@@ -296,6 +296,8 @@ def train(cfg: DictConfig) -> JobResult:
         for w in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, FallbackWarning)):
             print(f"[train] warning: {model_name}: {w}", file=sys.stderr, flush=True)
         print(f"[train] {model_name} uses {describe_inputs(fitted.required_inputs())}", file=sys.stderr, flush=True)
+        if (chose := fitted.fit_summary()) is not None:  # e.g. the inputs and time constants thermal_lag chose
+            print(f"[train] {model_name} {chose}", file=sys.stderr, flush=True)
         metrics = _log_scores(rows, curves, split, model_name, "+".join(train_runs), run_name)
         info = tracking.log_model(fitted, split.dataset)
     outputs = {"model_uri": info.model_uri}

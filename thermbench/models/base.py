@@ -429,6 +429,12 @@ class ThermalErrorModel(BaseEstimator, ABC):
         self._check_fitted()
         return self._model_inputs()
 
+    def fit_summary(self) -> str | None:
+        """One line on what the fit chose (a family that selects inputs, time constants or a penalty
+        says which; ``thermbench train`` prints it); None: nothing to say."""
+        self._check_fitted()
+        return None
+
     def geometric_um(self, axis_mm) -> np.ndarray:
         """The geometric (pitch) error separated at fit time, at ``axis_mm``."""
         self._check_fitted()

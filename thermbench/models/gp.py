@@ -121,5 +121,9 @@ class GaussianProcessLag(ThermalErrorModel):
         x = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
         return np.asarray(self.gp_.predict(self._X(ds, run, t, x), return_std=True)[1], dtype=float)
 
+    def fit_summary(self) -> str:
+        self._check_fitted()
+        return f"on the lags of {self.lag_.inputs_} at {[round(t) for t in self.lag_.taus_s_]} s; kernel {self.kernel_}"
+
     def _model_inputs(self) -> Inputs:
         return self.lag_._model_inputs()

@@ -205,6 +205,11 @@ class ThermalLag(ThermalErrorModel):
         X = self._features(ds, run, self.inputs_, self.taus_s_, t_s, axis_mm)
         return ((X - self.mean_) / self.scale_) @ self.coef_ + self.intercept_
 
+    def fit_summary(self) -> str:
+        self._check_fitted()
+        return (f"chose inputs {self.inputs_} at time constants {[round(t) for t in self.taus_s_]} s, ridge alpha "
+                f"{self.alpha_:g}; cross-validated RMSE over whole runs {self.cv_rmse_um_:.3f} µm")
+
     def export_encoding(self, channels, period_s, where):
         """The C runtime's ``THERMAL_LAG`` kind (:func:`thermbench.export.lag_encoding.encode_thermal_lag`)."""
         from ..export.lag_encoding import encode_thermal_lag
