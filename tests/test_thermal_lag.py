@@ -133,6 +133,13 @@ def test_the_gaussian_process_on_the_lags_predicts_and_knows_its_noise(planted):
     assert std.shape == (len(er),) and 0.5 * NOISE_UM < float(np.median(std)) < 3 * NOISE_UM
     again = GaussianProcessLag(max_samples=300, seed=0).fit(planted, ["r0", "r1", "r2", "r3"])
     np.testing.assert_array_equal(again.predict(planted, "r4"), m.predict(planted, "r4"))  # seeded
+    from thermbench.export.encoding import ExportError, encode, export_blocker
+
+    # its mean is not exported: refused in one line that says why and what to export instead
+    with pytest.raises(ExportError, match=r"^model: the C runtime has no Gaussian-process kind: its mean is a kernel sum "
+                                          r"over 300 training readings of \d+ lag states; export thermal_lag"):
+        encode(m, where="model")
+    assert "no Gaussian-process kind" in export_blocker(m)  # the benchmark never chooses it to deploy
 
 
 @pytest.fixture(scope="module")

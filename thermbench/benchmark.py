@@ -43,9 +43,10 @@ from tqdm.auto import tqdm
 from . import __version__, tracking
 from .config import group_option
 from .errors import ExperimentError
+from .evidence import held_out_limits
 from .experiment import JobResult, _finish, build_model, fit_evaluate, headline_metrics, model_flags, plain, save_models
 from .parallel import hydra_runtime, run_workers
-from .splits import dataset_option, load_source, load_split
+from .splits import dataset_option, load_source, load_split, outer_folds
 from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError
@@ -83,19 +84,14 @@ def run_task(
     """
     from sklearn.model_selection import cross_val_predict
 
-    from .splits import DatasetRef, Fold, RunsRegressor, folds as cv_folds_of, inner_folds, resolve_cv, run_rows
+    from .splits import DatasetRef, RunsRegressor, inner_folds, run_rows
 
     t0 = time.perf_counter()
     split = load_split(dataset_cfg)
     ds = split.dataset
     model = build_model(model_cfg, seed=seed)
     rows, curves, models, errors = [], [], {}, []
-    cv = resolve_cv(cv, split.validation)
-    scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
-    folds = [] if cv == "declared" else cv_folds_of([r for r in ds.run_ids if r in scored], split.validation, cv, cv_folds)
-    # the folds a choice is made for: each outer fold, or the declared split (states against validation runs)
-    outer = folds or ([Fold("+".join(split.validation), tuple(split.states), tuple(split.validation))]
-                      if split.validation else [])  # fmt: skip
+    cv, folds, outer = outer_folds(split, cv, cv_folds)  # outer: the folds a choice is made for
     inner_rows = []
 
     def tag(df: pd.DataFrame, approach: str, train: str, fitted=None, fold=None) -> pd.DataFrame:
@@ -302,7 +298,6 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
     whose needs it lacks, the bank approaches when it has nothing to classify) is said in one
     line each on stderr, and appended to ``skipped``."""
     from .models.bank import condition_inputs
-    from .splits import folds as cv_folds_of, resolve_cv
 
     def skip(line: str) -> None:
         print(f"[benchmark] skipped {line}", file=sys.stderr, flush=True)
@@ -341,10 +336,7 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
             ds, first = split.dataset, channel == channels_of(raw, dcfg)[0]
             data_hash = ds.content_hash()
             if first:  # cv and cv_folds checked here, in one line, before any worker starts
-                scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
-                kind = resolve_cv(None if cfg.get("cv") is None else str(cfg.get("cv")), split.validation)
-                if kind != "declared":
-                    cv_folds_of([r for r in ds.run_ids if r in scored], split.validation, kind, cfg.get("cv_folds", 5))
+                outer_folds(split, _cv(cfg), cfg.get("cv_folds", 5))
             banked = [a for a in approaches if a in BANKS]
             try:
                 if banked:
@@ -371,7 +363,7 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
                         code_version=version,
                         verbose=bool(cfg.get("progress", True)),
                         channel=channel,
-                        cv=None if cfg.get("cv") is None else str(cfg.get("cv")),
+                        cv=_cv(cfg),
                         cv_folds=cfg.get("cv_folds", 5),
                     )
                 )
@@ -701,6 +693,11 @@ def _summary_text(row: Mapping) -> str:
     return "; ".join(parts)
 
 
+def _cv(cfg) -> str | None:
+    """The config's ``cv`` (null: :func:`thermbench.splits.resolve_cv` decides per dataset)."""
+    return None if cfg.get("cv") is None else str(cfg.get("cv"))
+
+
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
     cache = cfg.get("cache_dir")
     fn = joblib.Memory(str(cache), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
@@ -815,6 +812,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
     results["chosen"] = [(c, fo, f, a) in mark and k == "validation" for c, fo, f, a, k in
                          zip(key["case"], results["fold"], results["family"], results["approach"], results["kind"])]  # fmt: skip
     summary = held_out_summary(results, nested, baselines)
+    case_data, case_folds = {}, {}  # case (as the results name it) -> its dataset, each loaded once; its folds
+    for dcfg, channel in case_cfg.values():
+        sp = load_split(dcfg)
+        case = case_label(sp.name, channel)
+        case_data[case] = sp.dataset
+        case_folds[case] = (sp.dataset, outer_folds(sp, _cv(cfg), cfg.get("cv_folds", 5))[2])
+    limits = held_out_limits(summary, case_folds, nested)  # the target and, when missed, the evidence why
     flags = flagged(results)
     meta = {
         "command": "thermbench benchmark " + " ".join(_overrides()),
@@ -837,6 +841,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta["scored on"] = "; ".join(frames)
     for row in summary.to_dict("records"):  # the nested choice against the best baseline and no compensation
         meta[f"held out, {row['case']}"] = _summary_text(row)
+    for row in limits.to_dict("records"):
+        meta[f"target, {row['case']}"] = row["verdict"]
     held_flags = held_out_flags(results, baselines)
     if held_flags:
         meta["flagged on held-out runs"] = " | ".join(held_flags)
@@ -852,7 +858,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
     report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
-                          n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines))  # with results.csv
+                          n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines), limits=limits)  # with results.csv
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
@@ -863,10 +869,6 @@ def benchmark(cfg: DictConfig) -> JobResult:
         extra[f"{c}__{f}__{a}"] = {"dataset": str(d), **({"channel": str(ch)} if ch != "all" else {}),
                                    "metrics": {k: float(v) for k, v in cell.items()}}  # fmt: skip
     logged = {}
-    case_data = {}  # case (as the results name it) -> its dataset, each loaded once
-    for dcfg, channel in case_cfg.values():
-        sp = load_split(dcfg)
-        case_data[case_label(sp.name, channel)] = sp.dataset
     inputs = {c: tracking.dataset_input(ds, c) for c, ds in case_data.items()}  # MLflow's dataset inputs, named by case
     with mlflow.start_run(experiment_id=exp_id, run_name="benchmark") as run:
         for v in extra.values():
@@ -911,6 +913,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
               "run (nested), the best baseline, no compensation")
         for row in summary.to_dict("records"):
             print(f"  {row['case']}: {_summary_text(row)}")
+    for row in limits.to_dict("records"):
+        print(f"  {row['case']}: {row['verdict']}")
     for line in held_flags:
         print(f"flagged on held-out runs: {line}")
     for line in flag_lines:

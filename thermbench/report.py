@@ -1334,17 +1334,33 @@ HELD_OUT_COLUMNS = {"model": "model", "folds": "folds", "median_rmse_um": "media
                     "worst_rmse_um": "worst RMSE µm", "beat_no_compensation": "beat no compensation",
                     "beat_best_baseline": "beat the best baseline"}  # fmt: skip
 
+LIMITS_MD = (
+    "### The target, and what limits the held-out score\n\n"
+    "The target: thermbench's choice at or below 0.8 × the best baseline's median held-out RMSE. Where it is missed, "
+    "the evidence the data hold (thermbench/evidence.py): the share of a fold's held-out readings with some input (a "
+    "temperature rise, an operating signal) outside the range of its training runs, and the input furthest out; the "
+    "error's short-term scatter (second differences at each target, an upper estimate of the measurement noise); the "
+    "choice's inner cross-validation RMSE (training runs held out from each other) against its held-out RMSE."
+)
+LIMITS_COLUMNS = {"target_um": "target µm", "choice_median_um": "choice median µm", "met": "met",
+                  "outside_range_median": "held-out readings outside the training range (median fold)",
+                  "outside_range_worst": "(worst fold)", "worst_fold": "worst fold", "furthest_input": "input furthest out",
+                  "excursion": "by (its unit)", "scatter_um": "error scatter µm",
+                  "inner_cv_median_um": "choice's inner CV median µm"}  # fmt: skip
+
 
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
-                 held_out: pd.DataFrame | None = None) -> Path:
+                 held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None) -> Path:
     """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
     ``out_dir/results.csv`` (:func:`results_table`); return the report path.
 
     ``reference``: the baseline families (compared, never chosen): marked in the tables
     and figures, ``reference`` true in results.csv. ``n_jobs``: processes that draw the
     figures (:class:`_Drawing`). ``held_out``: the benchmark's held-out table
-    (:func:`thermbench.benchmark.held_out_table`), a section of its own after the summary.
+    (:func:`thermbench.benchmark.held_out_table`), a section of its own after the summary;
+    ``limits``: its target per case and, where missed, the evidence why
+    (:func:`thermbench.evidence.held_out_limits`), after the held-out tables.
 
     Layout: header (``meta``), how to read, the terminal summary, the headline
     tables (:func:`headline`, one per dataset), then per dataset: single vs
@@ -1404,6 +1420,10 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         md += [HELD_OUT_MD, ""]
         for case, g in held_out.groupby("case", sort=False):
             md += [f"### {case}", "", markdown_table(g.drop(columns="case"), index=False, headers=HELD_OUT_COLUMNS), ""]
+    if limits is not None and not limits.empty:
+        md += [LIMITS_MD, ""]
+        md += [f"- **{r['case']}**: {r['verdict']}" for r in limits.to_dict("records")] + [""]
+        md += [markdown_table(limits.drop(columns="verdict"), index=False, headers=LIMITS_COLUMNS), ""]
     md += ["## Headline: unseen cycles", ""]
     md += [
         "Per dataset, family and approach: mean rate on the training runs (reference), worst and mean rate and worst "

@@ -276,6 +276,20 @@ def folds(runs: Sequence[str], validation: Sequence[str], cv: str, k: int = 5) -
     return out
 
 
+def outer_folds(split: "Split", cv: str | None, k: int = 5) -> tuple[str, list[Fold], list[Fold]]:
+    """``cv`` resolved (:func:`resolve_cv`), its folds over the split's runs with readings (none for
+    ``declared``: the loading states are fitted once and every run is scored) and the outer folds a
+    choice is made for and scored on: the folds, or for ``declared`` the loading states against the
+    validation runs (none when the dataset declares no validation runs)."""
+    ds = split.dataset
+    cv = resolve_cv(cv, split.validation)
+    scored = set(ds.errors["run_id"]) if len(ds.errors) else set()
+    cv_folds = [] if cv == "declared" else folds([r for r in ds.run_ids if r in scored], split.validation, cv, k)
+    outer = cv_folds or ([Fold("+".join(split.validation), tuple(split.states), tuple(split.validation))]
+                         if split.validation else [])  # fmt: skip
+    return cv, cv_folds, outer
+
+
 #: an outer fold's training runs up to this many: the inner cross-validation holds each out once
 INNER_LORO_MAX_RUNS = 6
 #: more training runs: this many inner folds of whole runs (GroupKFold)

@@ -27,7 +27,7 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
 from ..data.dataset import Dataset
-from .base import Inputs, ThermalErrorModel, readings
+from .base import Inputs, ModelError, ThermalErrorModel, readings
 from .params import Expect, Int, Params, Seed, check_params
 from .thermal_lag import DEFAULT_TAUS_S, ThermalLag
 
@@ -124,6 +124,14 @@ class GaussianProcessLag(ThermalErrorModel):
     def fit_summary(self) -> str:
         self._check_fitted()
         return f"on the lags of {self.lag_.inputs_} at {[round(t) for t in self.lag_.taus_s_]} s; kernel {self.kernel_}"
+
+    def export_encoding(self, channels, period_s, where):
+        """Refused, in one line with the reason (issue 39): the C runtime has no kind for a kernel sum
+        over lag states."""
+        self._check_fitted()
+        raise ModelError(f"the C runtime has no Gaussian-process kind: its mean is a kernel sum over "
+                         f"{self.gp_.X_train_.shape[0]} training readings of {self.gp_.X_train_.shape[1]} lag states; "
+                         "export thermal_lag (the same lags, weighted linearly) instead")  # fmt: skip
 
     def _model_inputs(self) -> Inputs:
         return self.lag_._model_inputs()
