@@ -201,6 +201,7 @@ def run_task(
             inner = inner_folds(f.train)
             if not inner:
                 continue
+            t1 = time.perf_counter()
             tag_inner = dict(dataset=split.name, channel=channel, family=family, fold=f.name)
             X, y, groups = run_rows(ds, f.train)
             fold_of = {r: g.name for g in inner for r in g.held_out}
@@ -225,7 +226,7 @@ def run_task(
                         errors.append(f"{where}/{family}/{approach} fold {f.name}, inner fold {g.name}: {exc}")
                         continue
                     inner_rows.append(res.assign(**tag_inner, approach=approach, inner_fold=g.name))
-            say(f"inner folds of {f.name}", 0.0)
+            say(f"the {len(inner)} inner folds of {f.name}", time.perf_counter() - t1)
     return {
         "dataset": split.name,
         "channel": channel,
