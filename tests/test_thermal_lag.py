@@ -133,6 +133,18 @@ def test_the_gaussian_process_on_the_lags_predicts_and_knows_its_noise(planted):
     assert std.shape == (len(er),) and 0.5 * NOISE_UM < float(np.median(std)) < 3 * NOISE_UM
     again = GaussianProcessLag(max_samples=300, seed=0).fit(planted, ["r0", "r1", "r2", "r3"])
     np.testing.assert_array_equal(again.predict(planted, "r4"), m.predict(planted, "r4"))  # seeded
+    # a noise bound above the planted noise (its variance is far below 1e-2 of the error's, in the
+    # standardised units of normalize_y): the white-noise level ends at that bound; scikit-learn's
+    # warning is collected (at_bounds_, said by fit_summary), not passed on
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    clean = GaussianProcessLag(max_samples=60, seed=0, noise_bounds=(1e-2, 1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        clean.fit(planted, ["r0", "r1", "r2", "r3"])
+    assert "k2__noise_level" in clean.at_bounds_ and "k2__noise_level" in clean.fit_summary()
     from thermbench.export.encoding import ExportError, encode, export_blocker
 
     # its mean is not exported: refused in one line that says why and what to export instead

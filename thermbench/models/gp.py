@@ -12,17 +12,22 @@ linear part, a smooth part and noise::
 on standardised features, its hyperparameters by marginal likelihood. A long log is subsampled
 (``max_samples`` readings, seeded) for the fit; every reading is predicted. Fitted:
 ``lag_`` (the :class:`~thermbench.models.thermal_lag.ThermalLag` whose features it uses),
-``gp_`` and ``kernel_`` (the kernel with its identified hyperparameters).
+``gp_`` and ``kernel_`` (the kernel with its identified hyperparameters), ``at_bounds_`` (the
+hyperparameters that ended at a search bound: scikit-learn warns of each; here they are collected
+and said once, by ``fit_summary``, instead of a warning per fit in a benchmark's terminal).
 :meth:`GaussianProcessLag.predict_std` gives the predictive standard deviation (µm) at (t, x).
 """
 
 from __future__ import annotations
 
+import re
+import warnings
 from typing import Annotated, Optional, Sequence
 
 import numpy as np
 from annotated_types import Ge, Gt, Len
 from numpy.polynomial import Polynomial
+from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
@@ -103,8 +108,16 @@ class GaussianProcessLag(ThermalErrorModel):
         kernel = (ConstantKernel(1.0, (1e-3, 1e3)) * DotProduct(sigma_0=1.0, sigma_0_bounds=(1e-3, 1e3))
                   + ConstantKernel(1.0, (1e-3, 1e3)) * RBF(length_scale=3.0, length_scale_bounds=(1e-1, 1e3))
                   + WhiteKernel(0.01, tuple(p.noise_bounds)))  # fmt: skip
-        self.gp_ = GaussianProcessRegressor(kernel=kernel, normalize_y=True, n_restarts_optimizer=p.n_restarts,
-                                            random_state=p.seed).fit(Z, y)  # fmt: skip
+        gp = GaussianProcessRegressor(kernel=kernel, normalize_y=True, n_restarts_optimizer=p.n_restarts,
+                                      random_state=p.seed)  # fmt: skip
+        with warnings.catch_warnings(record=True) as caught:  # a hyperparameter at its bound: said once, by fit_summary
+            warnings.simplefilter("always", ConvergenceWarning)
+            self.gp_ = gp.fit(Z, y)
+        self.at_bounds_ = sorted({m.group(1) for w in caught if issubclass(w.category, ConvergenceWarning)
+                                  for m in [re.search(r"parameter (\S+) is close", str(w.message))] if m})  # fmt: skip
+        for w in caught:  # anything else is passed on as it came
+            if not issubclass(w.category, ConvergenceWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         self.kernel_ = self.gp_.kernel_
         self.geometric_ = Polynomial([0.0])
 
@@ -123,7 +136,8 @@ class GaussianProcessLag(ThermalErrorModel):
 
     def fit_summary(self) -> str:
         self._check_fitted()
-        return f"on the lags of {self.lag_.inputs_} at {[round(t) for t in self.lag_.taus_s_]} s; kernel {self.kernel_}"
+        bounds = f"; at a search bound (scikit-learn's ConvergenceWarning): {', '.join(self.at_bounds_)}" if self.at_bounds_ else ""
+        return f"on the lags of {self.lag_.inputs_} at {[round(t) for t in self.lag_.taus_s_]} s; kernel {self.kernel_}{bounds}"
 
     def export_encoding(self, channels, period_s, where):
         """Refused, in one line with the reason (issue 39): the C runtime has no kind for a kernel sum
