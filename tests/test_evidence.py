@@ -115,3 +115,21 @@ def test_only_the_span_a_run_is_scored_on_counts():
     ds.errors = pd.concat([errors, errors.iloc[[2]].assign(t_s=60.0)], ignore_index=True)
     r = outside_training_range(ds, ["a"], ["h"])
     assert r["share"] == pytest.approx(1 / 3) and (r["input"], r["excursion"]) == ("t1_C rise", 3.0)
+
+
+def test_the_report_gives_the_verdict_and_the_evidence_table(tmp_path):
+    from thermbench.report import write_report
+
+    rows = [{"dataset": "d", "channel": "all", "family": fam, "approach": "global", "kind": "validation", "fold": f,
+             "run_id": f, "train": "all", "own": False, "rmse_um": v, "rms_error_um": 5.0, "compensation_rate": 0.5,
+             "max_abs_residual_um": 2 * v}
+            for f in ("r1", "r2") for fam, v in (("lssvm", 1.0), ("baseline_ridge", 1.1))]  # fmt: skip
+    limits = pd.DataFrame([{"case": "d", "target_um": 0.88, "choice_median_um": 1.0, "met": False,
+                            "outside_range_median": 0.25, "outside_range_worst": 0.5, "worst_fold": "r2",
+                            "furthest_input": "t1_C rise", "excursion": 1.5, "scatter_um": 0.9,
+                            "inner_cv_median_um": 0.6, "verdict": "target not met: because"}])  # fmt: skip
+    md = write_report(pd.DataFrame(rows), None, tmp_path / "rep", reference=["baseline_ridge"], limits=limits).read_text()
+    section = md[md.index("### The target, and what limits the held-out score"):md.index("## Headline")]
+    assert "- **d**: target not met: because" in section
+    lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
+    assert lines[0][:3] == ["case", "target µm", "choice median µm"] and lines[2][:4] == ["d", "0.88", "1.00", "False"]

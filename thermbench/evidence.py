@@ -60,7 +60,11 @@ def outside_training_range(ds, train: Sequence[str], held_out: Sequence[str]) ->
     ``<sensor> rise`` or the operating column), ``excursion`` (how far beyond the range, in its own
     unit, signed: + above the largest training value, - below the smallest) and ``span`` (the
     training range's width)."""
-    frames = _inputs_by_run(ds, [*train, *held_out])
+    return _outside(_inputs_by_run(ds, [*train, *held_out]), train, held_out)
+
+
+def _outside(frames: Mapping[str, pd.DataFrame], train: Sequence[str], held_out: Sequence[str]) -> dict:
+    """:func:`outside_training_range` over the inputs of each run (:func:`_inputs_by_run`)."""
     tr = pd.concat([frames[r] for r in train], ignore_index=True)
     te = pd.concat([frames[r] for r in held_out], ignore_index=True)
     lo, hi = tr.min(), tr.max()
@@ -114,7 +118,8 @@ def held_out_limits(summary: pd.DataFrame, cases: Mapping[str, tuple], nested: p
         ds, folds = cases[case]
         target = TARGET_RATIO * float(s["baseline_median_rmse_um"])
         choice, base = float(s["chosen_median_rmse_um"]), float(s["baseline_median_rmse_um"])
-        ranges = {f.name: outside_training_range(ds, f.train, f.held_out) for f in folds if f.train and f.held_out}
+        frames = _inputs_by_run(ds, list(dict.fromkeys(r for f in folds for r in (*f.train, *f.held_out))))  # once a case
+        ranges = {f.name: _outside(frames, f.train, f.held_out) for f in folds if f.train and f.held_out}
         scatter = error_scatter_um(ds, sorted({r for f in folds for r in f.held_out}))
         inner = nested.loc[nested["case"] == case, "inner_median_rmse_um"] if len(nested) else pd.Series(dtype=float)
         inner_um = float(inner.median()) if len(inner) else float("nan")
