@@ -75,6 +75,7 @@ import numpy as np
 import pandas as pd
 
 from .outputs import output_dir
+from .evidence import TARGET_RATIO
 
 RESULT_COLUMNS = (
     "dataset",
@@ -1336,7 +1337,7 @@ HELD_OUT_COLUMNS = {"model": "model", "folds": "folds", "median_rmse_um": "media
 
 LIMITS_MD = (
     "### The target, and what limits the held-out score\n\n"
-    "The target: thermbench's choice at or below 0.8 × the best baseline's median held-out RMSE. Where it is missed, "
+    f"The target: thermbench's choice at or below {TARGET_RATIO:g} × the best baseline's median held-out RMSE. Where it is missed, "
     "the evidence the data hold (thermbench/evidence.py): the share of a fold's held-out readings with some input (a "
     "temperature rise, an operating signal) outside the range of its training runs, and the input furthest out; the "
     "error's short-term scatter (second differences at each target, an upper estimate of the measurement noise); the "
