@@ -11,6 +11,7 @@ bytes as the runtime sees them.
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import shutil
 import subprocess
@@ -144,11 +145,22 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
     answers for the time it writes (tb_replay --live); a query before the runtime has a state
     keeps its code ``TB_E_NOTREADY`` and NaN values (the compensator holds there)."""
     exe = exe or build("tb_replay", sanitize=sanitize)
+    return replay_text(exe, files, stream_text(samples, temps, queries), bank=bank, lenient=lenient, live=live)
+
+
+#: tb_replay's answer to a query, one line each
+REPLAY_COLUMNS = {"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int}
+
+
+def replay_text(exe: Path, files: Sequence[Path], text: str, bank: bool = False, lenient: bool = False,
+                live: bool = False) -> pd.DataFrame:  # fmt: skip
+    """:func:`replay` of an input already written by :func:`stream_text` (one text for several builds)."""
     args = (["--lenient"] if lenient else []) + (["--live"] if live else []) + (["--bank"] if bank else []) + [str(f) for f in files]
-    out = run_tool(exe, args, stream_text(samples, temps, queries))
-    rows = [ln.split() for ln in out.splitlines() if ln.strip()]
-    df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
-    df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})
+    out = run_tool(exe, args, text)
+    if not out.strip():
+        df = pd.DataFrame({c: pd.Series(dtype=t) for c, t in REPLAY_COLUMNS.items()})
+    else:  # single spaces, %.17g (nan before a state): pandas' C parser
+        df = pd.read_csv(io.StringIO(out), sep=" ", header=None, names=list(REPLAY_COLUMNS), dtype=REPLAY_COLUMNS)
     if live:
         df.loc[df["rc"] == TB_E_NOTREADY, ["thermal_um", "total_um"]] = np.nan
     bad = df[(df["rc"] != 0) & ~((df["rc"] == TB_E_NOTREADY) & live)]
