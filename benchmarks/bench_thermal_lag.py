@@ -8,10 +8,16 @@ and their time constant, and reach the noise floor on runs it never saw?
   + 1.0 x rise of T10 + noise 0.05 µm.
 
 The sensors are driven by three hidden heat sources (each sensor its own mix of them and its own
-lag, so they are correlated, as on a machine); the planted lag is computed by scipy.signal.lsim (not thermbench's filter).
+lag, so they are correlated, as on a machine) and by a smaller source at their own spot: without it
+the sensors of one lag would span only the three shared sources, and shape 2's 22 sensors (four or
+five a lag) would each be an exact mix of three others: no method could tell the planted one. The
+planted lag is computed by scipy.signal.lsim (not thermbench's filter).
 Leave-one-run-out: per fold the inputs and time constants thermal_lag chose and its held-out RMSE.
 Target (stated tolerance): the planted sensors chosen in every fold, a chosen time constant within a
-factor 2 of the planted one, and a median held-out RMSE within 1.5 x the planted noise.
+factor 2 of the planted one, and a median held-out RMSE within 1.5 x the planted noise, or within
+1.25 x what the planted structure itself reaches (its sensors and time constants given, only the
+weights fitted) where that is above it: each run's error counts from its first reading, which carries
+the noise too, and a few short runs leave the weights themselves uncertain.
 
     .venv/bin/python benchmarks/bench_thermal_lag.py [--seed 0]
 """
@@ -58,12 +64,18 @@ def make(rng, n_runs, n_rows, step_s, sensors, truth, noise_um):
     """truth: [(sensor, tau_s, gain)] (tau 0: the rise itself)."""
     runs = {}
     mix = rng.uniform(0.0, 2.0, size=(len(sensors), 3))  # each sensor's share of three heat sources
+    own = rng.uniform(0.3, 1.0, size=len(sensors))  # and of a source at its own spot (a bearing, the coolant there)
     for k in range(n_runs):
         n = int(rng.integers(*n_rows))
         t = np.arange(n) * step_s
-        duty = [np.repeat(rng.uniform(0.1, 1.0, size=n // 20 + 1), 20)[:n] for _ in range(3)]  # hidden heating
-        temps = np.column_stack([20 + sum(mix[j, q] * lag(t, duty[q], 600.0 * (1 + j % 5)) for q in range(3))
-                                 + 0.02 * rng.standard_normal(n) for j in range(len(sensors))])  # fmt: skip
+
+        def duty():  # a hidden heating: a level held for 20 readings, then another
+            return np.repeat(rng.uniform(0.1, 1.0, size=n // 20 + 1), 20)[:n]
+
+        shared = [duty() for _ in range(3)]
+        temps = np.column_stack([20 + sum(mix[j, q] * lag(t, shared[q], 600.0 * (1 + j % 5)) for q in range(3))
+                                 + own[j] * lag(t, duty(), 600.0 * (1 + j % 5)) + 0.02 * rng.standard_normal(n)
+                                 for j in range(len(sensors))])  # fmt: skip
         rise = temps - temps[0]
         err = sum(g * (lag(t, rise[:, sensors.index(s)], tau) if tau else rise[:, sensors.index(s)]) for s, tau, g in truth)
         runs[f"run{k + 1:02d}"] = (t, temps, rng.uniform(-5, 5) + err + noise_um * rng.standard_normal(n))
@@ -89,22 +101,26 @@ def main() -> int:
         runs = list(ds.run_ids)
         planted = {s for s, _, _ in c["truth"]}
         tau = max(t for _, t, _ in c["truth"])
-        rmse, found, near, secs = [], 0, 0, []
+        rmse, truth_rmse, found, exact, near, secs = [], [], 0, 0, 0, []
+        truth = ThermalLag(sensors=sorted(planted), taus_s=[sorted({0.0, *(t for _, t, _ in c["truth"])})])
         for r in runs:
             t0 = time.perf_counter()
             m = ThermalLag().fit(ds, [o for o in runs if o != r])
             secs.append(time.perf_counter() - t0)
             rmse.append(float(evaluate(m, ds, [r])["rmse_um"].iloc[0]))
+            truth_rmse.append(float(evaluate(truth.fit(ds, [o for o in runs if o != r]), ds, [r])["rmse_um"].iloc[0]))
             found += planted <= set(m.inputs_)
+            exact += planted == set(m.inputs_)
             near += any(tau / 2 <= x <= 2 * tau for x in m.taus_s_)
         m = ThermalLag().fit(ds, runs)
-        med = statistics.median(rmse)
-        hit = found == len(runs) and near == len(runs) and med <= 1.5 * c["noise_um"]
+        med, floor = statistics.median(rmse), statistics.median(truth_rmse)
+        hit = found == len(runs) and near == len(runs) and med <= max(1.5 * c["noise_um"], 1.25 * floor)
         ok &= hit
         print(f"{label}: {len(runs)} runs; planted {sorted(planted)} at tau {tau:g} s, noise {c['noise_um']} µm")
-        print(f"  leave-one-run-out: planted sensors chosen in {found}/{len(runs)} folds, a time constant within 2x "
-              f"of {tau:g} s in {near}/{len(runs)}; held-out RMSE median {med:.3f} / worst {max(rmse):.3f} µm "
-              f"({med / c['noise_um']:.2f}x the noise); fit {statistics.median(secs):.2f} s (median)")
+        print(f"  leave-one-run-out: planted sensors chosen in {found}/{len(runs)} folds (nothing else in {exact}), a "
+              f"time constant within 2x of {tau:g} s in {near}/{len(runs)}; held-out RMSE median {med:.3f} / worst "
+              f"{max(rmse):.3f} µm ({med / c['noise_um']:.2f}x the noise; the planted sensors and time constants with "
+              f"fitted weights: {floor:.3f} µm, {floor / c['noise_um']:.2f}x); fit {statistics.median(secs):.2f} s (median)")
         print(f"  on every run: inputs {m.inputs_}, time constants {list(m.taus_s_)} s, alpha {m.alpha_:g}, "
               f"selection {[(s, round(v, 3)) for s, v in m.selection_]}")
         print(f"  target {'met' if hit else 'NOT met'}")

@@ -12,9 +12,11 @@ to measured temperatures and operating signals). Here::
 * ``lag_τ``: the exact first-order filter of time constant τ run forward in time from 0 at the
   run's start (the input held over each sample interval, :func:`first_order_lag`), as the
   compensator runs it sample by sample;
-* the inputs are chosen **as groups** (an input enters or leaves with all its lags) by forward
-  selection, each step the group that lowers the cross-validated RMSE most, stopping when no
-  group lowers it by ``min_gain``; the weights by ridge regression on standardised lags, the
+* the inputs are chosen **as groups** (an input enters or leaves with all its lags) by stepwise
+  selection: forward, each step the group that lowers the cross-validated RMSE most, stopping when
+  no group lowers it by ``min_gain``, an earlier group leaving when it no longer earns that; of the
+  models visited, the smallest within one standard error (over the folds) of the lowest RMSE is
+  kept (:func:`_forward_groups`); the weights by ridge regression on standardised lags, the
   penalty ``alpha`` from ``alphas`` and the set of time constants from ``taus_s`` chosen by the
   same cross-validation over **whole runs** (:func:`thermbench.splits.row_folds`: each run held
   out once up to 6 runs, else 3 folds of runs; one run: 5 contiguous blocks), never on rows of
@@ -192,10 +194,10 @@ class ThermalLag(ThermalErrorModel):
             if self.uses_position_:
                 blocks = {name: np.hstack([b, pos * b]) for name, b in blocks.items()}
             fixed = pos if self.uses_position_ else np.zeros((y.size, 0))
-            chosen, score, steps = _forward_groups(blocks, fixed, y, folds, p.alphas, p.max_inputs, p.min_gain)
-            if best is None or score[0] < best[1][0]:
-                best = (tuple(float(t) for t in taus), score, chosen, steps)
-        self.taus_s_, (self.cv_rmse_um_, self.alpha_), self.inputs_, self.selection_ = best
+            chosen, score, steps, lowest = _forward_groups(blocks, fixed, y, folds, p.alphas, p.max_inputs, p.min_gain)
+            if best is None or lowest < best[0]:  # the time constants whose selection reached the lowest RMSE
+                best = (lowest, tuple(float(t) for t in taus), score, chosen, steps)
+        _, self.taus_s_, (self.cv_rmse_um_, self.alpha_), self.inputs_, self.selection_ = best
         X = np.vstack([self._features(ds, r, self.inputs_, self.taus_s_, rd.loc[run_of == r, "t_s"].to_numpy(),
                                       rd.loc[run_of == r, "target_mm"].to_numpy()) for r in runs])  # fmt: skip
         self.mean_, self.scale_, self.coef_, self.intercept_ = _ridge(X, y, self.alpha_)
@@ -266,9 +268,16 @@ class _FoldGram:
 
 def _forward_groups(blocks: dict[str, np.ndarray], fixed: np.ndarray, y: np.ndarray, folds, alphas, max_inputs: int,
                     min_gain: float):  # fmt: skip
-    """Forward selection of input groups (each ``blocks[name]``: its columns) by the pooled held-out
-    RMSE of the ridge over ``folds`` (the best of ``alphas`` at each step); ``fixed`` columns are
-    always in. Returns (chosen names, (RMSE, alpha), steps [(name, RMSE)])."""
+    """Stepwise selection of input groups (each ``blocks[name]``: its columns) by the pooled held-out
+    RMSE of the ridge over ``folds`` (the best of ``alphas`` at each model): forward, the group that
+    lowers it most while one lowers it by ``min_gain``, each entry followed by the removal of any
+    earlier group that no longer earns ``min_gain``; ``fixed`` columns are always in. Of the models
+    visited (and every input at once), the one kept is the smallest whose held-out mean square is
+    within one standard error (over the folds) of the lowest: the one-standard-error rule
+    (Hastie, Tibshirani, Friedman, *The Elements of Statistical Learning*, §7.10), so that a group
+    whose gain is within the folds' scatter (a selection that fits the few held-out runs, not the
+    machine) stays out. Returns (chosen names, (RMSE, alpha), steps [(name or -name, RMSE)], the
+    lowest RMSE visited)."""
     names = list(blocks)
     X = np.hstack([fixed, *[blocks[n] for n in names]]) if names else fixed
     start, spans = fixed.shape[1], {}
@@ -279,23 +288,41 @@ def _forward_groups(blocks: dict[str, np.ndarray], fixed: np.ndarray, y: np.ndar
     n_rows = sum(g.yte.size for g in grams)
     alphas = [float(a) for a in alphas]
 
-    def score(chosen: list[str]) -> tuple[float, float]:
+    def score(chosen: list[str]) -> tuple[tuple[float, float], np.ndarray]:
+        """((pooled RMSE, alpha), each fold's held-out mean square at that alpha)."""
         cols = np.concatenate([np.arange(fixed.shape[1]), *[spans[n] for n in chosen]]).astype(int)
-        sse = sum(g.sse(cols, alphas) for g in grams)
-        k = int(np.argmin(sse))
-        return float(np.sqrt(sse[k] / n_rows)), alphas[k]
+        per_fold = np.array([g.sse(cols, alphas) for g in grams])
+        k = int(np.argmin(per_fold.sum(axis=0)))
+        return (float(np.sqrt(per_fold[:, k].sum() / n_rows)), alphas[k]), per_fold[:, k] / [g.yte.size for g in grams]
 
     chosen: list[str] = []
-    best = score(chosen)
+    best, fold_mse = score(chosen)
+    visited = [(list(chosen), best, fold_mse)]
     steps = [("(none)", best[0])]
     while len(chosen) < min(max_inputs, len(names)):
         trial = min((score(chosen + [n]), n) for n in names if n not in chosen)
-        if trial[0][0] > (1.0 - min_gain) * best[0]:
+        if trial[0][0][0] > (1.0 - min_gain) * best[0]:
             break
         chosen.append(trial[1])
-        best = trial[0]
+        (best, fold_mse) = trial[0]
         steps.append((trial[1], best[0]))
-    every = score(names)  # every input at once, the ridge alone keeping the weights small
-    if len(names) > len(chosen) and every[0] < best[0]:
-        return names, every, steps + [("(every input)", every[0])]
-    return chosen, best, steps
+        visited.append((list(chosen), best, fold_mse))
+        while len(chosen) > 2:  # backward: a group that no longer earns its entry (a greedy first pick that
+            # later ones explain better) leaves, as it would not have entered now; then forward again
+            drop = min((score([c for c in chosen if c != n]), n) for n in chosen[:-1])
+            if drop[0][0][0] * (1.0 - min_gain) > best[0]:
+                break
+            chosen.remove(drop[1])
+            (best, fold_mse) = drop[0]
+            steps.append((f"-{drop[1]}", best[0]))
+            visited.append((list(chosen), best, fold_mse))
+    if len(names) > len(chosen):  # every input at once, the ridge alone keeping the weights small
+        every, every_mse = score(names)
+        steps.append(("(every input)", every[0]))
+        visited.append((names, every, every_mse))
+    lowest = min(visited, key=lambda v: v[1][0])
+    k = len(lowest[2])
+    se = float(np.std(lowest[2], ddof=1) / np.sqrt(k)) if k > 1 else 0.0
+    within = [v for v in visited if v[1][0] ** 2 <= lowest[1][0] ** 2 + se]
+    keep = min(within, key=lambda v: (len(v[0]), v[1][0]))
+    return keep[0], keep[1], steps, lowest[1][0]
