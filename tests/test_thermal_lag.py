@@ -216,3 +216,21 @@ def test_the_stepwise_selection_drops_a_greedy_decoy_and_keeps_noise_out_within_
     assert "-D" in [s for s, _ in steps]  # ... and leaves once A and B explain it
     assert sorted(chosen) == ["A", "B"]  # the noise columns stay out
     assert lowest <= rmse < 0.11  # the noise floor (0.1), and never below the lowest visited
+
+
+def test_the_stepwise_selection_ends_when_a_group_changes_nothing_and_min_gain_is_zero():
+    """Inputs that change nothing (sensors that never moved: constant columns) enter on a tie when
+    min_gain is 0 and leave on the same tie, one for the other: each set of groups is visited once,
+    so the selection ends, keeping the input that matters (ties are broken by name: comparing the
+    tied moves compared their folds' arrays and raised)."""
+    from thermbench.models.thermal_lag import _forward_groups
+
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal(400)
+    blocks = {"A": a[:, None], "Z1": np.zeros((400, 1)), "Z2": np.zeros((400, 1))}  # two that never moved
+    y = 2.0 * a + 0.05 * rng.standard_normal(400)
+    run = np.repeat(np.arange(4), 100)
+    folds = [(np.flatnonzero(run != r), np.flatnonzero(run == r)) for r in range(4)]
+    chosen, (rmse, _), steps, _ = _forward_groups(blocks, np.zeros((400, 0)), y, folds, [1e-3], 3, 0.0)
+    assert chosen == ["A"] and rmse < 0.06
+    assert len(steps) <= 2 ** len(blocks) + 1  # each set once, plus every input at once

@@ -298,20 +298,30 @@ def _forward_groups(blocks: dict[str, np.ndarray], fixed: np.ndarray, y: np.ndar
     chosen: list[str] = []
     best, fold_mse = score(chosen)
     visited = [(list(chosen), best, fold_mse)]
+    seen = {frozenset()}  # a set of groups is visited once: no step undoes the one before it for ever
     steps = [("(none)", best[0])]
+
+    def lowest_of(moves):  # (score, name) of the move to the lowest RMSE; ties: by name
+        moves = list(moves)
+        return min(moves, key=lambda m: (m[0][0][0], m[1])) if moves else None
+
     while len(chosen) < min(max_inputs, len(names)):
-        trial = min((score(chosen + [n]), n) for n in names if n not in chosen)
-        if trial[0][0][0] > (1.0 - min_gain) * best[0]:
+        trial = lowest_of((score(chosen + [n]), n) for n in names
+                          if n not in chosen and frozenset(chosen + [n]) not in seen)  # fmt: skip
+        if trial is None or trial[0][0][0] > (1.0 - min_gain) * best[0]:
             break
         chosen.append(trial[1])
+        seen.add(frozenset(chosen))
         (best, fold_mse) = trial[0]
         steps.append((trial[1], best[0]))
         visited.append((list(chosen), best, fold_mse))
         while len(chosen) > 2:  # backward: a group that no longer earns its entry (a greedy first pick that
             # later ones explain better) leaves, as it would not have entered now; then forward again
-            drop = min((score([c for c in chosen if c != n]), n) for n in chosen[:-1])
-            if drop[0][0][0] * (1.0 - min_gain) > best[0]:
+            drop = lowest_of((score([c for c in chosen if c != n]), n) for n in chosen[:-1]
+                             if frozenset(c for c in chosen if c != n) not in seen)  # fmt: skip
+            if drop is None or drop[0][0][0] * (1.0 - min_gain) > best[0]:
                 break
+            seen.add(frozenset(c for c in chosen if c != drop[1]))
             chosen.remove(drop[1])
             (best, fold_mse) = drop[0]
             steps.append((f"-{drop[1]}", best[0]))
