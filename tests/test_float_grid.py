@@ -71,16 +71,16 @@ def test_a_float_build_off_at_one_sample_is_refused_for_a_float_target(seed002_b
     from thermbench.export.bundle import TargetRefused
 
     ds, bank, out = seed002_bank
-    real = bundle.replay_dir
+    real = runtime.replay_text
     float_exe = runtime.build("tb_replay", SINGLE_FLAGS)
 
-    def off_at_840(model_dir, data, run, queries, *a, exe=None, **k):
-        c = real(model_dir, data, run, queries, *a, exe=exe, **k)
+    def off_at_840(exe, files, text, *a, **k):  # each answer carries its query's time
+        c = real(exe, files, text, *a, **k)
         if exe == float_exe:
-            c.loc[queries["t_s"].to_numpy() == 840.0, "total_um"] += 0.5
+            c.loc[c["t_s"].to_numpy() == 840.0, "total_um"] += 0.5
         return c
 
-    monkeypatch.setattr(bundle, "replay_dir", off_at_840)
+    monkeypatch.setattr(runtime, "replay_text", off_at_840)
     man = bundle.read_manifest(out)
     assert not (bundle.readings_queries(ds, "table6_1")["t_s"] == 840.0).any()  # no reading at the grid time
     with pytest.raises(TargetRefused, match=r"differs from the double build by 0\.5 um at t = 840 s of run 'table6_1' "
