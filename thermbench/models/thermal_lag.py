@@ -25,7 +25,8 @@ to measured temperatures and operating signals). Here::
 Along an axis with several measuring targets, the position P and P x each lag join the features
 (the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
 inputs, in the order they entered), ``taus_s_``, ``alpha_``, ``selection_`` (each step: the
-input added and the cross-validated RMSE after it), ``cv_rmse_um_``, ``coef_``/``intercept_``
+input added, ``-input`` removed or ``(every input)``, and the cross-validated RMSE after it; the
+model kept is one of them), ``cv_rmse_um_``, ``coef_``/``intercept_``
 (on the standardised features ``mean_``/``scale_``).
 """
 
