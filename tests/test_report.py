@@ -662,3 +662,18 @@ def test_rmse_matrix_rows_are_the_same_in_every_channel():
     assert v1.loc["b", "tail"] == pytest.approx(5.0)
     assert np.isnan(v2.loc["a"]).all() and not o2.loc["a"].any()
     assert v2.loc["global", "tail"] == pytest.approx(10.0) and o2.loc["global", "a"]
+
+
+def test_a_list_in_the_header_becomes_bullets_below_its_table():
+    # a benchmark can flag hundreds of models: as one table cell, that list widened every row of
+    # the header table to its length (14 000 characters in make demo's report.md)
+    flags = [f"seed00{i}_x/mlr_seed001/bank_soft: worse than no compensation on run(s) ['r{i}']" for i in range(60)]
+    md = report._meta_md({"command": "thermbench benchmark", "datasets": "a, b", "flagged (never chosen)": flags})
+    lines = md.splitlines()
+    table = [ln for ln in lines if ln.startswith("|")]
+    assert len(table) == 5  # header, rule, three rows
+    assert max(map(len, table)) < 80
+    assert any("flagged (never chosen)" in ln and "60, listed below" in ln for ln in table)
+    bullets = [ln[2:] for ln in lines if ln.startswith("- ")]
+    assert bullets == flags
+    assert lines.index("**flagged (never chosen)**") > lines.index(table[-1])

@@ -846,15 +846,14 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta[f"target, {row['case']}"] = row["verdict"]
     held_flags = held_out_flags(results, baselines)
     if held_flags:
-        meta["flagged on held-out runs"] = " | ".join(held_flags)
+        meta["flagged on held-out runs"] = list(held_flags)
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
     if flag_lines:
-        meta["flagged (never chosen)"] = " | ".join(flag_lines)
+        meta["flagged (never chosen)"] = flag_lines
     if blockers:
-        meta["not exportable to the C runtime (never chosen)"] = " | ".join(
-            f"{c}/{f}/{a}" for c, f, a in blockers) + " — " + "; ".join(sorted(set(blockers.values())))
+        meta["not exportable to the C runtime (never chosen)"] = [f"{c}/{f}/{a}: {why}" for (c, f, a), why in blockers.items()]
     unchosen = sorted(set(_with_case(results)["case"]) - set(chosen["case"]))
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"

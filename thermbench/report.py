@@ -1080,12 +1080,18 @@ def _headline_md(h: pd.DataFrame, runs: list[str], ref: frozenset[str] = frozens
 def _meta_md(meta: Mapping | None) -> str:
     if not meta:
         return "_No run metadata was given._"
-    rows = []
+    rows, lists = [], []
     for k, v in meta.items():
         if isinstance(v, Mapping):
             v = ", ".join(f"{a}={b}" for a, b in v.items())
+        elif isinstance(v, (list, tuple)):  # a list of findings: one bullet each below the table, so
+            lists.append((str(k), v))       # one long entry does not widen every row of it
+            v = f"{len(v)}, listed below"
         rows.append({"": str(k), "value": f"`{v}`" if k == "command" else str(v)})
-    return markdown_table(pd.DataFrame(rows), index=False)
+    parts = [markdown_table(pd.DataFrame(rows), index=False)]
+    for k, items in lists:
+        parts += ["", f"**{k}**", "", *(f"- {x}" for x in items)]
+    return "\n".join(parts)
 
 
 def _matrix_summary(rate: pd.DataFrame, resid: pd.DataFrame) -> str:
