@@ -846,7 +846,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta[f"target, {row['case']}"] = row["verdict"]
     held_flags = held_out_flags(results, baselines)
     if held_flags:
-        meta["flagged on held-out runs"] = list(held_flags)
+        meta["flagged on held-out runs"] = held_flags
     if errors:
         meta["could not fit"] = "; ".join(errors)
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]

@@ -51,9 +51,9 @@ Training discipline (both, choices of thermbench — the papers are silent):
   GRU trains in float32 (``TRAIN_DTYPE``), then its weights become float64: 78 ->
   32 ms per full-batch epoch of 1056 windows of 30 steps; in ``thermbench benchmark
   "datasets=[seed001_vmc_x,seed002_vmc655h_x,fl_thermal]" "families=[gru]"
-  "bank_families=[gru]"`` the GRU tasks took 220 s instead of 357 s and every held-out
-  RMSE agreed with float64 training within 0.0005 µm (504 rows). The MLP trains in float64 (float32
-  saved nothing there).
+  "bank_families=[gru]"`` took 220 s instead of 357 s (wall, two workers) and every
+  held-out RMSE agreed with float64 training within 0.0005 µm (504 rows). The MLP
+  trains in float64 (float32 saved nothing there).
 """
 
 from __future__ import annotations
