@@ -89,7 +89,7 @@ import itertools
 import math
 import time
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, Optional, Sequence, Union
+from typing import Annotated, Any, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import pandas as pd
@@ -171,7 +171,9 @@ class _Drive:
     gfrac: np.ndarray
     rise_avg: np.ndarray | None  # ambient/structure rise averaged per grid interval (°C)
     interp: sparse.csr_matrix  # linear interpolation from the grid to the requested times
-    _heat: tuple | None = None  # (u_ref, p, q) of the last call
+    signals: dict | None = None  # rises of the sensors the terms read, averaged per grid interval (°C)
+    running: np.ndarray | None = None  # fraction of each grid interval with the operating signal > 0
+    _heat: dict | None = None  # {(u_ref, p): q} of the exponents asked for
 
     @property
     def n_steps(self) -> int:
@@ -179,9 +181,12 @@ class _Drive:
 
     def heat(self, u_ref: float, p: float) -> np.ndarray:
         """q per grid interval: (u/u_ref)^p held between samples, averaged over the interval."""
-        if self._heat is None or self._heat[:2] != (u_ref, p):  # p is unchanged across most calls
-            self._heat = (u_ref, p, _zoh_average(self.t_proc, (self.u / u_ref) ** p, self.gidx, self.gfrac, self.h))
-        return self._heat[2]
+        if self._heat is None or len(self._heat) > 8:  # the exponents of one search: a few at a time
+            self._heat = {}
+        key = (u_ref, p)
+        if key not in self._heat:
+            self._heat[key] = _zoh_average(self.t_proc, (self.u / u_ref) ** p, self.gidx, self.gfrac, self.h)
+        return self._heat[key]
 
     def at(self, states: np.ndarray) -> np.ndarray:
         """Grid states (n_steps + 1, m) interpolated to the requested times."""
@@ -214,6 +219,12 @@ class LumpedThermalNetworkParams(Params):
         Expect("None, 'all', 'auto' or a non-empty list of sensor names"),
     ]
     max_sensors: Annotated[Int, Ge(1)]
+    terms: Annotated[
+        Optional[Mapping[str, Optional[Mapping[str, Any]]]],
+        Expect("None or {term: {parameter: value}} of thermbench.models.spindle_terms"),
+    ]
+    identify: Annotated[Optional[Sequence[str]], Expect("None (all) or a list of parameter names, e.g. [tau1, exponent]")]
+    initial: Annotated[Optional[Mapping[str, PositiveNumber]], Expect("None or {parameter: start value}")]
 
 
 class LumpedThermalNetwork(ThermalErrorModel):
@@ -259,11 +270,24 @@ class LumpedThermalNetwork(ThermalErrorModel):
     geometric_degree : along an axis, the degree of the geometric polynomial in
         position fitted with the gains (no constant term: that is ``d``); unused at a
         fixed point.
+    terms : physical terms beyond the node chain, ``{term: {parameter: value}}``
+        (:mod:`thermbench.models.spindle_terms`: ``second_heat_path``, ``structure_growth``,
+        ``sensor_expansion``, ``stop_drift``): each adds its columns (lagged states) with
+        gains of their own; its nonlinear parameters are identified with the base's, from
+        the given values or from its own start grid. What ``thermbench diagnose`` names on a
+        spindle test; the C runtime has none of them (export refuses).
+    identify : the nonlinear parameters identified, by name (``tau1``..``tauN``,
+        ``exponent``, ``tau_a``, ``<term>.<parameter>``); None = all. The others are held at
+        ``initial`` (or the term's value); every gain is always solved.
+    initial : start values by the same names (one start instead of the grid for the
+        base when every ``tau<i>`` is given).
 
     Fitted attributes: ``tau_s_`` (ascending, s), ``exponent_``, ``gains_um_`` (µm
     per unit node rise, one per node), ``ambient_tau_s_`` and
     ``ambient_gain_um_per_C_`` (None without a drive), ``sensors_`` and
     ``sensor_gains_um_per_C_`` (the boundary temperatures), ``offset_um_`` (d),
+    ``terms_`` (the terms with their identified parameters), ``term_gains_``,
+    ``params_`` (every nonlinear parameter by name), ``n_params_`` (identified numbers),
     ``u_ref_``, ``operating_``, ``ambient_sensor_``, ``rmse_um_`` (training RMSE),
     ``geometric_``, ``n_evaluations_``, ``fit_s_``, ``optimizer_message_``.
     """
@@ -286,6 +310,9 @@ class LumpedThermalNetwork(ThermalErrorModel):
         geometric_degree=3,
         sensors=None,
         max_sensors=4,
+        terms=None,
+        identify=None,
+        initial=None,
     ):
         self.n_nodes = n_nodes
         self.operating = operating
@@ -300,6 +327,9 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self.geometric_degree = geometric_degree
         self.sensors = sensors
         self.max_sensors = max_sensors
+        self.terms = terms
+        self.identify = identify
+        self.initial = initial
 
     # ------------------------------------------------------------ checks ---
     def _operating_name(self, ds: Dataset, op: str | list[str] | None) -> str:
@@ -355,14 +385,18 @@ class LumpedThermalNetwork(ThermalErrorModel):
         grid = t0 + h * np.arange(n + 1)
         gidx = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)
         gfrac = grid - t[gidx]
-        rise = None
-        if self.ambient_sensor_ is not None:
-            s = sensor_series(ds, run, [self.ambient_sensor_], self.preprocess)
+        def rise_avg(sensor: str) -> np.ndarray:
+            s = sensor_series(ds, run, [sensor], self.preprocess)
             ts = s["t_s"].to_numpy(dtype=float)
-            y = s[ds.metadata.sensor_column(self.ambient_sensor_)].to_numpy(dtype=float)
+            y = s[ds.metadata.sensor_column(sensor)].to_numpy(dtype=float)
             sidx = np.clip(np.searchsorted(ts, grid, side="right") - 1, 0, ts.size - 1)
             # before the sensor's first sample: its first value (rise 0)
-            rise = _zoh_average(ts, y - y[0], sidx, np.maximum(grid - ts[sidx], 0.0), h)
+            return _zoh_average(ts, y - y[0], sidx, np.maximum(grid - ts[sidx], 0.0), h)
+
+        rise = rise_avg(self.ambient_sensor_) if self.ambient_sensor_ is not None else None
+        terms = getattr(self, "terms_", [])
+        signals = {x: rise_avg(x) for x in dict.fromkeys(x for term in terms for x in term.signals())}
+        running = _zoh_average(t, (u > 0).astype(float), gidx, gfrac, h) if terms else None
         pos = np.clip((np.asarray(t_s, dtype=float) - t0) / h, 0.0, float(n))
         k = np.minimum(np.floor(pos).astype(int), n - 1)
         w = pos - k
@@ -370,10 +404,11 @@ class LumpedThermalNetwork(ThermalErrorModel):
         cols = np.column_stack([k, k + 1]).ravel()
         vals = np.column_stack([1.0 - w, w]).ravel()
         interp = sparse.csr_matrix((vals, (rows, cols)), shape=(pos.size, n + 1))
-        return _Drive(run, h, t, u, gidx, gfrac, rise, interp)
+        return _Drive(run, h, t, u, gidx, gfrac, rise, interp, signals, running)
 
-    def _states(self, dr: _Drive, tau: np.ndarray, p: float, tau_a: float | None) -> np.ndarray:
-        """Node rises (and the lagged ambient rise) at the grid times, shape (n_steps+1, m)."""
+    def _states(self, dr: _Drive, tau: np.ndarray, p: float, tau_a: float | None, own: Sequence[dict] = ()) -> np.ndarray:
+        """Node rises, the lagged ambient rise and the terms' columns (``own``: each term's
+        nonlinear parameters) at the grid times, shape (n_steps+1, m)."""
         q = dr.heat(self.u_ref_, p)
         ad, bd = chain_matrices(tau, dr.h)
         n = tau.size
@@ -386,9 +421,14 @@ class LumpedThermalNetwork(ThermalErrorModel):
         if tau_a is not None:
             a = math.exp(-dr.h / tau_a)
             x[1:, n] = lfilter([1.0 - a], [1.0, -a], dr.rise_avg)
-        return x
+        terms = getattr(self, "terms_", [])
+        if not terms:
+            return x
+        cols = [term.with_params(o).columns(dr, self.u_ref_, p) for term, o in zip(terms, own or [t.params for t in terms])]
+        return np.column_stack([x, *cols])
 
-    def _unpack(self, z: np.ndarray) -> tuple[np.ndarray, float, float | None]:
+    def _unpack(self, z: np.ndarray) -> tuple[np.ndarray, float, float | None, list[dict]]:
+        """(τ, p, τ_a, each term's nonlinear parameters) of the search vector ``z`` (module docstring)."""
         n = self.n_nodes_
         tau = np.exp(z[:n])
         i = n
@@ -397,12 +437,22 @@ class LumpedThermalNetwork(ThermalErrorModel):
             i += 1
         else:
             p = self.exponent_fixed_
-        tau_a = float(np.exp(z[i])) if self.ambient_sensor_ is not None else None
-        return tau, p, tau_a
+        tau_a = None
+        if self.ambient_sensor_ is not None:
+            tau_a = float(np.exp(z[i]))
+            i += 1
+        own = []
+        for term in getattr(self, "terms_", []):
+            o = {}
+            for name in term.nonlinear:
+                o[name] = float(np.exp(z[i])) if name in term.log_params else float(z[i])
+                i += 1
+            own.append(o)
+        return tau, p, tau_a, own
 
     def _design(self, drives: list[_Drive], z: np.ndarray, geo: np.ndarray, rises: np.ndarray) -> np.ndarray:
-        tau, p, tau_a = self._unpack(z)
-        phi = np.vstack([dr.at(self._states(dr, tau, p, tau_a)) for dr in drives])
+        tau, p, tau_a, own = self._unpack(z)
+        phi = np.vstack([dr.at(self._states(dr, tau, p, tau_a, own)) for dr in drives])
         return np.column_stack([phi, rises, np.ones(phi.shape[0]), geo])
 
     def _sensor_names(self, ds: Dataset) -> list[str]:
@@ -537,9 +587,12 @@ class LumpedThermalNetwork(ThermalErrorModel):
         xs = (x - 0.5 * (lo + hi)) / (0.5 * (hi - lo)) if hi > lo else np.zeros_like(x)
         geo = np.column_stack([xs**k for k in range(1, gdeg + 1)]) if gdeg else np.zeros((x.size, 0))
 
-        n_lin = self.n_nodes_ + (self.ambient_sensor_ is not None) + len(self.sensors_) + 1 + gdeg
-        n_nonlin = self.n_nodes_ + (self.exponent_fixed_ is None) + (self.ambient_sensor_ is not None)
-        require(len(rd), n_lin + n_nonlin + 1, f"readings in runs {runs}")
+        self.terms_ = self._make_terms(ds)
+        n_term_cols = sum(len(t.gains) for t in self.terms_)
+        zn, is_log, lb, ub = self._search_space(tau_lo, tau_hi, p_lo, p_hi)
+        free = self._free(zn)
+        n_lin = self.n_nodes_ + (self.ambient_sensor_ is not None) + n_term_cols + len(self.sensors_) + 1 + gdeg
+        require(len(rd), n_lin + int(free.sum()) + 1, f"readings in runs {runs}")
         drives, order, rises = [], [], []
         for run in runs:
             m = (rd["run_id"] == run).to_numpy()
@@ -561,37 +614,36 @@ class LumpedThermalNetwork(ThermalErrorModel):
             n_eval += 1
             return _residual(self._design(drives, z, geo, rises), y)
 
-        # bounds and the deterministic start grid of the nonlinear parameters
-        lb = [math.log(tau_lo)] * self.n_nodes_
-        ub = [math.log(tau_hi)] * self.n_nodes_
-        tau_grid = np.exp(np.linspace(lb[0], ub[0], _GRID_TAU + 2)[1:-1])
-        # distinct, ascending τ: the order does not matter (module docstring); n_nodes <= 6 < 8
-        axes = [list(itertools.combinations(np.log(tau_grid), self.n_nodes_))]
-        if self.exponent_fixed_ is None:
-            lb.append(p_lo)
-            ub.append(p_hi)
-            axes.append([(v,) for v in np.linspace(p_lo, p_hi, _GRID_P + 2)[1:-1]])
-        if self.ambient_sensor_ is not None:
-            lb.append(math.log(tau_lo))
-            ub.append(math.log(tau_hi))
-            axes.append([(v,) for v in np.linspace(lb[-1], ub[-1], _GRID_TAU_A + 2)[1:-1]])
-        lb, ub = np.array(lb), np.array(ub)
-        grid = [np.concatenate(c) for c in itertools.product(*axes)]
+        grid = self._start_grid(zn, is_log, lb, ub, p_lo, p_hi)
         costs = np.array([np.sum(solve(z) ** 2) for z in grid])
-        best = None
-        for i in np.argsort(costs, kind="stable")[:n_starts]:
-            res = least_squares(solve, grid[i], bounds=(lb, ub), method="trf", x_scale=1.0, ftol=1e-6, xtol=1e-6)
-            if best is None or res.cost < best.cost:
-                best = res
-        z = best.x
-        self.optimizer_message_ = str(best.message)
+        best, z = None, grid[int(np.argmin(costs))].copy()
+        self.optimizer_message_ = "nothing identified: every nonlinear parameter held"
+        if free.any():
+            for i in np.argsort(costs, kind="stable")[:n_starts]:
+                z0 = grid[i]
+
+                def solve_free(zf, z0=z0):
+                    zz = z0.copy()
+                    zz[free] = zf
+                    return solve(zz)
+
+                x0 = np.clip(z0[free], lb[free], ub[free])
+                res = least_squares(solve_free, x0, bounds=(lb[free], ub[free]), method="trf", x_scale=1.0, ftol=1e-6, xtol=1e-6)
+                if best is None or res.cost < best.cost:
+                    best = res
+                    z = z0.copy()
+                    z[free] = res.x
+            self.optimizer_message_ = str(best.message)
 
         # canonical form: τ ascending, gains re-solved (the span is the same)
         z = z.copy()
-        z[: self.n_nodes_] = np.sort(z[: self.n_nodes_])
-        tau, p, tau_a = self._unpack(z)
+        if free[: self.n_nodes_].all():
+            z[: self.n_nodes_] = np.sort(z[: self.n_nodes_])
+        tau, p, tau_a, own = self._unpack(z)
+        self.terms_ = [t.with_params(o) for t, o in zip(self.terms_, own)]
         X = self._design(drives, z, geo, rises)
         names = [f"c{i + 1}" for i in range(self.n_nodes_)] + (["c_a"] if tau_a is not None else [])
+        names += [f"{t.id}.{g}" for t in self.terms_ for g in t.gains]
         names += [f"s_{x}" for x in self.sensors_] + ["d"]
         names += [f"g{k}" for k in range(1, gdeg + 1)]
         coef = lstsq_fit(X, y, names, "lumped network gains")
@@ -602,6 +654,10 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self.ambient_tau_s_ = tau_a
         self.ambient_gain_um_per_C_ = float(coef[n]) if tau_a is not None else None
         na = n + (tau_a is not None)
+        self.term_gains_ = {}
+        for t in self.terms_:
+            self.term_gains_[t.id] = {g: float(coef[na + j]) for j, g in enumerate(t.gains)}
+            na += len(t.gains)
         k = len(self.sensors_)
         self.sensor_gains_um_per_C_ = coef[na : na + k].copy()
         self.offset_um_ = float(coef[na + k])
@@ -610,9 +666,119 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self._coef_ = coef[: na + k + 1]
         self._n_states_ = na
         self._z_ = z
+        self.params_ = {nm: float(np.exp(v)) if lg else float(v) for nm, v, lg in zip(zn, z, is_log)}
+        self.n_params_ = n_lin + int(free.sum())
         self.rmse_um_ = float(np.sqrt(np.mean((y - X @ coef) ** 2)))
         self.n_evaluations_ = n_eval
         self.fit_s_ = time.perf_counter() - t_start
+
+    # ------------------------------------------------ terms and the search ---
+    def _make_terms(self, ds: Dataset) -> list:
+        """The ``terms`` (:mod:`thermbench.models.spindle_terms`) checked against the dataset."""
+        from .spindle_terms import SPINDLE_TERMS, make_term
+
+        out = []
+        for tid, params in dict(self.terms or {}).items():
+            if tid not in SPINDLE_TERMS:
+                raise ModelError(f"{type(self).__name__}.terms: unknown term {tid!r}; known: {sorted(SPINDLE_TERMS)}")
+            try:
+                term = make_term(tid, **dict(params or {}))
+            except ValueError as exc:
+                raise ModelError(f"{type(self).__name__}.terms: {exc}") from None
+            if term.choice:
+                sig = term.params.get(term.choice)
+                allowed = (["speed"] if "speed" == term.defaults.get(term.choice) else []) + list(ds.metadata.sensors)
+                if sig not in allowed:
+                    raise ModelError(f"{type(self).__name__}.terms.{tid}.{term.choice}: {sig!r} is not one of {allowed}")
+            out.append(term)
+        return out
+
+    def _search_space(self, tau_lo, tau_hi, p_lo, p_hi):
+        """Names, log flags and bounds of the search vector z: log τ_1..n | p | log τ_a | each
+        term's nonlinear parameters (in log where the term says so)."""
+        zn = [f"tau{i + 1}" for i in range(self.n_nodes_)]
+        is_log = [True] * self.n_nodes_
+        lb = [math.log(tau_lo)] * self.n_nodes_
+        ub = [math.log(tau_hi)] * self.n_nodes_
+        if self.exponent_fixed_ is None:
+            zn.append("exponent")
+            is_log.append(False)
+            lb.append(p_lo)
+            ub.append(p_hi)
+        if self.ambient_sensor_ is not None:
+            zn.append("tau_a")
+            is_log.append(True)
+            lb.append(math.log(tau_lo))
+            ub.append(math.log(tau_hi))
+        for t in self.terms_:
+            for name in t.nonlinear:
+                lo_, hi_ = t.bounds[name]
+                lg = name in t.log_params
+                zn.append(f"{t.id}.{name}")
+                is_log.append(lg)
+                lb.append(math.log(lo_) if lg else lo_)
+                ub.append(math.log(hi_) if lg else hi_)
+        return zn, is_log, np.array(lb), np.array(ub)
+
+    def _free(self, zn: list[str]) -> np.ndarray:
+        """Which entries of z are identified (``identify``; None: all)."""
+        if self.identify is None:
+            return np.ones(len(zn), dtype=bool)
+        ident = [str(x) for x in self.identify]
+        if bad := sorted(set(ident) - set(zn)):
+            raise ModelError(f"{type(self).__name__}.identify: unknown parameter(s) {bad}; this network has {zn}")
+        return np.array([nm in ident for nm in zn], dtype=bool)
+
+    def _start_grid(self, zn, is_log, lb, ub, p_lo, p_hi) -> list[np.ndarray]:
+        """Start points of the search: ``initial`` where given (one value), else the deterministic
+        grid of the base (eight log-spaced τ per node, ascending; three exponents; four τ_a) and
+        each term's own ``starts`` (its values in ``terms`` when given)."""
+        init = dict(self.initial or {})
+        if bad := sorted(set(init) - set(zn)):
+            raise ModelError(f"{type(self).__name__}.initial: unknown parameter(s) {bad}; this network has {zn}")
+        conv = {nm: (math.log(float(v)) if lg else float(v)) for nm, lg in zip(zn, is_log) if (v := init.get(nm)) is not None}
+        n = self.n_nodes_
+        axes = []
+        if all(f"tau{i + 1}" in conv for i in range(n)):
+            axes.append([tuple(conv[f"tau{i + 1}"] for i in range(n))])
+        else:
+            tau_grid = np.log(np.exp(np.linspace(lb[0], ub[0], _GRID_TAU + 2)[1:-1]))  # as the grid always was, to the bit
+            # distinct, ascending τ: the order does not matter (module docstring); n_nodes <= 6 < 8
+            axes.append(list(itertools.combinations(tau_grid, n)))
+        if self.exponent_fixed_ is None:
+            axes.append([(conv["exponent"],)] if "exponent" in conv else [(v,) for v in np.linspace(p_lo, p_hi, _GRID_P + 2)[1:-1]])
+        if self.ambient_sensor_ is not None:
+            i = zn.index("tau_a")
+            axes.append([(conv["tau_a"],)] if "tau_a" in conv else [(v,) for v in np.linspace(lb[i], ub[i], _GRID_TAU_A + 2)[1:-1]])
+        given = dict(self.terms or {})
+        for t in self.terms_:
+            for name in t.nonlinear:
+                key, lg = f"{t.id}.{name}", name in t.log_params
+                if key in conv:
+                    values = [conv[key]]
+                elif name in dict(given.get(t.id) or {}) or not t.starts.get(name):
+                    values = [math.log(t.params[name]) if lg else t.params[name]]
+                else:
+                    values = [math.log(v) if lg else float(v) for v in t.starts[name]]
+                axes.append([(v,) for v in values])
+        return [np.concatenate(c) for c in itertools.product(*axes)]
+
+    def gain_basis(self, dataset: Dataset, runs: Sequence[str]) -> tuple[list[str], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+        """At the identified nonlinear parameters, the design of the linear part (gains, offset,
+        geometric terms) on each of ``runs``: ``(names, [(0, X, y) per run])``, y the run's
+        ``error_um``, so that gains g predict ``X @ g`` (the discrepancy workflow re-solves the
+        gains on subsets of runs with it, as :meth:`PhysicsModel.gain_basis`)."""
+        self._check_fitted()
+        out = []
+        for run in runs:
+            rd = readings(dataset, [run])
+            t = rd["t_s"].to_numpy(dtype=float)
+            X = np.column_stack([self.simulate(dataset, run, t), self._rises(dataset, run, t), np.ones(t.size)])
+            y = rd["error_um"].to_numpy(dtype=float)
+            out.append((np.zeros(t.size), X, y))
+        names = [f"c{i + 1}" for i in range(self.n_nodes_)] + (["c_a"] if self.ambient_tau_s_ is not None else [])
+        names += [f"{t.id}.{g}" for t in self.terms_ for g in t.gains] + [f"s_{x}" for x in self.sensors_] + ["d"]
+        return names, out
 
     # ---------------------------------------------------------- predict ---
     def simulate(self, dataset: Dataset, run: str, t_s) -> np.ndarray:
@@ -624,9 +790,9 @@ class LumpedThermalNetwork(ThermalErrorModel):
                              f"dataset lacks; sensors: {list(dataset.metadata.sensors)}")  # fmt: skip
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         dr = self._drive(dataset, run, t)
-        tau, p, tau_a = self._unpack(self._z_)
+        tau, p, tau_a, own = self._unpack(self._z_)
         with threadpool_limits(limits=1, user_api="blas"):
-            return dr.at(self._states(dr, tau, p, tau_a))
+            return dr.at(self._states(dr, tau, p, tau_a, own))
 
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         if t_s.size == 0:
@@ -642,12 +808,16 @@ class LumpedThermalNetwork(ThermalErrorModel):
         """The C runtime's ``LUMPED`` kind (:func:`thermbench.export.lumped_encoding.encode_lumped`)."""
         from ..export.lumped_encoding import encode_lumped
 
+        if getattr(self, "terms_", None):
+            raise ModelError(f"the C runtime's LUMPED kind has no terms beyond the node chain; this network has "
+                             f"{[t.id for t in self.terms_]}: export it without terms")  # fmt: skip
         return encode_lumped(self, channels, period_s, where)
 
     def _model_inputs(self) -> Inputs:
         amb = self.ambient_sensor_
+        extra = tuple(x for t in getattr(self, "terms_", []) for x in t.signals())
         return Inputs(
-            sensors=((amb,) if amb else ()) + tuple(s for s in self.sensors_ if s != amb),
+            sensors=tuple(dict.fromkeys(((amb,) if amb else ()) + tuple(self.sensors_) + extra)),
             motion=self.operating_ in MOTION_COLUMNS,  # a feed-driven network reads the motion log
             ambient=self.ambient_location_ == "ambient",
             operating=(self.operating_,),
