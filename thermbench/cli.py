@@ -177,7 +177,7 @@ def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: 
 
 
 def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int | None, overrides: list[str],
-                 force: bool = False) -> int:  # fmt: skip
+                 force: bool = False, channel: str | None = None) -> int:  # fmt: skip
     from omegaconf import OmegaConf
 
     from .config import compose_checked
@@ -192,6 +192,8 @@ def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int
         OmegaConf.update(cfg, "max_effects", max_effects)
     if force:
         OmegaConf.update(cfg, "force", True)
+    if channel is not None:
+        OmegaConf.update(cfg, "channel", channel)
     diagnose(cfg)
     return 0
 
@@ -457,8 +459,9 @@ def _main(argv: list[str] | None) -> int:
     p_cls.add_argument("--feed", type=_number(0), required=True, help="feed C, mm/min")
     p_cls.add_argument("--classifier", default="seed002", help="conf/classifier option (default: seed002, Table 5)")
     p_dia = sub.add_parser("diagnose", help="discrepancy workflow: where the physics model and the data disagree, "
-                           "which canonical effect is missing (conf/diagnose.yaml)")  # fmt: skip
-    p_dia.add_argument("data_dir", help="dataset directory in the contract format")
+                           "which effect is missing (conf/diagnose.yaml); a screw axis or a spindle test")  # fmt: skip
+    p_dia.add_argument("data_dir", help="dataset directory in the contract format, or a dataset option (fl_thermal)")
+    p_dia.add_argument("--channel", default=None, help="the error channel of a dataset with several (ch3)")
     p_dia.add_argument("--out", required=True, help="output directory (diagnosis.json, report.md, figures)")
     p_dia.add_argument("--force", action="store_true", help="also write into a directory holding other files "
                        "(never over them; never into a dataset)")  # fmt: skip
@@ -530,7 +533,8 @@ def _main(argv: list[str] | None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         if args.command == "diagnose":
-            return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra], args.force)
+            return cmd_diagnose(args.data_dir, args.out, args.base, args.max_effects, [*args.overrides, *extra], args.force,
+                                args.channel)
         if args.command == "compensator":
             return cmd_compensator(args.model_dir, args.endpoint, args.nodes, [*args.overrides, *extra])
         if args.command == "sim-cnc":

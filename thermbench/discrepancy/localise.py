@@ -22,7 +22,10 @@ from ..data.io import Dataset
 ALPHA = 1e-3  # significance level of the chi^2 test of a block
 MATERIAL_X = 1.5  # and the block's RMS must reach this multiple of the floor
 POSITION_BINS = ("fixed_end", "middle", "far_end")
-POSITION_WORDS = {"fixed_end": "near the fixed end", "middle": "mid-travel", "far_end": "near the far end"}
+POSITION_WORDS = {"fixed_end": "near the fixed end", "middle": "mid-travel", "far_end": "near the far end",
+                  "fixed_point": "at the measured point"}  # fmt: skip
+#: the driver of a run's heat in words (the per-run trend of the residual)
+DRIVER_WORDS = {"feed_mm_min": "feed", "spindle_rpm": "spindle speed"}
 
 
 def annotate(table: pd.DataFrame, ds: Dataset, pf_mm: float, floor_um: float) -> pd.DataFrame:
@@ -80,16 +83,17 @@ def _trend(x: pd.Series, y: pd.Series) -> str | None:
     return "grows" if rho > 0.7 else "falls" if rho < -0.7 else "no clear trend"
 
 
-def localise(t: pd.DataFrame, floor_um: float) -> dict:
-    """Summary of where the residual of an annotated table exceeds the noise floor."""
-    t = t[t["cycle"] > 0]
+def localise(t: pd.DataFrame, floor_um: float, driver: str = "feed_mm_min") -> dict:
+    """Summary of where the residual of an annotated table exceeds the noise floor; ``driver``:
+    the column of each run's heat driver (its feed, a spindle block's speed)."""
+    t = t[t["cycle"] > 0] if "position" in t and not (t["position"] == "fixed_point").all() else t
     blocks = block_stats(t, ["run_id", "position", "phase"], floor_um)
     by_pos = block_stats(t, ["position"], floor_um).set_index("position")
-    by_pos = by_pos.reindex([p for p in POSITION_BINS if p in by_pos.index])
+    by_pos = by_pos.reindex([p for p in (*POSITION_BINS, "fixed_point") if p in by_pos.index])
     by_phase = block_stats(t[t["phase"] != "steady"], ["phase"], floor_um)
     by_phase = by_phase.set_index("phase") if len(by_phase) else by_phase
     by_run = block_stats(t, ["run_id"], floor_um).set_index("run_id")
-    by_run["feed_mm_min"] = t.groupby("run_id")["feed_mm_min"].first()
+    by_run[driver] = t.groupby("run_id")[driver].first()
     if "load_N" in t:
         by_run["load_N"] = t.groupby("run_id")["load_N"].first()
     rms_all = float(np.sqrt(np.mean(t["residual_um"] ** 2)))
@@ -100,12 +104,13 @@ def localise(t: pd.DataFrame, floor_um: float) -> dict:
         where = "nowhere"
     else:
         rms = by_pos["rms_um"]
-        where = "everywhere" if rms.max() < 1.5 * rms.min() else str(rms.idxmax())
+        where = str(rms.index[0]) if len(rms) == 1 else "everywhere" if rms.max() < 1.5 * rms.min() else str(rms.idxmax())
     phase = "none"
     if len(by_phase) and by_phase["significant"].any():
         rms = by_phase["rms_um"]
         phase = "both" if len(rms) == 2 and rms.max() < 1.5 * rms.min() else str(rms.idxmax())
-    feeds = _trend(by_run["feed_mm_min"], by_run["rms_um"])
+    feeds = _trend(by_run[driver], by_run["rms_um"])
+    dword = DRIVER_WORDS.get(driver, driver)
     loads = _trend(by_run["load_N"], by_run["rms_um"]) if "load_N" in by_run else None
 
     if where == "nowhere":
@@ -115,16 +120,17 @@ def localise(t: pd.DataFrame, floor_um: float) -> dict:
         text = (f"the residual (RMS {rms_all:.2f} um, {rms_all / floor_um:.1f}x the noise floor) exceeds the noise "
                 f"floor in {frac:.0%} of the readings, largest {place}")  # fmt: skip
         if phase != "none":
-            text += ", " + ("while heating and cooling alike" if phase == "both" else f"mostly while {phase}")
+            text += ", " + (f"while {' and '.join(by_phase.index)} alike" if phase == "both" else f"mostly while {phase}")
         if feeds:
-            text += f"; per-run residual {feeds} with feed" if feeds != "no clear trend" else "; no clear trend with feed"
+            text += f"; per-run residual {feeds} with {dword}" if feeds != "no clear trend" else f"; no clear trend with {dword}"
         if loads and loads != "no clear trend":
             text += f" and {loads} with load"
     return {
         "summary": text,
         "where": where,
         "phase": phase,
-        "feed_trend": feeds,
+        "driver": driver,
+        "driver_trend": feeds,
         "load_trend": loads,
         "rms_um": rms_all,
         "significant_fraction": frac,

@@ -15,8 +15,28 @@ from .search import display as _name  # a step's or candidate's name with its si
 FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png")
 
 
+def _fixed_point(table: pd.DataFrame) -> bool:
+    return table["target_mm"].nunique() <= 1  # a spindle's drift at one point: residual against time
+
+
+def _scored(table: pd.DataFrame) -> pd.DataFrame:
+    """The readings a score counts: after each target's cold reference, or all at a fixed point."""
+    return table if _fixed_point(table) else table[table["cycle"] > 0]
+
+
 def _maps(fig, table: pd.DataFrame, title: str, vmax: float) -> None:
     runs = list(dict.fromkeys(table["run_id"]))
+    if _fixed_point(table):
+        ax = fig.subplots()
+        for run in runs:
+            g = table[table["run_id"] == run]
+            ax.plot(g["t_s"] / 3600.0, g["residual_um"], lw=0.8, label=str(run))
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel("time from the start of the test (h)")
+        ax.set_ylabel("held-out residual (µm)")
+        ax.legend(fontsize=7, ncol=min(len(runs), 6))
+        fig.suptitle(title, fontsize=10)
+        return
     axes = fig.subplots(1, len(runs), sharey=True, squeeze=False)[0]
     sc = None
     for ax, run in zip(axes, runs):
@@ -50,12 +70,12 @@ def candidates_figure(scan: dict, floor_um: float, threshold_x: float, path: Pat
     ax.set_xlabel("held-out error explained (µm)")
     ax.invert_yaxis()
     ax.legend(fontsize=8)
-    ax.set_title(f"candidates on core{''.join(' + ' + e for e in scan['effects'])}", fontsize=10)
+    ax.set_title(f"candidates on {_model_name(scan['effects'])}", fontsize=10)
     return _save(fig, path)
 
 
 def heldout_figure(d: dict, path: Path) -> Path:
-    labels = ["core" + "".join(" + " + e for e in d["base_effects"])]
+    labels = [_model_name(d["base_effects"])]
     vals = [d["final"]["heldout_rmse_base_um"]]
     for s in d["steps"]:
         if s["ambiguous_with"] or not s["confirmed"]:
@@ -76,7 +96,7 @@ def heldout_figure(d: dict, path: Path) -> Path:
 def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[str]:
     before = tables["before"]
     after = tables[list(tables)[-1]]
-    vmax = float(np.quantile(np.abs(before.loc[before["cycle"] > 0, "residual_um"]), 0.98)) or 1.0
+    vmax = float(np.quantile(np.abs(_scored(before)["residual_um"]), 0.98)) or 1.0
     names = [
         residual_maps(before, "held-out residual of the base model", out / FIGURES[0], vmax).name,
         residual_maps(after, "held-out residual of the final model (same colour scale)", out / FIGURES[1], vmax).name,
@@ -84,7 +104,30 @@ def write_figures(d: dict, tables: dict, out: Path, threshold_x: float) -> list[
     ]
     for k, scan in enumerate(d["scans"], 1):
         names.append(candidates_figure(scan, scan["noise_floor_um"], threshold_x, out / f"candidates_step{k}.png").name)
+    if "holdout_base" in tables:
+        names.append(holdout_figure(tables["holdout_base"], tables["holdout_final"], d, out / "holdout.png").name)
     return names
+
+
+def holdout_figure(base: pd.DataFrame, final: pd.DataFrame, d: dict, path: Path) -> Path:
+    """The runs held out of the search: measured, the base's and the final model's predictions."""
+    fig = _new_figure(8.0, 3.6)
+    ax = fig.subplots()
+    t = base["t_s"] / 3600.0
+    ax.plot(t, base["thermal_um"], "k.", ms=1.5, label="measured")
+    v = d["validation"]
+    ax.plot(t, base["predicted_um"], lw=1, label=f"base (RMSE {v['rmse_base_um']:.2f} µm)")
+    ax.plot(final["t_s"] / 3600.0, final["predicted_um"], lw=1,
+            label=f"{_model_name(v['effects'])} (RMSE {v['rmse_final_um']:.2f} µm)")  # fmt: skip
+    ax.set_xlabel("time from the start of the test (h)")
+    ax.set_ylabel("error (µm)")
+    ax.set_title(f"held out of the search: {', '.join(v['runs'])}", fontsize=10)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def _model_name(effects) -> str:
+    return "base" + "".join(" + " + e for e in effects)
 
 
 def described(s: dict) -> str:
@@ -109,7 +152,7 @@ def _loc_md(loc: dict) -> str:
         lines.append("")
     run = pd.DataFrame(loc["by_run"]).T
     if len(run):
-        cols = ["run_id", "feed_mm_min", *(["load_N"] if "load_N" in run else []), "n", "rms_um", "rms_x_floor", "significant"]
+        cols = ["run_id", loc.get("driver", "feed_mm_min"), *(["load_N"] if "load_N" in run else []), "n", "rms_um", "rms_x_floor", "significant"]
         lines.append(markdown_table(run.reset_index(names="run_id")[cols], index=False))
     return "\n".join(lines)
 
@@ -118,8 +161,7 @@ def write_markdown(d: dict, out: Path) -> Path:
     md = [f"# Diagnosis of `{d['dataset']}`", "", f"**{verdict_line(d)}**", ""]
     if d.get("frame"):
         md.append(f"- scored on: {d['frame']}")
-    md += [f"- base model: seed 000 core (fixed-bearing heat, nut heat, convection, constant ambient)"
-           f"{''.join(' + ' + e for e in d['base_effects'])}",  # fmt: skip
+    md += [f"- base model: {d['base_words']}{''.join(' + ' + e for e in d['base_effects'])}",
            f"- noise floor: {d['noise_floor_um']:.3f} um ({d['noise']['method']}; per-reading scatter "
            f"{d['noise']['reading_sigma_um']:.3f} um; estimates: "
            + ", ".join(f"{k} {v[0]:.3f} um from {v[1]}" for k, v in d["noise"]["estimates"].items()) + ")",
@@ -141,7 +183,7 @@ def write_markdown(d: dict, out: Path) -> Path:
     else:
         md += ["No candidate passed the test.", ""]
     for k, scan in enumerate(d["scans"], 1):
-        md += [f"### Candidates, scan {k}: core{''.join(' + ' + e for e in scan['effects'])}", ""]
+        md += [f"### Candidates, scan {k}: {_model_name(scan['effects'])}", ""]
         rows = pd.DataFrame([{"effect": _name(c), "heldout_rmse_um": c.get("heldout_rmse_um"),
                               "explained_um": c.get("explained_um"), "bic_gain": c.get("bic_gain"),
                               "significant": c.get("significant"),
@@ -153,7 +195,7 @@ def write_markdown(d: dict, out: Path) -> Path:
                "Screened: the current model's parameters held and the candidate's own identified (a lower bound on "
                "what it explains); all parameters: re-identified with every parameter free.", "",
                f"![](candidates_step{k}.png)", ""]  # fmt: skip
-    md += ["## Final model", "", f"effects: core{''.join(' + ' + e for e in d['final']['effects'])}; "
+    md += ["## Final model", "", f"model: {_model_name(d['final']['effects'])}; "
            f"held-out RMSE {d['final']['heldout_rmse_um']:.3f} um ({d['final']['heldout_x_floor']:.1f}x the noise "
            f"floor {d['final']['noise_floor_um']:.3f} um)", ""]  # fmt: skip
     md += [markdown_table(pd.DataFrame({"parameter": list(d["final"]["identified"]),
@@ -161,6 +203,8 @@ def write_markdown(d: dict, out: Path) -> Path:
                                                   for v in d["final"]["identified"].values()]})), ""]  # fmt: skip
     md += ["## Where the final model disagrees (held-out)", "", _loc_md(d["localisation"]["after"]), "",
            "![](residual_maps_after.png)", ""]  # fmt: skip
+    if d.get("validation"):
+        md += validation_md(d)
     md += ["## What is left", "", *gap_md(d)]
     path = out / "report.md"
     path.write_text("\n".join(md), encoding="utf-8")
@@ -211,12 +255,28 @@ def gap_md(d: dict) -> list[str]:
     return lines + [""]
 
 
+def validation_md(d: dict) -> list[str]:
+    """The runs held out of the whole search, scored once at its end."""
+    v = d["validation"]
+    rows = pd.DataFrame([{"run": r, "base RMSE (um)": f"{x['rmse_base_um']:.3f}",
+                          f"{_model_name(v['effects'])} RMSE (um)": f"{x['rmse_final_um']:.3f}"}
+                         for r, x in v["per_run"].items()])  # fmt: skip
+    return ["## Held out of the search", "",
+            f"Never fitted, scored or localised during the search; scored once here, by the base and the final model "
+            f"fitted on every search run: RMSE {v['rmse_base_um']:.3f} -> {v['rmse_final_um']:.3f} um "
+            f"({v['x_floor_base']:.1f}x -> {v['x_floor_final']:.1f}x the noise floor).", "",
+            markdown_table(rows, index=False), "", "![](holdout.png)", ""]  # fmt: skip
+
+
 def terminal_verdict(d: dict, out: Path | None = None) -> str:
     lines = ["", f"== diagnosis: {d['dataset']} ==", verdict_line(d)]
     if d.get("frame"):
         lines.append(f"scored on {d['frame']}")
     lines.append(f"noise floor {d['noise_floor_um']:.3f} um ({d['noise']['method']}); "
-                 f"base: core{''.join(' + ' + e for e in d['base_effects'])}")  # fmt: skip
+                 f"base: {d['base_words']}{''.join(' + ' + e for e in d['base_effects'])}")  # fmt: skip
+    if v := d.get("validation"):
+        lines.append(f"held out of the search ({', '.join(v['runs'])}): RMSE {v['rmse_base_um']:.3f} um (base) -> "
+                     f"{v['rmse_final_um']:.3f} um ({_model_name(v['effects'])})")  # fmt: skip
     for k, s in enumerate(d["steps"], 1):
         tag = " (ambiguous with " + ", ".join(s["ambiguous_with"]) + ")" if s["ambiguous_with"] else ""
         tag += "" if s["confirmed"] else " (not confirmed)"

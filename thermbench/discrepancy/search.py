@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import pandas as pd
@@ -100,6 +100,11 @@ class Settings:
     candidates: Sequence[str] = CANDIDATES
     say: Callable[[str], None] = print
     refit: int = 3  # candidates re-identified with every parameter free after screening, per step
+    family: Any = None  # what is confronted with the data (ScrewFamily, discrepancy.spindle.SpindleFamily); None: the screw
+
+    def __post_init__(self):
+        if self.family is None:
+            self.family = ScrewFamily()
 
 
 def ambient_sensor(ds: Dataset) -> str | None:
@@ -198,20 +203,22 @@ def folds_for(runs: Sequence[str], cv) -> list[tuple[list[str], list[str]]]:
     raise ValueError(f"config key 'cv': expected 'loro' or {{train: [...], test: [...]}}, got {cv!r}")
 
 
-def heldout_fast(model: PhysicsModel, ds: Dataset, folds) -> float:
+def heldout_fast(model, ds: Dataset, folds, family=None) -> float:
     """Held-out RMSE with the gains re-solved per fold at the model's nonlinear parameters
-    (a screening score: those parameters come from the fit on all training runs)."""
+    (a screening score: those parameters come from the fit on all training runs), within the
+    gains' bounds as the full fit has them (heat gains >= 0, signed ones free)."""
+    family = family or ScrewFamily()
     runs = list(dict.fromkeys(r for tr, te in folds for r in (*tr, *te)))
-    units, per_run = model.gain_basis(ds, runs)
+    lb, per_run = family.gain_basis(model, ds, runs)
     rd = readings(ds, runs)
     index = {r: i for i, r in enumerate(runs)}
-    mask = [(rd.loc[rd["run_id"] == r, "cycle"] > 0).to_numpy() for r in runs]
+    mask = [family.scored(rd[rd["run_id"] == r]) for r in runs]
     sq, n = 0.0, 0
     for train, test in folds:
         tr = [index[r] for r in train]
         a = np.concatenate([per_run[i][1] for i in tr])
         b = np.concatenate([per_run[i][2] - per_run[i][0] for i in tr])
-        g = lsq_linear(a, b, bounds=(np.zeros(a.shape[1]), np.inf), method="bvls").x if a.shape[1] else np.zeros(0)
+        g = lsq_linear(a, b, bounds=(lb, np.inf), method="bvls").x if a.shape[1] else np.zeros(0)
         for r in test:
             e0, a_t, y = per_run[index[r]]
             res = (y - e0 - a_t @ g)[mask[index[r]]]
@@ -220,27 +227,26 @@ def heldout_fast(model: PhysicsModel, ds: Dataset, folds) -> float:
     return float(np.sqrt(sq / max(n, 1)))
 
 
-def _scored(effects, model: PhysicsModel, ds, runs, folds, fit_s: float) -> Fitted:
-    rd = readings(ds, runs)
-    sse = model.train_rmse_um_**2 * len(rd)  # the cold-reference readings have residual 0 ...
-    n = int((rd["cycle"] > 0).sum())  # ... and carry no information: n counts the others
-    return Fitted(tuple(effects), model, sse, n, bic(sse, n, n_params(effects)), heldout_fast(model, ds, folds), fit_s)
+def _scored(effects, model, ds, runs, folds, fit_s: float, family) -> Fitted:
+    sse, n = family.train_sse(model, ds, runs)
+    return Fitted(tuple(effects), model, sse, n, bic(sse, n, family.n_params(effects)), heldout_fast(model, ds, folds, family),
+                  fit_s)  # fmt: skip
 
 
 def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitted:
     """Identify ``effects`` on ``runs`` (the training runs: all of them for leave-one-run-out,
     the declared train runs for a split) and score it."""
     t0 = time.perf_counter()
-    model = make_model(effects, ds, settings, warm, start).fit(ds, runs)
-    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
+    model = settings.family.make_model(effects, ds, settings, warm, start).fit(ds, runs)
+    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0, settings.family)
 
 
-def held_fit(effects, ds, runs, settings, warm: PhysicsModel | None, start: dict | None,
-             cache: FieldCache | None = None) -> PhysicsModel:  # fmt: skip
+def held_fit(effects, ds, runs, settings, warm, start: dict | None, cache=None):
     """``effects`` fitted with only the last one's own nonlinear parameters identified (with
     every gain): the rest held at ``warm``'s values."""
-    model = make_model(effects, ds, settings, warm, start, cache)
-    model.set_params(identify=[f"{effects[-1]}.{p}" for p in own_params(effects[-1])])
+    fam = settings.family
+    model = fam.make_model(effects, ds, settings, warm, start, cache)
+    fam.hold(model, [f"{effects[-1]}.{p}" for p in fam.own_params(effects[-1])])
     return model.fit(ds, runs)
 
 
@@ -250,7 +256,7 @@ def fit_screen(effect: str, current: Fitted, ds, runs, folds, settings, start: d
     t0 = time.perf_counter()
     effects = [*current.effects, effect]
     model = held_fit(effects, ds, runs, settings, current.model, start, cache)
-    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0)
+    return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0, settings.family)
 
 
 def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | None = None, variant: dict | None = None):
@@ -263,32 +269,38 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
 
     Returns the pooled RMSE over readings after the cold reference, the table of held-out
     predictions and the fold models (the warm starts of the next step)."""
+    fam = settings.family
     parts, models = [], []
     for k, (train, test) in enumerate(folds):
         warm = warms[k] if warms is not None else None
         start = None
         if new_effect:
             start = screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant) or {new_effect: dict(variant or {})}
-        if new_effect in OPEN_TERMS:  # as on all runs: then its own parameters with the rest held
-            start = {new_effect: dict(held_fit(effects, ds, train, settings, warm, start).effects_[new_effect])}
-        m = make_model(effects, ds, settings, warm, start).fit(ds, train)
+        if new_effect in fam.open:  # as on all runs: then its own parameters with the rest held
+            start = {new_effect: fam.effect_params(held_fit(effects, ds, train, settings, warm, start), new_effect)}
+        m = fam.make_model(effects, ds, settings, warm, start).fit(ds, train)
         models.append(m)
         for run in test:
-            rd, pred = m.referenced_thermal_um(ds, run)
-            parts.append(rd.assign(predicted_um=pred, residual_um=rd["thermal_um"].to_numpy() - pred))
+            parts.append(residual_table(fam, m, ds, run))
     table = pd.concat(parts, ignore_index=True)
-    r = table.loc[table["cycle"] > 0, "residual_um"].to_numpy()
+    r = table.loc[fam.scored(table), "residual_um"].to_numpy()
     return float(np.sqrt(np.mean(r**2))), table, models
 
 
-def screen_start(effect: str, current_effects, warm: PhysicsModel | None, ds, runs, settings, variant: dict | None = None,
-                 cache: FieldCache | None = None) -> dict:  # fmt: skip
+def residual_table(family, model, ds, run: str) -> pd.DataFrame:
+    """The run's readings with the model's prediction and residual (``thermal_um`` − predicted)."""
+    rd, pred = family.table(model, ds, run)
+    return rd.assign(predicted_um=pred, residual_um=rd["thermal_um"].to_numpy() - pred)
+
+
+def screen_start(effect: str, current_effects, warm, ds, runs, settings, variant: dict | None = None, cache=None) -> dict:
     """Start values of the candidate's own nonlinear parameters: the best of the
     configured grid with every other nonlinear parameter held (gains solved).
     ``variant``: the candidate's choice (its driving signal), kept in the start."""
+    fam = settings.family
     variant = dict(variant or {})
-    own = {**effect_class(effect).starts, **settings.starts.get(effect, {})}  # the effect's grid, or the config's
-    grid = {p: list(own.get(p) or []) for p in own_params(effect)}
+    own = {**fam.cls(effect).starts, **settings.starts.get(effect, {})}  # the effect's grid, or the config's
+    grid = {p: list(own.get(p) or []) for p in fam.own_params(effect)}
     grid = {p: v for p, v in grid.items() if v}
     if not grid:
         return {effect: variant} if variant else {}
@@ -296,11 +308,11 @@ def screen_start(effect: str, current_effects, warm: PhysicsModel | None, ds, ru
     for p, values in grid.items():
         for v in values:
             start = {effect: {**variant, p: float(v)}}
-            m = make_model([*current_effects, effect], ds, settings, warm, start, cache)
-            m.set_params(identify=[])
+            m = fam.make_model([*current_effects, effect], ds, settings, warm, start, cache)
+            fam.hold(m, [])
             m.fit(ds, runs)
-            if m.train_rmse_um_ < best_rmse:
-                best, best_rmse = start, m.train_rmse_um_
+            if fam.train_rmse(m) < best_rmse:
+                best, best_rmse = start, fam.train_rmse(m)
     return best
 
 
@@ -320,7 +332,7 @@ def label(effect: str, model: PhysicsModel, ctx: dict) -> tuple[str, str]:
 
 
 def _record(eid, variant, f: Fitted, current: Fitted, floor_um, settings, ctx, refit: bool) -> dict:
-    lab, words = label(eid, f.model, ctx)
+    lab, words = settings.family.label(eid, f.model, ctx)
     rec = {
         "effect": eid,
         "variant": dict(variant),
@@ -328,7 +340,7 @@ def _record(eid, variant, f: Fitted, current: Fitted, floor_um, settings, ctx, r
         "description": words,
         "skipped": None,
         "refit": refit,
-        "n_params": n_params(f.effects),
+        "n_params": settings.family.n_params(f.effects),
         "heldout_rmse_um": f.heldout_fast_um,
         "explained_um": explained(current.heldout_fast_um, f.heldout_fast_um),
         "bic_gain": current.bic - f.bic,
@@ -348,18 +360,17 @@ def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float
     parameters held; a choice term with each signal the data offer, the best kept), then the
     ``refit`` most promising are re-identified with every parameter free (:func:`fit_full`).
     A candidate named on its screening alone is re-identified before it is named."""
-    cache, ctx = FieldCache(size=256), context(ds)
+    fam = settings.family
+    cache, ctx = fam.cache(), fam.context(ds)
     out, screened = [], []
-    for eid in settings.candidates:
-        if eid in current.effects:
-            continue
+    for eid in fam.candidates_for(settings.candidates, current.effects):
         if eid in skip:
             out.append({"effect": eid, "skipped": skip[eid]})
             continue
         fits = []
-        for var in variants(eid, ds):
+        for var in fam.variants(eid, ds, current.model):
             start = screen_start(eid, current.effects, current.model, ds, runs, settings, var, cache)
-            if eid not in OPEN_TERMS:  # re-identified in full below, from the grid's start
+            if eid not in fam.open:  # re-identified in full below, from the grid's start
                 fits.append((eid, var, _Start(start)))
                 continue
             fits.append((eid, var, fit_screen(eid, current, ds, runs, folds, settings, start or {eid: var}, cache)))
@@ -371,9 +382,9 @@ def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float
     # absorbed what one explains, and then its screening says nothing), the most promising open
     # terms by screening, and every speed-driven choice term: the core's own heat inputs follow
     # the speed, so the held core has absorbed most of what such a term explains
-    promising = sorted((x for x in screened if x[0] in OPEN_TERMS and explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
+    promising = sorted((x for x in screened if x[0] in fam.open and explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
                        key=lambda x: x[2].heldout_fast_um)[: settings.refit]  # fmt: skip
-    chosen = ({id(x) for x in promising} | {id(x) for x in screened if x[0] not in OPEN_TERMS}
+    chosen = ({id(x) for x in promising} | {id(x) for x in screened if x[0] not in fam.open}
               | {id(x) for x in screened if x[1] and next(iter(x[1].values())) == "speed"})  # fmt: skip
     for x in screened:
         eid, var, fs = x
@@ -399,10 +410,10 @@ class _Start:
 def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float) -> dict:
     """A screened candidate re-identified with every parameter free, from its screening fit."""
     eid = rec["effect"]
-    start = {eid: dict(rec["fitted"].model.effects_.get(eid, {}))}
+    start = {eid: settings.family.effect_params(rec["fitted"].model, eid)}
     f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start)
     f.fit_s += rec["fit_s"]
-    return _record(eid, rec["variant"], f, current, floor_um, settings, context(ds), refit=True)
+    return _record(eid, rec["variant"], f, current, floor_um, settings, settings.family.context(ds), refit=True)
 
 
 def say_record(rec: dict, settings) -> None:
@@ -446,3 +457,101 @@ def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[
 def display(c: dict) -> str:
     """A candidate's name with its signal: ``driven_offset[T_bed]``."""
     return c["effect"] + (f"[{next(iter(c['variant'].values()))}]" if c.get("variant") else "")
+
+
+class ScrewFamily:
+    """The ball screw: the seed 000 core (:class:`PhysicsModel`) and its effect library
+    (canonical effects, then the open terms). What the search asks of a family, answered for the
+    screw; :class:`thermbench.discrepancy.spindle.SpindleFamily` answers it for a spindle."""
+
+    name = "screw"
+    base_words = "the seed 000 core (fixed-bearing heat, nut heat, convection, constant ambient)"
+    driver = "feed_mm_min"  # what the per-run residual is set against (the run's condition)
+
+    @property
+    def candidates(self) -> tuple[str, ...]:
+        return (*EFFECTS, *OPEN_TERMS)
+
+    @property
+    def canonical(self):
+        return EFFECTS
+
+    @property
+    def open(self):
+        return OPEN_TERMS
+
+    def cls(self, eid: str):
+        return effect_class(eid)
+
+    def own_params(self, eid: str) -> tuple[str, ...]:
+        return own_params(eid)
+
+    def variants(self, eid: str, ds: Dataset, model=None) -> list[dict]:
+        return variants(eid, ds)
+
+    def candidates_for(self, candidates, effects) -> list[str]:
+        """The candidates of a step: those not in the model yet."""
+        return [c for c in candidates if c not in effects]
+
+    def context(self, ds: Dataset) -> dict:
+        return context(ds)
+
+    def unavailable(self, eid: str, ds: Dataset) -> str | None:
+        return unavailable(eid, ds)
+
+    def n_params(self, effects) -> int:
+        return n_params(effects)
+
+    def make_model(self, effects, ds, settings, warm=None, start=None, cache=None):
+        return make_model(effects, ds, settings, warm, start, cache)
+
+    def hold(self, model, free: Sequence[str]):
+        """Identify only ``free`` of the model's nonlinear parameters at its next fit."""
+        model.set_params(identify=list(free))
+        return model
+
+    def effect_params(self, model, eid: str) -> dict:
+        return dict(model.effects_.get(eid, {}))
+
+    def gain_basis(self, model, ds, runs):
+        units, per_run = model.gain_basis(ds, runs)
+        return model.gain_lower_bounds(units), per_run
+
+    def table(self, model, ds, run):
+        return model.referenced_thermal_um(ds, run)
+
+    def scored(self, rd: pd.DataFrame) -> np.ndarray:
+        """Readings that carry information: the cold reference readings have residual 0."""
+        return (rd["cycle"] > 0).to_numpy()
+
+    def train_rmse(self, model) -> float:
+        return model.train_rmse_um_
+
+    def train_sse(self, model, ds, runs) -> tuple[float, int]:
+        rd = readings(ds, runs)
+        sse = model.train_rmse_um_**2 * len(rd)  # the cold-reference readings have residual 0 ...
+        return sse, int((rd["cycle"] > 0).sum())  # ... and carry no information: n counts the others
+
+    def cache(self):
+        return FieldCache(size=256)
+
+    def label(self, eid, model, ctx):
+        return label(eid, model, ctx)
+
+    # ------------------------------------------------------------- workflow ---
+    def prepare_base(self, base: list[str], ds: Dataset, notes: list[str]) -> list[str]:
+        """Seed 004: a screw held at both ends has the fixed-fixed constraint in its base."""
+        if ds.metadata.screw.mounting == "fixed_fixed" and "fixed_fixed_constraint" not in base:
+            base.append("fixed_fixed_constraint")
+            notes.append("fixed_fixed_constraint added to the base: metadata.yaml declares mounting fixed_fixed")
+        return base
+
+    def annotate(self, table, ds, model, floor_um):
+        from .localise import annotate
+
+        return annotate(table, ds, model.params_["pf_m"] * 1000.0, floor_um)
+
+    def more_data(self, where, ds, noise):
+        from .workflow import more_data
+
+        return more_data(where, ds, noise)

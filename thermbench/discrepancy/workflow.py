@@ -35,6 +35,8 @@ from . import localise as loc
 from .noise import estimate_noise_floor
 from .search import (
     CANDIDATES,
+    ScrewFamily,
+    residual_table,
     own_params,
     Settings,
     SignificanceTest,
@@ -58,15 +60,19 @@ class DiagnoseError(ValueError):
     """A user mistake in the diagnose command or its config; the message names the key."""
 
 
-def _check_effects(names: Sequence[str], key: str, open_terms: bool = False) -> list[str]:
-    """Effect ids of config key ``key``: canonical effects, and the open terms where allowed
-    (as candidates; a base effect is a canonical one)."""
+def _check_effects(names: Sequence[str], key: str, open_terms: bool = False, family=None) -> list[str]:
+    """Effect ids of config key ``key``: the family's canonical effects, and its open terms where
+    allowed (as candidates; a screw's base effect is a canonical one, a spindle's any term)."""
+    family = family or ScrewFamily()
     out = [str(n).strip() for n in names if str(n).strip()]
-    known = {*EFFECTS, *(OPEN_TERMS if open_terms else ())}
+    canonical = family.canonical if family.canonical else family.open
+    known = {*canonical, *(family.open if open_terms else ())}
     bad = [n for n in out if n not in known]
     if bad:
-        more = f", the open terms {sorted(OPEN_TERMS)}" if open_terms else ""
-        raise DiagnoseError(f"config key {key!r}: unknown effect(s) {bad}; the canonical effects are {sorted(EFFECTS)}{more}")
+        if not family.canonical:
+            raise DiagnoseError(f"config key {key!r}: unknown term(s) {bad}; the {family.name} terms are {sorted(family.open)}")
+        more = f", the open terms {sorted(family.open)}" if open_terms else ""
+        raise DiagnoseError(f"config key {key!r}: unknown effect(s) {bad}; the canonical effects are {sorted(canonical)}{more}")
     if len(set(out)) != len(out):
         raise DiagnoseError(f"config key {key!r}: an effect is listed twice: {out}")
     return out
@@ -100,54 +106,61 @@ def run_diagnosis(
     settings: Settings | None = None,
     noise_window_s: float = 60.0,
     noise_min_groups: int = 20,
+    holdout: Sequence[str] = (),
 ) -> dict:
-    """The discrepancy workflow on a dataset; returns the diagnosis (see module docstring)."""
+    """The discrepancy workflow on a dataset; returns the diagnosis (see module docstring).
+    ``holdout``: runs kept out of the whole search (never fitted, scored or localised),
+    scored once at the end with the base and with the final model."""
     from ..data.reference import frame_text
 
     settings = settings or Settings()
+    fam = settings.family
     say = settings.say
     t_start = time.perf_counter()
-    base = _check_effects(base, "base")
-    _check_effects(settings.candidates, "candidates", open_terms=True)
+    base = _check_effects(base, "base", family=fam)
+    _check_effects(settings.candidates, "candidates", open_terms=True, family=fam)
     if int(max_effects) < 0:
         raise DiagnoseError(f"config key 'max_effects': expected an integer >= 0, got {max_effects}")
     notes = []
-    if ds.metadata.screw.mounting == "fixed_fixed" and "fixed_fixed_constraint" not in base:
-        base.append("fixed_fixed_constraint")
-        notes.append("fixed_fixed_constraint added to the base: metadata.yaml declares mounting fixed_fixed")
+    base = fam.prepare_base(list(base), ds, notes)
     for e in base:
-        if (why := unavailable(e, ds)) is not None:
+        if (why := fam.unavailable(e, ds)) is not None:
             raise DiagnoseError(f"config key 'base': effect {e!r} cannot be used on this dataset: {why}")
-    runs = ds.run_ids
+    holdout = [str(r) for r in holdout]
+    if bad := [r for r in holdout if r not in ds.run_ids]:
+        raise DiagnoseError(f"config key 'holdout': runs {bad} are not in the dataset; its runs: {list(ds.run_ids)}")
+    runs = [r for r in ds.run_ids if r not in holdout]
     try:
         folds = folds_for(runs, cv)
     except ValueError as exc:
         raise DiagnoseError(str(exc)) from None
     # what the models are identified on: every run (leave-one-run-out) or the declared train runs
     fit_runs = runs if len(folds) > 1 else folds[0][0]
-    skip = {e: why for e in settings.candidates if e not in base and (why := unavailable(e, ds)) is not None}
+    skip = {e: why for e in settings.candidates if e not in base and (why := fam.unavailable(e, ds)) is not None}
     for e, why in skip.items():
         say(f"[diagnose] candidate {e} skipped: {why}")
 
-    say(f"[diagnose] {len(runs)} runs, {len(ds.errors)} readings; base: core{''.join(' + ' + e for e in base)}")
+    n_read = int(ds.errors["run_id"].isin(runs).sum())
+    say(f"[diagnose] {len(runs)} runs, {n_read} readings{f' (held out of the search: {holdout})' if holdout else ''}; "
+        f"base: {fam.base_words}{''.join(' + ' + e for e in base)}")  # fmt: skip
     current = fit_full(base, ds, fit_runs, folds, settings)
+    base_fit = current
     say(f"[diagnose] base identified in {current.fit_s:.1f} s: train RMSE {np.sqrt(current.sse / current.n):.3f} um")
     before_um, table, fold_models = heldout_loro(base, ds, folds, settings)
-    noise = estimate_noise_floor(_in_sample_table(current.model, ds, fit_runs), noise_window_s, noise_min_groups)
+    noise = _noise(fam, _in_sample_table(fam, current.model, ds, fit_runs), noise_window_s, noise_min_groups)
     floor = noise.noise_floor_um
     if floor < MIN_FLOOR_UM:
         notes.append(f"noise floor estimated at {floor:.2g} um (noise-free data?); {MIN_FLOOR_UM} um used")
         floor = MIN_FLOOR_UM
     say(f"[diagnose] noise floor {floor:.3f} um ({noise.method}); held-out RMSE of the base {before_um:.3f} um")
-    pf_mm = lambda m: m.params_["pf_m"] * 1000.0  # noqa: E731
-    loc_before = loc.localise(loc.annotate(table, ds, pf_mm(current.model), floor), floor)
+    loc_before = loc.localise(fam.annotate(table, ds, current.model, floor), floor, fam.driver)
     say(f"[diagnose] where: {loc_before['summary']}")
 
     steps, scans, missing, ambiguous = [], [], [], []
     tables = {"before": table}
     while len(missing) < int(max_effects):
-        n_try = sum(1 for c in settings.candidates if c not in current.effects and c not in skip)
-        say(f"[diagnose] step {len(steps) + 1}: trying {n_try} candidate(s) on core"
+        n_try = sum(1 for c in fam.candidates_for(settings.candidates, current.effects) if c not in skip)
+        say(f"[diagnose] step {len(steps) + 1}: trying {n_try} candidate(s) on the base"
             f"{''.join(' + ' + e for e in current.effects)}")  # fmt: skip
         cands = score_candidates(current, ds, fit_runs, folds, settings, floor, skip)
         best, ties = decide(cands, floor, settings.test)
@@ -173,7 +186,7 @@ def run_diagnosis(
             "effect": best["effect"],
             "variant": best["variant"],
             "label": best["label"],
-            "canonical": best["label"] if best["label"] in EFFECTS else None,
+            "canonical": best["label"] if best["label"] in fam.canonical else None,
             "description": best["description"],
             "signals_alike": best["alike"],
             "ambiguous_with": ties,
@@ -193,9 +206,9 @@ def run_diagnosis(
             ambiguous.append([display(best), *ties])
             say(f"[diagnose] ambiguous: {' or '.join([display(best), *ties])} explain the data alike; not guessing")
             break
-        if best["effect"] in OPEN_TERMS:
-            same = f" (= {best['label']})" if best["label"] in EFFECTS else ""
-            say(f"[diagnose] described by an open term{same}: {best['description']}")
+        if best["effect"] in fam.open:
+            same = f" (= {best['label']})" if best["label"] != best["effect"] and best["label"] in {*fam.canonical, *fam.open} else ""
+            say(f"[diagnose] described by {'an open term' if fam.canonical else 'a term'}{same}: {best['description']}")
             if best["alike"]:
                 say(f"[diagnose] its driver is not told apart: {' or '.join([display(best), *best['alike']])} fit alike")
         say(f"[diagnose] missing effect: {display(best)}: held-out RMSE {before_um:.3f} -> {after_um:.3f} um "
@@ -204,12 +217,12 @@ def run_diagnosis(
         current, before_um, fold_models = best["fitted"], after_um, new_fold_models
         tables[f"step{len(steps)}"] = after_table
         # the floor is a property of the data, best seen through the best model so far
-        grown = estimate_noise_floor(_in_sample_table(current.model, ds, fit_runs), noise_window_s, noise_min_groups)
+        grown = _noise(fam, _in_sample_table(fam, current.model, ds, fit_runs), noise_window_s, noise_min_groups)
         if MIN_FLOOR_UM <= grown.noise_floor_um < floor:
             noise, floor = grown, grown.noise_floor_um
             say(f"[diagnose] noise floor re-estimated with the grown model: {floor:.3f} um")
     final_table = tables[list(tables)[-1]]
-    loc_after = loc.localise(loc.annotate(final_table, ds, pf_mm(current.model), floor), floor)
+    loc_after = loc.localise(fam.annotate(final_table, ds, current.model, floor), floor, fam.driver)
     first = steps[0]["heldout_rmse_before_um"] if steps else before_um
     within = settings.test.within_floor(before_um, floor)
     if int(max_effects) == 0:
@@ -223,8 +236,12 @@ def run_diagnosis(
         verdict = "found" if within else "found_partial"
     else:
         verdict = "none" if within else "unexplained"
-    gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise, current.effects)
+    gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise, current.effects, fam)
+    validation = _validation(fam, ds, holdout, base_fit, current, tables, floor) if holdout else None
     return {
+        "family": fam.name,
+        "base_words": fam.base_words,
+        "validation": validation,
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
         "frame": frame_text(ds.metadata),  # the frame of every score (data.reference.frame_text)
         "base_effects": list(base),
@@ -257,7 +274,7 @@ def run_diagnosis(
 
 
 def _gap(heldout_um: float, floor_um: float, test: SignificanceTest, where: dict, scans: list[dict], ds: Dataset,
-         noise, in_model: Sequence[str] = ()) -> dict:  # fmt: skip
+         noise, in_model: Sequence[str] = (), family=None) -> dict:  # fmt: skip
     """What is left after the search: how far above the floor, where and when (the final
     model's localisation), what the best remaining candidate explains and what remains,
     and what data would tell more."""
@@ -278,10 +295,11 @@ def _gap(heldout_um: float, floor_um: float, test: SignificanceTest, where: dict
         "within_floor": test.within_floor(heldout_um, floor_um),
         "where": where["where"],
         "phase": where["phase"],
-        "feed_trend": where["feed_trend"],
+        "driver": where["driver"],
+        "driver_trend": where["driver_trend"],
         "load_trend": where["load_trend"],
         "best_candidate": best,
-        "more_data": more_data(where, ds, noise) if not test.within_floor(heldout_um, floor_um) else [],
+        "more_data": (family or ScrewFamily()).more_data(where, ds, noise) if not test.within_floor(heldout_um, floor_um) else [],
     }
 
 
@@ -321,11 +339,30 @@ def more_data(where: dict, ds: Dataset, noise) -> list[str]:
     return hints
 
 
-def _in_sample_table(model, ds, runs):
+def _in_sample_table(family, model, ds, runs):
     """Readings of ``runs`` with the in-sample residual of ``model`` (for the noise floor)."""
-    parts = [rd.assign(residual_um=rd["thermal_um"].to_numpy() - pred)
-             for rd, pred in (model.referenced_thermal_um(ds, r) for r in runs)]  # fmt: skip
-    return pd.concat(parts, ignore_index=True)
+    return pd.concat([residual_table(family, model, ds, r) for r in runs], ignore_index=True)
+
+
+def _noise(family, table, window_s, min_groups):
+    est = getattr(family, "noise_floor", None)
+    return est(table, window_s, min_groups) if est else estimate_noise_floor(table, window_s, min_groups)
+
+
+def _validation(fam, ds, holdout, base_fit, final, tables, floor_um) -> dict:
+    """The runs held out of the search, scored once at its end: the base and the final model,
+    both fitted on every search run."""
+
+    def scored(model) -> pd.DataFrame:
+        t = pd.concat([residual_table(fam, model, ds, r) for r in holdout], ignore_index=True)
+        return t[fam.scored(t)]
+
+    t0, t1 = scored(base_fit.model), scored(final.model)
+    tables["holdout_base"], tables["holdout_final"] = t0, t1
+    rms = lambda t: float(np.sqrt(np.mean(t["residual_um"].to_numpy() ** 2)))  # noqa: E731
+    per_run = {r: {"rmse_base_um": rms(t0[t0["run_id"] == r]), "rmse_final_um": rms(t1[t1["run_id"] == r])} for r in holdout}
+    return {"runs": list(holdout), "effects": list(final.effects), "rmse_base_um": rms(t0), "rmse_final_um": rms(t1),
+            "x_floor_base": rms(t0) / floor_um, "x_floor_final": rms(t1) / floor_um, "per_run": per_run}  # fmt: skip
 
 
 def _public(c: dict) -> dict:
@@ -376,8 +413,9 @@ PHYSICS_KEYS = {"dx_m": float, "dt_s": float, "macro_dt_s": float, "max_iter": i
                 "geometric_degree": int, "preprocess": None, "bounds": None}  # fmt: skip
 
 
-def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
-    """:class:`Settings` from the composed ``conf/diagnose.yaml``, every key checked."""
+def settings_from_config(cfg, say: Callable[[str], None] = print, family=None) -> Settings:
+    """:class:`Settings` from the composed ``conf/diagnose.yaml``, every key checked (the
+    candidates and start grids against ``family``'s library; None: the screw's)."""
     from omegaconf import DictConfig, OmegaConf
 
     if isinstance(cfg, DictConfig):
@@ -395,9 +433,11 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
         raise DiagnoseError(f"config key 'physics': unknown or reserved key(s) {bad}; allowed: {sorted(PHYSICS_KEYS)}")
     physics = {k: (_number(v, f"physics.{k}", PHYSICS_KEYS[k]) if PHYSICS_KEYS[k] else v) for k, v in physics.items()}
     _check_physics(physics)
+    family = family or ScrewFamily()
+    own_params = family.own_params
     starts = {}
     for eid, params in dict(cfg.get("starts") or {}).items():
-        searched = sorted(e for e in (*EFFECTS, *OPEN_TERMS) if own_params(e))
+        searched = sorted(e for e in (*family.canonical, *family.open) if own_params(e))
         if eid not in searched or not isinstance(params, dict):
             raise DiagnoseError(f"config key 'starts.{eid}': expected one of {searched} with "
                                 f"{{param: [values]}}, e.g. +starts.motor_heat.tau_s=[600,1800]")  # fmt: skip
@@ -410,9 +450,11 @@ def settings_from_config(cfg, say: Callable[[str], None] = print) -> Settings:
         physics=physics,
         starts=starts,
         test=t,
-        candidates=_check_effects(_as_list(cfg.get("candidates")) or list(CANDIDATES), "candidates", open_terms=True),
+        candidates=_check_effects(_as_list(cfg.get("candidates")) or list(family.candidates), "candidates", open_terms=True,
+                                  family=family),  # fmt: skip
         say=say,
         refit=_refit(cfg.get("refit", 3)),
+        family=family,
     )
 
 
@@ -448,6 +490,61 @@ def check_out_dir(out_dir, data_dir, force: bool = False) -> Path:
     return out
 
 
+def load_for_diagnosis(conf: dict):
+    """The dataset the workflow confronts, its family and the runs held out of the search.
+
+    ``data_dir`` is a dataset directory or a ``conf/dataset`` option (``fl_thermal``). A screw
+    axis (format 1, or an along-axis channel of a dataset with a screw) is confronted with the
+    seed 000 physics model as it is; a fixed-point channel (a spindle test) with the lumped
+    network (:mod:`.spindle`), through its segments (each with the test's log from its start,
+    ``history``) and with the option's validation runs held out (``holdout`` overrides)."""
+    from ..errors import ExperimentError
+    from ..splits import dataset_option, dataset_view, load_source
+    from .spindle import NETWORK_KEYS, spindle_family
+
+    entry, channel = str(conf["data_dir"]), conf.get("channel")
+    holdout, history = conf.get("holdout"), conf.get("history")
+    if history is not None and not isinstance(history, bool):
+        raise DiagnoseError(f"config key 'history': expected true or false, got {history!r}")
+    if (Path(entry) / "metadata.yaml").is_file():
+        ds, validation = load_dataset(entry), []
+    else:
+        try:
+            _, dcfg = dataset_option(entry, "data_dir")
+            ds = load_source(dcfg)[0]
+        except ExperimentError as exc:
+            raise DiagnoseError(str(exc)) from None
+        validation = list(dcfg.get("validation") or [])
+        history = dcfg.get("history") if history is None else history
+    channels = ds.metadata.error_channels() if ds.metadata.version == 2 else {}
+    if channel is not None and channel not in channels:
+        raise DiagnoseError(f"config key 'channel': {channel!r} is not an error channel of {ds.path}; "
+                            f"its channels: {list(channels) or 'none (a format 1 dataset has one error)'}")  # fmt: skip
+    if channel is None and len(channels) > 1 and not any(m.kind == "along_axis" for m in channels.values()):
+        raise DiagnoseError(f"config key 'channel': {ds.path} has {len(channels)} error channels {list(channels)}; "
+                            f"name one, e.g. --channel {next(iter(channels))}")  # fmt: skip
+    kind = channels[channel].kind if channel is not None else (next(iter(channels.values())).kind if len(channels) == 1 else None)
+    if kind != "fixed_point":
+        if holdout:
+            raise DiagnoseError("config key 'holdout': runs held out of the search are for a spindle test; on a screw "
+                                "axis use cv: {train: [...], test: [...]}")  # fmt: skip
+        return physics_view(ds.channel_view(channel) if channel is not None else ds), ScrewFamily(), []
+    view = dataset_view(ds, channel or next(iter(channels)), segments=True, history=True if history is None else history)
+    holdout = validation if holdout is None else _as_list(holdout)
+    if bad := [r for r in holdout if r not in view.run_ids]:
+        raise DiagnoseError(f"config key 'holdout': runs {bad} are not in the dataset; its runs: {list(view.run_ids)}")
+    net = dict(conf.get("spindle") or {})
+    if bad := sorted(set(net) - set(NETWORK_KEYS)):
+        raise DiagnoseError(f"config key 'spindle': unknown or reserved key(s) {bad}; allowed: {sorted(NETWORK_KEYS)}")
+    net = {k: (_number(v, f"spindle.{k}", NETWORK_KEYS[k], lo=1 if NETWORK_KEYS[k] is int else 0) if NETWORK_KEYS[k] else v)
+           for k, v in net.items()}  # fmt: skip
+    try:
+        family = spindle_family(view, [r for r in view.run_ids if r not in holdout], net)
+    except ValueError as exc:
+        raise DiagnoseError(str(exc)) from None
+    return view, family, holdout
+
+
 def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     """The ``thermbench diagnose`` job: ``cfg`` is ``conf/diagnose.yaml`` composed (a
     DictConfig or a plain mapping). Reads only the files of ``cfg.data_dir``."""
@@ -461,9 +558,9 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     for key in ("data_dir", "out_dir"):
         if not conf.get(key) or conf[key] == "???":
             raise DiagnoseError(f"config key {key!r}: required (thermbench diagnose DATA_DIR --out OUT_DIR)")
-    # everything the user can get wrong is checked before anything is loaded or fitted
-    base = _check_effects(_as_list(conf.get("base")), "base")
-    settings = settings_from_config(conf, say)
+    # everything the user can get wrong is checked before anything is loaded or fitted: the numbers
+    # first, then (the dataset says which library applies) the effects or terms named
+    settings_from_config({**conf, "candidates": None, "starts": None, "base": None}, say)
     max_effects = _number(conf.get("max_effects", 3), "max_effects", int)
     noise = dict(conf.get("noise") or {})
     window_s = _number(noise.get("repeat_window_s", 60.0), "noise.repeat_window_s", lo=0.0)
@@ -471,12 +568,16 @@ def diagnose(cfg, say: Callable[[str], None] | None = None) -> dict:
     force = conf.get("force", False)
     if not isinstance(force, bool):
         raise DiagnoseError(f"config key 'force': expected true or false, got {force!r}")
-    out = check_out_dir(conf["out_dir"], conf["data_dir"], force)
+    if Path(str(conf["data_dir"])).is_dir():
+        check_out_dir(conf["out_dir"], conf["data_dir"], force)
+    ds, family, holdout = load_for_diagnosis(conf)
+    base = _check_effects(_as_list(conf.get("base")), "base", family=family)
+    settings = settings_from_config(conf, say, family)
+    out = check_out_dir(conf["out_dir"], ds.path if ds.path is not None else conf["data_dir"], force)
     track = bool(conf.get("track", True))
     exp_id = tracking.connect(conf["tracking"]) if track else None  # an unreachable server fails first
-    ds = physics_view(load_dataset(conf["data_dir"]))
     d = run_diagnosis(ds, base=base, max_effects=max_effects, cv=conf.get("cv", "loro"), settings=settings,
-                      noise_window_s=window_s, noise_min_groups=min_groups)  # fmt: skip
+                      noise_window_s=window_s, noise_min_groups=min_groups, holdout=holdout)  # fmt: skip
     tables = d.pop("_tables")
     d = _finite(d)
     with output_dir(out, "diagnosis", force=force) as tmp:

@@ -643,7 +643,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
         self.terms_ = [t.with_params(o) for t, o in zip(self.terms_, own)]
         X = self._design(drives, z, geo, rises)
         names = [f"c{i + 1}" for i in range(self.n_nodes_)] + (["c_a"] if tau_a is not None else [])
-        names += [f"{t.id}.{g}" for t in self.terms_ for g in t.gains]
+        names += [f"{t.key}.{g}" for t in self.terms_ for g in t.gains]
         names += [f"s_{x}" for x in self.sensors_] + ["d"]
         names += [f"g{k}" for k in range(1, gdeg + 1)]
         coef = lstsq_fit(X, y, names, "lumped network gains")
@@ -656,7 +656,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
         na = n + (tau_a is not None)
         self.term_gains_ = {}
         for t in self.terms_:
-            self.term_gains_[t.id] = {g: float(coef[na + j]) for j, g in enumerate(t.gains)}
+            self.term_gains_[t.key] = {g: float(coef[na + j]) for j, g in enumerate(t.gains)}
             na += len(t.gains)
         k = len(self.sensors_)
         self.sensor_gains_um_per_C_ = coef[na : na + k].copy()
@@ -675,11 +675,11 @@ class LumpedThermalNetwork(ThermalErrorModel):
     # ------------------------------------------------ terms and the search ---
     def _make_terms(self, ds: Dataset) -> list:
         """The ``terms`` (:mod:`thermbench.models.spindle_terms`) checked against the dataset."""
-        from .spindle_terms import SPINDLE_TERMS, make_term
+        from .spindle_terms import SPINDLE_TERMS, base_id, make_term
 
         out = []
         for tid, params in dict(self.terms or {}).items():
-            if tid not in SPINDLE_TERMS:
+            if base_id(tid) not in SPINDLE_TERMS:
                 raise ModelError(f"{type(self).__name__}.terms: unknown term {tid!r}; known: {sorted(SPINDLE_TERMS)}")
             try:
                 term = make_term(tid, **dict(params or {}))
@@ -714,7 +714,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
             for name in t.nonlinear:
                 lo_, hi_ = t.bounds[name]
                 lg = name in t.log_params
-                zn.append(f"{t.id}.{name}")
+                zn.append(f"{t.key}.{name}")
                 is_log.append(lg)
                 lb.append(math.log(lo_) if lg else lo_)
                 ub.append(math.log(hi_) if lg else hi_)
@@ -753,10 +753,10 @@ class LumpedThermalNetwork(ThermalErrorModel):
         given = dict(self.terms or {})
         for t in self.terms_:
             for name in t.nonlinear:
-                key, lg = f"{t.id}.{name}", name in t.log_params
+                key, lg = f"{t.key}.{name}", name in t.log_params
                 if key in conv:
                     values = [conv[key]]
-                elif name in dict(given.get(t.id) or {}) or not t.starts.get(name):
+                elif name in dict(given.get(t.key) or {}) or not t.starts.get(name):
                     values = [math.log(t.params[name]) if lg else t.params[name]]
                 else:
                     values = [math.log(v) if lg else float(v) for v in t.starts[name]]
@@ -777,7 +777,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
             y = rd["error_um"].to_numpy(dtype=float)
             out.append((np.zeros(t.size), X, y))
         names = [f"c{i + 1}" for i in range(self.n_nodes_)] + (["c_a"] if self.ambient_tau_s_ is not None else [])
-        names += [f"{t.id}.{g}" for t in self.terms_ for g in t.gains] + [f"s_{x}" for x in self.sensors_] + ["d"]
+        names += [f"{t.key}.{g}" for t in self.terms_ for g in t.gains] + [f"s_{x}" for x in self.sensors_] + ["d"]
         return names, out
 
     # ---------------------------------------------------------- predict ---
@@ -810,7 +810,7 @@ class LumpedThermalNetwork(ThermalErrorModel):
 
         if getattr(self, "terms_", None):
             raise ModelError(f"the C runtime's LUMPED kind has no terms beyond the node chain; this network has "
-                             f"{[t.id for t in self.terms_]}: export it without terms")  # fmt: skip
+                             f"{[t.key for t in self.terms_]}: export it without terms")  # fmt: skip
         return encode_lumped(self, channels, period_s, where)
 
     def _model_inputs(self) -> Inputs:

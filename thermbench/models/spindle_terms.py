@@ -86,7 +86,8 @@ class SpindleTerm:
     choice: ClassVar[str | None] = None  # a parameter naming a driving signal ("speed" or a sensor)
     needs: ClassVar[tuple[str, ...]] = ()
 
-    def __init__(self, **params):
+    def __init__(self, key: str | None = None, **params):
+        self.key = key or self.id  # the instance's name in a network: the id, or ``<id>@<k>`` for a repeat
         known = {*self.nonlinear, *((self.choice,) if self.choice else ())}
         if bad := sorted(set(params) - known):
             raise ValueError(f"term {self.id!r}: unknown parameter(s) {bad}; it has {sorted(known)}")
@@ -107,7 +108,7 @@ class SpindleTerm:
     def with_params(self, own: Mapping) -> "SpindleTerm":
         """A copy with nonlinear parameters ``own`` (the search's values: within bounds, unchecked)."""
         t = object.__new__(type(self))
-        t.params = {**self.params, **own}
+        t.key, t.params = self.key, {**self.params, **own}
         return t
 
     def signals(self) -> tuple[str, ...]:
@@ -218,12 +219,18 @@ class StopDrift(SpindleTerm):
                 f"{_lag_words(self.tau_cool_s)} while it stands (tau {self.tau_heat_s:.0f} / {self.tau_cool_s:.0f} s)")  # fmt: skip
 
 
-def term_class(term_id: str) -> type[SpindleTerm]:
+def base_id(key: str) -> str:
+    """The term id of an instance name: ``structure_growth@2`` (a second structure growth, on
+    another signal) is a ``structure_growth``."""
+    return str(key).split("@", 1)[0]
+
+
+def term_class(key: str) -> type[SpindleTerm]:
     try:
-        return SPINDLE_TERMS[term_id]
+        return SPINDLE_TERMS[base_id(key)]
     except KeyError:
-        raise ValueError(f"unknown spindle term {term_id!r}; known: {sorted(SPINDLE_TERMS)}") from None
+        raise ValueError(f"unknown spindle term {key!r}; known: {sorted(SPINDLE_TERMS)} (a repeat: <term>@2)") from None
 
 
-def make_term(term_id: str, **params) -> SpindleTerm:
-    return term_class(term_id)(**params)
+def make_term(key: str, **params) -> SpindleTerm:
+    return term_class(key)(key=key, **params)
