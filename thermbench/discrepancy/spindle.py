@@ -34,8 +34,9 @@ from .noise import NoiseFloor, high_frequency_scatter
 #: what the diagnose config may set of the base network (``spindle.*``); the rest is the workflow's
 NETWORK_KEYS = {"n_nodes": int, "step_s": float, "n_starts": int, "exponent": None, "exponent_bounds": None,
                 "tau_bounds_s": None, "preprocess": None}  # fmt: skip
-#: the base network: physics_spindle with two nodes, no sensors (conf/model/physics_spindle.yaml)
-BASE_NETWORK = {"n_nodes": 2, "sensors": None}
+#: the base network: physics_spindle with two nodes, no sensors (conf/model/physics_spindle.yaml); the terms read
+#: the sensors as logged (a filter's lag, e.g. the default Kalman of seed 002, would be physics of its own)
+BASE_NETWORK = {"n_nodes": 2, "sensors": None, "preprocess": None}
 #: instances of one signal-driven term a model may hold (structure growth with up to four temperatures)
 MAX_REPEATS = 4
 #: the running share of a block's own readings above which the block counts as running at its speed

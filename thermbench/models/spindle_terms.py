@@ -41,8 +41,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
 #: the registered terms by id, in the order the search tries them
 SPINDLE_TERMS: dict[str, type["SpindleTerm"]] = {}
-#: lags shorter than this are described as "no lag" (s): two simulation steps of the default 60 s
-NO_LAG_S = 120.0
+#: lags shorter than this are described as "no lag" (s): ten simulation steps of the default 60 s, short
+#: against the hours a spindle's structure takes (an unlagged expansion identifies a lag of a few minutes in noise)
+NO_LAG_S = 600.0
 #: sensor locations whose temperature expands the machine relative to a reference (SensorExpansion)
 REFERENCE_LOCATIONS = ("ambient", "bed")
 
@@ -168,7 +169,8 @@ class StructureGrowth(SpindleTerm):
 
     def canonical(self, context=None):
         loc = dict((context or {}).get("sensors", {})).get(self.signal)
-        return SensorExpansion.id if self.tau_s < NO_LAG_S and loc in REFERENCE_LOCATIONS else None
+        # the same physics as the unlagged expansion on that sensor: the same label, so the search names the simpler
+        return f"{SensorExpansion.id}[{self.signal}]" if self.tau_s < NO_LAG_S and loc in REFERENCE_LOCATIONS else None
 
 
 @_register
