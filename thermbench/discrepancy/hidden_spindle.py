@@ -213,7 +213,7 @@ MAX_TERM_X_BASE = 3.0
 
 
 def hidden_term(term: str | None, x_noise: float, rng: np.random.Generator, world: SpindleWorld,
-                tries: int = 20) -> Hidden:  # fmt: skip
+                tries: int = 50) -> Hidden:  # fmt: skip
     """A hidden term drawn (:func:`draw`) and calibrated (:func:`calibrate`) to leave ``x_noise``
     times the gauge noise, redrawn while it would have to dwarf the machine's own drift to show."""
     t = np.arange(0.0, world.end_s, 300.0)
