@@ -30,6 +30,7 @@ is added only when its proper leave-one-run-out score passes the same test.
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
@@ -305,14 +306,17 @@ def screen_start(effect: str, current_effects, warm, ds, runs, settings, variant
     if not grid:
         return {effect: variant} if variant else {}
     best, best_rmse = {}, np.inf
-    for p, values in grid.items():
-        for v in values:
-            start = {effect: {**variant, p: float(v)}}
-            m = fam.make_model([*current_effects, effect], ds, settings, warm, start, cache)
-            fam.hold(m, [])
-            m.fit(ds, runs)
-            if fam.train_rmse(m) < best_rmse:
-                best, best_rmse = start, fam.train_rmse(m)
+    if getattr(fam.cls(effect), "joint_starts", False):  # the grid's product: parameters that trade off
+        points = [dict(zip(grid, c)) for c in itertools.product(*grid.values())]
+    else:  # one parameter at a time, the others at the effect's own values
+        points = [{p: v} for p, values in grid.items() for v in values]
+    for point in points:
+        start = {effect: {**variant, **{p: float(v) for p, v in point.items()}}}
+        m = fam.make_model([*current_effects, effect], ds, settings, warm, start, cache)
+        fam.hold(m, [])
+        m.fit(ds, runs)
+        if fam.train_rmse(m) < best_rmse:
+            best, best_rmse = start, fam.train_rmse(m)
     return best
 
 

@@ -63,11 +63,22 @@ class SpindleFamily:
     canonical: dict = {}  # no canonical library: every term is screened, the most promising refitted
     driver = "spindle_rpm"
 
-    def __init__(self, network: dict | None = None, operating: str = "spindle_rpm", u_ref: float | None = None):
+    def __init__(self, network: dict | None = None, operating: str = "spindle_rpm", u_ref: float | None = None,
+                 history: bool = True):  # fmt: skip
         self.network = {**BASE_NETWORK, **dict(network or {})}
         self.operating = operating
         self.u_ref = u_ref
         self.driver = operating
+        self.history = history
+
+    def frame(self, ds: Dataset) -> str:
+        """What every score is of: with history, the drift from the test's first reading."""
+        from ..data.reference import frame_text
+
+        if self.history:
+            return ("the drift from the first reading of the whole test: each segment keeps the test's log and drift "
+                    "from its start (history)")  # fmt: skip
+        return frame_text(ds.metadata)
 
     @property
     def base_words(self) -> str:
@@ -243,7 +254,7 @@ class SpindleFamily:
         return hints
 
 
-def spindle_family(ds: Dataset, runs: Sequence[str], network: dict | None = None) -> SpindleFamily:
+def spindle_family(ds: Dataset, runs: Sequence[str], network: dict | None = None, history: bool = True) -> SpindleFamily:
     """The family for a spindle dataset: the operating column the dataset declares (first), the
     speed scale the largest |speed| over ``runs`` (fixed across folds, so their gains compare)."""
     from ..models.base import ModelError
@@ -254,4 +265,4 @@ def spindle_family(ds: Dataset, runs: Sequence[str], network: dict | None = None
                          "declares none (metadata 'operating', e.g. spindle_rpm)")  # fmt: skip
     col = str(inputs[0])
     u = max(float(np.max(np.abs(pd.to_numeric(ds.process_run(r)[col], errors="coerce").to_numpy(dtype=float)))) for r in runs)
-    return SpindleFamily(network, operating=col, u_ref=u if u > 0 else None)
+    return SpindleFamily(network, operating=col, u_ref=u if u > 0 else None, history=history)

@@ -243,7 +243,7 @@ def run_diagnosis(
         "base_words": fam.base_words,
         "validation": validation,
         "dataset": str(ds.path) if ds.path is not None else ds.metadata.machine.name,
-        "frame": frame_text(ds.metadata),  # the frame of every score (data.reference.frame_text)
+        "frame": fam.frame(ds) if hasattr(fam, "frame") else frame_text(ds.metadata),  # the frame of every score
         "base_effects": list(base),
         "noise_floor_um": floor,
         "noise": noise.to_dict(),
@@ -539,7 +539,7 @@ def load_for_diagnosis(conf: dict):
     net = {k: (_number(v, f"spindle.{k}", NETWORK_KEYS[k], lo=1 if NETWORK_KEYS[k] is int else 0) if NETWORK_KEYS[k] else v)
            for k, v in net.items()}  # fmt: skip
     try:
-        family = spindle_family(view, [r for r in view.run_ids if r not in holdout], net)
+        family = spindle_family(view, [r for r in view.run_ids if r not in holdout], net, history=history is not False)
     except ValueError as exc:
         raise DiagnoseError(str(exc)) from None
     return view, family, holdout

@@ -86,6 +86,7 @@ class SpindleTerm:
     defaults: ClassVar[dict[str, float | str]] = {}
     choice: ClassVar[str | None] = None  # a parameter naming a driving signal ("speed" or a sensor)
     needs: ClassVar[tuple[str, ...]] = ()
+    joint_starts: ClassVar[bool] = False  # screen the product of the start grids (parameters that trade off)
 
     def __init__(self, key: str | None = None, **params):
         self.key = key or self.id  # the instance's name in a network: the id, or ``<id>@<k>`` for a repeat
@@ -139,6 +140,7 @@ class SecondHeatPath(SpindleTerm):
     bounds = {"tau_s": (60.0, 2.0e5), "exponent": (0.3, 3.0)}
     starts = {"tau_s": (900.0, 3600.0, 14400.0), "exponent": (1.0, 2.0)}
     defaults = {"tau_s": 3600.0, "exponent": 1.0}
+    joint_starts = True
 
     def columns(self, dr, u_ref, p):
         return lag(dr.heat(u_ref, self.exponent), self.tau_s, dr.h)[:, None]
@@ -199,6 +201,7 @@ class StopDrift(SpindleTerm):
     bounds = {"tau_heat_s": (60.0, 2.0e5), "tau_cool_s": (60.0, 2.0e5)}
     starts = {"tau_heat_s": (1800.0, 7200.0), "tau_cool_s": (900.0, 3600.0, 14400.0)}
     defaults = {"tau_heat_s": 3600.0, "tau_cool_s": 3600.0}
+    joint_starts = True
 
     def columns(self, dr, u_ref, p):
         """θ' = (q − θ)/τ_heat while running (more than half the step), −θ/τ_cool while stopped
