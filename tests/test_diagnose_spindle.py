@@ -51,7 +51,7 @@ def test_a_hidden_term_is_named_and_the_held_out_tail_shrinks(term, x_noise):
         assert first["variant"]["signal"] == h.signal
     # the search never saw the tail: scored once, it shrinks toward the noise
     v = d["validation"]
-    assert v["runs"] == ["tail"] and v["rmse_final_um"] < 0.6 * v["rmse_base_um"]
+    assert v["runs"] == ["tail"] and v["rmse_final_um"] < 0.8 * v["rmse_base_um"]
     # the step explains most of the systematic error the base left on held-out blocks
     systematic = np.sqrt(first["heldout_rmse_before_um"] ** 2 - d["noise_floor_um"] ** 2)
     assert first["explained_um"] >= 0.75 * systematic
@@ -166,6 +166,7 @@ def test_the_command_on_a_spindle_directory(tmp_path):
     assert d["family"] == "spindle" and d["steps"][0]["label"] == f"structure_growth[{h.signal}]"
     report = (out / "report.md").read_text()
     assert "## Held out of the search" in report and "lumped network" in report and (out / "holdout.png").is_file()
+    assert [s["model"] for s in d["validation"]["by_step"]] == ["base", f"+ structure_growth[{h.signal}]"]
 
 
 def test_spindle_mistakes_are_one_line_exit_2(tmp_path, capsys):

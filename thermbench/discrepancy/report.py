@@ -258,12 +258,12 @@ def gap_md(d: dict) -> list[str]:
 def validation_md(d: dict) -> list[str]:
     """The runs held out of the whole search, scored once at its end."""
     v = d["validation"]
-    rows = pd.DataFrame([{"run": r, "base RMSE (um)": f"{x['rmse_base_um']:.3f}",
-                          f"{_model_name(v['effects'])} RMSE (um)": f"{x['rmse_final_um']:.3f}"}
-                         for r, x in v["per_run"].items()])  # fmt: skip
+    rows = pd.DataFrame([{"model": st["model"], "RMSE (um)": f"{st['rmse_um']:.3f}", "x floor": f"{st['x_floor']:.1f}",
+                          **{f"{r} (um)": f"{x:.3f}" for r, x in st["per_run"].items()}}
+                         for st in v["by_step"]])  # fmt: skip
     return ["## Held out of the search", "",
-            f"Never fitted, scored or localised during the search; scored once here, by the base and the final model "
-            f"fitted on every search run: RMSE {v['rmse_base_um']:.3f} -> {v['rmse_final_um']:.3f} um "
+            f"Never fitted, scored or localised during the search; scored once here, by the base and by the model "
+            f"after each named term, each fitted on every search run: RMSE {v['rmse_base_um']:.3f} -> {v['rmse_final_um']:.3f} um "
             f"({v['x_floor_base']:.1f}x -> {v['x_floor_final']:.1f}x the noise floor).", "",
             markdown_table(rows, index=False), "", "![](holdout.png)", ""]  # fmt: skip
 

@@ -144,7 +144,7 @@ def run_diagnosis(
     say(f"[diagnose] {len(runs)} runs, {n_read} readings{f' (held out of the search: {holdout})' if holdout else ''}; "
         f"base: {fam.base_words}{''.join(' + ' + e for e in base)}")  # fmt: skip
     current = fit_full(base, ds, fit_runs, folds, settings)
-    base_fit = current
+    path = [("base", current)]  # the model after each named step (the held-out runs are scored along it)
     say(f"[diagnose] base identified in {current.fit_s:.1f} s: train RMSE {np.sqrt(current.sse / current.n):.3f} um")
     before_um, table, fold_models = heldout_loro(base, ds, folds, settings)
     noise = _noise(fam, _in_sample_table(fam, current.model, ds, fit_runs), noise_window_s, noise_min_groups)
@@ -215,6 +215,7 @@ def run_diagnosis(
             f"({1 - after_um / before_um:.0%} less)")  # fmt: skip
         missing.append(best["effect"])
         current, before_um, fold_models = best["fitted"], after_um, new_fold_models
+        path.append(("+ " + display(best), current))
         tables[f"step{len(steps)}"] = after_table
         # the floor is a property of the data, best seen through the best model so far
         grown = _noise(fam, _in_sample_table(fam, current.model, ds, fit_runs), noise_window_s, noise_min_groups)
@@ -237,7 +238,7 @@ def run_diagnosis(
     else:
         verdict = "none" if within else "unexplained"
     gap = _gap(before_um, floor, settings.test, loc_after, scans, ds, noise, current.effects, fam)
-    validation = _validation(fam, ds, holdout, base_fit, current, tables, floor) if holdout else None
+    validation = _validation(fam, ds, holdout, path, tables, floor) if holdout else None
     return {
         "family": fam.name,
         "base_words": fam.base_words,
@@ -349,20 +350,28 @@ def _noise(family, table, window_s, min_groups):
     return est(table, window_s, min_groups) if est else estimate_noise_floor(table, window_s, min_groups)
 
 
-def _validation(fam, ds, holdout, base_fit, final, tables, floor_um) -> dict:
-    """The runs held out of the search, scored once at its end: the base and the final model,
-    both fitted on every search run."""
+def _validation(fam, ds, holdout, path, tables, floor_um) -> dict:
+    """The runs held out of the search, scored once at its end: the base and the model after each
+    named step (``path``: (name, Fitted) pairs), each fitted on every search run."""
 
     def scored(model) -> pd.DataFrame:
         t = pd.concat([residual_table(fam, model, ds, r) for r in holdout], ignore_index=True)
         return t[fam.scored(t)]
 
-    t0, t1 = scored(base_fit.model), scored(final.model)
-    tables["holdout_base"], tables["holdout_final"] = t0, t1
     rms = lambda t: float(np.sqrt(np.mean(t["residual_um"].to_numpy() ** 2)))  # noqa: E731
-    per_run = {r: {"rmse_base_um": rms(t0[t0["run_id"] == r]), "rmse_final_um": rms(t1[t1["run_id"] == r])} for r in holdout}
-    return {"runs": list(holdout), "effects": list(final.effects), "rmse_base_um": rms(t0), "rmse_final_um": rms(t1),
-            "x_floor_base": rms(t0) / floor_um, "x_floor_final": rms(t1) / floor_um, "per_run": per_run}  # fmt: skip
+    steps = []
+    for name, fitted in path:
+        t = scored(fitted.model)
+        steps.append({"model": name, "rmse_um": rms(t), "x_floor": rms(t) / floor_um,
+                      "per_run": {r: rms(t[t["run_id"] == r]) for r in holdout}, "_table": t})  # fmt: skip
+    tables["holdout_base"], tables["holdout_final"] = steps[0]["_table"], steps[-1]["_table"]
+    for st in steps:
+        del st["_table"]
+    first, last = steps[0], steps[-1]
+    return {"runs": list(holdout), "effects": list(path[-1][1].effects), "rmse_base_um": first["rmse_um"],
+            "rmse_final_um": last["rmse_um"], "x_floor_base": first["x_floor"], "x_floor_final": last["x_floor"],
+            "by_step": steps,
+            "per_run": {r: {"rmse_base_um": first["per_run"][r], "rmse_final_um": last["per_run"][r]} for r in holdout}}  # fmt: skip
 
 
 def _public(c: dict) -> dict:
