@@ -107,3 +107,31 @@ def test_bad_input(clean_seed000):
         PhysicsModel().fit(clean_seed000, ["nope"])
     with pytest.raises(ModelError, match="effects: unknown effect 'wobble'"):
         PhysicsModel(effects={"wobble": {}}).fit(clean_seed000, ["cond1_3000"])
+
+
+def test_a_cached_basis_equals_a_fresh_one_when_only_one_effects_lag_moves(clean_seed000):
+    """The field cache keys (PhysicsModel._basis): a step in an effect's own parameter re-integrates
+    that effect's column only; the columns taken from the cache are what a fresh basis computes,
+    to the bit (an effect whose heat gains are all zero adds no heat)."""
+    from thermbench.models.base import readings
+    from thermbench.models.physics import FieldCache
+
+    ds, runs = clean_seed000, ["cond2_6000"]
+    m = PhysicsModel(effects={"motor_heat": {}}, identify=["motor_heat.tau_s"], max_iter=1).fit(ds, runs)
+    specs = {e: dict(p) for e, p in m.effects_.items()}
+    core, gains = m.core_.as_dict(), m._gains(specs)
+    rds = m._run_data(ds, runs, readings(ds, runs), specs)
+    ambient = m.ambient_name_ is not None
+
+    def basis(tau_s, memo):
+        sp = {e: dict(p) for e, p in specs.items()}
+        sp["motor_heat"]["tau_s"] = tau_s
+        return m._basis(ds, rds, core, sp, gains, ambient, {}, memo)
+
+    memo = FieldCache()
+    basis(600.0, memo)  # fills the cache at another lag
+    n_before = len(memo._d)
+    cached, fresh = basis(1800.0, memo), basis(1800.0, FieldCache())
+    assert len(memo._d) == n_before + 1  # one new field: the motor column
+    for (e0c, ac), (e0f, af) in zip(cached, fresh):
+        assert np.array_equal(e0c, e0f) and np.array_equal(ac, af)

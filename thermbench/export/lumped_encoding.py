@@ -79,7 +79,7 @@ def encode_lumped(model, channels: dict[str, int] | None = None, period_s: float
 
     if not hasattr(model, "_z_"):
         raise ExportError(f"{where}: the lumped network is not fitted")
-    tau, p, tau_a = model._unpack(model._z_)  # what simulate() runs
+    tau, p, tau_a, _ = model._unpack(model._z_)  # what simulate() runs (no terms: refused above)
     tau = np.asarray(tau, dtype=float)
     n, h = int(tau.size), float(model.step_)
     if n > MAX_NODES:

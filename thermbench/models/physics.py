@@ -347,9 +347,15 @@ class PhysicsModel(ThermalErrorModel):
             for g, unit in gains.items():
                 self._set(c, sp, g, unit if g == active else 0.0)
             models.append(self._build(ds, c, sp, ambient))
-            keys.append(None if active is not None and active.split(".", 1)[0] in free else
+            # a field depends on the core, the ambient, the effects that always act (no heat gains:
+            # the ambient's drift) and the effect whose gain is active: an effect whose heat gains
+            # are all zero adds no heat (ScrewThermalModel._inputs), so its parameters are not in the
+            # key, and a step in one candidate's own parameters re-integrates its column only
+            owner = active.split(".", 1)[0] if active is not None and "." in active else None
+            keys.append(None if owner in free else
                         (active, ambient, tuple(sorted(c.items())),
-                         tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items()) if e not in free)))  # fmt: skip
+                         tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items())
+                               if e not in free and (e == owner or not effect_class(e).heat_gains))))  # fmt: skip
         out = []
         for rd in rds:
             # the fields not in the cache, integrated together (they differ in the gains only)
