@@ -363,9 +363,9 @@ class PhysicsModel(ThermalErrorModel):
             todo = [i for i, h in hists.items() if h is None]
             if todo:
                 p = prepared.get(rd.run)
-                if p is None or p.key != models[0].prepared_key():
+                if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
                     p = prepared[rd.run] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                             duration_s=rd.duration_s)  # fmt: skip
+                                                             duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
                 for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo])):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
             resp, h0 = [], None

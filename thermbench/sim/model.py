@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -266,13 +266,27 @@ class ScrewThermalModel:
         ambient_t_s: np.ndarray | None = None,
         duration_s: float | None = None,
         signals: dict | None = None,
+        at_other_pf: Prepared | None = None,
     ) -> Prepared:
         """The part of :meth:`run` that depends on the motion, the ambient series, the
         screw, the numerics and Pf only (see :class:`Prepared`). ``signals``: measured
         series ``{name: (t_s, values)}`` that offsets and slopes may follow (as rises above
-        their first value)."""
+        their first value). ``at_other_pf``: this run prepared by a model that differs in Pf
+        only (the same motion, ambient and signals; identification's steps in Pf): its
+        resampled series are reused, only the nut's path on the screw is made anew."""
         g = self.geom
         num = self.numerics
+        if at_other_pf is not None and at_other_pf.key[:-1] == self.prepared_key()[:-1]:
+            o = at_other_pf
+            sign = 1.0 if self.core.pf_m <= 0 else -1.0
+            x = np.clip(sign * (o.drive.axis_mm / 1000.0 - self.core.pf_m), 0.0, self.screw.length_m)
+            d = replace(o.drive, x_screw_m=x)
+            m = num.per_step
+            n_steps = d.t_s.size // m
+            cov = kernels.accumulate_cover(
+                d.x_screw_m, d.v_mm_min[None, :], m, n_steps, g.n_nodes, num.dx_m, self.screw.nut_length_m / 2.0, g.n_bearing
+            )
+            return replace(o, key=self.prepared_key(), drive=d, cover=cov[0], v_cover=cov[1])
         d = self.drive(motion, duration_s)
         m = num.per_step
         n_steps = d.t_s.size // m
@@ -321,8 +335,11 @@ class ScrewThermalModel:
         screw, numerics and Pf)."""
         return run_prepared_many(p, [self], theta0_C, method)[0]
 
-    def _inputs(self, p: Prepared, theta0_C) -> "_Inputs":
-        """The heat inputs, conductances and ambient of a run over ``p`` (seed 000 §4.1 + effects)."""
+    def _inputs(self, p: Prepared, theta0_C, shared: dict | None = None) -> "_Inputs":
+        """The heat inputs, conductances and ambient of a run over ``p`` (seed 000 §4.1 + effects).
+        ``shared``: the conductance and ambient parts already made for models with the same
+        k1, k2, lambda and ambient drift (:func:`run_prepared_many`: models that differ in heat
+        gains only share them, the same arrays)."""
         if p.key != self.prepared_key():
             raise ValueError("run_prepared: prepared for another screw, numerics or Pf; call prepare() with this model")
         g = self.geom
@@ -333,22 +350,36 @@ class ScrewThermalModel:
         n_steps = d.t_s.size // m
         t_b, ta0 = p.t_b_s, p.ta0_C
 
-        # ambient -----------------------------------------------------------
+        # ambient and conductances (shared by models that differ in heat gains only) ---------
+        c = self.core
         drift = self.effect(AmbientDrift.id)
-        if drift is not None:
-            amb_f = drift.ambient_C(d.t_s, p.measured_f_C, ta0)
-            amb_b = drift.ambient_C(t_b, p.measured_b_C, ta0)
-            dta_f = amb_f - ta0
-            dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
-        else:
-            amb_b = np.full(t_b.size, ta0)
-            dta_f, dta_step = np.zeros(d.t_s.size), np.zeros(n_steps)
+        key = (c.k1_W_m2K_per_mm_min, c.k2_W_m2K, c.lambda_W_mK, None if drift is None else tuple(sorted(drift.params().items())))
+        cached = None if shared is None else shared.get(key)
+        if cached is None:
+            if drift is not None:
+                amb_f = drift.ambient_C(d.t_s, p.measured_f_C, ta0)
+                amb_b = drift.ambient_C(t_b, p.measured_b_C, ta0)
+                dta_f = amb_f - ta0
+                dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
+            else:
+                amb_b = np.full(t_b.size, ta0)
+                dta_f, dta_step = np.zeros(d.t_s.size), np.zeros(n_steps)
+            nb = g.n_bearing
+            h_cov = c.k1_W_m2K_per_mm_min * p.v_cover + c.k2_W_m2K * p.cover
+            area = np.full(n, g.side_area_m2)
+            area[-1] += g.end_area_m2
+            area[:nb] = 0.0
+            h_mean = c.k1_W_m2K_per_mm_min * p.v_mean + c.k2_W_m2K
+            gk = (h_mean[:, None] - h_cov) * area[None, :]
+            cached = (amb_b, dta_f, dta_step, gk, self.material_conductance(c.lambda_W_mK))
+            if shared is not None:
+                shared[key] = cached
+        amb_b, dta_f, dta_step, gk, cond = cached
 
         # heat (seed 000 §4.1 + effects) -------------------------------------
         # h = k1 v + k2, QB = k3 v, QN = k4 v (+ the effects' nut heat): their step means are
         # affine in the mean speed; the fine series only for the explicit scheme. An effect whose
         # heat gains are all zero adds no heat (identification's basis runs): it is skipped
-        c = self.core
         v_mean = p.v_mean
         heating = [e for e in self.effects if not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
         extras = [x for x in (eff.nut_heat_W(d) for eff in heating) if x is not None]
@@ -375,21 +406,15 @@ class ScrewThermalModel:
         if extra is not None:
             extra_cov = kernels.accumulate_cover(d.x_screw_m, extra[None, :], m, n_steps, n, num.dx_m, half, nb)[1]
             q_nut = q_nut + per_node * extra_cov
-        h_cov = c.k1_W_m2K_per_mm_min * p.v_cover + c.k2_W_m2K * p.cover
         q = q_nut
         if nb > 0:
             q = q.copy()
             q[:, :nb] += (qb_mean * num.dx_m / self.screw.fixed_bearing_length_m)[:, None]
         if srcs:
             q = q + (sp.reshape(len(srcs), n_steps, m).mean(axis=2).T @ sw)
-        area = np.full(n, g.side_area_m2)
-        area[-1] += g.end_area_m2
-        area[:nb] = 0.0
-        h_mean = c.k1_W_m2K_per_mm_min * v_mean + c.k2_W_m2K
         return _Inputs(
-            th0=th0, q=q, gk=(h_mean[:, None] - h_cov) * area[None, :], dta_f=dta_f,
-            dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
-            qn_mean=qn_mean, qb_mean=qb_mean, cond=self.material_conductance(c.lambda_W_mK),
+            th0=th0, q=q, gk=gk, dta_f=dta_f, dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
+            qn_mean=qn_mean, qb_mean=qb_mean, cond=cond,
         )  # fmt: skip
 
     def _explicit(self, p: Prepared, x: "_Inputs") -> np.ndarray:
@@ -448,17 +473,18 @@ def run_prepared_many(
     out: list[ThermalHistory | None] = [None] * len(models)
     groups: list[list[int]] = []
     xs: list[_Inputs] = []
+    shared: dict = {}  # conductances and ambient by (k1, k2, lambda, drift): made once for the models that share them
     for i, model in enumerate(models):
         how = method or model.numerics.method
-        x = model._inputs(p, theta0_C)
+        x = model._inputs(p, theta0_C, shared if model.geom == models[0].geom else None)
         xs.append(x)
         if how == "explicit":
             out[i] = model._history(p, x, model._explicit(p, x), np.zeros(x.q.shape[0]))
             continue
         for idx in groups:
             m0, x0 = models[idx[0]], xs[idx[0]]
-            if (m0.geom == model.geom and x0.cond == x.cond and np.array_equal(x0.gk, x.gk)
-                    and np.array_equal(x0.dta_step, x.dta_step)):  # fmt: skip
+            if (m0.geom == model.geom and x0.cond == x.cond and (x0.gk is x.gk or np.array_equal(x0.gk, x.gk))
+                    and (x0.dta_step is x.dta_step or np.array_equal(x0.dta_step, x.dta_step))):  # fmt: skip
                 idx.append(i)
                 break
         else:
