@@ -366,7 +366,7 @@ class PhysicsModel(ThermalErrorModel):
                 if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
                     p = prepared[rd.run] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
                                                              duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
-                for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo])):
+                for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo], energy=False)):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
             resp, h0 = [], None
             for i, model in enumerate(models):

@@ -111,7 +111,7 @@ def accumulate_cover(x_nut_m, weights, n_per_step, n_steps, n_nodes, dx_m, half_
 
 
 @njit(cache=True)
-def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K):
+def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K, energy=True):
     """Advance the semi-discrete model over macro steps with SDIRK2, for one or several
     heat inputs that share the conductances.
 
@@ -125,12 +125,13 @@ def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K):
     with the same arithmetic as alone (identification's basis runs, variable projection).
 
     Returns the states at the step boundaries, shape (n_rhs, n_steps + 1, n_nodes),
-    and the convected heat per step (J), (n_rhs, n_steps), consistent with the scheme.
+    and the convected heat per step (J), (n_rhs, n_steps), consistent with the scheme
+    (``energy`` False: not accumulated, shape (n_rhs, 0); the states are the same).
     """
     n_rhs, n_steps, n = q_W.shape
     gamma = 1.0 - np.sqrt(2.0) / 2.0
     out = np.empty((n_rhs, n_steps + 1, n))
-    conv_J = np.empty((n_rhs, n_steps))
+    conv_J = np.empty((n_rhs, n_steps if energy else 0))
     # node-major work arrays: the runs' independent substitutions interleave (one chain per run)
     y = np.empty((n, n_rhs))
     for r in range(n_rhs):
@@ -169,14 +170,17 @@ def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K):
                 f1h = y1[i, r] - y[i, r]
                 rhs[i, r] = cap_J_K * (y[i, r] + c1 * f1h) + gh * (q_W[r, k, i] + g_W_K[k, i] * ta)
         _substitute(piv, cp, off, rhs, y2)
-        e[:] = 0.0
+        if energy:
+            e[:] = 0.0
+            for i in range(n):
+                for r in range(n_rhs):
+                    e[r] += g_W_K[k, i] * ((1.0 - gamma) * (y1[i, r] - ta) + gamma * (y2[i, r] - ta))
+            for r in range(n_rhs):
+                conv_J[r, k] = e[r] * dt_s
         for i in range(n):
             for r in range(n_rhs):
-                e[r] += g_W_K[k, i] * ((1.0 - gamma) * (y1[i, r] - ta) + gamma * (y2[i, r] - ta))
                 y[i, r] = y2[i, r]
                 out[r, k + 1, i] = y2[i, r]
-        for r in range(n_rhs):
-            conv_J[r, k] = e[r] * dt_s
     return out, conv_J
 
 

@@ -464,12 +464,14 @@ class _Inputs:
 
 
 def run_prepared_many(
-    p: Prepared, models: list[ScrewThermalModel], theta0_C: np.ndarray | None = None, method: str | None = None
+    p: Prepared, models: list[ScrewThermalModel], theta0_C: np.ndarray | None = None, method: str | None = None,
+    energy: bool = True,
 ) -> list[ThermalHistory]:
     """:meth:`ScrewThermalModel.run_prepared` for several models over one run: those with the
     same conductances, ambient and material (models that differ in heat gains only, as
     identification's basis runs do) share one integration, each step's matrix factorised once
-    (:func:`kernels.macro_run`). The same numbers as one by one."""
+    (:func:`kernels.macro_run`). The same numbers as one by one. ``energy`` False: the convected
+    heat is not accumulated (``convected_J`` empty; identification reads the field only)."""
     out: list[ThermalHistory | None] = [None] * len(models)
     groups: list[list[int]] = []
     xs: list[_Inputs] = []
@@ -494,7 +496,7 @@ def run_prepared_many(
         g = m0.geom
         theta, conv_J = kernels.macro_run(
             np.stack([xs[i].th0 for i in idx]), np.stack([xs[i].q for i in idx]), x0.gk, x0.dta_step,
-            m0.numerics.macro_dt_s, g.cap_J_K, x0.cond,
+            m0.numerics.macro_dt_s, g.cap_J_K, x0.cond, energy,
         )  # fmt: skip
         for r, i in enumerate(idx):
             out[i] = models[i]._history(p, xs[i], theta[r], conv_J[r])
