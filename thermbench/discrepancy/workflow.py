@@ -30,14 +30,11 @@ import pandas as pd
 
 from ..outputs import check_output_dir, output_dir
 from ..data.io import Dataset, load_dataset
-from ..sim.effects import EFFECTS, OPEN_TERMS
 from . import localise as loc
 from .noise import estimate_noise_floor
 from .search import (
-    CANDIDATES,
     ScrewFamily,
     residual_table,
-    own_params,
     Settings,
     SignificanceTest,
     decide,
@@ -48,7 +45,6 @@ from .search import (
     heldout_loro,
     refit,
     score_candidates,
-    unavailable,
 )
 
 
