@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from annotated_types import Ge
 from pydantic import model_validator
-from scipy.optimize import lsq_linear, minimize
+from scipy.optimize import least_squares, lsq_linear, minimize
 
 from ..data.dataset import Dataset
 from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
@@ -80,7 +80,7 @@ class FieldCache:
     def __init__(self, size: int = 64) -> None:
         self.size = size
         self._d: OrderedDict = OrderedDict()
-        self.prepared: dict = {}  # run id -> the last Prepared (motion, ambient, coverage at a Pf)
+        self.prepared: dict = {}  # (run id, numerics) -> the last Prepared (motion, ambient, coverage at a Pf)
 
     def get(self, key):
         hit = self._d.get(key)
@@ -111,6 +111,9 @@ class PhysicsModelParams(Params):
     geometric_degree: Degree
     max_iter: Annotated[Int, Ge(1)]
     ftol: PositiveNumber
+    coarse_dt_s: Optional[PositiveNumber]
+    coarse_macro_dt_s: Optional[PositiveNumber]
+    polish_steps: Annotated[Int, Ge(0)]
 
     @model_validator(mode="after")
     def _whole_macro_steps(self):
@@ -118,6 +121,14 @@ class PhysicsModelParams(Params):
         if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:  # what sim.parts.Numerics requires
             raise ValueError(f"macro_dt_s must be a whole multiple of dt_s, got macro_dt_s={self.macro_dt_s:g}, "
                              f"dt_s={self.dt_s:g}")  # fmt: skip
+        if (self.coarse_dt_s is None) != (self.coarse_macro_dt_s is None):
+            raise ValueError("coarse_dt_s and coarse_macro_dt_s: give both (a coarse first stage) or neither, got "
+                             f"coarse_dt_s={self.coarse_dt_s}, coarse_macro_dt_s={self.coarse_macro_dt_s}")  # fmt: skip
+        if self.coarse_dt_s is not None:
+            ratio = self.coarse_macro_dt_s / self.coarse_dt_s
+            if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+                raise ValueError(f"coarse_macro_dt_s must be a whole multiple of coarse_dt_s, got "
+                                 f"{self.coarse_macro_dt_s:g} and {self.coarse_dt_s:g}")  # fmt: skip
         return self
 
 
@@ -162,7 +173,10 @@ class PhysicsModel(ThermalErrorModel):
         preprocess="default",
         geometric_degree: int = 4,
         max_iter: int = 100,
-        ftol: float = 1e-12,
+        ftol: float = 1e-4,
+        coarse_dt_s: float | None = 1.0,
+        coarse_macro_dt_s: float | None = 60.0,
+        polish_steps: int = 1,
     ) -> None:
         self.effects = effects
         self.identify = identify
@@ -176,6 +190,9 @@ class PhysicsModel(ThermalErrorModel):
         self.geometric_degree = geometric_degree
         self.max_iter = max_iter
         self.ftol = ftol
+        self.coarse_dt_s = coarse_dt_s
+        self.coarse_macro_dt_s = coarse_macro_dt_s
+        self.polish_steps = polish_steps
 
     # ------------------------------------------------------------ set-up ---
     def _ambient_name(self, ds: Dataset) -> str | None:
@@ -244,7 +261,8 @@ class PhysicsModel(ThermalErrorModel):
             start[k] = float(v)
         return start
 
-    def _build(self, ds: Dataset, core: dict, effect_specs: dict, ambient: bool) -> ScrewThermalModel:
+    def _build(self, ds: Dataset, core: dict, effect_specs: dict, ambient: bool,
+               numerics: Numerics | None = None) -> ScrewThermalModel:  # fmt: skip
         sm = ds.metadata.screw
         screw = Screw(sm.length_m, sm.diameter_m, sm.nut_length_m, sm.fixed_bearing_length_m, sm.mounting)
         mm = ds.metadata.material
@@ -252,8 +270,15 @@ class PhysicsModel(ThermalErrorModel):
         effects = [make_effect(eid, **p) for eid, p in effect_specs.items()]
         if ambient and AmbientDrift.id not in effect_specs:
             effects.append(AmbientDrift())  # measured series: the screw follows it (seed 000 §2.2)
-        numerics = Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
+        numerics = numerics or Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
         return ScrewThermalModel(screw, material, CoreParams(**core), effects, numerics)
+
+    def _coarse_numerics(self) -> Numerics | None:
+        """The first stage's numerics: the coarse steps where they are coarser than the
+        model's own (else no first stage)."""
+        if self.coarse_macro_dt_s is None or (self.coarse_macro_dt_s <= self.macro_dt_s and self.coarse_dt_s <= self.dt_s):
+            return None
+        return Numerics(dx_m=self.dx_m, dt_s=max(self.coarse_dt_s, self.dt_s), macro_dt_s=max(self.coarse_macro_dt_s, self.macro_dt_s))
 
     # ------------------------------------------------------- parameters ---
     def _gains(self, effect_specs: dict) -> dict[str, float]:
@@ -322,14 +347,14 @@ class PhysicsModel(ThermalErrorModel):
 
     # ----------------------------------------------------- identification ---
     def _basis(self, ds: Dataset, rds: list[_RunData], core: dict, specs: dict, gains: dict, ambient: bool,
-               prepared: dict | None = None, memo: dict | None = None):  # fmt: skip
+               prepared: dict | None = None, memo: dict | None = None, numerics: Numerics | None = None):  # fmt: skip
         """Per run, the affine basis (E0, A): E0 the error at the readings (minus
         reference) with every gain zero, column i of A = E_i - E0 for gain i at its
         unit value (the others zero).
 
         The runs of one basis differ in the gains only, so each run's motion, ambient and
         nut coverage are prepared once (:meth:`ScrewThermalModel.prepare`) and kept in
-        ``prepared`` (run id -> the last one made) for the next basis at the same Pf:
+        ``prepared`` ((run id, numerics) -> the last one made) for the next basis at the same Pf:
         identification's finite-difference steps in k1, k2 and lambda reuse it.
 
         Effects that do not touch the temperature field (``field_free``: offsets, slopes)
@@ -346,14 +371,14 @@ class PhysicsModel(ThermalErrorModel):
             sp = {k: dict(v) for k, v in specs.items()}
             for g, unit in gains.items():
                 self._set(c, sp, g, unit if g == active else 0.0)
-            models.append(self._build(ds, c, sp, ambient))
+            models.append(self._build(ds, c, sp, ambient, numerics))
             # a field depends on the core, the ambient, the effects that always act (no heat gains:
             # the ambient's drift) and the effect whose gain is active: an effect whose heat gains
             # are all zero adds no heat (ScrewThermalModel._inputs), so its parameters are not in the
             # key, and a step in one candidate's own parameters re-integrates its column only
             owner = active.split(".", 1)[0] if active is not None and "." in active else None
             keys.append(None if owner in free else
-                        (active, ambient, tuple(sorted(c.items())),
+                        (active, ambient, models[-1].numerics, tuple(sorted(c.items())),
                          tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items())
                                if e not in free and (e == owner or not effect_class(e).heat_gains))))  # fmt: skip
         out = []
@@ -362,22 +387,23 @@ class PhysicsModel(ThermalErrorModel):
             hists = {i: memo.get((rd.run, *k)) for i, k in enumerate(keys) if k is not None}
             todo = [i for i, h in hists.items() if h is None]
             if todo:
-                p = prepared.get(rd.run)
+                p = prepared.get((rd.run, models[0].numerics))
                 if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
-                    p = prepared[rd.run] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
+                    p = prepared[(rd.run, models[0].numerics)] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
                                                              duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
                 for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo], energy=False)):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
-            resp, h0 = [], None
+            resp, h0, plan, sig = [], None, None, None
             for i, model in enumerate(models):
                 if keys[i] is None:
                     hist = replace(h0, effects=model.effects)  # the same field, other offsets
                 else:
-                    hist = replace(hists[i], effects=model.effects, signals={"speed": hists[i].signals["speed"],
-                                                                              **_signals_at(rd, hists[i].t_s)})  # fmt: skip
+                    sig = _signals_at(rd, hists[i].t_s) if sig is None else sig  # the fields share their steps
+                    hist = replace(hists[i], effects=model.effects, signals={"speed": hists[i].signals["speed"], **sig})
                     if i == 0:
                         h0 = hist
-                e = hist.error_um(rd.t_s, rd.x_mm)
+                plan = hist.read_plan(rd.t_s, rd.x_mm) if plan is None else plan  # ... and their Pf
+                e = hist.error_um(rd.t_s, rd.x_mm, plan)
                 resp.append(e - e[rd.ref_idx])
             e0 = resp[0]
             out.append((e0, np.stack([r - e0 for r in resp[1:]], axis=1)))
@@ -468,35 +494,54 @@ class PhysicsModel(ThermalErrorModel):
         gain_lb = self.gain_lower_bounds(gains)  # heat gains k > 0 (seed 000 §4.2)
         n_eval = 0
         memo = getattr(self, "field_cache", None) or FieldCache()  # the last fields (see _basis)
-        prepared = memo.prepared  # run id -> its motion, ambient and coverage at the last Pf
+        prepared = memo.prepared  # (run id, numerics) -> its motion, ambient and coverage at the last Pf
+        fine = Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
+        recent: OrderedDict = OrderedDict()  # the last points solved: SLSQP ends on one it has evaluated
 
-        def solve(z):
+        def solve(z, numerics=fine):
+            """The gains (bounded linear least squares) and the residual at nonlinear point z."""
             nonlocal n_eval
+            key = (z.tobytes(), numerics)
+            if key in recent:
+                return recent[key]
             n_eval += 1
             core = {k: v for k, v in start.items() if "." not in k}
             sp = {k: dict(v) for k, v in specs.items()}
             for n, val in zip(nonlinear, z * scale):
                 self._set(core, sp, n, float(val))
-            parts = self._basis(ds, rds, core, sp, gains, ambient, prepared, memo)
+            parts = self._basis(ds, rds, core, sp, gains, ambient, prepared, memo, numerics)
             e0 = np.concatenate([p[0] for p in parts])
             a = np.concatenate([p[1] for p in parts])
             sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")
-            return sol.x, core, sp, float(np.sum((a @ sol.x + e0 - y) ** 2))
+            r = a @ sol.x + e0 - y
+            recent[key] = out = (sol.x, core, sp, r)
+            if len(recent) > 8:
+                recent.popitem(last=False)
+            return out
 
-        def objective(z):
-            return solve(z)[3] / y.size
+        def sqp(z0, numerics, max_iter):
+            res = minimize(
+                lambda z: float(np.mean(solve(z, numerics)[3] ** 2)), z0, method="SLSQP", bounds=list(zip(lb / scale, ub / scale)),
+                options={"maxiter": int(max_iter), "ftol": float(self.ftol), "eps": 1e-7},
+            )  # fmt: skip
+            return res.x, str(res.message), int(res.nit)
 
         t0 = time.perf_counter()
-        z0 = np.clip(np.array([start[n] for n in nonlinear]), lb, ub) / scale
-        if nonlinear:
-            res = minimize(
-                objective, z0, method="SLSQP", bounds=list(zip(lb / scale, ub / scale)),
-                options={"maxiter": int(self.max_iter), "ftol": float(self.ftol), "eps": 1e-7},
-            )  # fmt: skip
-            z, self.sqp_message_, self.sqp_iterations_ = res.x, str(res.message), int(res.nit)
-        else:
-            z, self.sqp_message_, self.sqp_iterations_ = z0, "no nonlinear parameters", 0
-        g, core, sp, sse = solve(z)
+        z = np.clip(np.array([start[n] for n in nonlinear]), lb, ub) / scale
+        self.sqp_message_, self.sqp_iterations_, self.coarse_iterations_ = "no nonlinear parameters", 0, 0
+        coarse = self._coarse_numerics()
+        if nonlinear and coarse is not None:
+            # coarse to fine: SLSQP to convergence on the coarse steps, then Gauss-Newton steps on the
+            # model's own (one step from a consistent start is the one-step estimator, Le Cam 1956);
+            # a step that does not lower the residual is not taken (scipy least_squares, trf)
+            z, self.sqp_message_, self.coarse_iterations_ = sqp(z, coarse, self.max_iter)
+            res = least_squares(lambda z: solve(z, fine)[3], z, bounds=(lb / scale, ub / scale), method="trf",
+                                diff_step=1e-5, max_nfev=int(self.polish_steps) + 1)  # fmt: skip
+            z, self.sqp_iterations_ = res.x, int(self.polish_steps)
+        elif nonlinear:
+            z, self.sqp_message_, self.sqp_iterations_ = sqp(z, fine, self.max_iter)
+        g, core, sp, r = solve(z)
+        sse = float(np.sum(r**2))
         for (name, unit), val in zip(gains.items(), g):
             self._set(core, sp, name, float(val) * unit)
         self.identification_s_ = time.perf_counter() - t0

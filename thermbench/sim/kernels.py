@@ -138,9 +138,9 @@ def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K, energy=True):
         for i in range(n):
             out[r, 0, i] = theta0[r, i]
             y[i, r] = theta0[r, i]
-    piv = np.empty(n)
+    ipiv = np.empty(n)  # the reciprocal Thomas pivots: the substitutions multiply
     cp = np.empty(n)
-    rhs = np.empty((n, n_rhs))
+    src = np.empty((n, n_rhs))
     y1 = np.empty((n, n_rhs))
     y2 = np.empty((n, n_rhs))
     e = np.empty(n_rhs)
@@ -150,26 +150,32 @@ def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K, energy=True):
     for k in range(n_steps):
         ta = dta_C[k]
         # the step's matrix (diagonal cap + gh (cond stencil + g), off-diagonal -gh cond), factorised
+        prev = 0.0
         for i in range(n):
             nb = 2.0
             if i == 0 or i == n - 1:
                 nb = 1.0
-            d = cap_J_K + gh * (nb * cond_W_K + g_W_K[k, i])
-            if i == 0:
-                piv[i] = d
-            else:
-                piv[i] = d - off * cp[i - 1]
-            cp[i] = off / piv[i]
+            ip = 1.0 / (cap_J_K + gh * (nb * cond_W_K + g_W_K[k, i]) - off * prev)
+            ipiv[i] = ip
+            prev = off * ip
+            cp[i] = prev
+        # first stage (cap + gh A) Y1 = cap y + gh s: the right-hand side made within the forward sweep
         for i in range(n):
+            ip = ipiv[i]
+            gt = g_W_K[k, i] * ta
             for r in range(n_rhs):
-                rhs[i, r] = cap_J_K * y[i, r] + gh * (q_W[r, k, i] + g_W_K[k, i] * ta)
-        _substitute(piv, cp, off, rhs, y1)
+                s = gh * (q_W[r, k, i] + gt)
+                src[i, r] = s
+                a = 0.0 if i == 0 else y1[i - 1, r]
+                y1[i, r] = (cap_J_K * y[i, r] + s - off * a) * ip
+        _back(cp, y1)
         # f1 = (Y1 - y)/(gamma h): second stage y + (1-gamma) h f1 + gamma h f(Y2)
         for i in range(n):
+            ip = ipiv[i]
             for r in range(n_rhs):
-                f1h = y1[i, r] - y[i, r]
-                rhs[i, r] = cap_J_K * (y[i, r] + c1 * f1h) + gh * (q_W[r, k, i] + g_W_K[k, i] * ta)
-        _substitute(piv, cp, off, rhs, y2)
+                a = 0.0 if i == 0 else y2[i - 1, r]
+                y2[i, r] = (cap_J_K * (y[i, r] + c1 * (y1[i, r] - y[i, r])) + src[i, r] - off * a) * ip
+        _back(cp, y2)
         if energy:
             e[:] = 0.0
             for i in range(n):
@@ -185,19 +191,14 @@ def macro_run(theta0, q_W, g_W_K, dta_C, dt_s, cap_J_K, cond_W_K, energy=True):
 
 
 @njit(cache=True)
-def _substitute(piv, cp, off, rhs, out):
-    """Solve a symmetric tridiagonal system with constant off-diagonal ``off`` from its
-    Thomas pivots ``piv`` and ``cp = off / piv`` (forward, then back substitution), for
-    each column of ``rhs`` (n_nodes, n_rhs)."""
-    n, n_rhs = rhs.shape
-    for r in range(n_rhs):
-        out[0, r] = rhs[0, r] / piv[0]
-    for i in range(1, n):
-        for r in range(n_rhs):
-            out[i, r] = (rhs[i, r] - off * out[i - 1, r]) / piv[i]
+def _back(cp, x):
+    """The back substitution of the Thomas algorithm (``cp = off / pivot``), in place, for
+    each column of ``x`` (n_nodes, n_rhs): the forward sweep is fused with the right-hand
+    side in :func:`macro_run`."""
+    n, n_rhs = x.shape
     for i in range(n - 2, -1, -1):
         for r in range(n_rhs):
-            out[i, r] -= cp[i] * out[i + 1, r]
+            x[i, r] -= cp[i] * x[i + 1, r]
 
 
 @njit(cache=True)

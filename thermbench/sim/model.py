@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -82,6 +82,25 @@ class Prepared:
     signals_b: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class ReadPlan:
+    """Where readings (t, Px) fall on a history's steps and screw nodes
+    (:meth:`ThermalHistory.read_plan`): made once, it reads every field of a run that shares
+    the steps and Pf (identification's basis)."""
+
+    n_t: int  # steps of the history it was made on
+    pf_m: float
+    sign: float  # +1: Pf <= 0, the screw coordinate grows with Px; -1: the other way
+    px_mm: np.ndarray
+    k: np.ndarray  # per reading, the step before it ...
+    w: np.ndarray  # ... and its weight towards the next
+    rows: np.ndarray | None  # the steps whose elongation is needed (None: every step)
+    rk: np.ndarray  # per reading, its row of the elongation at steps k ...
+    rk1: np.ndarray  # ... and k + 1
+    m: np.ndarray  # per reading, the node face before it ...
+    f: np.ndarray  # ... and its fraction towards the next
+
+
 @dataclass
 class ThermalHistory:
     """Temperature field and derived displacement at the macro-step boundaries."""
@@ -149,7 +168,7 @@ class ThermalHistory:
                 off = off + o
         return off
 
-    def error_um(self, t_s, axis_mm) -> np.ndarray:
+    def error_um(self, t_s, axis_mm, plan: "ReadPlan | None" = None) -> np.ndarray:
         """Thermal positioning error (measured - commanded, um) at pairs (t, Px).
 
         Linear in time between steps; within an element TEm is interpolated
@@ -157,43 +176,55 @@ class ThermalHistory:
         axis runs towards the fixed end and TE = -(TEm(Pf - Px) + TEa) (the
         signs are lost in the extracted text of seed 000 §3.2; these are the
         physically consistent ones). TEa = alpha dTa Px (seed 000 §2.2).
+
+        ``plan``: :meth:`read_plan` of the same pairs on a history with this one's steps and
+        Pf (identification reads several fields of a run at one set of readings).
         """
+        if plan is None:
+            plan = self.read_plan(t_s, axis_mm)
+        elif plan.n_t != self.t_s.size or plan.pf_m != self.core.pf_m:
+            raise ValueError("error_um: the read plan was made for other steps or another Pf")
+        # the elongation at the steps the readings fall between only (a reading set is sparse in time)
+        return self._read(self.elongation_um(plan.rows), self.offset_um(), self.ambient_C, plan)
+
+    def read_plan(self, t_s, axis_mm, rows: bool = True) -> "ReadPlan":
+        """Where the pairs (t, Px) fall on this history's steps and nodes (see :meth:`error_um`);
+        ``rows`` False: the plan reads an elongation given at every step."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         px_mm = np.broadcast_to(np.asarray(axis_mm, dtype=float), t.shape)
-        # the elongation at the steps the readings fall between only (a reading set is sparse in time)
-        k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
-        rows = np.unique(np.concatenate([k, k + 1]))
-        row_of = np.full(self.t_s.size, -1)
-        row_of[rows] = np.arange(rows.size)
-        return self._read(self.elongation_um(rows), self.offset_um(), self.ambient_C, t, px_mm, row_of)
-
-    def _read(self, u, off, amb, t, px_mm, row_of=None):
-        slope = self.slope_um_per_mm()
-        out = self._read_screw(u, off, amb, t, px_mm, row_of)
-        if slope is None:
-            return out
         k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
         w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
-        return out + (slope[k] * (1 - w) + slope[k + 1] * w) * px_mm
-
-    def _read_screw(self, u, off, amb, t, px_mm, row_of=None):
-        """``u``: the elongation at every step, or (``row_of``: step -> row of ``u``) at some."""
         g = self.geom
-        k = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, len(self.t_s) - 2)
-        w = np.clip((t - self.t_s[k]) / (self.t_s[k + 1] - self.t_s[k]), 0.0, 1.0)
         pf = self.core.pf_m
         sign = 1.0 if pf <= 0 else -1.0
-        x = np.clip(sign * (px_mm / 1000.0 - pf), 0.0, g.screw.length_m)
-        nodes = x / g.numerics.dx_m
-        m = np.clip(np.floor(nodes).astype(int), 0, u.shape[1] - 2)
-        f = nodes - m
-        rk, rk1 = (k, k + 1) if row_of is None else (row_of[k], row_of[k + 1])
-        u_k = u[rk, m] * (1 - f) + u[rk, m + 1] * f
-        u_k1 = u[rk1, m] * (1 - f) + u[rk1, m + 1] * f
+        nodes = np.clip(sign * (px_mm / 1000.0 - pf), 0.0, g.screw.length_m) / g.numerics.dx_m
+        m = np.clip(np.floor(nodes).astype(int), 0, g.n_nodes - 1)
+        if rows:
+            sel = np.unique(np.concatenate([k, k + 1]))
+            row_of = np.full(self.t_s.size, -1)
+            row_of[sel] = np.arange(sel.size)
+            rk, rk1 = row_of[k], row_of[k + 1]
+        else:
+            sel, rk, rk1 = None, k, k + 1
+        return ReadPlan(self.t_s.size, pf, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m)
+
+    def _read(self, u, off, amb, plan: "ReadPlan"):
+        slope = self.slope_um_per_mm()
+        out = self._read_screw(u, off, amb, plan)
+        if slope is None:
+            return out
+        k, w = plan.k, plan.w
+        return out + (slope[k] * (1 - w) + slope[k + 1] * w) * plan.px_mm
+
+    def _read_screw(self, u, off, amb, plan: "ReadPlan"):
+        """``u``: the elongation at the plan's rows (every step, or those the readings need)."""
+        k, w, m, f = plan.k, plan.w, plan.m, plan.f
+        u_k = u[plan.rk, m] * (1 - f) + u[plan.rk, m + 1] * f
+        u_k1 = u[plan.rk1, m] * (1 - f) + u[plan.rk1, m + 1] * f
         tem = u_k * (1 - w) + u_k1 * w
         dta = (amb[k] * (1 - w) + amb[k + 1] * w) - self.ta0_C
-        tea = g.material.alpha_per_K * dta * px_mm * 1e-3 * 1e6
-        return sign * (tem + tea) + off[k] * (1 - w) + off[k + 1] * w
+        tea = self.geom.material.alpha_per_K * dta * plan.px_mm * 1e-3 * 1e6
+        return plan.sign * (tem + tea) + off[k] * (1 - w) + off[k + 1] * w
 
     def error_field_um(self, axis_mm) -> np.ndarray:
         """Error over an axis grid at every step, shape (n_t, n_x): the
@@ -202,7 +233,9 @@ class ThermalHistory:
         tt = np.repeat(self.t_s, axis_mm.size)
         pp = np.tile(axis_mm, self.t_s.size)
         u = self.elongation_um()
-        return self._read(u, self.offset_um(), self.ambient_C, tt, pp).reshape(self.t_s.size, axis_mm.size)
+        return self._read(u, self.offset_um(), self.ambient_C, self.read_plan(tt, pp, rows=False)).reshape(
+            self.t_s.size, axis_mm.size
+        )
 
 
 class ScrewThermalModel:
@@ -353,7 +386,8 @@ class ScrewThermalModel:
         # ambient and conductances (shared by models that differ in heat gains only) ---------
         c = self.core
         drift = self.effect(AmbientDrift.id)
-        key = (c.k1_W_m2K_per_mm_min, c.k2_W_m2K, c.lambda_W_mK, None if drift is None else tuple(sorted(drift.params().items())))
+        key = (c.k1_W_m2K_per_mm_min, c.k2_W_m2K, c.lambda_W_mK,
+               None if drift is None else tuple(getattr(drift, f.name) for f in fields(drift)))
         cached = None if shared is None else shared.get(key)
         if cached is None:
             if drift is not None:
@@ -406,9 +440,8 @@ class ScrewThermalModel:
         if extra is not None:
             extra_cov = kernels.accumulate_cover(d.x_screw_m, extra[None, :], m, n_steps, n, num.dx_m, half, nb)[1]
             q_nut = q_nut + per_node * extra_cov
-        q = q_nut
+        q = q_nut  # a new array: the bearing heat is added in place
         if nb > 0:
-            q = q.copy()
             q[:, :nb] += (qb_mean * num.dx_m / self.screw.fixed_bearing_length_m)[:, None]
         if srcs:
             q = q + (sp.reshape(len(srcs), n_steps, m).mean(axis=2).T @ sw)
@@ -482,6 +515,12 @@ def run_prepared_many(
         xs.append(x)
         if how == "explicit":
             out[i] = model._history(p, x, model._explicit(p, x), np.zeros(x.q.shape[0]))
+            continue
+        if not (x.q.any() or x.th0.any() or x.dta_step.any()):
+            # no heat, no initial rise, no ambient change: the field stays at zero (the linear
+            # scheme maps zero to zero; identification's basis run with every gain at zero)
+            n_steps = x.q.shape[0]
+            out[i] = model._history(p, x, np.zeros((n_steps + 1, x.th0.size)), np.zeros(n_steps if energy else 0))
             continue
         for idx in groups:
             m0, x0 = models[idx[0]], xs[idx[0]]
