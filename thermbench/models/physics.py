@@ -386,11 +386,11 @@ class PhysicsModel(ThermalErrorModel):
             # the fields not in the cache, integrated together (they differ in the gains only)
             hists = {i: memo.get((rd.run, *k)) for i, k in enumerate(keys) if k is not None}
             todo = [i for i, h in hists.items() if h is None]
+            p = prepared.get((rd.run, models[0].numerics))
+            if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
+                p = prepared[(rd.run, models[0].numerics)] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
+                                                         duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
             if todo:
-                p = prepared.get((rd.run, models[0].numerics))
-                if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
-                    p = prepared[(rd.run, models[0].numerics)] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                             duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
                 for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo], energy=False)):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
             resp, h0, plan, sig = [], None, None, None
@@ -402,7 +402,8 @@ class PhysicsModel(ThermalErrorModel):
                     hist = replace(hists[i], effects=model.effects, signals={"speed": hists[i].signals["speed"], **sig})
                     if i == 0:
                         h0 = hist
-                plan = hist.read_plan(rd.t_s, rd.x_mm) if plan is None else plan  # ... and their Pf
+                if plan is None:  # ... and their Pf: one plan per run and Pf
+                    plan = p.derived.get("read_plan") or p.derived.setdefault("read_plan", hist.read_plan(rd.t_s, rd.x_mm))
                 e = hist.error_um(rd.t_s, rd.x_mm, plan)
                 resp.append(e - e[rd.ref_idx])
             e0 = resp[0]

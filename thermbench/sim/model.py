@@ -80,6 +80,11 @@ class Prepared:
     v_mean: np.ndarray  # (n_steps,) mean speed per step
     # measured signals (temperature rises above the first sample) at the macro-step boundaries
     signals_b: dict = field(default_factory=dict)
+    # heat inputs already made over this run, by k3, k4 and the heating effects' parameters (they
+    # do not depend on k1, k2 or lambda: identification's steps in those reuse them); read-only
+    heat: dict = field(default_factory=dict, repr=False, compare=False)
+    # anything else a caller derives from this run and its Pf alone (identification's read plans)
+    derived: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -319,7 +324,7 @@ class ScrewThermalModel:
             cov = kernels.accumulate_cover(
                 d.x_screw_m, d.v_mm_min[None, :], m, n_steps, g.n_nodes, num.dx_m, self.screw.nut_length_m / 2.0, g.n_bearing
             )
-            return replace(o, key=self.prepared_key(), drive=d, cover=cov[0], v_cover=cov[1])
+            return replace(o, key=self.prepared_key(), drive=d, cover=cov[0], v_cover=cov[1], heat={}, derived={})
         d = self.drive(motion, duration_s)
         m = num.per_step
         n_steps = d.t_s.size // m
@@ -410,12 +415,39 @@ class ScrewThermalModel:
                 shared[key] = cached
         amb_b, dta_f, dta_step, gk, cond = cached
 
+        th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
+        heating = [e for e in self.effects if not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
+        hkey = (c.k3_W_per_mm_min, c.k4_W_per_mm_min, *((e.id, *(getattr(e, f.name) for f in fields(e))) for e in heating))
+        heat = p.heat.get(hkey)
+        if heat is None:
+            heat = self._heat(p, heating)
+            for a in heat:
+                if isinstance(a, np.ndarray):
+                    a.setflags(write=False)
+            if len(p.heat) >= 32:
+                p.heat.clear()
+            p.heat[hkey] = heat
+        q, extra, sw, sp, qn_mean, qb_mean = heat
+        return _Inputs(
+            th0=th0, q=q, gk=gk, dta_f=dta_f, dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
+            qn_mean=qn_mean, qb_mean=qb_mean, cond=cond,
+        )  # fmt: skip
+
+    def _heat(self, p: Prepared, heating: list) -> tuple:
+        """The step-mean heat per node and what the explicit scheme and the housings need, from
+        k3, k4 and the ``heating`` effects (see :meth:`_inputs`)."""
+        g = self.geom
+        num = self.numerics
+        d = p.drive
+        n = g.n_nodes
+        m = num.per_step
+        n_steps = d.t_s.size // m
+        c = self.core
         # heat (seed 000 §4.1 + effects) -------------------------------------
         # h = k1 v + k2, QB = k3 v, QN = k4 v (+ the effects' nut heat): their step means are
         # affine in the mean speed; the fine series only for the explicit scheme. An effect whose
         # heat gains are all zero adds no heat (identification's basis runs): it is skipped
         v_mean = p.v_mean
-        heating = [e for e in self.effects if not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
         extras = [x for x in (eff.nut_heat_W(d) for eff in heating) if x is not None]
         extra = np.sum(extras, axis=0) if extras else None
         qb_mean = c.k3_W_per_mm_min * v_mean
@@ -430,7 +462,6 @@ class ScrewThermalModel:
             sw = np.zeros((0, n))
             sp = np.zeros((0, d.t_s.size))
 
-        th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
         half = self.screw.nut_length_m / 2.0
         nb = g.n_bearing
         # step means of (nut heat per node) and (h x covered fraction), both affine in the
@@ -445,10 +476,7 @@ class ScrewThermalModel:
             q[:, :nb] += (qb_mean * num.dx_m / self.screw.fixed_bearing_length_m)[:, None]
         if srcs:
             q = q + (sp.reshape(len(srcs), n_steps, m).mean(axis=2).T @ sw)
-        return _Inputs(
-            th0=th0, q=q, gk=gk, dta_f=dta_f, dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
-            qn_mean=qn_mean, qb_mean=qb_mean, cond=cond,
-        )  # fmt: skip
+        return q, extra, sw, sp, qn_mean, qb_mean
 
     def _explicit(self, p: Prepared, x: "_Inputs") -> np.ndarray:
         """The seed 000 §3.1 iteration at the fine step (:func:`kernels.explicit_run`)."""
