@@ -135,7 +135,7 @@ def runtime(repeats: int) -> None:
             times.append(time.perf_counter() - t0)
     print(f"diagnose, 4 runs x 2.5 h ({len(ds.errors)} readings), motor_heat hidden, one core: median "
           f"{statistics.median(times):.0f} s over {repeats} (min {min(times):.0f}, max {max(times):.0f}); "
-          f"named {d['missing_effects']} (goal <= 60 s with the open search)")  # fmt: skip
+          f"named {d['missing_effects']} (target <= 20 s)")  # fmt: skip
 
 
 def main() -> None:

@@ -45,7 +45,7 @@ def main() -> None:
         times.append(time.perf_counter() - t0)
     print(f"physics identification, seed000_x {'+'.join(RUNS)}, one core: median {statistics.median(times):.2f} s "
           f"over {args.repeats} fits (min {min(times):.2f}, max {max(times):.2f}; target <= 1 s); "
-          f"{model.n_model_evaluations_} objective evaluations: {model.coarse_iterations_} SLSQP iterations on "
+          f"{model.n_model_evaluations_} objective evaluations: {model.coarse_iterations_} least-squares evaluations on "
           f"the coarse steps, {model.polish_steps} Gauss-Newton step(s) on the model's own")  # fmt: skip
     ref = model_from_config("physics").set_params(coarse_dt_s=None, coarse_macro_dt_s=None, ftol=1e-12)
     t0 = time.perf_counter()

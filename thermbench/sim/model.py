@@ -9,7 +9,7 @@ integrates the temperature field (seed 000 §3.1) and returns a
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -187,10 +187,7 @@ class ThermalHistory:
         """
         if plan is None:
             plan = self.read_plan(t_s, axis_mm)
-        elif plan.n_t != self.t_s.size or plan.pf_m != self.core.pf_m:
-            raise ValueError("error_um: the read plan was made for other steps or another Pf")
-        # the elongation at the steps the readings fall between only (a reading set is sparse in time)
-        return self._read(self.elongation_um(plan.rows), self.offset_um(), self.ambient_C, plan)
+        return errors_um([self], plan)[0]
 
     def read_plan(self, t_s, axis_mm, rows: bool = True) -> "ReadPlan":
         """Where the pairs (t, Px) fall on this history's steps and nodes (see :meth:`error_um`);
@@ -213,34 +210,58 @@ class ThermalHistory:
             sel, rk, rk1 = None, k, k + 1
         return ReadPlan(self.t_s.size, pf, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m)
 
-    def _read(self, u, off, amb, plan: "ReadPlan"):
-        slope = self.slope_um_per_mm()
-        out = self._read_screw(u, off, amb, plan)
-        if slope is None:
-            return out
-        k, w = plan.k, plan.w
-        return out + (slope[k] * (1 - w) + slope[k + 1] * w) * plan.px_mm
-
-    def _read_screw(self, u, off, amb, plan: "ReadPlan"):
-        """``u``: the elongation at the plan's rows (every step, or those the readings need)."""
-        k, w, m, f = plan.k, plan.w, plan.m, plan.f
-        u_k = u[plan.rk, m] * (1 - f) + u[plan.rk, m + 1] * f
-        u_k1 = u[plan.rk1, m] * (1 - f) + u[plan.rk1, m + 1] * f
-        tem = u_k * (1 - w) + u_k1 * w
-        dta = (amb[k] * (1 - w) + amb[k + 1] * w) - self.ta0_C
-        tea = self.geom.material.alpha_per_K * dta * plan.px_mm * 1e-3 * 1e6
-        return plan.sign * (tem + tea) + off[k] * (1 - w) + off[k + 1] * w
-
     def error_field_um(self, axis_mm) -> np.ndarray:
         """Error over an axis grid at every step, shape (n_t, n_x): the
         compensation table of seed 000 §4.3 (compensation = -error)."""
         axis_mm = np.asarray(axis_mm, dtype=float)
         tt = np.repeat(self.t_s, axis_mm.size)
         pp = np.tile(axis_mm, self.t_s.size)
-        u = self.elongation_um()
-        return self._read(u, self.offset_um(), self.ambient_C, self.read_plan(tt, pp, rows=False)).reshape(
-            self.t_s.size, axis_mm.size
-        )
+        return errors_um([self], self.read_plan(tt, pp, rows=False))[0].reshape(self.t_s.size, axis_mm.size)
+
+
+def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
+    """:meth:`ThermalHistory.error_um` of histories of one run at one read plan, shape
+    (len(hists), n readings): histories with the same steps, ambient and Pf (identification's
+    basis: a run's fields that differ in the heat gains and effects), read in one pass.
+
+    TEm from the elongation at the node faces (seed 000 §3.2, :meth:`ThermalHistory.elongation_um`,
+    then each history's mounting/constraint effects), interpolated linearly within an element
+    and in time; Pf < 0: TE = TEm(Px - Pf) + TEa, Pf > 0: TE = -(TEm(Pf - Px) + TEa);
+    TEa = alpha dTa Px (seed 000 §2.2); then each history's offsets and slopes."""
+    h0 = hists[0]
+    amb = h0.ambient_C
+    for h in hists:
+        if h.t_s.size != plan.n_t or h.core.pf_m != plan.pf_m:
+            raise ValueError("error_um: the read plan was made for other steps or another Pf")
+        if h.ambient_C is not amb and not np.array_equal(h.ambient_C, amb) or h.ta0_C != h0.ta0_C:
+            raise ValueError("errors_um: the histories differ in their ambient")
+    g = h0.geom
+    sel = slice(None) if plan.rows is None else plan.rows
+    theta = np.stack([h.theta_C[sel] for h in hists])
+    dta = (amb[sel] - h0.ta0_C)[None, :, None]
+    e = g.material.alpha_per_K * (theta - dta) * g.numerics.dx_m * 1e6
+    u = np.empty((e.shape[0], e.shape[1], e.shape[2] + 1))
+    u[:, :, 0] = 0.0
+    np.cumsum(e, axis=2, out=u[:, :, 1:])
+    for i, h in enumerate(hists):
+        for eff in h.effects:
+            u[i] = eff.adjust_elongation_um(u[i], g)
+    k, w, m, f = plan.k, plan.w, plan.m, plan.f
+    u_k = u[:, plan.rk, m] * (1 - f) + u[:, plan.rk, m + 1] * f
+    u_k1 = u[:, plan.rk1, m] * (1 - f) + u[:, plan.rk1, m + 1] * f
+    tem = u_k * (1 - w) + u_k1 * w
+    dta_r = (amb[k] * (1 - w) + amb[k + 1] * w) - h0.ta0_C
+    tea = g.material.alpha_per_K * dta_r * plan.px_mm * 1e-3 * 1e6
+    out = plan.sign * (tem + tea)
+    for i, h in enumerate(hists):
+        offs = [o for o in (eff.offset_um(h) for eff in h.effects) if o is not None]
+        if offs:
+            off = np.sum(offs, axis=0)
+            out[i] += off[k] * (1 - w) + off[k + 1] * w
+        slope = h.slope_um_per_mm()
+        if slope is not None:
+            out[i] += (slope[k] * (1 - w) + slope[k + 1] * w) * plan.px_mm
+    return out
 
 
 class ScrewThermalModel:
