@@ -118,6 +118,7 @@ BAD = [
     (PhysicsModel, "dx_m", 0.0), (PhysicsModel, "dt_s", NAN), (PhysicsModel, "max_iter", 0), (PhysicsModel, "ftol", -1.0),
     (PhysicsModel, "geometric_degree", 1.5), (PhysicsModel, "initial", {"k2_W_m2K": "x"}),
     (PhysicsModel, "bounds", {"k2_W_m2K": 5.0}), (PhysicsModel, "identify", 3), (PhysicsModel, "effects", ["motor"]),
+    (PhysicsModel, "polish_steps", -1), (PhysicsModel, "coarse_dt_s", 0.0), (PhysicsModel, "coarse_macro_dt_s", INF),
 ]  # fmt: skip
 
 
@@ -140,7 +141,7 @@ INTS = {
     MLPModel: ["max_epochs", "patience", "min_epochs", "batch_size", "seed", "geometric_degree", "max_samples", "hidden"],
     GRUModel: ["hidden_size", "position_degree", "max_epochs", "patience", "min_epochs", "batch_size", "seed"],
     SensorRegressor: ["seed"], LumpedThermalNetwork: ["n_nodes", "n_starts", "geometric_degree", "max_sensors"],
-    AutoRegressiveSeed003: ["na", "nb", "geometric_degree"], PhysicsModel: ["geometric_degree", "max_iter"],
+    AutoRegressiveSeed003: ["na", "nb", "geometric_degree"], PhysicsModel: ["geometric_degree", "max_iter", "polish_steps"],
 }  # fmt: skip
 #: every number parameter: a bool is not a number either
 NUMBERS = {
@@ -148,7 +149,7 @@ NUMBERS = {
     PSOLSSVM: ["gamma", "sigma2", "val_fraction"], MLPModel: ["lr", "weight_decay", "val_fraction"],
     GRUModel: ["window_s", "step_s", "lr"], ConditionBank: ["window_s", "step_s", "min_moving_s"],
     LumpedThermalNetwork: ["u_ref", "exponent", "step_s"], AutoRegressiveSeed003: ["sample_s", "origin_mm"],
-    PhysicsModel: ["dx_m", "dt_s", "macro_dt_s", "ftol"],
+    PhysicsModel: ["dx_m", "dt_s", "macro_dt_s", "ftol", "coarse_dt_s", "coarse_macro_dt_s"],
 }  # fmt: skip
 
 
@@ -175,6 +176,11 @@ def test_the_messages_say_what_is_expected(ds):
          "SensorRegressor.estimator: expected a scikit-learn regressor (or a pipeline ending in one), got a LogisticRegression"),
         (PhysicsModel(dt_s=0.3, macro_dt_s=10.0),
          "PhysicsModel: macro_dt_s must be a whole multiple of dt_s, got macro_dt_s=10, dt_s=0.3"),
+        (PhysicsModel(coarse_dt_s=None),
+         "PhysicsModel: coarse_dt_s and coarse_macro_dt_s: give both (a coarse first stage) or neither, got "
+         "coarse_dt_s=None, coarse_macro_dt_s=60.0"),
+        (PhysicsModel(coarse_dt_s=0.7),
+         "PhysicsModel: coarse_macro_dt_s must be a whole multiple of coarse_dt_s, got 60 and 0.7"),
     ]  # fmt: skip
     for model, message in cases:
         with pytest.raises(ModelError) as exc:

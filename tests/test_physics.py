@@ -146,6 +146,13 @@ def test_a_prepared_run_serves_models_that_differ_in_heat_gains_only():
     np.testing.assert_allclose(b.run_prepared(shared).error_field_um(grid),
                                b.run(motion, ambient_C=amb).error_field_um(grid), atol=1e-12, rtol=0)  # fmt: skip
     assert not np.allclose(a.run_prepared(shared).error_field_um(grid), b.run_prepared(shared).error_field_um(grid))
+    # the heat inputs made for a and b are kept with the run (by k3, k4 and the heating effects), read-only;
+    # a model with a's gains and other conductances reuses a's and still gets its own field
+    assert len(shared.heat) == 2 and all(not q[0].flags.writeable for q in shared.heat.values())
+    c = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k1_W_m2K_per_mm_min=0.003, lambda_W_mK=60.0))
+    np.testing.assert_allclose(c.run_prepared(shared).error_field_um(grid),
+                               c.run(motion, ambient_C=amb).error_field_um(grid), atol=1e-12, rtol=0)  # fmt: skip
+    assert len(shared.heat) == 2
     other_pf = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=0.1))
     with pytest.raises(ValueError, match="another screw, numerics or Pf"):
         other_pf.run_prepared(shared)
@@ -176,6 +183,8 @@ def test_runs_integrated_together_match_each_alone_and_superpose():
         for name in alone.housing_C:
             np.testing.assert_array_equal(h.housing_C[name], alone.housing_C[name])
     th = [h.theta_C for h in together]
+    # no heat, no initial rise, constant ambient: the field stays exactly at zero
+    assert not np.any(th[0]) and not np.any(together[0].convected_J)
     assert th[4].max() > 1.0
     np.testing.assert_allclose(th[4] - th[0], (th[1] - th[0]) + (th[2] - th[0]) + (th[3] - th[0]), atol=1e-9 * th[4].max())
     # other conductances (k1) are another integration, not a column of the first
@@ -230,3 +239,34 @@ def test_pf_positive_mirrors_the_axis():
     pos = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=0.141)).run(mirrored)
     grid = np.arange(0.0, 501.0, 50.0)
     np.testing.assert_allclose(pos.error_field_um(-grid), -neg.error_field_um(grid), atol=1e-9)
+
+
+def test_fields_of_one_run_read_together_equal_each_read_alone():
+    """errors_um reads a run's fields in one pass (identification's basis): each row equals the
+    field read alone, whatever its effects add (a constraint on the elongation, an offset); a
+    read plan made for another Pf is refused."""
+    from thermbench.sim.effects import make_effect
+    from thermbench.sim.model import errors_um, run_prepared_many
+
+    _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+    amb = 20.0 + 0.3 * np.sin(motion.t_s / 2000.0)
+    core = CoreParams(pf_m=-0.05)
+    models = [
+        ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, core, effects=[make_effect("ambient_drift")]),
+        ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=-0.05, k4_W_per_mm_min=0.003),
+                          effects=[make_effect("ambient_drift"), make_effect("fixed_fixed_constraint", kappa=0.4)]),
+        ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, core,
+                          effects=[make_effect("ambient_drift"), make_effect("origin_drift", beta_um_per_K=2.0)]),
+    ]  # fmt: skip
+    hists = run_prepared_many(models[0].prepare(motion, ambient_C=amb), models)
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.uniform(0.0, hists[0].t_s[-1], 50))
+    x = rng.uniform(0.0, 500.0, 50)
+    plan = hists[0].read_plan(t, x)
+    together = errors_um(hists, plan)
+    alone = np.stack([h.error_um(t, x) for h in hists])
+    np.testing.assert_allclose(together, alone, rtol=0, atol=1e-12)
+    assert np.ptp(together[1] - together[0]) > 1.0 and np.ptp(together[2] - together[0]) > 0.1  # the effects act
+    other = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=-0.1)).run(motion, ambient_C=amb)
+    with pytest.raises(ValueError, match="another Pf"):
+        errors_um([other], plan)

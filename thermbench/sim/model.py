@@ -219,6 +219,27 @@ class ThermalHistory:
         return errors_um([self], self.read_plan(tt, pp, rows=False))[0].reshape(self.t_s.size, axis_mm.size)
 
 
+#: what a run keeps of the inputs it has made (:func:`_remember`), per kind, in bytes
+KEEP_BYTES = 64_000_000
+
+
+def _remember(d: dict, key, value: tuple) -> tuple:
+    """Keep ``value`` (a tuple of arrays and numbers) in ``d`` under ``key``, read-only, within
+    :data:`KEEP_BYTES` (past it, what was kept is dropped; a value larger than that alone is not
+    kept). Returns ``value``."""
+    size = lambda v: sum(a.nbytes for a in v if isinstance(a, np.ndarray))  # noqa: E731
+    n = size(value)
+    if n > KEEP_BYTES:
+        return value
+    if sum(size(v) for v in d.values()) + n > KEEP_BYTES:
+        d.clear()
+    for a in value:
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)
+    d[key] = value
+    return value
+
+
 def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
     """:meth:`ThermalHistory.error_um` of histories of one run at one read plan, shape
     (len(hists), n readings): histories with the same steps, ambient and Pf (identification's
@@ -433,7 +454,7 @@ class ScrewThermalModel:
             gk = (h_mean[:, None] - h_cov) * area[None, :]
             cached = (amb_b, dta_f, dta_step, gk, self.material_conductance(c.lambda_W_mK))
             if shared is not None:
-                shared[key] = cached
+                cached = _remember(shared, key, cached)  # kept with the run (run_prepared_many)
         amb_b, dta_f, dta_step, gk, cond = cached
 
         th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
@@ -441,13 +462,7 @@ class ScrewThermalModel:
         hkey = (c.k3_W_per_mm_min, c.k4_W_per_mm_min, *((e.id, *(getattr(e, f.name) for f in fields(e))) for e in heating))
         heat = p.heat.get(hkey)
         if heat is None:
-            heat = self._heat(p, heating)
-            for a in heat:
-                if isinstance(a, np.ndarray):
-                    a.setflags(write=False)
-            if len(p.heat) >= 32:
-                p.heat.clear()
-            p.heat[hkey] = heat
+            heat = _remember(p.heat, hkey, self._heat(p, heating))
         q, extra, sw, sp, qn_mean, qb_mean = heat
         return _Inputs(
             th0=th0, q=q, gk=gk, dta_f=dta_f, dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
@@ -557,7 +572,9 @@ def run_prepared_many(
     out: list[ThermalHistory | None] = [None] * len(models)
     groups: list[list[int]] = []
     xs: list[_Inputs] = []
-    shared: dict = {}  # conductances and ambient by (k1, k2, lambda, drift): made once for the models that share them
+    # conductances and ambient by (k1, k2, lambda, drift), kept with the run: made once for the models that
+    # share them, here and in later calls (identification's steps in a gain effect's own parameters)
+    shared: dict = p.derived.setdefault("conductances", {})
     for i, model in enumerate(models):
         how = method or model.numerics.method
         x = model._inputs(p, theta0_C, shared if model.geom == models[0].geom else None)
