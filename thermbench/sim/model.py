@@ -219,6 +219,12 @@ class ThermalHistory:
         return errors_um([self], self.read_plan(tt, pp, rows=False))[0].reshape(self.t_s.size, axis_mm.size)
 
 
+def _adds_heat(effect: Effect) -> bool:
+    """Whether the effect's class adds heat (overrides a heat hook of :class:`Effect`)."""
+    cls = type(effect)
+    return cls.nut_heat_W is not Effect.nut_heat_W or cls.sources is not Effect.sources
+
+
 #: what a run keeps of the inputs it has made (:func:`_remember`), per kind, in bytes
 KEEP_BYTES = 64_000_000
 
@@ -458,7 +464,8 @@ class ScrewThermalModel:
         amb_b, dta_f, dta_step, gk, cond = cached
 
         th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
-        heating = [e for e in self.effects if not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
+        # the effects that add heat (an effect whose heat gains are all zero adds none: the basis runs)
+        heating = [e for e in self.effects if _adds_heat(e) and not (e.heat_gains and all(getattr(e, k) == 0 for k in e.heat_gains))]
         hkey = (c.k3_W_per_mm_min, c.k4_W_per_mm_min, *((e.id, *(getattr(e, f.name) for f in fields(e))) for e in heating))
         heat = p.heat.get(hkey)
         if heat is None:
