@@ -421,6 +421,11 @@ class ScrewThermalModel:
         screw, numerics and Pf)."""
         return run_prepared_many(p, [self], theta0_C, method)[0]
 
+    def _grid(self, p: Prepared) -> tuple:
+        """(geometry, numerics, drive, nodes, fine samples per step, steps) of a run over ``p``."""
+        g, num = self.geom, self.numerics
+        return g, num, p.drive, g.n_nodes, num.per_step, p.drive.t_s.size // num.per_step
+
     def _inputs(self, p: Prepared, theta0_C, shared: dict | None = None) -> "_Inputs":
         """The heat inputs, conductances and ambient of a run over ``p`` (seed 000 §4.1 + effects).
         ``shared``: the conductance and ambient parts already made for models with the same
@@ -428,12 +433,7 @@ class ScrewThermalModel:
         gains only share them, the same arrays)."""
         if p.key != self.prepared_key():
             raise ValueError("run_prepared: prepared for another screw, numerics or Pf; call prepare() with this model")
-        g = self.geom
-        num = self.numerics
-        d = p.drive
-        n = g.n_nodes
-        m = num.per_step
-        n_steps = d.t_s.size // m
+        g, num, d, n, m, n_steps = self._grid(p)
         t_b, ta0 = p.t_b_s, p.ta0_C
 
         # ambient and conductances (shared by models that differ in heat gains only) ---------
@@ -479,12 +479,7 @@ class ScrewThermalModel:
     def _heat(self, p: Prepared, heating: list) -> tuple:
         """The step-mean heat per node and what the explicit scheme and the housings need, from
         k3, k4 and the ``heating`` effects (see :meth:`_inputs`)."""
-        g = self.geom
-        num = self.numerics
-        d = p.drive
-        n = g.n_nodes
-        m = num.per_step
-        n_steps = d.t_s.size // m
+        g, num, d, n, m, n_steps = self._grid(p)
         c = self.core
         # heat (seed 000 §4.1 + effects) -------------------------------------
         # h = k1 v + k2, QB = k3 v, QN = k4 v (+ the effects' nut heat): their step means are
