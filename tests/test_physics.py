@@ -2,6 +2,7 @@
 and the seed 000 paper numbers."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -270,3 +271,11 @@ def test_fields_of_one_run_read_together_equal_each_read_alone():
     other = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=-0.1)).run(motion, ambient_C=amb)
     with pytest.raises(ValueError, match="another Pf"):
         errors_um([other], plan)
+    # fields of another grid or another material are not read with this plan or these fields
+    coarse = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, core, numerics=Numerics(dx_m=0.02)).run(motion, ambient_C=amb)
+    with pytest.raises(ValueError, match="another grid"):
+        errors_um([coarse], plan)
+    steel = replace(SEED000_MATERIAL, alpha_per_K=2 * SEED000_MATERIAL.alpha_per_K)
+    other_material = ScrewThermalModel(SEED000_SCREW, steel, core, effects=[make_effect("ambient_drift")])
+    with pytest.raises(ValueError, match="screw, material or grid"):
+        errors_um([hists[0], other_material.run_prepared(models[0].prepare(motion, ambient_C=amb))], plan)

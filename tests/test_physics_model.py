@@ -151,3 +151,42 @@ def test_a_cached_basis_equals_a_fresh_one_when_only_one_effects_lag_moves(clean
     assert len(memo._d) == n_before + 1  # one new field: the motor column
     for (e0c, ac), (e0f, af) in zip(cached, fresh):
         assert np.array_equal(e0c, e0f) and np.array_equal(ac, af)
+
+
+def test_the_coarse_stage_keeps_whole_fine_steps_per_macro_step():
+    """The coarse stage's macro step is a whole number of its fine steps and at least the
+    configured one (60 s / 1 s), the model's own steps where they are coarser: 1.6 s x 38 =
+    60.8 s; 7 s x 9 = 63 s; no coarse stage when the model's steps are as coarse."""
+    from thermbench.sim.parts import Numerics
+
+    assert PhysicsModel(dt_s=1.6, macro_dt_s=16.0)._coarse_numerics() == Numerics(0.01, 1.6, 60.8)
+    assert PhysicsModel(dt_s=7.0, macro_dt_s=14.0)._coarse_numerics() == Numerics(0.01, 7.0, 63.0)
+    assert PhysicsModel(dt_s=0.2, macro_dt_s=20.0)._coarse_numerics() == Numerics(0.01, 1.0, 60.0)
+    assert PhysicsModel(dt_s=1.0, macro_dt_s=60.0)._coarse_numerics() is None
+
+
+def test_gauss_newton_steps_lower_the_residual_within_the_box():
+    """physics.gauss_newton on r(z) = (exp(z0) - 2, z1^2 - 4), minimum at (ln 2, 2): from
+    (0.6, 1.9) one step lands within 1e-2 of it, using the residual at z, two for the Jacobian
+    and one at the step; with the box's upper bound at 1.95 for z1 it stops on the bound; a
+    point where no step lowers the residual (the minimum) is kept, and no step is counted."""
+    from thermbench.models.physics import gauss_newton
+
+    calls = []
+
+    def fun(z):
+        calls.append(z.copy())
+        return np.array([np.exp(z[0]) - 2.0, z[1] ** 2 - 4.0])
+
+    box = (np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
+    z, taken = gauss_newton(fun, np.array([0.6, 1.9]), box, 1)
+    assert taken == 1 and len(calls) == 4
+    assert np.max(np.abs(z - [np.log(2.0), 2.0])) < 1e-2
+    z, taken = gauss_newton(fun, np.array([0.6, 1.9]), (box[0], np.array([5.0, 1.95])), 3)
+    assert z[1] == 1.95 and abs(z[0] - np.log(2.0)) < 1e-6
+    calls.clear()
+    z0 = np.array([np.log(2.0), 2.0])
+    z, taken = gauss_newton(fun, z0, box, 2)
+    assert taken == 0 and np.array_equal(z, z0)
+    z, taken = gauss_newton(fun, np.array([0.6, 1.9]), box, 0)
+    assert taken == 0 and np.array_equal(z, [0.6, 1.9])

@@ -33,6 +33,7 @@ the model's error at that target's cold reference reading.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, fields, replace
@@ -81,6 +82,36 @@ class _RunData:
 def _signals_at(rd: _RunData, t_s: np.ndarray) -> dict:
     """The run's measured signals as rises above their first sample, at times ``t_s``."""
     return {n: np.interp(t_s, st, sv - sv[0]) for n, (st, sv) in rd.signals.items()}
+
+
+def gauss_newton(fun, z: np.ndarray, box: tuple[np.ndarray, np.ndarray], steps: int) -> tuple[np.ndarray, int]:
+    """Up to ``steps`` Gauss-Newton steps on the residual ``fun`` from ``z`` within ``box``: a
+    forward-difference Jacobian (relative step 1e-5, as scipy's), the step by bounded linear
+    least squares, halved up to three times until the squared residual falls; a step that never
+    lowers it ends the search. Returns the point and the steps taken."""
+    lo, hi = box
+    r = fun(z)
+    taken = 0
+    for _ in range(steps):
+        jac = np.empty((r.size, z.size))
+        for j in range(z.size):
+            h = 1e-5 * max(1.0, abs(z[j])) * (1.0 if z[j] >= 0 else -1.0)
+            if not lo[j] <= z[j] + h <= hi[j]:
+                h = -h
+            zh = z.copy()
+            zh[j] += h
+            jac[:, j] = (fun(zh) - r) / h
+        step = lsq_linear(jac, -r, bounds=(lo - z, hi - z), method="bvls").x
+        for _ in range(4):
+            zn = np.clip(z + step, lo, hi)
+            rn = fun(zn)
+            if rn @ rn < r @ r:
+                break
+            step = step / 2.0
+        else:
+            return z, taken
+        z, r, taken = zn, rn, taken + 1
+    return z, taken
 
 
 class FieldCache:
@@ -298,7 +329,10 @@ class PhysicsModel(ThermalErrorModel):
         model's own (else no first stage)."""
         if self.coarse_macro_dt_s is None or (self.coarse_macro_dt_s <= self.macro_dt_s and self.coarse_dt_s <= self.dt_s):
             return None
-        return Numerics(dx_m=self.dx_m, dt_s=max(self.coarse_dt_s, self.dt_s), macro_dt_s=max(self.coarse_macro_dt_s, self.macro_dt_s))
+        dt = max(self.coarse_dt_s, self.dt_s)
+        # a whole number of fine steps per macro step (Numerics), at least the coarse macro step
+        macro = float(f"{dt * math.ceil(max(self.coarse_macro_dt_s, self.macro_dt_s) / dt - 1e-9):.12g}")
+        return Numerics(dx_m=self.dx_m, dt_s=dt, macro_dt_s=macro)
 
     # ------------------------------------------------------- parameters ---
     def _gains(self, effect_specs: dict) -> dict[str, float]:
@@ -408,8 +442,12 @@ class PhysicsModel(ThermalErrorModel):
             todo = [i for i, h in hists.items() if h is None]
             p = prepared.get((rd.run, models[0].numerics))
             if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
+                old = p
                 p = prepared[(rd.run, models[0].numerics)] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                         duration_s=rd.duration_s, at_other_pf=p)  # fmt: skip
+                                                         duration_s=rd.duration_s, at_other_pf=old)  # fmt: skip
+                if old is not None:  # cached histories keep the old one alive (their housings read it): not its caches
+                    old.heat.clear()
+                    old.derived.clear()
             if todo:
                 for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo], energy=False)):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
@@ -564,9 +602,7 @@ class PhysicsModel(ThermalErrorModel):
                                 ftol=max(float(self.ftol) / max(mse0, 1e-300), COARSE_RTOL), xtol=1e-4, gtol=1e-12,
                                 max_nfev=int(self.max_iter))  # fmt: skip
             z, self.sqp_message_, self.coarse_iterations_ = res.x, str(res.message), int(res.nfev)
-            res = least_squares(lambda z: solve(z, fine)[3], z, bounds=box, method="trf", diff_step=1e-5,
-                                max_nfev=int(self.polish_steps) + 1)  # fmt: skip
-            z, self.sqp_iterations_ = res.x, int(self.polish_steps)
+            z, self.sqp_iterations_ = gauss_newton(lambda z: solve(z, fine)[3], z, box, int(self.polish_steps))
         elif nonlinear:
             z, self.sqp_message_, self.sqp_iterations_ = sqp(z, fine, self.max_iter)
         g, core, sp, r = solve(z)

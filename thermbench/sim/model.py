@@ -95,6 +95,8 @@ class ReadPlan:
 
     n_t: int  # steps of the history it was made on
     pf_m: float
+    dx_m: float  # its grid
+    n_nodes: int
     sign: float  # +1: Pf <= 0, the screw coordinate grows with Px; -1: the other way
     px_mm: np.ndarray
     k: np.ndarray  # per reading, the step before it ...
@@ -208,7 +210,7 @@ class ThermalHistory:
             rk, rk1 = row_of[k], row_of[k + 1]
         else:
             sel, rk, rk1 = None, k, k + 1
-        return ReadPlan(self.t_s.size, pf, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m)
+        return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m)
 
     def error_field_um(self, axis_mm) -> np.ndarray:
         """Error over an axis grid at every step, shape (n_t, n_x): the
@@ -257,12 +259,14 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
     TEa = alpha dTa Px (seed 000 §2.2); then each history's offsets and slopes."""
     h0 = hists[0]
     amb = h0.ambient_C
+    g = h0.geom
     for h in hists:
-        if h.t_s.size != plan.n_t or h.core.pf_m != plan.pf_m:
-            raise ValueError("error_um: the read plan was made for other steps or another Pf")
+        if h.t_s.size != plan.n_t or h.core.pf_m != plan.pf_m or (h.geom.numerics.dx_m, h.geom.n_nodes) != (plan.dx_m, plan.n_nodes):
+            raise ValueError("error_um: the read plan was made for other steps, another Pf or another grid")
         if h.ambient_C is not amb and not np.array_equal(h.ambient_C, amb) or h.ta0_C != h0.ta0_C:
             raise ValueError("errors_um: the histories differ in their ambient")
-    g = h0.geom
+        if h.geom is not g and h.geom != g:
+            raise ValueError("errors_um: the histories differ in their screw, material or grid")
     sel = slice(None) if plan.rows is None else plan.rows
     theta = np.stack([h.theta_C[sel] for h in hists])
     dta = (amb[sel] - h0.ta0_C)[None, :, None]
@@ -450,7 +454,12 @@ class ScrewThermalModel:
                 dta_step = dta_f.reshape(n_steps, m).mean(axis=1)
             else:
                 amb_b = np.full(t_b.size, ta0)
-                dta_f, dta_step = np.zeros(d.t_s.size), np.zeros(n_steps)
+                # no ambient change: one zero series per run (the fine grid is long), read-only
+                dta_f = p.derived.get("zero_fine")
+                if dta_f is None:
+                    dta_f = p.derived["zero_fine"] = np.zeros(d.t_s.size)
+                    dta_f.setflags(write=False)
+                dta_step = np.zeros(n_steps)
             nb = g.n_bearing
             h_cov = c.k1_W_m2K_per_mm_min * p.v_cover + c.k2_W_m2K * p.cover
             area = np.full(n, g.side_area_m2)
