@@ -200,8 +200,8 @@ class PhysicsModel(ThermalErrorModel):
     coarse_dt_s, coarse_macro_dt_s, polish_steps : coarse to fine (module docstring): the
         coarse stage's steps (used where coarser than the model's own; None: one stage on
         the model's numerics, SLSQP) and the Gauss-Newton steps after it. On seed000_x the
-        identified model predicts within 0.01 um of a one-stage fit converged to ftol 1e-12,
-        in a fifth of its time (``benchmarks/bench_identification.py``).
+        identified model's RMSE is within 0.01 um of a one-stage fit's (ftol 1e-12) on every run,
+        in under a fifth of its time (``benchmarks/bench_identification.py``).
     max_iter, ftol : the search stops after ``max_iter`` iterations (SLSQP) or residual
         evaluations (coarse stage), or when the mean squared residual changes by less than
         ``ftol`` um^2: 1e-4 um^2 moves an RMSE of 0.5 um by 1e-4 um, far below any
