@@ -158,22 +158,16 @@ class ThermalHistory:
         E_n = alpha (T_n - Ta) dx, TEm(n dx) = sum_{i<=n} E_i, TEm(0) = 0
         (seed 000 §3.2), then the mounting/constraint effects.
         """
-        g = self.geom
-        theta, amb = (self.theta_C, self.ambient_C) if rows is None else (self.theta_C[rows], self.ambient_C[rows])
-        dta = (amb - self.ta0_C)[:, None]
-        e = g.material.alpha_per_K * (theta - dta) * g.numerics.dx_m * 1e6
-        u = np.concatenate([np.zeros((e.shape[0], 1)), np.cumsum(e, axis=1)], axis=1)
+        sel = slice(None) if rows is None else rows
+        u = _face_elongation_um(self.theta_C[sel], self.ambient_C[sel] - self.ta0_C, self.geom)
         for eff in self.effects:
-            u = eff.adjust_elongation_um(u, g)
+            u = eff.adjust_elongation_um(u, self.geom)
         return u
 
-    def offset_um(self) -> np.ndarray:
-        off = np.zeros_like(self.t_s)
-        for eff in self.effects:
-            o = eff.offset_um(self)
-            if o is not None:
-                off = off + o
-        return off
+    def offset_um(self) -> np.ndarray | None:
+        """The effects' position-independent offsets at the steps, summed (None: no effect adds one)."""
+        offs = [o for o in (eff.offset_um(self) for eff in self.effects) if o is not None]
+        return np.sum(offs, axis=0) if offs else None
 
     def error_um(self, t_s, axis_mm, plan: "ReadPlan | None" = None) -> np.ndarray:
         """Thermal positioning error (measured - commanded, um) at pairs (t, Px).
@@ -219,6 +213,15 @@ class ThermalHistory:
         tt = np.repeat(self.t_s, axis_mm.size)
         pp = np.tile(axis_mm, self.t_s.size)
         return errors_um([self], self.read_plan(tt, pp, rows=False))[0].reshape(self.t_s.size, axis_mm.size)
+
+
+def _face_elongation_um(theta_C: np.ndarray, dta_C: np.ndarray, g: Geometry) -> np.ndarray:
+    """TEm at the node faces from the field (..., n_t, N) and the ambient change (n_t,):
+    E_n = alpha (T_n - Ta) dx, TEm(n dx) = sum_{i<=n} E_i, TEm(0) = 0 (seed 000 §3.2)."""
+    e = g.material.alpha_per_K * (theta_C - dta_C[:, None]) * g.numerics.dx_m * 1e6
+    u = np.zeros((*e.shape[:-1], e.shape[-1] + 1))
+    np.cumsum(e, axis=-1, out=u[..., 1:])
+    return u
 
 
 def _adds_heat(effect: Effect) -> bool:
@@ -268,12 +271,7 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
         if h.geom is not g and h.geom != g:
             raise ValueError("errors_um: the histories differ in their screw, material or grid")
     sel = slice(None) if plan.rows is None else plan.rows
-    theta = np.stack([h.theta_C[sel] for h in hists])
-    dta = (amb[sel] - h0.ta0_C)[None, :, None]
-    e = g.material.alpha_per_K * (theta - dta) * g.numerics.dx_m * 1e6
-    u = np.empty((e.shape[0], e.shape[1], e.shape[2] + 1))
-    u[:, :, 0] = 0.0
-    np.cumsum(e, axis=2, out=u[:, :, 1:])
+    u = _face_elongation_um(np.stack([h.theta_C[sel] for h in hists]), amb[sel] - h0.ta0_C, g)
     for i, h in enumerate(hists):
         for eff in h.effects:
             u[i] = eff.adjust_elongation_um(u[i], g)
@@ -285,9 +283,8 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
     tea = g.material.alpha_per_K * dta_r * plan.px_mm * 1e-3 * 1e6
     out = plan.sign * (tem + tea)
     for i, h in enumerate(hists):
-        offs = [o for o in (eff.offset_um(h) for eff in h.effects) if o is not None]
-        if offs:
-            off = np.sum(offs, axis=0)
+        off = h.offset_um()
+        if off is not None:
             out[i] += off[k] * (1 - w) + off[k + 1] * w
         slope = h.slope_um_per_mm()
         if slope is not None:
