@@ -159,6 +159,28 @@ def test_a_prepared_run_serves_models_that_differ_in_heat_gains_only():
         other_pf.run_prepared(shared)
 
 
+def test_kept_inputs_stay_within_their_byte_budget(monkeypatch):
+    """What a run keeps is bounded by KEEP_BYTES: the bytes held are counted as values come
+    and are replaced, past the budget what was kept is dropped, and a value larger than the
+    budget alone is returned but not kept."""
+    from thermbench.sim import model as sim_model
+
+    monkeypatch.setattr(sim_model, "KEEP_BYTES", 1000)
+    kept = sim_model.Kept()
+    a = kept.keep("a", (np.zeros(50), 3.0))  # 400 bytes
+    assert a[0].flags.writeable is False and kept.nbytes == 400
+    kept.keep("b", (np.zeros(50), np.zeros(25)))  # 600 more: 1000, at the budget
+    assert set(kept) == {"a", "b"} and kept.nbytes == 1000
+    kept.keep("b", (np.zeros(10),))  # replaced: 400 + 80
+    assert kept.nbytes == 480
+    kept.keep("c", (np.zeros(66),))  # 528 more would pass 1000: the rest is dropped
+    assert set(kept) == {"c"} and kept.nbytes == 528
+    big = (np.zeros(126),)  # 1008 bytes alone
+    assert kept.keep("d", big) is big and "d" not in kept and big[0].flags.writeable and kept.nbytes == 528
+    kept.clear()
+    assert kept.nbytes == 0 and not kept
+
+
 def test_runs_integrated_together_match_each_alone_and_superpose():
     """run_prepared_many integrates models that differ in heat gains in one pass (one
     factorisation per step, the runs' substitutions interleaved): each history equals the
@@ -279,3 +301,73 @@ def test_fields_of_one_run_read_together_equal_each_read_alone():
     other_material = ScrewThermalModel(SEED000_SCREW, steel, core, effects=[make_effect("ambient_drift")])
     with pytest.raises(ValueError, match="screw, material or grid"):
         errors_um([hists[0], other_material.run_prepared(models[0].prepare(motion, ambient_C=amb))], plan)
+
+
+@pytest.mark.parametrize("pf_m", [-0.05, 0.6])
+def test_readings_through_the_plan_weights_match_the_hand_formula_and_the_face_read(pf_m):
+    """A read plan over readings weighs the field directly (no elongation at every face): on a
+    field uniform along the screw and linear in time, with the ambient drifting, the error is
+    alpha (theta(t) - dTa(t)) x + alpha dTa(t) Px (seed 000 §3.2 and §2.2, x the nut's distance
+    from Pf, the sign flipped for Pf > 0), computed by hand; on a simulated field it equals the
+    read through the faces (a plan over every step), which a constraint still takes."""
+    from thermbench.sim.effects import make_effect
+    from thermbench.sim.model import errors_um
+
+    _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
+    amb = 20.0 + 0.3 * np.sin(motion.t_s / 2000.0)
+    model = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(pf_m=pf_m), effects=[make_effect("ambient_drift")])
+    h = model.run(motion, ambient_C=amb)
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(0.0, h.t_s[-1], 40))
+    px = rng.uniform(0.0, 500.0, 40)
+    assert np.ptp(h.ambient_C) > 0.1
+    # by hand: a field 0.5 K + 1e-4 K/s t everywhere on the screw
+    uniform = replace(h, theta_C=np.repeat((0.5 + 1e-4 * h.t_s)[:, None], h.theta_C.shape[1], axis=1))
+    dta = np.interp(t, h.t_s, h.ambient_C) - h.ta0_C
+    sign = 1.0 if pf_m <= 0 else -1.0
+    x_m = np.clip(sign * (px / 1000.0 - pf_m), 0.0, SEED000_SCREW.length_m)
+    alpha = SEED000_MATERIAL.alpha_per_K
+    by_hand = sign * (alpha * (0.5 + 1e-4 * t - dta) * x_m + alpha * dta * px / 1000.0) * 1e6
+    plan = h.read_plan(t, px)
+    assert plan.weights is not None
+    np.testing.assert_allclose(errors_um([uniform], plan)[0], by_hand, rtol=1e-9, atol=1e-9)
+    # the simulated field, through the weights and through the faces
+    faces = h.read_plan(t, px, rows=False)
+    assert faces.weights is None
+    np.testing.assert_allclose(errors_um([h, uniform], plan), errors_um([h, uniform], faces), rtol=0, atol=1e-10)
+    assert np.ptp(errors_um([h], plan)) > 1.0
+    # a constrained field is read through the faces in the same pass as a free one
+    held = replace(h, effects=[*h.effects, make_effect("fixed_fixed_constraint", kappa=0.5)])
+    both = errors_um([h, held], plan)
+    np.testing.assert_allclose(both, errors_um([h, held], faces), rtol=0, atol=1e-10)
+    assert np.ptp(both[1] - both[0]) > 0.5
+
+
+def test_a_lagged_signal_is_the_first_order_lag_and_is_kept_when_asked():
+    """ThermalHistory.signal: the speed through a lag tau is y[k+1] = a y[k] + (1 - a) v[k],
+    a = exp(-dt/tau) (computed here by the recursion, step by step), and a temperature rise
+    through a lag starts at its first value; with a shared ``lagged`` dict the same array is
+    returned again (read-only), equal to the one computed without it."""
+    _, motion = seed000_motion(6000.0, warm_s=1200, cool_s=600, warm2_s=300)
+    h = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams()).run(motion)
+    rise = np.linspace(0.0, 3.0, h.t_s.size)
+    h = replace(h, signals={**h.signals, "T_nut": rise})
+    dt, tau = float(h.t_s[1] - h.t_s[0]), 900.0
+    a = math.exp(-dt / tau)
+    v = np.asarray(h.signals["speed"]) / 1000.0
+    y = np.zeros(h.t_s.size)
+    for k in range(v.size):
+        y[k + 1] = a * y[k] + (1 - a) * v[k]
+    np.testing.assert_allclose(h.signal("speed", tau), y, rtol=1e-12, atol=1e-15)
+    z = np.empty(rise.size)
+    z[0] = rise[0]
+    for k in range(1, rise.size):
+        z[k] = a * z[k - 1] + (1 - a) * rise[k]
+    np.testing.assert_allclose(h.signal("T_nut", tau), z, rtol=1e-12, atol=1e-15)
+    kept = replace(h, lagged={})
+    first = kept.signal("speed", tau)
+    assert kept.signal("speed", tau) is first and not first.flags.writeable
+    np.testing.assert_array_equal(first, h.signal("speed", tau))
+    assert not np.array_equal(kept.signal("speed", 60.0), first)
+    with pytest.raises(KeyError, match="not available"):
+        kept.signal("T_motor", tau)

@@ -190,3 +190,55 @@ def test_gauss_newton_steps_lower_the_residual_within_the_box():
     assert taken == 0 and np.array_equal(z, z0)
     z, taken = gauss_newton(fun, np.array([0.6, 1.9]), box, 0)
     assert taken == 0 and np.array_equal(z, [0.6, 1.9])
+
+
+def test_gauss_newton_takes_its_first_step_with_a_borrowed_jacobian():
+    """With the Jacobian of a nearby residual (the coarse stage's), the first step costs the
+    residual at z and one at the step, no differencing; the analytic Jacobian of the residual
+    above at (0.6, 1.9), within 5 %, lands within 1e-2 of (ln 2, 2) as the differenced one does.
+    A Jacobian pointing the wrong way gives no descent: the step is taken again with the
+    differenced Jacobian. A Jacobian of the wrong shape is refused."""
+    from thermbench.models.physics import gauss_newton
+
+    calls = []
+
+    def fun(z):
+        calls.append(z.copy())
+        return np.array([np.exp(z[0]) - 2.0, z[1] ** 2 - 4.0])
+
+    box = (np.array([-5.0, -5.0]), np.array([5.0, 5.0]))
+    near = np.diag([np.exp(0.6) * 1.05, 2 * 1.9 * 0.97])
+    z, taken = gauss_newton(fun, np.array([0.6, 1.9]), box, 1, jac=near)
+    assert taken == 1 and len(calls) == 2
+    assert np.max(np.abs(z - [np.log(2.0), 2.0])) < 1e-2
+    calls.clear()
+    z, taken = gauss_newton(fun, np.array([0.6, 1.9]), box, 1, jac=-near)
+    assert taken == 1 and np.max(np.abs(z - [np.log(2.0), 2.0])) < 1e-2
+    assert len(calls) == 1 + 4 + 2 + 1  # z, four halvings of the wrong step, the Jacobian, the step
+    with pytest.raises(ValueError, match="columns"):
+        gauss_newton(fun, np.array([0.6, 1.9]), box, 1, jac=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="rows"):
+        gauss_newton(fun, np.array([0.6, 1.9]), box, 1, jac=np.zeros((3, 2)))
+
+
+def test_the_gain_basis_a_fit_keeps_is_the_one_computed_afresh(clean_seed000):
+    """gain_basis after a fit on the same runs (in any order) reads the basis the fit computed
+    at its identified point: equal, to the bit, to one computed afresh from the fitted model;
+    other runs, or another fit of the model, are computed afresh."""
+    from thermbench.models.physics import _LAST_BASIS
+
+    ds, runs = clean_seed000, ["cond1_3000", "cond2_6000"]
+    m = PhysicsModel(effects={"motor_heat": {}}, max_iter=3).fit(ds, runs)
+    units, kept = m.gain_basis(ds, runs)
+    assert ds.__dict__["_derived"][_LAST_BASIS][0] == m.basis_token_
+    assert [b[2].size for b in m.gain_basis(ds, runs[::-1])[1]] == [b[2].size for b in kept[::-1]]  # in any order
+    m.basis_token_ = None  # as an unpickled or cloned model: nothing kept for it
+    units2, fresh = m.gain_basis(ds, runs)
+    assert units == units2 and len(kept) == len(fresh) == 2
+    for (e0k, ak, yk), (e0f, af, yf) in zip(kept, fresh):
+        assert np.array_equal(e0k, e0f) and np.array_equal(ak, af) and np.array_equal(yk, yf)
+        assert ak.shape[1] == len(units) and np.ptp(ak) > 0
+    from thermbench.models.base import readings
+
+    one = m.gain_basis(ds, ["cond3_9000"])[1]  # another run: computed for it
+    assert len(one) == 1 and np.array_equal(one[0][2], readings(ds, ["cond3_9000"])["thermal_um"].to_numpy())

@@ -234,11 +234,12 @@ def _scored(effects, model, ds, runs, folds, fit_s: float, family) -> Fitted:
                   fit_s)  # fmt: skip
 
 
-def fit_full(effects, ds, runs, folds, settings, warm=None, start=None) -> Fitted:
+def fit_full(effects, ds, runs, folds, settings, warm=None, start=None, cache=None) -> Fitted:
     """Identify ``effects`` on ``runs`` (the training runs: all of them for leave-one-run-out,
-    the declared train runs for a split) and score it."""
+    the declared train runs for a split) and score it. ``cache``: fields shared with the
+    other fits of the search step."""
     t0 = time.perf_counter()
-    model = settings.family.make_model(effects, ds, settings, warm, start).fit(ds, runs)
+    model = settings.family.make_model(effects, ds, settings, warm, start, cache).fit(ds, runs)
     return _scored(effects, model, ds, runs, folds, time.perf_counter() - t0, settings.family)
 
 
@@ -272,14 +273,16 @@ def heldout_loro(effects, ds, folds, settings, warms=None, new_effect: str | Non
     predictions and the fold models (the warm starts of the next step)."""
     fam = settings.family
     parts, models = [], []
+    cache = fam.cache()  # the folds share their runs' fields
     for k, (train, test) in enumerate(folds):
         warm = warms[k] if warms is not None else None
         start = None
         if new_effect:
-            start = screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant) or {new_effect: dict(variant or {})}
+            start = (screen_start(new_effect, effects[:-1], warm, ds, train, settings, variant, cache)
+                     or {new_effect: dict(variant or {})})  # fmt: skip
         if new_effect in fam.open:  # as on all runs: then its own parameters with the rest held
-            start = {new_effect: fam.effect_params(held_fit(effects, ds, train, settings, warm, start), new_effect)}
-        m = fam.make_model(effects, ds, settings, warm, start).fit(ds, train)
+            start = {new_effect: fam.effect_params(held_fit(effects, ds, train, settings, warm, start, cache), new_effect)}
+        m = fam.make_model(effects, ds, settings, warm, start, cache).fit(ds, train)
         models.append(m)
         for run in test:
             parts.append(residual_table(fam, m, ds, run))
@@ -393,12 +396,12 @@ def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float
     for x in screened:
         eid, var, fs = x
         if isinstance(fs, _Start):
-            f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, fs.start)
+            f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, fs.start, cache)
             rec = _record(eid, var, f, current, floor_um, settings, ctx, refit=True)
         else:
             rec = _record(eid, var, fs, current, floor_um, settings, ctx, refit=False)
             if id(x) in chosen:
-                rec = refit(rec, current, ds, runs, folds, settings, floor_um)
+                rec = refit(rec, current, ds, runs, folds, settings, floor_um, cache)
         out.append(rec)
         say_record(rec, settings)
     return out
@@ -411,11 +414,11 @@ class _Start:
     start: dict
 
 
-def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float) -> dict:
+def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float, cache=None) -> dict:
     """A screened candidate re-identified with every parameter free, from its screening fit."""
     eid = rec["effect"]
     start = {eid: settings.family.effect_params(rec["fitted"].model, eid)}
-    f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start)
+    f = fit_full([*current.effects, eid], ds, runs, folds, settings, current.model, start, cache)
     f.fit_s += rec["fit_s"]
     return _record(eid, rec["variant"], f, current, floor_um, settings, settings.family.context(ds), refit=True)
 

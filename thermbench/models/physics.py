@@ -79,29 +79,67 @@ class _RunData:
     signals: dict  # measured signals the effects follow: {sensor: (t_s, filtered series)}
 
 
-def _signals_at(rd: _RunData, t_s: np.ndarray) -> dict:
-    """The run's measured signals as rises above their first sample, at times ``t_s``."""
-    return {n: np.interp(t_s, st, sv - sv[0]) for n, (st, sv) in rd.signals.items()}
+def _signals_at(rd: _RunData, p) -> tuple[dict, dict]:
+    """The run's measured signals as rises above their first sample, at the steps of the
+    prepared run ``p``, and a dict for their lagged forms (:attr:`ThermalHistory.lagged`):
+    kept with ``p`` for these signals, read-only."""
+    kept = p.derived.get("signals_at")
+    if kept is not None and kept[0] is rd.signals:
+        return kept[1], kept[2]
+    out = {n: np.interp(p.t_b_s, st, sv - sv[0]) for n, (st, sv) in rd.signals.items()}
+    for a in out.values():
+        a.setflags(write=False)
+    p.derived["signals_at"] = (rd.signals, out, {})
+    return out, p.derived["signals_at"][2]
 
 
-def gauss_newton(fun, z: np.ndarray, box: tuple[np.ndarray, np.ndarray], steps: int) -> tuple[np.ndarray, int]:
+#: where a fit keeps its last basis with the dataset (:meth:`PhysicsModel.gain_basis`)
+_LAST_BASIS = "physics_last_basis"
+
+#: prepared runs kept per run and numerics, at as many Pf values (:func:`_prepared_at`)
+PREPARED_PER_RUN = 2
+
+
+def _prepared_at(prepared: dict, rd: _RunData, model: ScrewThermalModel, source):
+    """The run prepared for ``model``'s Pf with the ambient ``source`` (sensor and filters; None:
+    constant): one of the last made for the run, or one made from the latest (only the nut's
+    path anew, :meth:`ScrewThermalModel.prepare`); the oldest past :data:`PREPARED_PER_RUN` is
+    dropped, with its caches (cached histories keep it alive: their housings read it)."""
+    kept = prepared.setdefault((rd.run, model.numerics, source), [])
+    key = model.prepared_key()
+    p = next((q for q in kept if q.key == key), None)
+    if p is None:
+        p = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s, duration_s=rd.duration_s,
+                          at_other_pf=kept[0] if kept else None)  # fmt: skip
+        kept.insert(0, p)
+        for old in kept[PREPARED_PER_RUN:]:
+            old.heat.clear()
+            old.derived.clear()
+        del kept[PREPARED_PER_RUN:]
+    return p
+
+
+def gauss_newton(fun, z: np.ndarray, box: tuple[np.ndarray, np.ndarray], steps: int,
+                 jac: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Up to ``steps`` Gauss-Newton steps on the residual ``fun`` from ``z`` within ``box``: a
     forward-difference Jacobian (relative step 1e-5, as scipy's), the step by bounded linear
     least squares, halved up to three times until the squared residual falls; a step that never
-    lowers it ends the search. Returns the point and the steps taken."""
+    lowers it ends the search. ``jac``: a Jacobian at ``z`` to take the first step with instead
+    (the coarse stage's, of a residual that differs from ``fun`` only by its time steps: a
+    simplified Gauss-Newton step: the Jacobian of a nearby problem); if that step does not lower the residual,
+    it is taken again with the forward-difference Jacobian. Returns the point and the steps taken."""
     lo, hi = box
+    if jac is not None and jac.shape[1] != z.size:
+        raise ValueError(f"gauss_newton: jac has {jac.shape[1]} columns, expected {z.size}")
     r = fun(z)
+    if jac is not None and jac.shape[0] != r.size:
+        raise ValueError(f"gauss_newton: jac has {jac.shape[0]} rows, expected {r.size} (the residual's size)")
     taken = 0
-    for _ in range(steps):
-        jac = np.empty((r.size, z.size))
-        for j in range(z.size):
-            h = 1e-5 * max(1.0, abs(z[j])) * (1.0 if z[j] >= 0 else -1.0)
-            if not lo[j] <= z[j] + h <= hi[j]:
-                h = -h
-            zh = z.copy()
-            zh[j] += h
-            jac[:, j] = (fun(zh) - r) / h
+    while taken < steps:
+        borrowed = jac is not None
+        jac = jac if borrowed else _forward_jacobian(fun, z, r, box)
         step = lsq_linear(jac, -r, bounds=(lo - z, hi - z), method="bvls").x
+        jac = None
         for _ in range(4):
             zn = np.clip(z + step, lo, hi)
             rn = fun(zn)
@@ -109,9 +147,26 @@ def gauss_newton(fun, z: np.ndarray, box: tuple[np.ndarray, np.ndarray], steps: 
                 break
             step = step / 2.0
         else:
+            if borrowed:
+                continue  # again with the model's own Jacobian
             return z, taken
         z, r, taken = zn, rn, taken + 1
     return z, taken
+
+
+def _forward_jacobian(fun, z: np.ndarray, r: np.ndarray, box) -> np.ndarray:
+    """The forward-difference Jacobian of ``fun`` at ``z`` (``r = fun(z)``), each step turned
+    back into ``box`` where it would leave it."""
+    lo, hi = box
+    jac = np.empty((r.size, z.size))
+    for j in range(z.size):
+        h = 1e-5 * max(1.0, abs(z[j])) * (1.0 if z[j] >= 0 else -1.0)
+        if not lo[j] <= z[j] + h <= hi[j]:
+            h = -h
+        zh = z.copy()
+        zh[j] += h
+        jac[:, j] = (fun(zh) - r) / h
+    return jac
 
 
 class FieldCache:
@@ -123,7 +178,7 @@ class FieldCache:
     def __init__(self, size: int = 64) -> None:
         self.size = size
         self._d: OrderedDict = OrderedDict()
-        self.prepared: dict = {}  # (run id, numerics) -> the last Prepared (motion, ambient, coverage at a Pf)
+        self.prepared: dict = {}  # (run id, numerics, ambient source) -> the last Prepared runs (at a Pf each)
 
     def get(self, key):
         hit = self._d.get(key)
@@ -408,8 +463,9 @@ class PhysicsModel(ThermalErrorModel):
 
         The runs of one basis differ in the gains only, so each run's motion, ambient and
         nut coverage are prepared once (:meth:`ScrewThermalModel.prepare`) and kept in
-        ``prepared`` ((run id, numerics) -> the last one made) for the next basis at the same Pf:
-        identification's finite-difference steps in k1, k2 and lambda reuse it.
+        ``prepared`` ((run id, numerics, ambient source) -> the last :data:`PREPARED_PER_RUN` made, at as many Pf) for
+        the next basis at the same Pf: identification's finite-difference steps in k1, k2 and lambda
+        reuse it, and a Jacobian's step in Pf does not drop the run at the point it steps from.
 
         Effects that do not touch the temperature field (``field_free``: offsets, slopes)
         cost no simulation: their gain columns read E0's field with their own effects, and
@@ -418,6 +474,7 @@ class PhysicsModel(ThermalErrorModel):
         prepared = {} if prepared is None else prepared
         memo = FieldCache() if memo is None else memo
         free = {e for e in specs if getattr(effect_class(e), "field_free", False)}
+        source = self._ambient_source() if ambient else None  # the ambient the fields were driven by
         actives = [None, *gains]
         models, keys = [], []
         for active in actives:
@@ -432,7 +489,7 @@ class PhysicsModel(ThermalErrorModel):
             # key, and a step in one candidate's own parameters re-integrates its column only
             owner = active.split(".", 1)[0] if active is not None and "." in active else None
             keys.append(None if owner in free else
-                        (active, ambient, models[-1].numerics, tuple(sorted(c.items())),
+                        (active, source, models[-1].numerics, tuple(sorted(c.items())),
                          tuple((e, tuple(sorted(p.items()))) for e, p in sorted(sp.items())
                                if e not in free and (e == owner or not effect_class(e).heat_gains))))  # fmt: skip
         out = []
@@ -440,24 +497,17 @@ class PhysicsModel(ThermalErrorModel):
             # the fields not in the cache, integrated together (they differ in the gains only)
             hists = {i: memo.get((rd.run, *k)) for i, k in enumerate(keys) if k is not None}
             todo = [i for i, h in hists.items() if h is None]
-            p = prepared.get((rd.run, models[0].numerics))
-            if p is None or p.key != models[0].prepared_key():  # another Pf: the nut's path anew, the rest reused
-                old = p
-                p = prepared[(rd.run, models[0].numerics)] = models[0].prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s,
-                                                         duration_s=rd.duration_s, at_other_pf=old)  # fmt: skip
-                if old is not None:  # cached histories keep the old one alive (their housings read it): not its caches
-                    old.heat.clear()
-                    old.derived.clear()
+            p = _prepared_at(prepared, rd, models[0], source)
             if todo:
                 for i, h in zip(todo, run_prepared_many(p, [models[i] for i in todo], energy=False)):
                     hists[i] = memo.put((rd.run, *keys[i]), h)
-            read, h0, sig = [], None, None
+            read, h0 = [], None
+            sig, lagged = _signals_at(rd, p)  # the fields share their steps, and their lagged signals
             for i, model in enumerate(models):
                 if keys[i] is None:
                     hist = replace(h0, effects=model.effects)  # the same field, other offsets
                 else:
-                    sig = _signals_at(rd, hists[i].t_s) if sig is None else sig  # the fields share their steps
-                    hist = replace(hists[i], effects=model.effects, signals={"speed": hists[i].signals["speed"], **sig})
+                    hist = replace(hists[i], effects=model.effects, signals={"speed": p.v_mean, **sig}, lagged=lagged)
                     if i == 0:
                         h0 = hist
                 read.append(hist)
@@ -467,6 +517,10 @@ class PhysicsModel(ThermalErrorModel):
             resp = e - e[:, rd.ref_idx]
             out.append((resp[0], (resp[1:] - resp[0]).T))
         return out
+
+    def _ambient_source(self) -> tuple:
+        """What the measured ambient the fields are driven by is made from: its sensor and filters."""
+        return (self.ambient_name_, repr(self.preprocess))
 
     def _run_data(self, ds: Dataset, runs: list[str], rd_all, specs: dict) -> list[_RunData]:
         """Per run: its drive and readings, each reading with the index of its target's
@@ -504,6 +558,9 @@ class PhysicsModel(ThermalErrorModel):
         self._check_fitted()
         runs = list(runs)
         gains = self._gains(self.effects_)
+        kept = dataset.__dict__.get("_derived", {}).get(_LAST_BASIS)
+        if kept is not None and kept[0] == getattr(self, "basis_token_", None) and set(runs) <= set(kept[1]):
+            return gains, [kept[1][r] for r in runs]  # computed by the fit at this point, run by run (the same numbers)
         rds = self._run_data(dataset, runs, readings(dataset, runs), self.effects_)
         parts = self._basis(dataset, rds, self.core_.as_dict(), self.effects_, gains, self.ambient_name_ is not None)
         return gains, [(e0, a, rd.thermal_um) for (e0, a), rd in zip(parts, rds)]
@@ -553,7 +610,7 @@ class PhysicsModel(ThermalErrorModel):
         gain_lb = self.gain_lower_bounds(gains)  # heat gains k > 0 (seed 000 §4.2)
         n_eval = 0
         memo = getattr(self, "field_cache", None) or FieldCache()  # the last fields (see _basis)
-        prepared = memo.prepared  # (run id, numerics) -> its motion, ambient and coverage at the last Pf
+        prepared = memo.prepared  # (run id, numerics, ambient source) -> its motion, ambient and coverage at the last Pf values
         fine = Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
         recent: OrderedDict = OrderedDict()  # the last points solved: SLSQP ends on one it has evaluated
 
@@ -573,7 +630,7 @@ class PhysicsModel(ThermalErrorModel):
             a = np.concatenate([p[1] for p in parts])
             sol = lsq_linear(a, y - e0, bounds=(gain_lb, np.inf), method="bvls")
             r = a @ sol.x + e0 - y
-            recent[key] = out = (sol.x, core, sp, r)
+            recent[key] = out = (sol.x, core, sp, r, parts)
             if len(recent) > 8:
                 recent.popitem(last=False)
             return out
@@ -602,10 +659,16 @@ class PhysicsModel(ThermalErrorModel):
                                 ftol=max(float(self.ftol) / max(mse0, 1e-300), COARSE_RTOL), xtol=1e-4, gtol=1e-12,
                                 max_nfev=int(self.max_iter))  # fmt: skip
             z, self.sqp_message_, self.coarse_iterations_ = res.x, str(res.message), int(res.nfev)
-            z, self.sqp_iterations_ = gauss_newton(lambda z: solve(z, fine)[3], z, box, int(self.polish_steps))
+            z, self.sqp_iterations_ = gauss_newton(lambda z: solve(z, fine)[3], z, box, int(self.polish_steps),
+                                                   jac=res.jac)
         elif nonlinear:
             z, self.sqp_message_, self.sqp_iterations_ = sqp(z, fine, self.max_iter)
-        g, core, sp, r = solve(z)
+        g, core, sp, r, parts = solve(z)
+        # the basis at the identified point, for gain_basis on these runs of this dataset, in any order or
+        # a subset (kept with the dataset, the last fit's only: the discrepancy search scores each fit with it)
+        self.basis_token_ = (id(self), time.perf_counter_ns())
+        ds.__dict__.setdefault("_derived", {})[_LAST_BASIS] = (
+            self.basis_token_, {rd.run: (e0, a, rd.thermal_um) for (e0, a), rd in zip(parts, rds)})
         sse = float(np.sum(r**2))
         for (name, unit), val in zip(gains.items(), g):
             self._set(core, sp, name, float(val) * unit)

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
+from scipy import sparse
 from scipy.signal import lfilter
 
 from . import kernels
@@ -82,7 +83,7 @@ class Prepared:
     signals_b: dict = field(default_factory=dict)
     # heat inputs already made over this run, by k3, k4 and the heating effects' parameters (they
     # do not depend on k1, k2 or lambda: identification's steps in those reuse them); read-only
-    heat: dict = field(default_factory=dict, repr=False, compare=False)
+    heat: "Kept" = field(default_factory=lambda: Kept(), repr=False, compare=False)
     # anything else a caller derives from this run and its Pf alone (identification's read plans)
     derived: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -106,6 +107,29 @@ class ReadPlan:
     rk1: np.ndarray  # ... and k + 1
     m: np.ndarray  # per reading, the node face before it ...
     f: np.ndarray  # ... and its fraction towards the next
+    # (readings, n_t x n_nodes): the field's weights in each reading's elongation, in and
+    # between steps (None for a plan over every step: error_field_um reads through faces)
+    weights: "sparse.csr_array | None" = None
+
+
+def _read_weights(n_t: int, n_nodes: int, k, w, m, f) -> "sparse.csr_array":
+    """The elongation read at (k + w, face m + f) as weights on the field at steps k, k + 1:
+    sum_{i<m} theta_i + f theta_m at each step (seed 000 §3.2: TEm(n dx) = sum_{i<=n} E_i,
+    linear within an element), interpolated linearly in time. Row r holds nodes 0..m_r at
+    step k_r, then at step k_r + 1 (CSR, made directly)."""
+    count = m + 1
+    indptr = np.zeros(m.size + 1, dtype=np.int64)
+    np.cumsum(2 * count, out=indptr[1:])
+    r = np.repeat(np.arange(m.size), count)
+    i = np.arange(r.size) - np.repeat(np.cumsum(count) - count, count)
+    v = np.where(i == m[r], f[r], 1.0)
+    first = indptr[r] + i  # the entry at step k; the one at k + 1 is count_r further
+    second = first + count[r]
+    indices = np.empty(indptr[-1], dtype=np.int64)
+    data = np.empty(indptr[-1])
+    indices[first], indices[second] = k[r] * n_nodes + i, (k[r] + 1) * n_nodes + i
+    data[first], data[second] = (1.0 - w[r]) * v, w[r] * v
+    return sparse.csr_array((data, indices, indptr), shape=(m.size, n_t * n_nodes))
 
 
 @dataclass
@@ -125,11 +149,26 @@ class ThermalHistory:
     # what offsets and slopes may follow: "speed" (mm/min, step means, n_t - 1) and measured
     # temperature rises (K, at the step boundaries, n_t)
     signals: dict = field(default_factory=dict)
+    # lagged signals already made, by (name, tau_s), read-only: histories of one run with the same
+    # steps and signals may share one (identification's basis); None: none kept
+    lagged: dict | None = field(default=None, repr=False, compare=False)
 
     def signal(self, name: str, tau_s: float = 0.0) -> np.ndarray:
         """Signal ``name`` through a first-order lag ``tau_s`` at the step boundaries:
         ``"speed"`` in m/min (exact for the step means: y[k+1] = a y[k] + (1 - a) v[k],
         a = exp(-dt/tau), y[0] = 0; with no lag y[k+1] = v[k]), a temperature rise in K."""
+        if self.lagged is None:
+            return self._signal(name, tau_s)
+        key = (name, float(tau_s))
+        y = self.lagged.get(key)
+        if y is None:
+            if len(self.lagged) >= 64:
+                self.lagged.clear()
+            y = self.lagged[key] = self._signal(name, tau_s)
+            y.setflags(write=False)
+        return y
+
+    def _signal(self, name: str, tau_s: float) -> np.ndarray:
         if name not in self.signals:
             raise KeyError(f"signal {name!r} is not available to the model; it has {sorted(self.signals)}")
         dt = float(self.t_s[1] - self.t_s[0]) if self.t_s.size > 1 else 1.0
@@ -197,14 +236,17 @@ class ThermalHistory:
         sign = 1.0 if pf <= 0 else -1.0
         nodes = np.clip(sign * (px_mm / 1000.0 - pf), 0.0, g.screw.length_m) / g.numerics.dx_m
         m = np.clip(np.floor(nodes).astype(int), 0, g.n_nodes - 1)
+        weights = None
         if rows:
             sel = np.unique(np.concatenate([k, k + 1]))
             row_of = np.full(self.t_s.size, -1)
             row_of[sel] = np.arange(sel.size)
             rk, rk1 = row_of[k], row_of[k + 1]
+            weights = _read_weights(self.t_s.size, g.n_nodes, k, w, m, nodes - m)
         else:
             sel, rk, rk1 = None, k, k + 1
-        return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m)
+        return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m,
+                        weights)  # fmt: skip
 
     def error_field_um(self, axis_mm) -> np.ndarray:
         """Error over an axis grid at every step, shape (n_t, n_x): the
@@ -224,31 +266,56 @@ def _face_elongation_um(theta_C: np.ndarray, dta_C: np.ndarray, g: Geometry) -> 
     return u
 
 
+def _adjusts_elongation(effect: Effect) -> bool:
+    """Whether the effect's class changes the elongation at the faces (a mounting constraint)."""
+    return type(effect).adjust_elongation_um is not Effect.adjust_elongation_um
+
+
 def _adds_heat(effect: Effect) -> bool:
     """Whether the effect's class adds heat (overrides a heat hook of :class:`Effect`)."""
     cls = type(effect)
     return cls.nut_heat_W is not Effect.nut_heat_W or cls.sources is not Effect.sources
 
 
-#: what a run keeps of the inputs it has made (:func:`_remember`), per kind, in bytes
+#: what a run keeps of the inputs it has made (:class:`Kept`), per kind, in bytes
 KEEP_BYTES = 64_000_000
 
 
-def _remember(d: dict, key, value: tuple) -> tuple:
-    """Keep ``value`` (a tuple of arrays and numbers) in ``d`` under ``key``, read-only, within
-    :data:`KEEP_BYTES` (past it, what was kept is dropped; a value larger than that alone is not
-    kept). Returns ``value``."""
-    size = lambda v: sum(a.nbytes for a in v if isinstance(a, np.ndarray))  # noqa: E731
-    n = size(value)
-    if n > KEEP_BYTES:
+class Kept(dict):
+    """Inputs kept with a run (tuples of arrays and numbers), read-only, within
+    :data:`KEEP_BYTES` in all: past it, what was kept is dropped; a value larger than that
+    alone is not kept. The bytes held are counted as values come and go."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.nbytes = 0
+
+    @staticmethod
+    def _size(value: tuple) -> int:
+        return sum(a.nbytes for a in value if isinstance(a, np.ndarray))
+
+    def keep(self, key, value: tuple) -> tuple:
+        """Keep ``value`` under ``key``; returns it."""
+        n = self._size(value)
+        if n > KEEP_BYTES:
+            return value
+        if key in self:
+            self.nbytes -= self._size(self[key])
+        if self.nbytes + n > KEEP_BYTES:
+            self.clear()
+        for a in value:
+            if isinstance(a, np.ndarray):
+                a.setflags(write=False)
+        super().__setitem__(key, value)
+        self.nbytes += n
         return value
-    if sum(size(v) for v in d.values()) + n > KEEP_BYTES:
-        d.clear()
-    for a in value:
-        if isinstance(a, np.ndarray):
-            a.setflags(write=False)
-    d[key] = value
-    return value
+
+    def __setitem__(self, key, value) -> None:
+        self.keep(key, value)
+
+    def clear(self) -> None:
+        super().clear()
+        self.nbytes = 0
 
 
 def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
@@ -270,16 +337,25 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
             raise ValueError("errors_um: the histories differ in their ambient")
         if h.geom is not g and h.geom != g:
             raise ValueError("errors_um: the histories differ in their screw, material or grid")
-    sel = slice(None) if plan.rows is None else plan.rows
-    u = _face_elongation_um(np.stack([h.theta_C[sel] for h in hists]), amb[sel] - h0.ta0_C, g)
-    for i, h in enumerate(hists):
-        for eff in h.effects:
-            u[i] = eff.adjust_elongation_um(u[i], g)
     k, w, m, f = plan.k, plan.w, plan.m, plan.f
-    u_k = u[:, plan.rk, m] * (1 - f) + u[:, plan.rk, m + 1] * f
-    u_k1 = u[:, plan.rk1, m] * (1 - f) + u[:, plan.rk1, m + 1] * f
-    tem = u_k * (1 - w) + u_k1 * w
     dta_r = (amb[k] * (1 - w) + amb[k + 1] * w) - h0.ta0_C
+    tem = np.empty((len(hists), k.size))
+    # a field whose elongation no effect adjusts is read through the plan's weights; the
+    # others (a constraint) through the elongation at the node faces
+    faces = [i for i, h in enumerate(hists) if plan.weights is None or any(_adjusts_elongation(e) for e in h.effects)]
+    if len(faces) < len(hists):
+        scale = g.material.alpha_per_K * g.numerics.dx_m * 1e6
+        for i in sorted(set(range(len(hists))) - set(faces)):
+            tem[i] = scale * (plan.weights @ np.ravel(hists[i].theta_C) - (m + f) * dta_r)
+    if faces:
+        sel = slice(None) if plan.rows is None else plan.rows
+        u = _face_elongation_um(np.stack([hists[i].theta_C[sel] for i in faces]), amb[sel] - h0.ta0_C, g)
+        for j, i in enumerate(faces):
+            for eff in hists[i].effects:
+                u[j] = eff.adjust_elongation_um(u[j], g)
+        u_k = u[:, plan.rk, m] * (1 - f) + u[:, plan.rk, m + 1] * f
+        u_k1 = u[:, plan.rk1, m] * (1 - f) + u[:, plan.rk1, m + 1] * f
+        tem[faces] = u_k * (1 - w) + u_k1 * w
     tea = g.material.alpha_per_K * dta_r * plan.px_mm * 1e-3 * 1e6
     out = plan.sign * (tem + tea)
     for i, h in enumerate(hists):
@@ -373,7 +449,7 @@ class ScrewThermalModel:
             cov = kernels.accumulate_cover(
                 d.x_screw_m, d.v_mm_min[None, :], m, n_steps, g.n_nodes, num.dx_m, self.screw.nut_length_m / 2.0, g.n_bearing
             )
-            return replace(o, key=self.prepared_key(), drive=d, cover=cov[0], v_cover=cov[1], heat={}, derived={})
+            return replace(o, key=self.prepared_key(), drive=d, cover=cov[0], v_cover=cov[1], heat=Kept(), derived={})
         d = self.drive(motion, duration_s)
         m = num.per_step
         n_steps = d.t_s.size // m
@@ -466,7 +542,7 @@ class ScrewThermalModel:
             gk = (h_mean[:, None] - h_cov) * area[None, :]
             cached = (amb_b, dta_f, dta_step, gk, self.material_conductance(c.lambda_W_mK))
             if shared is not None:
-                cached = _remember(shared, key, cached)  # kept with the run (run_prepared_many)
+                cached = shared.keep(key, cached)  # kept with the run (run_prepared_many)
         amb_b, dta_f, dta_step, gk, cond = cached
 
         th0 = np.zeros(n) if theta0_C is None else np.asarray(theta0_C, dtype=float).copy()
@@ -475,7 +551,7 @@ class ScrewThermalModel:
         hkey = (c.k3_W_per_mm_min, c.k4_W_per_mm_min, *((e.id, *(getattr(e, f.name) for f in fields(e))) for e in heating))
         heat = p.heat.get(hkey)
         if heat is None:
-            heat = _remember(p.heat, hkey, self._heat(p, heating))
+            heat = p.heat.keep(hkey, self._heat(p, heating))
         q, extra, sw, sp, qn_mean, qb_mean = heat
         return _Inputs(
             th0=th0, q=q, gk=gk, dta_f=dta_f, dta_step=dta_step, amb_b=amb_b, extra=extra, sw=sw, sp=sp,
@@ -582,7 +658,7 @@ def run_prepared_many(
     xs: list[_Inputs] = []
     # conductances and ambient by (k1, k2, lambda, drift), kept with the run: made once for the models that
     # share them, here and in later calls (identification's steps in a gain effect's own parameters)
-    shared: dict = p.derived.setdefault("conductances", {})
+    shared: Kept = p.derived.setdefault("conductances", Kept())
     for i, model in enumerate(models):
         how = method or model.numerics.method
         x = model._inputs(p, theta0_C, shared if model.geom == models[0].geom else None)
