@@ -304,7 +304,7 @@ def test_fields_of_one_run_read_together_equal_each_read_alone():
 
 
 @pytest.mark.parametrize("pf_m", [-0.05, 0.6])
-def test_readings_through_the_plan_weights_match_the_hand_formula_and_the_face_read(pf_m):
+def test_readings_through_the_plan_weights_match_the_hand_formula_and_the_face_read(pf_m, monkeypatch):
     """A read plan over readings weighs the field directly (no elongation at every face): on a
     field uniform along the screw and linear in time, with the ambient drifting, the error is
     alpha (theta(t) - dTa(t)) x + alpha dTa(t) Px (seed 000 §3.2 and §2.2, x the nut's distance
@@ -341,6 +341,13 @@ def test_readings_through_the_plan_weights_match_the_hand_formula_and_the_face_r
     both = errors_um([h, held], plan)
     np.testing.assert_allclose(both, errors_um([h, held], faces), rtol=0, atol=1e-10)
     assert np.ptp(both[1] - both[0]) > 0.5
+    # past WEIGHTS_MAX (readings x nodes) a plan over readings reads through the faces too
+    from thermbench.sim import model as sim_model
+
+    monkeypatch.setattr(sim_model, "WEIGHTS_MAX", t.size * h.theta_C.shape[1] - 1)
+    big = h.read_plan(t, px)
+    assert big.weights is None
+    np.testing.assert_allclose(errors_um([h, uniform], big), errors_um([h, uniform], plan), rtol=0, atol=1e-10)
 
 
 def test_a_lagged_signal_is_the_first_order_lag_and_is_kept_when_asked():

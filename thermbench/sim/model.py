@@ -13,7 +13,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
-from scipy import sparse
 from scipy.signal import lfilter
 
 from . import kernels
@@ -107,29 +106,22 @@ class ReadPlan:
     rk1: np.ndarray  # ... and k + 1
     m: np.ndarray  # per reading, the node face before it ...
     f: np.ndarray  # ... and its fraction towards the next
-    # (readings, n_t x n_nodes): the field's weights in each reading's elongation, in and
-    # between steps (None for a plan over every step: error_field_um reads through faces)
-    weights: "sparse.csr_array | None" = None
+    # (readings, n_nodes) each: the field's weights in each reading's elongation at steps k and
+    # k + 1 (None for a plan over every step or too many readings: read through the faces)
+    weights: "tuple[np.ndarray, np.ndarray] | None" = None
 
 
-def _read_weights(n_t: int, n_nodes: int, k, w, m, f) -> "sparse.csr_array":
-    """The elongation read at (k + w, face m + f) as weights on the field at steps k, k + 1:
-    sum_{i<m} theta_i + f theta_m at each step (seed 000 §3.2: TEm(n dx) = sum_{i<=n} E_i,
-    linear within an element), interpolated linearly in time. Row r holds nodes 0..m_r at
-    step k_r, then at step k_r + 1 (CSR, made directly)."""
-    count = m + 1
-    indptr = np.zeros(m.size + 1, dtype=np.int64)
-    np.cumsum(2 * count, out=indptr[1:])
-    r = np.repeat(np.arange(m.size), count)
-    i = np.arange(r.size) - np.repeat(np.cumsum(count) - count, count)
-    v = np.where(i == m[r], f[r], 1.0)
-    first = indptr[r] + i  # the entry at step k; the one at k + 1 is count_r further
-    second = first + count[r]
-    indices = np.empty(indptr[-1], dtype=np.int64)
-    data = np.empty(indptr[-1])
-    indices[first], indices[second] = k[r] * n_nodes + i, (k[r] + 1) * n_nodes + i
-    data[first], data[second] = (1.0 - w[r]) * v, w[r] * v
-    return sparse.csr_array((data, indices, indptr), shape=(m.size, n_t * n_nodes))
+#: a read plan weighs the field directly up to this many (readings x nodes)
+WEIGHTS_MAX = 2_000_000
+
+
+def _read_weights(n_nodes: int, w, m, f) -> tuple[np.ndarray, np.ndarray]:
+    """The elongation read at (k + w, face m + f) as weights on the field's nodes at steps k and
+    k + 1: sum_{i<m} theta_i + f theta_m (seed 000 §3.2: TEm(n dx) = sum_{i<=n} E_i, linear within
+    an element), interpolated linearly in time."""
+    i = np.arange(n_nodes)
+    at = (i < m[:, None]) + np.where(i == m[:, None], f[:, None], 0.0)
+    return at * (1.0 - w)[:, None], at * w[:, None]
 
 
 @dataclass
@@ -242,7 +234,8 @@ class ThermalHistory:
             row_of = np.full(self.t_s.size, -1)
             row_of[sel] = np.arange(sel.size)
             rk, rk1 = row_of[k], row_of[k + 1]
-            weights = _read_weights(self.t_s.size, g.n_nodes, k, w, m, nodes - m)
+            if k.size * g.n_nodes <= WEIGHTS_MAX:
+                weights = _read_weights(g.n_nodes, w, m, nodes - m)
         else:
             sel, rk, rk1 = None, k, k + 1
         return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m,
@@ -346,7 +339,9 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
     if len(faces) < len(hists):
         scale = g.material.alpha_per_K * g.numerics.dx_m * 1e6
         for i in sorted(set(range(len(hists))) - set(faces)):
-            tem[i] = scale * (plan.weights @ np.ravel(hists[i].theta_C) - (m + f) * dta_r)
+            th = hists[i].theta_C
+            tem[i] = scale * (np.einsum("rn,rn->r", th[k], plan.weights[0]) + np.einsum("rn,rn->r", th[k + 1], plan.weights[1])
+                              - (m + f) * dta_r)  # fmt: skip
     if faces:
         sel = slice(None) if plan.rows is None else plan.rows
         u = _face_elongation_um(np.stack([hists[i].theta_C[sel] for i in faces]), amb[sel] - h0.ta0_C, g)
