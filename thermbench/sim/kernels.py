@@ -272,3 +272,28 @@ def explicit_run(
         if (j + 1) % n_per_out == 0:
             out[(j + 1) // n_per_out, :] = y
     return out
+
+
+@njit(cache=True)
+def read_node_sums(theta, rows, rk, rk1, m, f, w):
+    """Per reading r, the field's node sum up to face m_r + f_r (sum_{i<m} theta_i + f theta_m,
+    seed 000 §3.2's elongation integral without its alpha dx and ambient) at steps ``rows[rk_r]``
+    and ``rows[rk1_r]``, interpolated with weight ``w_r`` towards the second. The cumulative sums
+    are made for the listed ``rows`` only."""
+    n_nodes = theta.shape[1]
+    c = np.empty((rows.size, n_nodes + 1))
+    for a in range(rows.size):
+        row = rows[a]
+        s = 0.0
+        c[a, 0] = 0.0
+        for i in range(n_nodes):
+            s += theta[row, i]
+            c[a, i + 1] = s
+    out = np.empty(rk.size)
+    for r in range(rk.size):
+        j = m[r]
+        fr = f[r]
+        at_k = c[rk[r], j] * (1.0 - fr) + c[rk[r], j + 1] * fr
+        at_k1 = c[rk1[r], j] * (1.0 - fr) + c[rk1[r], j + 1] * fr
+        out[r] = at_k * (1.0 - w[r]) + at_k1 * w[r]
+    return out

@@ -106,22 +106,10 @@ class ReadPlan:
     rk1: np.ndarray  # ... and k + 1
     m: np.ndarray  # per reading, the node face before it ...
     f: np.ndarray  # ... and its fraction towards the next
-    # (readings, n_nodes) each: the field's weights in each reading's elongation at steps k and
-    # k + 1 (None for a plan over every step or too many readings: read through the faces)
-    weights: "tuple[np.ndarray, np.ndarray] | None" = None
-
-
-#: a read plan weighs the field directly up to this many (readings x nodes)
-WEIGHTS_MAX = 2_000_000
-
-
-def _read_weights(n_nodes: int, w, m, f) -> tuple[np.ndarray, np.ndarray]:
-    """The elongation read at (k + w, face m + f) as weights on the field's nodes at steps k and
-    k + 1: sum_{i<m} theta_i + f theta_m (seed 000 §3.2: TEm(n dx) = sum_{i<=n} E_i, linear within
-    an element), interpolated linearly in time."""
-    i = np.arange(n_nodes)
-    at = (i < m[:, None]) + np.where(i == m[:, None], f[:, None], 0.0)
-    return at * (1.0 - w)[:, None], at * w[:, None]
+    # per reading, its four corners (steps k, k + 1 x faces m, m + 1) in the faces of the rows,
+    # flattened (4, readings), and their bilinear weights (4, readings)
+    corners: np.ndarray = field(default_factory=lambda: np.zeros((4, 0), dtype=int))
+    weights: np.ndarray = field(default_factory=lambda: np.zeros((4, 0)))
 
 
 @dataclass
@@ -228,18 +216,19 @@ class ThermalHistory:
         sign = 1.0 if pf <= 0 else -1.0
         nodes = np.clip(sign * (px_mm / 1000.0 - pf), 0.0, g.screw.length_m) / g.numerics.dx_m
         m = np.clip(np.floor(nodes).astype(int), 0, g.n_nodes - 1)
-        weights = None
+        f = nodes - m
         if rows:
             sel = np.unique(np.concatenate([k, k + 1]))
             row_of = np.full(self.t_s.size, -1)
             row_of[sel] = np.arange(sel.size)
             rk, rk1 = row_of[k], row_of[k + 1]
-            if k.size * g.n_nodes <= WEIGHTS_MAX:
-                weights = _read_weights(g.n_nodes, w, m, nodes - m)
         else:
             sel, rk, rk1 = None, k, k + 1
-        return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, nodes - m,
-                        weights)  # fmt: skip
+        nf = g.n_nodes + 1
+        corners = np.stack([rk * nf + m, rk * nf + m + 1, rk1 * nf + m, rk1 * nf + m + 1])
+        weights = np.stack([(1 - w) * (1 - f), (1 - w) * f, w * (1 - f), w * f])
+        return ReadPlan(self.t_s.size, pf, g.numerics.dx_m, g.n_nodes, sign, px_mm, k, w, sel, rk, rk1, m, f,
+                        corners, weights)  # fmt: skip
 
     def error_field_um(self, axis_mm) -> np.ndarray:
         """Error over an axis grid at every step, shape (n_t, n_x): the
@@ -332,25 +321,29 @@ def errors_um(hists: Sequence[ThermalHistory], plan: ReadPlan) -> np.ndarray:
             raise ValueError("errors_um: the histories differ in their screw, material or grid")
     k, w, m, f = plan.k, plan.w, plan.m, plan.f
     dta_r = (amb[k] * (1 - w) + amb[k + 1] * w) - h0.ta0_C
+    sel = slice(None) if plan.rows is None else plan.rows
     tem = np.empty((len(hists), k.size))
-    # a field whose elongation no effect adjusts is read through the plan's weights; the
-    # others (a constraint) through the elongation at the node faces
-    faces = [i for i, h in enumerate(hists) if plan.weights is None or any(_adjusts_elongation(e) for e in h.effects)]
-    if len(faces) < len(hists):
+
+    def read(u: np.ndarray) -> np.ndarray:  # faces (n, rows, N + 1) at the readings' corners
+        return np.einsum("hjr,jr->hr", u.reshape(u.shape[0], -1)[:, plan.corners], plan.weights)
+
+    # a field whose elongation no effect adjusts: its node sums at the readings (kernels.read_node_sums),
+    # the ambient and the scale applied there (TEm = alpha dx 1e6 (sum theta - (m + f) dTa)); the others
+    # (a constraint) adjust the elongation at every face of the rows, read at the corners
+    adjusted = [i for i, h in enumerate(hists) if any(_adjusts_elongation(e) for e in h.effects)]
+    plain = [i for i in range(len(hists)) if i not in adjusted]
+    if plain:
+        rows = np.arange(plan.n_t) if plan.rows is None else plan.rows
         scale = g.material.alpha_per_K * g.numerics.dx_m * 1e6
-        for i in sorted(set(range(len(hists))) - set(faces)):
-            th = hists[i].theta_C
-            tem[i] = scale * (np.einsum("rn,rn->r", th[k], plan.weights[0]) + np.einsum("rn,rn->r", th[k + 1], plan.weights[1])
-                              - (m + f) * dta_r)  # fmt: skip
-    if faces:
-        sel = slice(None) if plan.rows is None else plan.rows
-        u = _face_elongation_um(np.stack([hists[i].theta_C[sel] for i in faces]), amb[sel] - h0.ta0_C, g)
-        for j, i in enumerate(faces):
+        for i in plain:
+            sums = kernels.read_node_sums(np.ascontiguousarray(hists[i].theta_C), rows, plan.rk, plan.rk1, m, f, w)
+            tem[i] = scale * (sums - (m + f) * dta_r)
+    if adjusted:
+        u = _face_elongation_um(np.stack([hists[i].theta_C[sel] for i in adjusted]), amb[sel] - h0.ta0_C, g)
+        for j, i in enumerate(adjusted):
             for eff in hists[i].effects:
                 u[j] = eff.adjust_elongation_um(u[j], g)
-        u_k = u[:, plan.rk, m] * (1 - f) + u[:, plan.rk, m + 1] * f
-        u_k1 = u[:, plan.rk1, m] * (1 - f) + u[:, plan.rk1, m + 1] * f
-        tem[faces] = u_k * (1 - w) + u_k1 * w
+        tem[adjusted] = read(u)
     tea = g.material.alpha_per_K * dta_r * plan.px_mm * 1e-3 * 1e6
     out = plan.sign * (tem + tea)
     for i, h in enumerate(hists):
