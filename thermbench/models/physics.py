@@ -58,8 +58,10 @@ from .separation import cold_reference_geometric
 CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
 CORE_NONLINEAR = ("k1_W_m2K_per_mm_min", "k2_W_m2K", "lambda_W_mK", "pf_m")
 # the coarse stage stops when the mean squared residual changes by less than this fraction of
-# itself: its optimum differs from the model's own by more (seed000_x: the coarse optimum's MSE on
-# the model's numerics is 0.2 % above the model's optimum), which the Gauss-Newton steps take up
+# itself in an iteration: its optimum differs from the model's own by about as much (seed000_x: the
+# coarse optimum's MSE on the model's numerics is 0.2 % above the model's optimum), which the
+# Gauss-Newton steps take up (seed000_x: train RMSE 0.78354 um against 0.78352 um for SLSQP on the
+# model's numerics to ftol 1e-12; 1e-3 gave 0.78356 um with more evaluations)
 COARSE_RTOL = 3e-3
 # typical magnitudes (seed 000 Table 3) that scale the SQP variables to O(1)
 _SCALE = {"k1_W_m2K_per_mm_min": 1e-3, "k2_W_m2K": 20.0, "lambda_W_mK": 300.0, "pf_m": 0.1}
