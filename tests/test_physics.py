@@ -179,6 +179,15 @@ def test_kept_inputs_stay_within_their_byte_budget(monkeypatch):
     assert kept.keep("d", big) is big and "d" not in kept and big[0].flags.writeable and kept.nbytes == 528
     kept.clear()
     assert kept.nbytes == 0 and not kept
+    # a run's caches travel with it (a pickled or copied Prepared): the count stays the bytes held
+    import copy
+    import pickle
+
+    kept.keep("a", (np.zeros(50),))
+    for other in (pickle.loads(pickle.dumps(kept)), copy.deepcopy(kept)):
+        assert set(other) == {"a"} and other.nbytes == 400
+        other.keep("b", (np.zeros(25),))
+        assert other.nbytes == 600
 
 
 def test_runs_integrated_together_match_each_alone_and_superpose():

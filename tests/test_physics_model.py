@@ -221,7 +221,7 @@ def test_gauss_newton_takes_its_first_step_with_a_borrowed_jacobian():
         gauss_newton(fun, np.array([0.6, 1.9]), box, 1, jac=np.zeros((3, 2)))
 
 
-def test_the_gain_basis_a_fit_keeps_is_the_one_computed_afresh(clean_seed000):
+def test_the_gain_basis_a_fit_keeps_is_the_one_computed_afresh(clean_seed000, monkeypatch):
     """gain_basis after a fit on the same runs (in any order) reads the basis the fit computed
     at its identified point: equal, to the bit, to one computed afresh from the fitted model;
     other runs, or another fit of the model, are computed afresh."""
@@ -229,11 +229,22 @@ def test_the_gain_basis_a_fit_keeps_is_the_one_computed_afresh(clean_seed000):
 
     ds, runs = clean_seed000, ["cond1_3000", "cond2_6000"]
     m = PhysicsModel(effects={"motor_heat": {}}, max_iter=3).fit(ds, runs)
+    calls = []
+    original = PhysicsModel._basis
+
+    def counted(self, *a, **k):
+        calls.append(1)
+        return original(self, *a, **k)
+
+    monkeypatch.setattr(PhysicsModel, "_basis", counted)
     units, kept = m.gain_basis(ds, runs)
+    assert not calls  # read from the fit
     assert ds.__dict__["_derived"][_LAST_BASIS][0] == m.basis_token_
     assert [b[2].size for b in m.gain_basis(ds, runs[::-1])[1]] == [b[2].size for b in kept[::-1]]  # in any order
-    m.basis_token_ = None  # as an unpickled or cloned model: nothing kept for it
+    assert not calls
+    m.basis_token_ = None  # a model whose basis is not the one kept: computed afresh
     units2, fresh = m.gain_basis(ds, runs)
+    assert len(calls) == 1
     assert units == units2 and len(kept) == len(fresh) == 2
     for (e0k, ak, yk), (e0f, af, yf) in zip(kept, fresh):
         assert np.array_equal(e0k, e0f) and np.array_equal(ak, af) and np.array_equal(yk, yf)
@@ -242,3 +253,39 @@ def test_the_gain_basis_a_fit_keeps_is_the_one_computed_afresh(clean_seed000):
 
     one = m.gain_basis(ds, ["cond3_9000"])[1]  # another run: computed for it
     assert len(one) == 1 and np.array_equal(one[0][2], readings(ds, ["cond3_9000"])["thermal_um"].to_numpy())
+    assert len(calls) == 2
+    first = m.fit(ds, runs).basis_token_  # a fit keeps its own basis only
+    other = PhysicsModel(effects={"motor_heat": {}}, max_iter=3).fit(ds, ["cond3_9000"])
+    assert other.basis_token_ != first
+    n = len(calls)
+    m.gain_basis(ds, runs)  # m's basis is no longer the one kept: computed afresh
+    assert len(calls) == n + 1
+
+
+def test_a_run_is_kept_prepared_at_its_two_last_pf_and_per_ambient_source(clean_seed000):
+    """_prepared_at: a run prepared at a Pf is found again (a Jacobian's step in Pf does not drop
+    the point it steps from); a third Pf drops the least recently used; a run driven by another
+    ambient source (a measured ambient, other filters) is prepared apart, never shared."""
+    from thermbench.models.base import readings
+    from thermbench.models.physics import _prepared_at
+    from thermbench.sim.model import ScrewThermalModel
+
+    ds, run = clean_seed000, "cond1_3000"
+    m = PhysicsModel(max_iter=1).fit(ds, [run])
+    specs = {e: dict(p) for e, p in m.effects_.items()}
+    rd = m._run_data(ds, [run], readings(ds, [run]), specs)[0]
+    base = m._build(ds, m.core_.as_dict(), specs, False)
+
+    def at(pf_m):
+        return ScrewThermalModel(base.screw, base.material, CoreParams(**{**m.core_.as_dict(), "pf_m": pf_m}),
+                                 numerics=base.numerics)  # fmt: skip
+
+    prepared = {}
+    a = _prepared_at(prepared, rd, at(-0.2), None)
+    b = _prepared_at(prepared, rd, at(-0.2 * (1 + 1e-5)), None)
+    assert _prepared_at(prepared, rd, at(-0.2), None) is a  # found again, now the most recent
+    c = _prepared_at(prepared, rd, at(-0.25), None)  # drops b, the least recently used
+    assert [p.key[-1] for p in prepared[(run, base.numerics, None)]] == [-0.25, -0.2]
+    assert _prepared_at(prepared, rd, at(-0.2), None) is a and c is not a and not b.derived and not b.heat
+    other = _prepared_at(prepared, rd, at(-0.2), ("T_ambient", "'default'"))
+    assert other is not a and len(prepared) == 2

@@ -266,7 +266,10 @@ KEEP_BYTES = 64_000_000
 class Kept(dict):
     """Inputs kept with a run (tuples of arrays and numbers), read-only, within
     :data:`KEEP_BYTES` in all: past it, what was kept is dropped; a value larger than that
-    alone is not kept. The bytes held are counted as values come and go."""
+    alone is not kept. The bytes held are counted as values come and go (:meth:`keep`: the
+    only way in)."""
+
+    nbytes = 0
 
     def __init__(self) -> None:
         super().__init__()
@@ -291,9 +294,6 @@ class Kept(dict):
         super().__setitem__(key, value)
         self.nbytes += n
         return value
-
-    def __setitem__(self, key, value) -> None:
-        self.keep(key, value)
 
     def clear(self) -> None:
         super().clear()
