@@ -26,7 +26,8 @@ import pytest
 import yaml
 
 from thermbench.compensator.certs import make_certificates
-from thermbench.compensator.client import Compensator, CompensatorError
+from thermbench.compensator.client import Compensator
+from thermbench.compensator.errors import CompensatorError
 from thermbench.compensator.simcnc import build_machine
 
 pytestmark = pytest.mark.timing  # a real-time loop: run alone (see the Makefile)
@@ -160,8 +161,15 @@ def test_the_loop_against_node_opcua_writes_what_it_computes(node, machine, pki,
     assert len(status) >= 2 and abs(len(status) - wall_s // 0.5) <= 1, (len(status), wall_s)
     assert all(" ms mean, " in ln and "; compensation " in ln for ln in status)
     ok_cycles = log[log["flag_names"] == "OK"]
-    assert len(ok_cycles) > 100, log["flag_names"].value_counts().to_dict()  # machine time from the source timestamps
-    assert ok_cycles["t_s"].max() >= 150 and ok_cycles["t_s"].is_monotonic_increasing
+    # once every input has arrived, every cycle compensates. How many cycles fit in the program's 3 s of
+    # wall time depends on the machine (CI on 2026-11-29: 96 OK cycles of 30 ms each, here about 250),
+    # so the count asked for is one a slow machine still makes: a cycle per 60 ms at most
+    first_ok = log.index[log["flag_names"] == "OK"][0]
+    assert (log.loc[first_ok:, "flag_names"] == "OK").all(), log["flag_names"].value_counts().to_dict()
+    assert len(ok_cycles) >= 50 and ok_cycles["t_s"].nunique() >= 50, log["flag_names"].value_counts().to_dict()
+    # the program starts at the loop's first read (not at the server's start, which the refused clients
+    # before it would eat into: the CI run of 2026-11-29 saw the loop join at 150 s), so it is seen to its end
+    assert ok_cycles["t_s"].max() >= 250 and ok_cycles["t_s"].is_monotonic_increasing
     assert np.all(np.isfinite(ok_cycles["value_um"])) and np.abs(ok_cycles["value_um"]).max() > 3.0  # a warming axis
     # node-opcua received exactly what the compensator logged: the Double bit for bit, the flags as Int32
     writes = srv.writes()
@@ -190,15 +198,15 @@ def test_faults_and_a_restart_of_the_node_opcua_server(node, pki, seed001_export
     srv = NodeServer(node, m, ok, tmp_path, faults=faults)
     servers = [srv]
 
-    def restart():  # 6 s after the loop starts: the first program (500 s at 100x) is over, the loop goes on
+    def restart():  # 7 s after the loop starts: the first program (500 s at 100x from the first read) is over
         servers[-1].stop()
         time.sleep(0.5)
         servers.append(NodeServer(node, m, ok, tmp_path, port=srv.port, faults={"sensor": [], "freeze": []}))
 
     cfg = {"period_s": 0.01, "log": str(tmp_path / "cycles.csv"), "security": security(ok, ok), "stale_after_s": 0.3,
-           "reconnect": {"initial_s": 0.05, "max_s": 0.4, "factor": 2.0}, "duration_s": 14.0}  # fmt: skip
+           "reconnect": {"initial_s": 0.05, "max_s": 0.4, "factor": 2.0}, "duration_s": 18.0}  # fmt: skip
     nodes = nodes_file(tmp_path, m, done=False)
-    timer = threading.Timer(6.0, restart)
+    timer = threading.Timer(7.0, restart)
     timer.start()
     try:
         summary = asyncio.run(Compensator(seed001_exports / "mlr", srv.endpoint, nodes, cfg).run())

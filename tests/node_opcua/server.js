@@ -36,7 +36,11 @@ async function main() {
   const ns = space.registerNamespace(cfg.uri);
   const cols = cfg.columns;
   const rows = cfg.samples;
-  let t0 = null; // the program starts when a client first reads an input
+  // the program starts when a client first reads an input. node-opcua calls each getter once while it
+  // builds the address space, so reads count only once the server is listening: only a client that got
+  // through the security checks can read, and the refused ones before it do not start the program
+  let t0 = null;
+  let listening = false;
   const now = () => (t0 === null ? 0 : ((Date.now() - t0) / 1000) * cfg.speed);
   // faults (machine time windows): a sensor column publishes a value (null: NaN) instead of its own;
   // during a freeze nothing new is published (the values and their timestamps stop)
@@ -62,7 +66,7 @@ async function main() {
     componentOf: axis, browseName: name, nodeId: `s=X.${name}`, dataType: "Double",
     value: {
       timestamped_get: () => {
-        if (t0 === null) t0 = Date.now();
+        if (t0 === null && listening) t0 = Date.now();
         const r = row();
         return new DataValue({
           value: new Variant({ dataType: DataType.Double, value: r[k] }),
@@ -95,6 +99,7 @@ async function main() {
   output("TempComp_um", "Double", 0.0);
   output("TempComp_Status", "Int32", 0);
   await server.start();
+  listening = true;
   fs.writeFileSync(cfg.ready + ".tmp", server.getEndpointUrl());
   fs.renameSync(cfg.ready + ".tmp", cfg.ready);
   const stop = async () => { await server.shutdown(100); process.exit(0); };
