@@ -22,7 +22,8 @@ import yaml
 
 from thermbench.cli import main
 from thermbench.compensator.certs import make_certificates
-from thermbench.compensator.client import Compensator, CompensatorError, RefusedWrite
+from thermbench.compensator.client import Compensator
+from thermbench.compensator.errors import CompensatorError, RefusedWrite
 from thermbench.compensator.control import Flags
 from thermbench.compensator.simcnc import SimCnc, SimCncError, build_machine, nodes_yaml, serve
 from thermbench.datasets import load_benchmark

@@ -306,7 +306,8 @@ def test_namespace_uris_are_resolved_against_the_servers_namespace_array():
     """OPC UA Part 6 5.3.1.10: nsu=<uri>;<id> names the namespace by URI; the server's
     NamespaceArray gives its index (here 3). Other forms pass unchanged; an unknown URI or a
     malformed id is a one-line CompensatorError naming the node and the server's namespaces."""
-    from thermbench.compensator.client import CompensatorError, resolve_node_id
+    from thermbench.compensator.errors import CompensatorError
+    from thermbench.compensator.opcua import resolve_node_id
 
     array = ["http://opcfoundation.org/UA/", "urn:server", "urn:vendor:plc", "urn:thermbench:sim-cnc", "urn:a;b"]
     assert resolve_node_id("nsu=urn:thermbench:sim-cnc;s=X.Position_mm", array, "input axis_mm") == "ns=3;s=X.Position_mm"
@@ -323,7 +324,7 @@ def test_namespace_uris_are_resolved_against_the_servers_namespace_array():
 def test_the_status_line_says_cycles_times_machine_time_compensation_and_flags():
     from types import SimpleNamespace
 
-    from thermbench.compensator.client import status_line
+    from thermbench.compensator.cyclelog import status_line
 
     c = SimpleNamespace(t_s=3600.4, value_um=-12.345, flags=int(Flags.STALE) | int(Flags.HELD))
     line = status_line(41, c, [1.0, 2.0, 6.0])

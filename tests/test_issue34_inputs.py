@@ -28,7 +28,8 @@ import pytest
 import yaml
 
 from thermbench.cli import main
-from thermbench.compensator.client import CompensatorError, Security, Session
+from thermbench.compensator.errors import CompensatorError
+from thermbench.compensator.opcua import Security, Session
 from thermbench.compensator.nodes import NodesError, load_nodes
 from thermbench.compensator.simcnc import SimCnc, nodes_yaml
 from thermbench.compensator.station import StationError, load_station
@@ -421,7 +422,7 @@ def test_connecting_names_the_data_type_and_the_file_and_key_of_a_missing_node(t
 def test_data_types_are_named_not_shown_as_node_ids():
     from asyncua import ua
 
-    from thermbench.compensator.client import data_type_name
+    from thermbench.compensator.opcua import data_type_name
 
     assert data_type_name(ua.NodeId(ua.ObjectIds.Int32, 0)) == "Int32"
     assert data_type_name(ua.NodeId(ua.ObjectIds.Float, 0)) == "Float"

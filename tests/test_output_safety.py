@@ -166,7 +166,8 @@ def test_precompensate_never_writes_over_a_program(tmp_path):
 
 # ------------------------------------------------------- sim-cnc, compensator ---
 def test_sim_cnc_and_compensator_refuse_before_serving(campaign, tmp_path, seed001_exports):
-    from thermbench.compensator.client import Compensator, CompensatorError
+    from thermbench.compensator.client import Compensator
+    from thermbench.compensator.errors import CompensatorError
     from thermbench.compensator.simcnc import build_machine, nodes_yaml, serve
 
     before = _digest(tmp_path / "campaign")

@@ -64,7 +64,7 @@ _MODULE_ERRORS = (
     ("export.runtime", "RuntimeFailed"),
     ("discrepancy.workflow", "DiagnoseError"),
     ("precompensate", "PrecompError"),
-    ("compensator.client", "CompensatorError"),
+    ("compensator.errors", "CompensatorError"),
     ("compensator.nodes", "NodesError"),
     ("compensator.simcnc", "SimCncError"),
 )

@@ -2,12 +2,15 @@
 
 * :mod:`.nodes`: ``nodes.yaml``, the machine's node ids for the model's inputs and outputs;
 * :mod:`.control`: one cycle without I/O (input guard, model step, error line, rate limit);
-* :mod:`.client`: ``thermbench compensator``, the asyncua client loop;
+* :mod:`.client`: ``thermbench compensator``, the loop of one machine axis;
+* :mod:`.opcua`: the OPC UA session (security, node checks, guarded writes);
+* :mod:`.cyclelog`: the cycle log, run statistics and status line every front end shares;
 * :mod:`.simcnc`: ``thermbench sim-cnc``, the asyncua server running the simulator;
 * :mod:`.certs`: ``thermbench certs``, self-signed certificates for Basic256Sha256.
 """
 
-from .client import CompensatorError, RefusedWrite, run_compensator
+from .client import run_compensator
+from .errors import CompensatorError, RefusedWrite
 from .control import Flags
 from .nodes import NodesError
 from .simcnc import SimCncError

@@ -13,7 +13,7 @@ import socket
 from pathlib import Path
 
 from ..outputs import check_output_file, output_file
-from .client import CLIENT_APP_URI
+from .opcua import CLIENT_APP_URI
 from .simcnc import SERVER_APP_URI
 
 FILES = {"server": ("server_cert.der", "server_key.pem", SERVER_APP_URI),

@@ -48,6 +48,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .errors import CompensatorError
+
 TB_E_SAMPLING = -12
 TB_MAX_GAP_S = 60.0  # embedded/include/tb_runtime.h
 
@@ -110,10 +112,7 @@ def flag_names(f: int) -> str:
 
 def config_error(message: str) -> Exception:
     """A mistake in ``conf/compensator.yaml`` or its overrides: a
-    :class:`thermbench.compensator.client.CompensatorError` (one line, exit 2). The class
-    lives in :mod:`.client`, which imports this module: it is imported here when needed."""
-    from .client import CompensatorError
-
+    :class:`~.errors.CompensatorError` (one line, exit 2)."""
     return CompensatorError(message)
 
 

@@ -47,9 +47,10 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..outputs import check_output_file, write_text
-from .client import (STATS_CYCLES, CompensatorError, CycleLog, Ring, Security, Session, _connection_errors,
-                     _num, cycle_stats, output_variants, resume_from_controller)  # fmt: skip
-from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, flag_names
+from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, _num, flag_names
+from .cyclelog import STATS_CYCLES, CycleLog, Ring, cycle_stats
+from .errors import CompensatorError
+from .opcua import Security, Session, _connection_errors, output_variants, resume_from_controller
 from .nodes import Nodes, NodesError, load_nodes, read_yaml_file
 
 SEP = "::"  # "<endpoint>::<node id>": an input node on another endpoint than its channel's

@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from ..compensator.client import CycleLog, Ring, cycle_stats, status_line
+from ..compensator.cyclelog import CycleLog, Ring, cycle_stats, status_line
 from ..compensator.control import Cycle, CycleLogic, Deadlines, Flags, Reading, Settings, config_error
 from ..errors import UserError
 from ..outputs import check_output_file, write_text
