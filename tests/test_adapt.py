@@ -1,0 +1,114 @@
+"""The probe filter (thermbench/adapt.py) against a second implementation: the joint
+maximum-a-posteriori estimate of the whole random walk of (bias, gain) from every probe so far,
+one dense least-squares problem (the Kalman filter's estimate at the last probe is its last
+state, and its covariance the matching block of the inverse information matrix), and against a
+hand computation of the scalar case."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from thermbench.adapt import ProbeFilter, ProbeParams, ProbeParamsError, apply_probes
+
+
+def joint_map(t_s, predicted, measured, p: ProbeParams, t0_s: float):
+    """States z = [x_0, x_1 .. x_n] (x = bias, gain) at t0 and each probe; the prior N(0, P0) on
+    x_0, the random walk x_k - x_{k-1} ~ N(0, Q dt_k), the readings y_k - p_k = [1, p_k] x_k + v."""
+    n = len(t_s)
+    N = 2 * (n + 1)
+    A = np.zeros((N, N))
+    b = np.zeros(N)
+    A[:2, :2] += np.diag([1 / p.bias0_um**2, 1 / p.gain0**2])
+    prev = t0_s
+    for k in range(1, n + 1):
+        dt_h = (t_s[k - 1] - prev) / 3600.0
+        prev = t_s[k - 1]
+        Qi = np.diag([1 / (p.q_bias_um2_per_h * dt_h), 1 / (p.q_gain_per_h * dt_h)])
+        i, j = slice(2 * k - 2, 2 * k), slice(2 * k, 2 * k + 2)
+        A[i, i] += Qi
+        A[j, j] += Qi
+        A[i, j] -= Qi
+        A[j, i] -= Qi
+        H = np.array([1.0, predicted[k - 1]])
+        A[j, j] += np.outer(H, H) / p.r_um2
+        b[j] += H * (measured[k - 1] - predicted[k - 1]) / p.r_um2
+    z = np.linalg.solve(A, b)
+    cov = np.linalg.inv(A)
+    return z[-2:], cov[-2:, -2:]
+
+
+def test_the_filter_is_the_joint_estimate_of_the_random_walk():
+    rng = np.random.default_rng(3)
+    p = ProbeParams(q_bias_um2_per_h=0.7, q_gain_per_h=2e-3, r_um2=0.2, bias0_um=2.5, gain0=0.15)
+    t0 = 100.0
+    t = t0 + np.cumsum(rng.uniform(600, 5400, 9))
+    pred = rng.uniform(-20, 30, t.size)
+    meas = 1.1 * pred + 1.5 + rng.normal(0, 0.4, t.size)
+    f = ProbeFilter(p, t0)
+    for k in range(t.size):
+        f.probe(t[k], pred[k], meas[k])
+        x, P = joint_map(t[: k + 1], pred[: k + 1], meas[: k + 1], p, t0)
+        assert np.allclose(f.x, x, rtol=1e-9, atol=1e-10)
+        assert np.allclose(f.P, P, rtol=1e-8, atol=1e-12)
+    # between probes: the state stands, the variance of the corrected value grows by H Q dt Hᵀ
+    later = t[-1] + 1800.0
+    value, var = f.correct(later, 4.0)
+    H = np.array([1.0, 4.0])
+    assert value == pytest.approx(4.0 * (1 + x[1]) + x[0], rel=1e-12)
+    assert var == pytest.approx(H @ (P + np.diag([0.7, 2e-3]) * 0.5) @ H, rel=1e-9)
+
+
+def test_one_probe_on_the_bias_alone_by_hand():
+    """gain0 = 0 and q_gain = 0: a scalar filter. A probe at the start with prior σ0² = 4 and
+    r = 1: gain K = 4/5, the bias takes 4/5 of the residual, its variance 4·1/5 = 0.8; an hour
+    later the variance is 0.8 + q_bias."""
+    p = ProbeParams(q_bias_um2_per_h=0.5, q_gain_per_h=0.0, r_um2=1.0, bias0_um=2.0, gain0=0.0)
+    f = ProbeFilter(p, 0.0)
+    innovation = f.probe(0.0, 10.0, 13.0)
+    assert innovation == pytest.approx(3.0)
+    assert f.x[0] == pytest.approx(2.4) and f.x[1] == 0.0
+    value, var = f.correct(3600.0, 7.0)
+    assert value == pytest.approx(9.4) and var == pytest.approx(0.8 + 0.5)
+
+
+def test_apply_probes_uses_a_reading_only_after_it_is_taken_and_recovers_a_constant_offset():
+    t = np.arange(0.0, 8 * 3600.0, 15.0)
+    pred = 10 * np.sin(t / 7000.0)
+    meas = pred + 2.0
+    probes = np.zeros(t.size, bool)
+    probes[:: 240] = True  # one an hour
+    p = ProbeParams(q_bias_um2_per_h=0.01, q_gain_per_h=1e-6, r_um2=0.01, bias0_um=5.0, gain0=0.05)
+    out, var = apply_probes(t, pred, probes, meas, p)
+    assert out[0] == pred[0]  # the first reading's correction is the one before its own probe
+    assert out[1] == pytest.approx(pred[1] + 2.0 * 25 / 25.01, rel=1e-6)  # σ0² = 25, r = 0.01: the bias takes 25/25.01
+    assert np.abs(out[-1000:] - meas[-1000:]).max() < 0.02  # after a few probes the offset is known
+    last = np.flatnonzero(probes)[-1]
+    assert var[last + 1] < var[1] < var[0]  # each probe narrows what the next reading's correction may be off by
+
+
+def test_the_state_carries_over_a_restart():
+    p = ProbeParams()
+    f = ProbeFilter(p, 0.0)
+    f.probe(100.0, 3.0, 5.0)
+    f.probe(4000.0, -8.0, -6.5)
+    g = ProbeFilter.from_state(json.loads(json.dumps(f.state())))
+    assert g.correct(9000.0, 2.0) == f.correct(9000.0, 2.0)
+    assert g.probe(9000.0, 2.0, 3.0) == f.probe(9000.0, 2.0, 3.0)
+    assert np.array_equal(g.x, f.x) and np.array_equal(g.P, f.P)
+
+
+def test_bad_settings_and_readings_are_named():
+    with pytest.raises(ProbeParamsError, match=r"probe.r_um2.*> 0"):
+        ProbeParams(r_um2=0.0)
+    with pytest.raises(ProbeParamsError, match=r"probe.q_bias_um2_per_h.*>= 0"):
+        ProbeParams.from_config({"q_bias_um2_per_h": -1})
+    with pytest.raises(ProbeParamsError, match=r"probe.q_bias.*unknown"):
+        ProbeParams.from_config({"q_bias": 1})
+    f = ProbeFilter(ProbeParams(), 100.0)
+    with pytest.raises(ValueError, match="older"):
+        f.probe(50.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="finite"):
+        f.probe(200.0, float("nan"), 1.0)
