@@ -81,7 +81,8 @@ def test_apply_probes_uses_a_reading_only_after_it_is_taken_and_recovers_a_const
     probes = np.zeros(t.size, bool)
     probes[:: 240] = True  # one an hour
     p = ProbeParams(q_bias_um2_per_h=0.01, q_gain_per_h=1e-6, r_um2=0.01, bias0_um=5.0, gain0=0.05)
-    out, var = apply_probes(t, pred, probes, meas, p)
+    out, var, probed = apply_probes(t, pred, meas, p, schedule=probes)
+    assert np.array_equal(probed, probes)
     assert out[0] == pred[0]  # the first reading's correction is the one before its own probe
     assert out[1] == pytest.approx(pred[1] + 2.0 * 25 / 25.01, rel=1e-6)  # σ0² = 25, r = 0.01: the bias takes 25/25.01
     assert np.abs(out[-1000:] - meas[-1000:]).max() < 0.02  # after a few probes the offset is known
@@ -112,3 +113,40 @@ def test_bad_settings_and_readings_are_named():
         f.probe(50.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="finite"):
         f.probe(200.0, float("nan"), 1.0)
+
+
+def test_the_noise_estimate_recovers_a_random_walk_and_its_scatter():
+    """Residuals made as a random-walk offset (q = 2 µm²/h) plus white scatter (r = 0.09 µm²),
+    15 s readings, twenty 8 h runs: the semivariogram gives both back within their sampling error."""
+    from thermbench.adapt import estimate_noise
+
+    rng = np.random.default_rng(7)
+    runs = []
+    for _ in range(20):
+        t = np.arange(0.0, 8 * 3600.0, 15.0)
+        walk = np.cumsum(rng.normal(0, np.sqrt(2.0 * 15 / 3600), t.size))
+        runs.append((t, walk + rng.normal(0, 0.3, t.size)))
+    p = estimate_noise(runs, every_s=3600.0)
+    assert p.r_um2 == pytest.approx(0.09 + 2.0 * 15 / 3600 / 2, rel=0.1)  # γ(15 s) = r + q·Δ/2
+    assert p.q_bias_um2_per_h == pytest.approx(2.0, rel=0.15)
+    assert p.bias0_um == pytest.approx(np.sqrt(np.mean(np.concatenate([d for _, d in runs]) ** 2)))
+
+
+def test_the_schedule_and_the_uncertainty_trigger_by_hand():
+    from thermbench.adapt import probe_schedule
+
+    t = np.arange(0.0, 4 * 3600.0 + 1, 60.0)
+    sched = probe_schedule(t + 30.0, 3600.0)
+    assert np.flatnonzero(sched).tolist() == [0, 60, 120, 180, 240]
+    # the bias alone (no gain): before the first probe var = 1 + 0.5·Δt_h; with r = 0.5 the trigger at
+    # 1.5 µm fires when 1 + 0.5 Δt_h + 0.5 > 2.25, at Δt_h > 1.5; after a probe at var v (posterior
+    # v·r/(v + r)) it fires again when v_post + 0.5 Δt_h + 0.5 > 2.25
+    p = ProbeParams(q_bias_um2_per_h=0.5, q_gain_per_h=0.0, r_um2=0.5, bias0_um=1.0, gain0=0.0)
+    t = np.arange(0.0, 6 * 3600.0 + 1, 60.0)
+    _, var, probed = apply_probes(t, np.zeros(t.size), np.zeros(t.size), p, trigger_um=1.5)
+    first = np.flatnonzero(probed)[0]
+    assert t[first] == 91 * 60.0  # the first reading past 1.5 h
+    v = 1 + 0.5 * t[first] / 3600
+    post = v * 0.5 / (v + 0.5)
+    wait_h = (2.25 - 0.5 - post) / 0.5
+    assert t[np.flatnonzero(probed)[1]] - t[first] == pytest.approx(np.floor(wait_h * 60 + 1) * 60.0)

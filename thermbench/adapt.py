@@ -31,7 +31,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["ProbeParams", "ProbeFilter", "apply_probes"]
+__all__ = ["ProbeParams", "ProbeFilter", "ProbePlan", "apply_probes", "estimate_noise", "naive_probes", "probe_replays",
+           "probe_schedule", "trigger_level"]
 
 
 class ProbeParamsError(ValueError):
@@ -131,19 +132,158 @@ class ProbeFilter:
         return f
 
 
-def apply_probes(t_s: np.ndarray, predicted_um: np.ndarray, probes: np.ndarray, measured_um: np.ndarray,
-                 params: ProbeParams | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The corrected predictions of one run and their variances, the readings where ``probes``
-    is true taken as probes in time order. A reading's own correction is the one before its
-    probe (what the compensator applied when it was taken)."""
+def apply_probes(t_s: np.ndarray, predicted_um: np.ndarray, measured_um: np.ndarray, params: ProbeParams | None = None,
+                 schedule: np.ndarray | None = None, trigger_um: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """One run's corrected predictions, their variances and the readings taken as probes, in
+    time order: those where ``schedule`` is true, and (``trigger_um``) any whose corrected
+    prediction's standard deviation, the reading's scatter included (``sqrt(var + r_um2)``),
+    exceeds ``trigger_um``: probing when the filter is unsure. A reading's own correction is the
+    one before its probe (what the compensator applied when it was taken)."""
     t = np.asarray(t_s, dtype=float)
     p = np.asarray(predicted_um, dtype=float)
     m = np.asarray(measured_um, dtype=float)
-    probes = np.asarray(probes, dtype=bool)
+    sched = np.zeros(t.size, bool) if schedule is None else np.asarray(schedule, dtype=bool)
     f = ProbeFilter(params, float(t[0]) if t.size else 0.0)
-    out, var = np.empty_like(p), np.empty_like(p)
+    r = f.params.r_um2
+    out, var, probed = np.empty_like(p), np.empty_like(p), np.zeros(t.size, dtype=bool)
     for i in range(t.size):
         out[i], var[i] = f.correct(t[i], p[i])
-        if probes[i]:
+        if sched[i] or (trigger_um is not None and math.sqrt(var[i] + r) > trigger_um):
             f.probe(t[i], p[i], m[i])
-    return out, var
+            probed[i] = True
+    return out, var, probed
+
+def semivariogram(runs: list[tuple[np.ndarray, np.ndarray]], lag_s: float) -> float:
+    """½ E[(d(t + lag) - d(t))²] over the residual series ``runs`` ((t_s, residual_um) per run, each
+    sampled evenly), the pairs ``lag_s`` apart (to the nearest sample) within each run."""
+    num, n = 0.0, 0
+    for t, d in runs:
+        t, d = np.asarray(t, dtype=float), np.asarray(d, dtype=float)
+        if t.size < 2:
+            continue
+        k = max(int(round(lag_s / float(np.median(np.diff(t))))), 1)
+        if k >= t.size:
+            continue
+        diff = d[k:] - d[:-k]
+        num += 0.5 * float(np.sum(diff**2))
+        n += diff.size
+    if n == 0:
+        raise ValueError(f"no pair of residuals {lag_s:g} s apart within a run: the runs are too short")
+    return num / n
+
+
+def estimate_noise(runs: list[tuple[np.ndarray, np.ndarray]], every_s: float, gain0: float = 0.1,
+                   q_gain_per_h: float = 1e-4) -> ProbeParams:  # fmt: skip
+    """The filter's noise from a model's residuals on runs it was not fitted on ((t_s, residual_um)
+    per run: cross-validation over runs, never the run to be scored), by the semivariogram γ of the
+    residual: a random-walk bias plus white reading scatter has γ(Δ) = r + q·Δ/2, so
+
+    * ``r_um2`` = γ at one sample's lag (the scatter between neighbouring readings: the
+      repeatability of reading and prediction together),
+    * ``q_bias_um2_per_h`` = 2 (γ(every_s) - r) / every_h: the wander over the probe interval the
+      filter will bridge (a residual that is no random walk is matched where it matters),
+    * ``bias0_um`` = the residuals' RMS (the offset before any probe).
+
+    The gain's prior and wander are not identifiable from residuals alone: given (``gain0``,
+    ``q_gain_per_h``)."""
+    if not runs:
+        raise ValueError("no residual runs to estimate the probe noise from")
+    steps = [float(np.median(np.diff(np.asarray(t, dtype=float)))) for t, _ in runs if len(t) > 1]
+    r = semivariogram(runs, min(steps))
+    g = semivariogram(runs, every_s)
+    q = max(2.0 * (g - r), 0.0) / (every_s / 3600.0)
+    rms = float(np.sqrt(np.mean(np.concatenate([np.asarray(d, dtype=float) ** 2 for _, d in runs]))))
+    return ProbeParams(q_bias_um2_per_h=q, q_gain_per_h=q_gain_per_h, r_um2=max(r, 1e-6), bias0_um=rms, gain0=gain0)
+
+
+def probe_schedule(t_s: np.ndarray, every_s: float) -> np.ndarray:
+    """The readings a probe every ``every_s`` takes: the first reading, then the first reading at or
+    after each ``every_s`` since the run's first (a boolean mask)."""
+    t = np.asarray(t_s, dtype=float)
+    mask = np.zeros(t.size, dtype=bool)
+    if t.size == 0:
+        return mask
+    due = np.arange(t[0], t[-1] + 1e-9, float(every_s))
+    idx = np.unique(np.searchsorted(t, due - 1e-9))
+    mask[idx[idx < t.size]] = True
+    return mask
+
+
+def naive_probes(predicted_um: np.ndarray, measured_um: np.ndarray, schedule: np.ndarray) -> np.ndarray:
+    """The naive peer: the last probe's residual (measured - predicted) added to every later
+    prediction (a reading's own correction is the one before its probe)."""
+    p = np.asarray(predicted_um, dtype=float)
+    m = np.asarray(measured_um, dtype=float)
+    sched = np.asarray(schedule, dtype=bool)
+    idx = np.flatnonzero(sched)
+    offset = np.zeros(p.size)
+    for a, b in zip(idx, list(idx[1:]) + [p.size]):
+        offset[a + 1 : b + 1] = m[a] - p[a]
+    return p + offset
+
+
+@dataclass(frozen=True)
+class ProbePlan:
+    """How the benchmark probes a held-out run (config key ``probe``): a schedule per ``every_s``,
+    and with ``trigger: uncertainty`` also the filter probing when its standard deviation exceeds
+    ``threshold_um`` (null: the one it reaches just before a scheduled probe of the first
+    ``every_s``, on the calibration runs). ``noise``: the filter's :class:`ProbeParams` (null:
+    :func:`estimate_noise` on each fold's calibration residuals)."""
+
+    every_s: tuple[float, ...] = (3600.0,)
+    trigger: str | None = "uncertainty"
+    threshold_um: float | None = None
+    noise: ProbeParams | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None) -> "ProbePlan":
+        cfg = dict(cfg or {})
+        known = {"every_s", "trigger", "threshold_um", "noise"}
+        unknown = sorted(set(cfg) - known)
+        if unknown:
+            raise ProbeParamsError(f"config key(s) {['probe.' + k for k in unknown]}: unknown; known: {sorted(known)}")
+        every = cfg.get("every_s", [3600.0])
+        every = [every] if isinstance(every, (int, float)) and not isinstance(every, bool) else every
+        if (not isinstance(every, (list, tuple)) or not every
+                or not all(isinstance(e, (int, float)) and not isinstance(e, bool) and math.isfinite(e) and e > 0 for e in every)):  # fmt: skip
+            raise ProbeParamsError(f"config key 'probe.every_s': expected a probe interval in seconds (> 0) or a "
+                                   f"non-empty list of them, got {cfg.get('every_s')!r}")  # fmt: skip
+        trigger = cfg.get("trigger", "uncertainty")
+        if trigger not in (None, "uncertainty"):
+            raise ProbeParamsError(f"config key 'probe.trigger': expected null or uncertainty, got {trigger!r}")
+        thr = cfg.get("threshold_um")
+        if thr is not None and (isinstance(thr, bool) or not isinstance(thr, (int, float)) or not thr > 0):
+            raise ProbeParamsError(f"config key 'probe.threshold_um': expected null or a number > 0, got {thr!r}")
+        noise = cfg.get("noise")
+        return cls(tuple(float(e) for e in every), trigger, None if thr is None else float(thr),
+                   None if noise is None else ProbeParams.from_config(noise))  # fmt: skip
+
+
+def trigger_level(runs: list[tuple[np.ndarray, np.ndarray]], params: ProbeParams, every_s: float) -> float:
+    """The filter's standard deviation (the reading's scatter included) just before a probe of a
+    schedule every ``every_s``, median over the probes after the first of the residual ``runs``."""
+    before: list[float] = []
+    for t, d in runs:
+        sched = probe_schedule(t, every_s)
+        _, var, _ = apply_probes(t, np.zeros_like(d), d, params, schedule=sched)  # a residual: the prediction is 0
+        before.extend(np.sqrt(var[sched][1:] + params.r_um2))
+    if not before:
+        raise ValueError(f"no calibration run is longer than one probe interval ({every_s:g} s)")
+    return float(np.median(before))
+
+
+def probe_replays(t_s, measured_um, predicted_um, plan: ProbePlan, params: ProbeParams,
+                  calibration: list[tuple[np.ndarray, np.ndarray]]):  # fmt: skip
+    """One held-out run replayed with probes as ``plan`` says: yields (approach, corrected, var,
+    probed) for ``adaptive@<every>s`` and ``naive_probe@<every>s`` per schedule, then
+    ``adaptive@uncertainty``; ``var`` is None for the naive peer."""
+    t, y, p = (np.asarray(a, dtype=float) for a in (t_s, measured_um, predicted_um))
+    for every in plan.every_s:
+        sched = probe_schedule(t, every)
+        c, var, probed = apply_probes(t, p, y, params, schedule=sched)
+        yield f"adaptive@{every:g}s", c, var, probed
+        yield f"naive_probe@{every:g}s", naive_probes(p, y, sched), None, sched
+    if plan.trigger == "uncertainty":
+        level = plan.threshold_um if plan.threshold_um is not None else trigger_level(calibration, params, plan.every_s[0])
+        c, var, probed = apply_probes(t, p, y, params, trigger_um=level)
+        yield "adaptive@uncertainty", c, var, probed

@@ -42,6 +42,7 @@ from tqdm.auto import tqdm
 
 from . import __version__, tracking
 from .config import group_option
+from .adapt import ProbePlan
 from .errors import ExperimentError
 from .evidence import held_out_limits
 from .experiment import JobResult, _finish, build_model, fit_evaluate, headline_metrics, model_flags, plain, save_models
@@ -65,6 +66,8 @@ def run_task(
     channel: str = "all",
     cv: str | None = None,
     cv_folds: int = 5,
+    interval: Mapping | None = None,
+    probe: Mapping | None = None,
 ) -> dict[str, Any]:
     """Fit and score one family on one dataset (see module docstring).
 
@@ -76,7 +79,12 @@ def run_task(
     on the loading states and scores them on every run; ``loro`` / ``group_kfold`` (``cv_folds``
     folds) fit them once per fold on its training runs and score them on its held-out runs
     (``kind`` validation, ``fold`` the held-out runs), then once more on every run: the model
-    to deploy. Null: :func:`thermbench.splits.resolve_cv`.
+    to deploy. Null: :func:`thermbench.splits.resolve_cv`. ``interval``: ``level`` and ``kappa`` of the
+    prediction intervals of the global approach (:mod:`thermbench.intervals`), calibrated on each
+    outer fold's inner folds: its rows get ``coverage_<level %>`` and ``half_width_um``. ``probe``: how
+    approach ``adaptive`` probes each held-out run (:class:`thermbench.adapt.ProbePlan`): rows
+    ``adaptive@<every>s``, ``naive_probe@<every>s`` (the peer) and ``adaptive@uncertainty``, scored
+    without the probe readings (``probes``, ``probes_per_h``).
 
     Returns ``results`` (one row per fitted model x test run, the columns of
     :mod:`thermbench.report`), ``curves`` (per-cycle before/after on the validation runs
@@ -118,6 +126,10 @@ def run_task(
             print(f"    {where} x {family}: {what} fitted in {fit_s:.1f} s", flush=True)
 
     singles, single_fit_s = {}, {}
+    fold_models: dict[str, Any] = {}  # outer fold name -> its global fit (what the intervals are of)
+    interval_cols: dict[tuple[str, str], tuple[float, float]] = {}  # (fold, run) -> (coverage, mean half-width)
+    level, kappa = interval_settings(interval)
+    plan = ProbePlan.from_config(probe) if "adaptive" in approaches else None
     banks = [a for a in approaches if a in BANKS]
     states = split.states if cv == "declared" else sorted({r for f in folds for r in f.held_out}, key=ds.run_ids.index)
     if "single" in approaches or banks:
@@ -135,6 +147,7 @@ def run_task(
     if "global" in approaches and len(states) > 1 and cv == "declared":
         try:
             fitted, res, cur = fit_evaluate(model, ds, split.states, curves=True)
+            fold_models["+".join(split.validation)] = fitted
             rows.append(tag(res, "global", "all", fitted))
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
             models["global"] = fitted
@@ -145,6 +158,7 @@ def run_task(
         for fold in folds:  # one fit per fold, scored on the runs it holds out
             try:
                 fitted, res, cur = fit_evaluate(model, ds, fold.train, fold.held_out, curves=True)
+                fold_models[fold.name] = fitted
                 rows.append(tag(res, "global", "all", fitted, fold=fold.name))
                 curves.append(tag(cur, "global", "all", fold=fold.name))
                 say(f"global without {fold.name}", float(res["fit_s"].iloc[0]))
@@ -210,6 +224,11 @@ def run_task(
                           for g in inner]  # fmt: skip
                 try:
                     pred = cross_val_predict(RunsRegressor(model, ref), X, y, groups=groups, cv=cv_idx)
+                    if f.name in fold_models:  # intervals and probe replays of the fold's global fit
+                        cal = calibrate_fold(ds, f, inner, fold_models[f.name], X, y - pred)
+                        interval_cols.update(fold_intervals(cal, f.name, level, kappa))
+                        for name, df in probe_results(cal, plan, level, kappa) if plan is not None else []:
+                            rows.append(tag(df, name, "all", fold_models[f.name], fold=f.name))
                     sq = pd.Series((y - pred) ** 2).groupby(groups, sort=False).mean()
                     inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
                                       .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
@@ -227,11 +246,23 @@ def run_task(
                         continue
                     inner_rows.append(res.assign(**tag_inner, approach=approach, inner_fold=g.name))
             say(f"the {len(inner)} inner folds of {f.name}", time.perf_counter() - t1)
+    results = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
+    if len(results):
+        cov = f"coverage_{round(100 * level)}"
+        glob = (results["approach"] == "global") & (results["kind"] == "validation")
+        got = [interval_cols.get((fo, r)) if g else None for fo, r, g in zip(results["fold"], results["run_id"], glob)]
+        results[cov] = [v[0] if v else np.nan for v in got]
+        results["half_width_um"] = [v[1] if v else np.nan for v in got]
+        if "_coverage" in results:  # the adaptive approaches' own intervals
+            has = results["_coverage"].notna()
+            results.loc[has, cov] = results.loc[has, "_coverage"]
+            results.loc[has, "half_width_um"] = results.loc[has, "_half_width"]
+            results = results.drop(columns=["_coverage", "_half_width"])
     return {
         "dataset": split.name,
         "channel": channel,
         "family": family,
-        "results": pd.concat(rows, ignore_index=True) if rows else pd.DataFrame(),
+        "results": results,
         "curves": pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(),
         "models": models,
         "dataset_hash": ds.content_hash(),
@@ -243,9 +274,116 @@ def run_task(
     }
 
 
+def interval_settings(interval: Mapping | None) -> tuple[float, float]:
+    """(level, kappa) of config key ``interval``, checked."""
+    cfg = dict(interval or {})
+    unknown = sorted(set(cfg) - {"level", "kappa"})
+    if unknown:
+        raise ExperimentError(f"config key(s) {['interval.' + k for k in unknown]}: unknown; known: interval.level, interval.kappa")
+    level, kappa = cfg.get("level", 0.9), cfg.get("kappa", 1.0)
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ExperimentError(f"config key 'interval.level': expected a number between 0 and 1 (0.9: a 90 % interval), got {level!r}")
+    if isinstance(kappa, bool) or not isinstance(kappa, (int, float)) or not (kappa >= 0 and np.isfinite(kappa)):
+        raise ExperimentError(f"config key 'interval.kappa': expected a number >= 0, got {kappa!r}")
+    return float(level), float(kappa)
+
+
+def calibrate_fold(ds, fold, inner, fitted, X: pd.DataFrame, inner_residual_um: np.ndarray) -> dict[str, Any]:
+    """What one outer fold's intervals and probe replays are made of. ``X``: the inner held-out
+    readings as :func:`~thermbench.splits.run_rows` gives them, ``inner_residual_um`` each one's
+    residual from a fit without its run; ``fitted``: the fold's fit on all its training runs.
+    Returns ``calibration``: per inner held-out run (t_s, residual_um, distance to the envelope
+    of its inner fold's training runs), and ``held``: per run the fold holds out (t_s, measured,
+    thermal, predicted by ``fitted``, distance to the envelope of the fold's training runs)."""
+    from .data.reference import thermal_errors
+    from .intervals import Envelope
+
+    inputs = fitted.required_inputs()
+    sensors, operating = list(inputs.sensors), list(inputs.operating)
+    te = thermal_errors(ds)
+    by_run = {r: g for r, g in te.groupby("run_id", sort=False)}
+    runs, rows = X["run_id"].to_numpy(), X["row"].to_numpy()
+    calibration = []
+    for g in inner:
+        env = Envelope.fit(ds, g.train, sensors, operating)
+        for r in g.held_out:
+            idx = np.flatnonzero(runs == r)
+            t = by_run[r]["t_s"].to_numpy(dtype=float)[rows[idx]]
+            calibration.append((t, np.asarray(inner_residual_um, dtype=float)[idx],
+                                env.distance(Envelope.features(ds, r, t, sensors, operating))))  # fmt: skip
+    env = Envelope.fit(ds, fold.train, sensors, operating)
+    held = {}
+    for r in fold.held_out:
+        g = by_run[r]
+        t = g["t_s"].to_numpy(dtype=float)
+        held[r] = (t, g["error_um"].to_numpy(dtype=float), g["thermal_um"].to_numpy(dtype=float),
+                   np.asarray(fitted.predict(ds, r), dtype=float), env.distance(Envelope.features(ds, r, t, sensors, operating)))  # fmt: skip
+    return {"calibration": calibration, "held": held}
+
+
+def fold_intervals(cal: Mapping[str, Any], fold_name: str, level: float, kappa: float) -> dict[tuple[str, str], tuple[float, float]]:
+    """The conformal interval of one outer fold (:mod:`thermbench.intervals`; ``cal`` from
+    :func:`calibrate_fold`): scores of the inner residuals normalised by their distance to their
+    inner envelope, applied to the fold's held-out runs. (fold, run) -> (coverage, mean half-width µm)."""
+    from .intervals import conformal_quantile, half_widths, interval_scores
+
+    scores = np.concatenate([interval_scores(d, dist, kappa) for _, d, dist in cal["calibration"]])
+    q = conformal_quantile(scores, level)
+    out = {}
+    for r, (_, measured, _, pred, dist) in cal["held"].items():
+        hw = half_widths(q, dist, kappa)
+        out[(fold_name, r)] = (float(np.mean(np.abs(measured - pred) <= hw)), float(np.mean(hw)))
+    return out
+
+
+def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> list[tuple[str, pd.DataFrame]]:
+    """The probe approaches of one outer fold (:func:`thermbench.adapt.probe_replays`): each held-out
+    run replayed with probes, scored on the readings that were not probes (``probes`` counts them).
+    The filter's noise: ``plan.noise``, or estimated from the fold's calibration residuals at the
+    first schedule's interval. An adaptive approach's interval is conformal too: the calibration
+    runs replayed the same way, each residual normalised by the filter's standard deviation (the
+    reading's scatter included) and the envelope distance. (approach, metrics rows) pairs."""
+    from .adapt import estimate_noise, probe_replays
+    from .intervals import conformal_quantile
+    from .metrics import residual_metrics
+
+    calib = [(t, d) for t, d, _ in cal["calibration"]]
+    params = plan.noise or estimate_noise(calib, plan.every_s[0])
+    scores: dict[str, list[np.ndarray]] = {}
+    for t, d, dist in cal["calibration"]:  # the calibration runs as residuals (prediction 0, measured d)
+        for name, c, var, probed in probe_replays(t, d, np.zeros_like(d), plan, params, calib):
+            if var is not None:
+                s = np.abs(d - c) / (np.sqrt(var + params.r_um2) * (1.0 + kappa * dist))
+                scores.setdefault(name, []).append(s[~probed])
+    qs = {name: conformal_quantile(np.concatenate(v), level) for name, v in scores.items()}
+    out: dict[str, list[dict]] = {}
+    for r, (t, measured, thermal, pred, dist) in cal["held"].items():
+        for name, c, var, probed in probe_replays(t, measured, pred, plan, params, calib):
+            keep = ~probed
+            row = {"run_id": r, **residual_metrics(measured[keep], c[keep], thermal[keep]), "nonfinite_predictions": 0,
+                   "probes": int(probed.sum()), "probes_per_h": float(probed.sum() / max((t[-1] - t[0]) / 3600.0, 1e-9))}  # fmt: skip
+            if var is not None:
+                hw = qs[name] * np.sqrt(var + params.r_um2) * (1.0 + kappa * dist)
+                row["_coverage"] = float(np.mean(np.abs(measured - c)[keep] <= hw[keep]))
+                row["_half_width"] = float(np.mean(hw[keep]))
+            out.setdefault(name, []).append(row)
+    return [(name, pd.DataFrame(v)) for name, v in out.items()]
+
+
 #: the bank approaches: name -> how the members are combined (ConditionBank ``blend``)
 BANKS = {"bank": "hard", "bank_soft": "soft"}
-APPROACHES = ("single", "global", *BANKS)
+APPROACHES = ("single", "global", *BANKS, "adaptive")
+
+
+def probe_approach(approach: str) -> bool:
+    """True for an approach scored with probe readings of the run it scores (``adaptive@...``,
+    ``naive_probe@...``): never compared with the open-loop approaches for a choice."""
+    return "@" in str(approach)
+
+
+def probe_rows(results: pd.DataFrame) -> pd.Series:
+    """Which rows of ``results`` are of a :func:`probe_approach` (a boolean Series)."""
+    return results["approach"].astype(str).str.contains("@", regex=False).astype(bool)
 
 
 def families_by_dataset(cfg, datasets: Sequence[str]) -> dict[str, list[str]]:
@@ -305,7 +443,12 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
         if skipped is not None:
             skipped.append(line)
 
+    interval_settings(plain_value(cfg.get("interval")))  # one line before any worker starts
     approaches = _names(cfg, "approaches", list(APPROACHES))
+    if "adaptive" in approaches:
+        ProbePlan.from_config(plain_value(cfg.get("probe")))
+        if "global" not in approaches:
+            raise ExperimentError("config key 'approaches': adaptive replays the global fits with probes; add global")
     if not approaches:
         raise ExperimentError(f"config key 'approaches': empty; choose among {', '.join(APPROACHES)}")
     datasets = _dataset_entries(cfg)
@@ -366,6 +509,8 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
                         channel=channel,
                         cv=_cv(cfg),
                         cv_folds=cfg.get("cv_folds", 5),
+                        interval=plain_value(cfg.get("interval")),
+                        probe=plain_value(cfg.get("probe")),
                     )
                 )
     return out
@@ -533,7 +678,8 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
     keep = [(d, f, a) not in bad and f not in exclude
             for d, f, a in zip(results["case"], results["family"], results["approach"])]  # fmt: skip
     results = results[keep]
-    v = results[(results["kind"] == "validation") & (results["approach"] != "single")]
+    v = results[(results["kind"] == "validation") & (results["approach"] != "single")
+                & ~probe_rows(results)]  # fmt: skip
     cols = ["dataset", "channel", "case", "family", "approach"]
     if v.empty:
         return pd.DataFrame(columns=cols)
@@ -581,7 +727,7 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     the root of the mean square over its held-out runs' readings, approximated by the mean of the
     runs' RMSE when a fold holds out several runs)."""
     r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
         rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean")).reset_index()  # fmt: skip
     out = []
@@ -617,7 +763,7 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
     :func:`held_out_summary`), and on how many folds it beat no compensation and the best
     baseline (the best baseline's own row: '-')."""
     r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
     if v.empty:
         return pd.DataFrame()
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
@@ -657,7 +803,7 @@ def held_out_flags(results: pd.DataFrame, baselines: Sequence[str]) -> list[str]
     compensation (its RMSE above the run's ``rms_error_um``), and a median held-out RMSE over the
     folds above the best baseline's (:func:`held_out_summary`'s best baseline). One line each."""
     r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single")]
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
     if v.empty or "rms_error_um" not in v:
         return []
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False)["rmse_um"].mean()

@@ -65,6 +65,7 @@ _MODULE_ERRORS = (
     ("discrepancy.workflow", "DiagnoseError"),
     ("precompensate", "PrecompError"),
     ("compensator.errors", "CompensatorError"),
+    ("adapt", "ProbeParamsError"),
     ("compensator.nodes", "NodesError"),
     ("compensator.simcnc", "SimCncError"),
 )

@@ -1,0 +1,124 @@
+"""Probe readings on the measured spindle test's unseen tail (issue 41): RMSE against probes per hour.
+
+For each channel of ``fl_thermal`` and each family given: the family fitted on the five
+constant-speed blocks predicts the stepped tail (never trained on); the probe filter's noise
+(thermbench/adapt.py :func:`estimate_noise`) is estimated from the family's residuals on the
+training blocks, each predicted by a fit without it (leave one block out: nothing of the tail);
+then the tail is replayed with a probe every ``every_s`` (the first at the tail's start), the
+probes being the tail's own readings at those times, and **scored on the other readings only**:
+
+* ``open``: no probe;
+* ``naive``: the last probe's residual added to every later prediction (the issue's peer);
+* ``adaptive``: the bias + gain Kalman filter;
+* ``trigger``: the filter, probing when its standard deviation exceeds the one it reaches
+  just before a scheduled probe on the training blocks (median), no schedule;
+* ``oracle``: the best constant offset per probe interval, chosen with hindsight from the tail
+  itself (not a method: the bound a bias correction alone cannot beat).
+
+    python benchmarks/bench_probes.py [--families physics_spindle_hybrid,baseline_ridge] [--every 7200,3600,1800]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+CHANNELS = ["ch1", "ch2", "ch3", "ch4", "ch5"]
+
+
+def rmse(a, b) -> float:
+    return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
+
+
+def naive(pred, meas, probes):
+    out, off = np.array(pred, dtype=float), 0.0
+    for i in range(out.size):
+        out[i] += off
+        if probes[i]:
+            off = meas[i] - pred[i]
+    return out
+
+
+def channel_runs(family: str, ch: str, seed: int):
+    """(tail t, measured, predicted) and the leave-one-block-out residual runs of the training blocks."""
+    from sklearn.base import clone
+
+    from thermbench.config import group_option
+    from thermbench.experiment import build_model
+    from thermbench.splits import load_split
+
+    split = load_split({**group_option("dataset", "fl_thermal"), "channel": ch})
+    ds = split.dataset
+    model = build_model(group_option("model", family), seed=seed)
+    fitted = clone(model).fit(ds, split.states)
+    tail = ds.errors_run(split.validation[0])
+    pred = np.asarray(fitted.predict(ds, split.validation[0]), dtype=float)
+    loro = []
+    for r in split.states:
+        m = clone(model).fit(ds, [s for s in split.states if s != r])
+        e = ds.errors_run(r)
+        loro.append((e["t_s"].to_numpy(float), e["error_um"].to_numpy(float) - np.asarray(m.predict(ds, r), dtype=float)))
+    return tail["t_s"].to_numpy(float), tail["error_um"].to_numpy(float), pred, loro
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--families", default="physics_spindle_hybrid,baseline_ridge")
+    ap.add_argument("--every", default="7200,3600,1800", help="probe intervals, s")
+    ap.add_argument("--channels", default=",".join(CHANNELS))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=None, help="write the table as CSV here")
+    args = ap.parse_args()
+    os.environ.setdefault("THERMBENCH_DATA", str(Path("data/benchmark").resolve()))
+    from thermbench.adapt import apply_probes, estimate_noise, probe_schedule
+
+    rows = []
+    for fam in args.families.split(","):
+        for ch in args.channels.split(","):
+            t0 = time.perf_counter()
+            t, y, p, loro = channel_runs(fam, ch, args.seed)
+            rows.append(dict(family=fam, channel=ch, method="open", every_s=np.nan, probes=0, rmse_um=rmse(p, y)))
+            for every in (float(e) for e in args.every.split(",")):
+                params = estimate_noise(loro, every)
+                sched = probe_schedule(t, every)
+                keep = ~sched
+                rows.append(dict(family=fam, channel=ch, method="naive", every_s=every, probes=int(sched.sum()),
+                                 rmse_um=rmse(naive(p, y, sched)[keep], y[keep])))  # fmt: skip
+                seg = np.cumsum(sched)  # the best constant offset per probe interval, with hindsight: a bound
+                best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
+                rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
+                                 rmse_um=rmse(best[keep], y[keep])))  # fmt: skip
+                c, _, _ = apply_probes(t, p, y, params, schedule=sched)
+                rows.append(dict(family=fam, channel=ch, method="adaptive", every_s=every, probes=int(sched.sum()),
+                                 rmse_um=rmse(c[keep], y[keep]), q_bias_um2_per_h=params.q_bias_um2_per_h,
+                                 r_um2=params.r_um2, bias0_um=params.bias0_um))  # fmt: skip
+                # the trigger level: the filter's std just before a scheduled probe, on the training blocks
+                before = []
+                for tt, d in loro:
+                    s = probe_schedule(tt, every)
+                    _, v, _ = apply_probes(tt, np.zeros_like(d), d, params, schedule=s)
+                    before.extend(np.sqrt(v[s][1:] + params.r_um2))
+                level = float(np.median(before))
+                c, _, probed = apply_probes(t, p, y, params, trigger_um=level)
+                keep = ~probed
+                rows.append(dict(family=fam, channel=ch, method="trigger", every_s=every, probes=int(probed.sum()),
+                                 rmse_um=rmse(c[keep], y[keep]), trigger_um=level))  # fmt: skip
+            print(f"{fam} {ch}: {time.perf_counter() - t0:.0f} s", flush=True)
+    df = pd.DataFrame(rows)
+    if args.out:
+        df.to_csv(args.out, index=False)
+    with pd.option_context("display.width", 200, "display.max_rows", 500, "display.float_format", "{:.2f}".format):
+        for fam, g in df.groupby("family", sort=False):
+            print(f"\n{fam}: tail RMSE (µm) without the probe readings; probes in brackets")
+            g = g.assign(col=[m if m == "open" else f"{m} {e / 3600:g}h" for m, e in zip(g["method"], g["every_s"])],
+                         cell=[f"{r:.2f} ({n})" for r, n in zip(g["rmse_um"], g["probes"])])  # fmt: skip
+            print(g.pivot(index="channel", columns="col", values="cell").to_string())
+
+
+if __name__ == "__main__":
+    main()
