@@ -193,6 +193,37 @@ tb_real tb_bank_ready_s(const tb_bank *b);
 int tb_bank_predict(const tb_bank *b, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um,
                     int32_t *label);
 
+/* online updates from probe readings (src/tb_probe.c; thermbench/adapt.py): a Kalman filter on a
+ * bias and a gain correction of the model's total error,
+ *   measured = (1 + gain) * predicted + bias + v,  v ~ N(0, r_um2),
+ * the bias and gain walking at random between probes (q_* per hour). The caller keeps the state
+ * (one per model it corrects); nothing is allocated. Per probe reading (t, axis, measured error):
+ *   tb_probe(&m, &f, t_s, axis_mm, measured_um);          predicts at (t, axis) and updates
+ * and per cycle, the corrected prediction and its variance:
+ *   tb_model_predict(&m, t_s, axis_mm, &thermal, &total);
+ *   tb_probe_correct(&f, t_s, total, &corrected, &var);   compensation = -corrected */
+typedef struct {
+    tb_real q_bias_um2_per_h; /* the bias's random walk, um^2 per hour */
+    tb_real q_gain_per_h;     /* the gain's, per hour */
+    tb_real r_um2;            /* a reading's scatter (> 0) */
+    tb_real bias0_um;         /* the bias's std before the first probe */
+    tb_real gain0;            /* the gain's std before the first probe */
+} tb_probe_params;
+
+typedef struct {
+    tb_probe_params p;
+    tb_real bias_um, gain;    /* the correction */
+    tb_real P00, P01, P11;    /* its covariance at t_s */
+    tb_real t_s;              /* the state's time: the last probe's, or the start */
+    uint32_t n_probes;
+} tb_probe_state;
+
+int tb_probe_init(tb_probe_state *f, const tb_probe_params *p, tb_real t0_s);
+int tb_probe_correct(const tb_probe_state *f, tb_real t_s, tb_real predicted_um, tb_real *corrected_um, tb_real *var_um2);
+/* TB_E_LATE for a probe older than the state's time */
+int tb_probe_update(tb_probe_state *f, tb_real t_s, tb_real predicted_um, tb_real measured_um, tb_real *innovation_um);
+int tb_probe(const tb_model *m, tb_probe_state *f, tb_real t_s, tb_real axis_mm, tb_real measured_um);
+
 #ifdef __cplusplus
 }
 #endif

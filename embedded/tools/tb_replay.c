@@ -7,6 +7,9 @@
  *   tb_replay --bank CLF M0 M1 ... < stream  a per-condition bank (members in class order)
  *   --lenient (first option): a sample the runtime refuses (bad value, off the sampling grid) is
  *   skipped, as a compensator would, and counted on stderr; otherwise it stops the replay
+ *   --probe QB QG R B0 G0 (an option before the model): probe readings 'P' correct the model by the
+ *   bias + gain filter of tb_probe (its tb_probe_params in that order); every query line then
+ *   ends in the corrected total error and its variance
  *   --live (an option before the model): every query is answered with the samples up to its time
  *   only, before the next sample is stepped, as a compensator answers for the time it writes (a
  *   model whose values at t are final later, e.g. the screw physics between macro steps, gives its
@@ -15,9 +18,14 @@
  * stream (text, one record per line):
  *   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   a process-log sample
  *   Q t_s axis_mm                                              a query (times nondecreasing)
+ *   P t_s axis_mm measured_um                                  a probe reading (--probe; in time order
+ *                                                              with the queries: a query at the same
+ *                                                              time as a probe comes before it)
  * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s), the
  * rest after tb_*_finish at the end of the stream (--live: see above). Output, one line per query:
- *   t_s axis_mm thermal_um total_um label rc
+ *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2]
+ * A probe prints nothing; one the runtime cannot answer yet (or refuses) is skipped and counted
+ * on stderr.
  */
 #include "tb_runtime.h"
 #include "tb_stream.h"
@@ -73,15 +81,17 @@ static int start(tb_model *m)
 }
 
 typedef struct {
-    double t, x;
+    double t, x, measured;
+    int probe; /* a probe reading, not a query */
 } query_t;
 
 static query_t *queries;
 static size_t n_q, q_done;
 
 static tb_bank bank;
-static int use_bank, lenient, live;
-static unsigned long rejected;
+static int use_bank, lenient, live, probing;
+static unsigned long rejected, probes_skipped;
+static tb_probe_state filt;
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
@@ -95,13 +105,25 @@ static void answer_until(double upto, int all, int before)
         int32_t lab = -1;
         int rc;
         if (live && !(ready() > (tb_real)-1e29)) {
-            printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+            if (queries[q_done].probe) probes_skipped++;
+            else if (probing) printf("%.17g %.17g nan nan -1 %d nan nan\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+            else printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
             q_done++;
             continue;
         }
         if (use_bank) rc = tb_bank_predict(&bank, (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot, &lab);
         else rc = tb_model_predict(&models[0], (tb_real)queries[q_done].t, (tb_real)queries[q_done].x, &th, &tot);
-        printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
+        if (queries[q_done].probe) {
+            if (rc == TB_OK) rc = tb_probe_update(&filt, (tb_real)queries[q_done].t, tot, (tb_real)queries[q_done].measured, 0);
+            if (rc != TB_OK) probes_skipped++;
+        } else if (probing) {
+            tb_real corr = 0, var = 0;
+            if (rc == TB_OK) tb_probe_correct(&filt, (tb_real)queries[q_done].t, tot, &corr, &var);
+            printf("%.17g %.17g %.17g %.17g %d %d %.17g %.17g\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot,
+                   (int)lab, rc, (double)corr, (double)var);
+        } else {
+            printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
+        }
         q_done++;
     }
 }
@@ -113,14 +135,29 @@ int main(int argc, char **argv)
     int i, rc, n_files = 0;
     char line[8192];
     size_t cap_q = 1024;
-    while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0)) {
-        if (strcmp(argv[1], "--lenient") == 0) lenient = 1;
+    while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0 || strcmp(argv[1], "--probe") == 0)) {
+        if (strcmp(argv[1], "--probe") == 0) {
+            tb_probe_params pp;
+            if (argc < 7) return 1;
+            pp.q_bias_um2_per_h = (tb_real)strtod(argv[2], 0);
+            pp.q_gain_per_h = (tb_real)strtod(argv[3], 0);
+            pp.r_um2 = (tb_real)strtod(argv[4], 0);
+            pp.bias0_um = (tb_real)strtod(argv[5], 0);
+            pp.gain0 = (tb_real)strtod(argv[6], 0);
+            probing = 1;
+            if (tb_probe_init(&filt, &pp, 0) != TB_OK) {
+                fprintf(stderr, "tb_replay: --probe: bad filter parameters\n");
+                return 1;
+            }
+            argv += 5;
+            argc -= 5;
+        } else if (strcmp(argv[1], "--lenient") == 0) lenient = 1;
         else live = 1;
         argv++;
         argc--;
     }
     if (argc < 2) {
-        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--probe QB QG R B0 G0] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
         return 1;
     }
     if (strcmp(argv[1], "--info") == 0) {
@@ -163,13 +200,20 @@ int main(int argc, char **argv)
         if (!lines_buf) return 6;
         while (fgets(line, sizeof line, stdin)) {
             size_t l = strlen(line);
-            if (line[0] == 'Q') {
+            if (line[0] == 'Q' || (line[0] == 'P' && probing)) {
                 if (n_q == cap_q) {
                     cap_q *= 2;
                     queries = (query_t *)realloc(queries, cap_q * sizeof(query_t));
                     if (!queries) return 6;
                 }
-                if (sscanf(line + 1, "%lf %lf", &queries[n_q].t, &queries[n_q].x) != 2) return 7;
+                queries[n_q].probe = line[0] == 'P';
+                queries[n_q].measured = 0;
+                if (queries[n_q].probe) {
+                    if (sscanf(line + 1, "%lf %lf %lf", &queries[n_q].t, &queries[n_q].x, &queries[n_q].measured) != 3) return 7;
+                } else if (sscanf(line + 1, "%lf %lf", &queries[n_q].t, &queries[n_q].x) != 2) {
+                    return 7;
+                }
+                if (n_q == 0) filt.t_s = (tb_real)queries[0].t; /* the filter starts at the first record */
                 n_q++;
                 continue;
             }
@@ -203,6 +247,7 @@ int main(int argc, char **argv)
     rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
     if (rc != TB_OK) return 9;
     if (rejected) fprintf(stderr, "tb_replay: %lu sample(s) refused and skipped\n", rejected);
+    if (probes_skipped) fprintf(stderr, "tb_replay: %lu probe(s) not taken (no prediction at their time)\n", probes_skipped);
     answer(0, 1);
     free(queries);
     return 0;

@@ -223,12 +223,14 @@ def readings_queries(ds, run: str) -> pd.DataFrame:
 
 def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
                exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
-               lenient: bool = False, live: bool = False) -> pd.DataFrame:  # fmt: skip
+               lenient: bool = False, live: bool = False, probes: pd.DataFrame | None = None,
+               probe_params=None) -> pd.DataFrame:  # fmt: skip
     """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory
-    (``live``: as the compensator answers, :func:`.runtime.replay`)."""
+    (``live``: as the compensator answers; ``probes`` with ``probe_params``: corrected by probe
+    readings, :func:`.runtime.replay`)."""
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
     return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient,
-                          live=live)  # fmt: skip
+                          live=live, probes=probes, probe_params=probe_params)  # fmt: skip
 
 
 def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,

@@ -109,15 +109,22 @@ def _compile(stem: str, srcs: Sequence[Path], extra_flags: Sequence[str], saniti
     return out
 
 
-def stream_text(samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame) -> str:
+def stream_text(samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame, probes: pd.DataFrame | None = None) -> str:
     """The ``tb_replay`` input: queries (``t_s``, ``axis_mm``) then samples (``t_s``, ``axis_mm``,
-    ``feed_mm_min``, optional ``load_N`` and ``measuring``, and the ``temps`` columns)."""
+    ``feed_mm_min``, optional ``load_N`` and ``measuring``, and the ``temps`` columns). ``probes``
+    (``t_s``, ``axis_mm``, ``measured_um``): probe readings, merged with the queries in time order
+    (a query at a probe's time before it: the correction it gets is the one before the probe)."""
     n = len(samples)
     cols = [samples["t_s"], samples["axis_mm"], samples["feed_mm_min"],
             samples["load_N"] if "load_N" in samples else np.zeros(n),
             samples["measuring"].astype(int) if "measuring" in samples else np.zeros(n, dtype=int)]  # fmt: skip
     arr = np.column_stack([np.asarray(c, dtype=float) for c in cols] + [samples[c].to_numpy(dtype=float) for c in temps])
-    lines = [f"Q {t!r} {x!r}" for t, x in zip(queries["t_s"].astype(float), queries["axis_mm"].astype(float))]
+    recs = [(t, 0, f"Q {t!r} {x!r}") for t, x in zip(queries["t_s"].astype(float), queries["axis_mm"].astype(float))]
+    if probes is not None and len(probes):
+        recs += [(t, 1, f"P {t!r} {x!r} {m!r}") for t, x, m in zip(probes["t_s"].astype(float), probes["axis_mm"].astype(float),
+                                                                   probes["measured_um"].astype(float))]  # fmt: skip
+        recs.sort(key=lambda r: (r[0], r[1]))
+    lines = [r[2] for r in recs]
     fmt = "S " + " ".join(["%.17g"] * 4 + ["%d"] + ["%.17g"] * len(temps))
     lines += [fmt % (r[0], r[1], r[2], r[3], int(r[4]), *r[5:]) for r in arr]
     return "\n".join(lines) + "\n"
@@ -137,30 +144,41 @@ TB_E_NOTREADY = -14
 
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
            bank: bool = False, sanitize: bool = False, exe: Path | None = None, lenient: bool = False,
-           live: bool = False) -> pd.DataFrame:  # fmt: skip
+           live: bool = False, probes: pd.DataFrame | None = None, probe_params=None) -> pd.DataFrame:  # fmt: skip
     """Run the C runtime over ``samples`` and answer ``queries``: a DataFrame with ``t_s``,
     ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``.
     ``lenient``: samples the runtime refuses are skipped (as a compensator would), not an error.
     ``live``: each query answered with the samples up to its time only, as the compensator
     answers for the time it writes (tb_replay --live); a query before the runtime has a state
-    keeps its code ``TB_E_NOTREADY`` and NaN values (the compensator holds there)."""
+    keeps its code ``TB_E_NOTREADY`` and NaN values (the compensator holds there). ``probe_params``
+    (:class:`thermbench.adapt.ProbeParams`): the probe readings ``probes`` correct the model by
+    ``tb_probe``, and each answer gets ``corrected_um`` and ``var_um2``."""
     exe = exe or build("tb_replay", sanitize=sanitize)
-    return replay_text(exe, files, stream_text(samples, temps, queries), bank=bank, lenient=lenient, live=live)
+    return replay_text(exe, files, stream_text(samples, temps, queries, probes if probe_params is not None else None),
+                       bank=bank, lenient=lenient, live=live, probe_params=probe_params)  # fmt: skip
 
 
 #: tb_replay's answer to a query, one line each
 REPLAY_COLUMNS = {"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int}
 
 
+def probe_args(params) -> list[str]:
+    """``tb_replay --probe QB QG R B0 G0`` for :class:`thermbench.adapt.ProbeParams` ``params``."""
+    return ["--probe", *(repr(float(v)) for v in (params.q_bias_um2_per_h, params.q_gain_per_h, params.r_um2,
+                                                   params.bias0_um, params.gain0))]  # fmt: skip
+
+
 def replay_text(exe: Path, files: Sequence[Path], text: str, bank: bool = False, lenient: bool = False,
-                live: bool = False) -> pd.DataFrame:  # fmt: skip
+                live: bool = False, probe_params=None) -> pd.DataFrame:  # fmt: skip
     """:func:`replay` of an input already written by :func:`stream_text` (one text for several builds)."""
-    args = (["--lenient"] if lenient else []) + (["--live"] if live else []) + (["--bank"] if bank else []) + [str(f) for f in files]
+    args = ((["--lenient"] if lenient else []) + (["--live"] if live else []) + (probe_args(probe_params) if probe_params else [])
+            + (["--bank"] if bank else []) + [str(f) for f in files])  # fmt: skip
     out = run_tool(exe, args, text)
+    cols = {**REPLAY_COLUMNS, **({"corrected_um": float, "var_um2": float} if probe_params else {})}
     if not out.strip():
-        df = pd.DataFrame({c: pd.Series(dtype=t) for c, t in REPLAY_COLUMNS.items()})
+        df = pd.DataFrame({c: pd.Series(dtype=t) for c, t in cols.items()})
     else:  # single spaces, %.17g (nan before a state): pandas' C parser
-        df = pd.read_csv(io.StringIO(out), sep=" ", header=None, names=list(REPLAY_COLUMNS), dtype=REPLAY_COLUMNS)
+        df = pd.read_csv(io.StringIO(out), sep=" ", header=None, names=list(cols), dtype=cols)
     if live:
         df.loc[df["rc"] == TB_E_NOTREADY, ["thermal_um", "total_um"]] = np.nan
     bad = df[(df["rc"] != 0) & ~((df["rc"] == TB_E_NOTREADY) & live)]
