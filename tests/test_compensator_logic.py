@@ -29,7 +29,7 @@ class FakeModel:
         self.ready_s = math.nan
         self.steps = []
 
-    def step(self, t_s, axis_mm, feed_mm_min, temps_C, load_N=0.0, measuring=False):
+    def step(self, t_s, axis_mm, feed_mm_min, temps_C, load_N=0.0, measuring=False, operating=()):
         self.steps.append((t_s, axis_mm, feed_mm_min, list(temps_C), measuring))
         self.ready_s = t_s
         return 0
@@ -332,3 +332,42 @@ def test_the_status_line_says_cycles_times_machine_time_compensation_and_flags()
                     "STALE|HELD")  # the flags in the order of the flags word's bits
     assert status_line(0, SimpleNamespace(t_s=math.nan, value_um=None, flags=0), [0.5]).endswith(
         "machine time -; compensation -; OK")
+
+
+def test_probe_readings_correct_the_compensation_as_the_python_filter_does_once_per_timestamp():
+    """A probe input (measured error, source timestamp) updates the C runtime's filter in the cycle
+    logic: every cycle's written value is minus the total corrected as thermbench.adapt's filter
+    corrects it (a second implementation), a probe is taken once per new timestamp, and a warm
+    restart goes on with the correction."""
+    from thermbench.adapt import ProbeFilter, ProbeParams
+
+    noise = {"q_bias_um2_per_h": 40.0, "q_gain_per_h": 1e-2, "r_um2": 0.05, "bias0_um": 3.0, "gain0": 0.1}
+    lg = _logic(probe=noise)
+    ref = ProbeFilter(ProbeParams(**noise), 0.0)
+    probe_at = {30: 9.5, 60: 11.0, 61: 11.0, 90: 7.0}  # t -> measured; the reading at 61 repeats 60's stamp
+    stamp = None
+    for k in range(120):
+        temp = 20.0 + 0.05 * k
+        extra = {}
+        if k in probe_at:
+            stamp = 1000.0 + (60 if k == 61 else k)
+        if stamp is not None:
+            extra["probe"] = Reading(probe_at[int(stamp - 1000.0)], stamp)
+        c = lg.cycle(_r(1000.0 + k, x=50.0, temp=temp, **extra), now_wall_s=0.01 * k)
+        total = 5.0 + 0.02 * 50.0 + (temp - 20.0)
+        if k in (30, 60, 90):  # a new stamp: taken (61 repeats 60's: not)
+            assert c.flags & Flags.PROBE and c.probe_um == probe_at[k]
+            ref.probe(float(k), total, probe_at[k])
+        else:
+            assert not c.flags & Flags.PROBE
+        want, _ = ref.correct(float(k), total)
+        assert c.predicted_um == pytest.approx(total) and c.correction_um == pytest.approx(want - total, abs=1e-9)
+        if k > 0:
+            assert c.value_um == pytest.approx(-want, abs=1e-9)
+    assert ref.n_probes == 3
+    # warm restart: the saved state (with the model's samples) gives the same correction afterwards
+    st = lg.state()
+    again = _logic(probe=noise)
+    again.warm_start(st, [(k, 50.0, 3000.0, 0.0, 0.0, 20.0 + 0.05 * k) for k in range(120)])
+    assert again.filter.state() == lg.filter.state()
+    assert again._corrected(150.0, 3.0) == pytest.approx(ref.correct(150.0, 3.0)[0])

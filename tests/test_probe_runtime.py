@@ -50,3 +50,53 @@ def test_c_probe_filter_equals_python(seed001_exports, seed001_data_root, flags,
     meas = er.set_index(["t_s", "target_mm"])["error_um"]
     m = meas.reindex(pd.MultiIndex.from_arrays([c["t_s"], c["axis_mm"]])).to_numpy()
     assert np.sqrt(np.mean((c["corrected_um"] - m) ** 2)) < np.sqrt(np.mean((c["total_um"] - m) ** 2))
+
+
+def test_replay_with_probes_is_the_python_filter_on_the_open_loop_replay(seed001_exports, seed001_data_root, tmp_path):
+    """thermbench replay --probes: every reading's compensation is the open-loop replay's prediction
+    corrected by the Python filter fed the probe readings in time order (each reading's correction
+    the one before a probe at its own time); the readings that were probes are not scored; the
+    probes bring the error down."""
+    from thermbench.adapt import ProbeFilter
+    from thermbench.export.replay import read_probes, replay_run
+
+    data = seed001_data_root / "seed001_vmc_x"
+    open_loop = replay_run(seed001_exports / "mlr", data, "valid1")
+    rd = open_loop["readings"]
+    pick = rd.iloc[5 :: max(len(rd) // 6, 1)]  # after start-up (a probe before the model has a state is not taken)
+    path = tmp_path / "probes.csv"
+    pick.rename(columns={"target_mm": "axis_mm", "error_um": "measured_um"})[["t_s", "axis_mm", "measured_um"]].to_csv(path, index=False)
+    probes = read_probes(path)
+    closed = replay_run(seed001_exports / "mlr", data, "valid1", probes=probes)
+    params = ProbeParams.from_config({})  # conf/compensator.yaml's probe block is the class defaults
+    assert closed["figures"]["probe_params"] == params.as_dict()
+    f = ProbeFilter(params, float(closed["compensation"]["t_s"].iloc[0]))
+    pending = list(probes.itertuples(index=False))
+    want = []
+    for t, x, pred in zip(rd["t_s"], rd["target_mm"], rd["predicted_um"]):
+        while pending and pending[0].t_s < t:
+            p = pending.pop(0)
+            f.probe(p.t_s, rd.loc[(rd["t_s"] == p.t_s) & (rd["target_mm"] == p.axis_mm), "predicted_um"].iloc[0], p.measured_um)
+        want.append(f.correct(t, pred)[0])
+    assert np.abs(np.array(want) - closed["readings"]["predicted_um"].to_numpy()).max() < 1e-9
+    fig = closed["figures"]
+    is_probe = rd["t_s"].isin(probes["t_s"])
+    assert fig["n_probes"] == len(probes) and fig["n_readings_scored"] == int((~is_probe).sum())
+    r_open = (rd["error_um"] - rd["predicted_um"])[~is_probe]
+    assert fig["after_rmse_um"] < float(np.sqrt(np.mean(r_open**2)))
+
+
+@pytest.mark.parametrize("text, message", [
+    ("t_s,value\n0,1\n", "no column 'measured_um'; expected t_s, measured_um and optionally axis_mm, got ['t_s', 'value']"),
+    ("t_s,measured_um\n0,1\n10,x\n", "column 'measured_um', row 3: expected a finite number, got 'x'"),
+    ("t_s,measured_um\n10,1\n5,2\n", "column 't_s', row 3: times go back (5.0 after 10.0)"),
+])
+def test_bad_probe_files_are_one_line(tmp_path, text, message):
+    from thermbench.export.encoding import ExportError
+    from thermbench.export.replay import read_probes
+
+    path = tmp_path / "p.csv"
+    path.write_text(text)
+    with pytest.raises(ExportError) as exc:
+        read_probes(path)
+    assert str(exc.value) == f"--probes {path}: {message}"

@@ -41,13 +41,16 @@ class ProbeParamsError(ValueError):
 
 @dataclass(frozen=True)
 class ProbeParams:
-    """The filter's noise model. Defaults: see ``conf/probe.yaml`` (measured on fl_thermal's
-    training blocks by ``benchmarks/bench_probes.py --noise``)."""
+    """The filter's noise model. Defaults (also ``probe`` in ``conf/compensator.yaml``): measured on
+    fl_thermal's training blocks, the median over its five channels of :func:`estimate_noise` of
+    physics_spindle_hybrid's leave-one-block-out residuals at a one-hour interval
+    (``python benchmarks/bench_probes.py --families physics_spindle_hybrid``: 9.0 µm²/h, 0.0022 µm²,
+    6.3 µm); the gain's are not identifiable from residuals and are chosen."""
 
-    q_bias_um2_per_h: float = 1.0  # how fast the model's offset wanders between probes
+    q_bias_um2_per_h: float = 9.0  # how fast the model's offset wanders between probes
     q_gain_per_h: float = 1e-4  # how fast its scale wanders (a gain std of 1 % after an hour)
-    r_um2: float = 0.1  # a probe reading's own scatter (the dataset's repeatability), squared
-    bias0_um: float = 3.0  # the offset's std before the first probe (the model's held-out RMSE)
+    r_um2: float = 0.0022  # a probe reading's own scatter (the dataset's repeatability), squared
+    bias0_um: float = 6.3  # the offset's std before the first probe (the model's held-out RMSE)
     gain0: float = 0.1  # the gain's std before the first probe
 
     def __post_init__(self) -> None:

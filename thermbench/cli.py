@@ -10,7 +10,7 @@
                                                seed 002 §2.4 condition classifier: the chosen condition
     thermbench diagnose DATA_DIR --out OUT_DIR [--base EFFECT,...] [--max-effects K] [overrides...]
                                                discrepancy workflow: name the effect the physics model misses
-    thermbench replay MODEL_DIR DATA_DIR --run ID [--out OUT_DIR] [--force]
+    thermbench replay MODEL_DIR DATA_DIR --run ID [--probes FILE] [--out OUT_DIR] [--force]
                                                an exported model in the C runtime over a run's log: before/after
     thermbench precompensate PROGRAM.nc --model MODEL.joblib --out OUT.nc [--verify] [...]
                                                seed 003: rewrite a part program against the predicted error
@@ -199,13 +199,14 @@ def cmd_diagnose(data_dir: str, out_dir: str, base: str | None, max_effects: int
 
 
 def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: bool = False,
-               channel: str | None = None) -> int:
-    from .export.replay import format_replay, replay_run, write_replay
+               channel: str | None = None, probes: str | None = None) -> int:
+    from .export.replay import format_replay, read_probes, replay_run, write_replay
     from .outputs import check_output_dir
 
     out_dir = Path(out) if out else Path("replays") / f"{Path(model_dir).name}__{run}"
     check_output_dir(out_dir, "replay", force=force)  # refused before the replay runs
-    res = replay_run(Path(model_dir), Path(data_dir), run, channel=channel)
+    table = read_probes(Path(probes)) if probes else None
+    res = replay_run(Path(model_dir), Path(data_dir), run, channel=channel, probes=table)
     write_replay(res, out_dir, force=force)
     print(format_replay(res["figures"]))
     print(f"  -> {out_dir.resolve()}")
@@ -476,6 +477,8 @@ def _main(argv: list[str] | None) -> int:
     p_rep.add_argument("--channel", default=None, help="format 2: the error channel the model predicts "
                        "(default: the one it was trained on, from its manifest)")
     p_rep.add_argument("--out", default=None, help="output directory (default replays/<model>__<run>)")
+    p_rep.add_argument("--probes", default=None, help="CSV of probe readings (t_s, measured_um[, axis_mm]): they correct "
+                       "the model as the compensator's probe input does (docs/intervals.md)")  # fmt: skip
     p_rep.add_argument("--force", action="store_true", help="also write into a directory holding other files "
                        "(never over them; never into a dataset)")  # fmt: skip
     p_pre = sub.add_parser("precompensate", help="seed 003: revise a part program before machining (no sensors)")
@@ -554,7 +557,7 @@ def _main(argv: list[str] | None) -> int:
         if args.command == "simulate":
             return cmd_simulate(args.overrides)
         if args.command == "replay":
-            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force, args.channel)
+            return cmd_replay(args.model_dir, args.data_dir, args.run, args.out, args.force, args.channel, args.probes)
         if args.command == "precompensate":
             return cmd_precompensate(args)
         if args.command == "iso230":

@@ -302,7 +302,7 @@ class Compensator:
         end = dt.datetime.fromtimestamp(ts_now, dt.timezone.utc)
         series: dict[str, tuple[np.ndarray, list]] = {}
         for name, node in zip(self.session.inputs, self.session.input_nodes):
-            if name in ("done", "heartbeat"):
+            if name in ("done", "heartbeat", "probe"):
                 continue
             try:
                 dvs = await asyncio.wait_for(node.read_raw_history(start, end), 10 * self.timeout_s)

@@ -69,6 +69,7 @@ class Flags(enum.IntFlag):
     RESUMED = 1024  # warm restart: the model state of the previous run re-stepped from its saved samples
     COLD = 2048  # the model started cold on a machine that may be warm (no usable saved state, or a gap longer
     # than the runtime bridges): its zero is the machine as it was then; set on every cycle after
+    PROBE = 4096  # a probe reading (a new timestamp on the probe input) updated the correction this cycle
 
 
 class Deadlines:
@@ -167,6 +168,7 @@ class Settings:
     line_points: int = 21
     line_ref_mm: float | None = None
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    probe: Any = None  # thermbench.adapt.ProbeParams of the probe filter (config key probe)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Settings":
@@ -179,7 +181,8 @@ class Settings:
                 line_travel_mm=None if travel is None else _pair(travel, "line.travel_mm"),
                 line_points=_count(line, "n_points", 21, "line.n_points"),
                 line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, False, "line.ref_mm"),
-                ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()})  # fmt: skip
+                ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()},
+                probe=_probe_params(cfg.get("probe")))  # fmt: skip
         if s.convention not in ("compensation", "error"):
             raise config_error(f"config key 'convention': expected compensation or error, got {s.convention!r}")
         if s.clock not in ("source", "client"):
@@ -226,6 +229,18 @@ class Cycle:
     predicted_um: float = math.nan  # the runtime's total predicted error at the current position
     label: int = -1
     rc: int = 0
+    correction_um: float = 0.0  # the probe filter's correction of the total at the current position
+    probe_um: float | None = None  # the probe reading taken this cycle
+
+
+def _probe_params(cfg):
+    """:class:`thermbench.adapt.ProbeParams` of config key ``probe`` (null: the defaults)."""
+    from ..adapt import ProbeParams, ProbeParamsError
+
+    try:
+        return ProbeParams.from_config(cfg)
+    except ProbeParamsError as exc:
+        raise config_error(str(exc)) from None
 
 
 def fit_line(x_mm: np.ndarray, comp_um: np.ndarray, ref_mm: float) -> Line:
@@ -274,11 +289,18 @@ class CycleLogic:
         # inputs read from another server than the axis's (a station's separate logger): another clock, so
         # they neither set machine time nor are aged against it
         self.foreign: set[str] = set()
+        # probe readings (thermbench/adapt.py): the C runtime's filter on the model's total, from the
+        # timeline's start; the last probe's timestamp (a reading is taken once per new timestamp)
+        self.filter = None
+        self.last_probe: tuple | None = None
+        self.t_start: float | None = 0.0  # machine time of the model's (re)start: the filter's start
 
     def _restart(self) -> None:
         self.model.start()
         self.stepped = []
         self.starts += 1
+        self.filter = None  # a new model state: the old correction is of another zero
+        self.t_start = None  # set by the first sample after it
 
     # ------------------------------------------------------------ warm restart ---
     STATE_COLUMNS = ("k", "axis_mm", "feed_mm_min", "load_N", "measuring")
@@ -287,7 +309,9 @@ class CycleLogic:
         """What a later process needs to go on where this one stopped (with :attr:`stepped`)."""
         return {"t0_ts": self.t0_ts, "last_ts": self.last_ts, "k_last": self.k_last, "value_um": self.value_um,
                 "ends_um": list(self.ends_um) if self.ends_um is not None else None, "period_s": self.period_s,
-                "temperatures": list(self.model.temperatures), "cold": self.cold}  # fmt: skip
+                "temperatures": list(self.model.temperatures), "cold": self.cold,
+                "probe": self.filter.state() if self.filter is not None else None,
+                "last_probe": list(self.last_probe) if self.last_probe is not None else None}  # fmt: skip
 
     def resume_decision(self, state: dict, rows, ts_now: float, inputs_now: Mapping[str, float],
                         max_gap_s: float = TB_MAX_GAP_S, agree_C: float = 2.0) -> tuple[bool, str]:  # fmt: skip
@@ -327,6 +351,14 @@ class CycleLogic:
                 self.stepped.append(tuple(float(v) for v in row))
         self.t0_ts, self.last_ts = float(state["t0_ts"]), float(state["last_ts"])
         self.k_last = int(rows[-1][0])
+        self.t_start = float(rows[0][0]) * self.period_s if len(rows) else 0.0
+        if state.get("probe"):  # the correction the probes had made goes on (with its uncertainty)
+            from ..export.native import LiveProbe
+
+            self.filter = LiveProbe(self.s.probe, self.t_start)
+            self.filter.restore(state["probe"])
+        if state.get("last_probe") is not None:
+            self.last_probe = tuple(state["last_probe"])
         self.value_um = state.get("value_um")
         self.ends_um = tuple(state["ends_um"]) if state.get("ends_um") else None
         self.cold = bool(state.get("cold"))
@@ -384,7 +416,7 @@ class CycleLogic:
         if self.s.clock == "client":
             return now
         stamps = [r.ts_s for n, r in readings.items()
-                  if r is not None and r.ts_s is not None and n != "heartbeat" and n not in self.foreign]  # fmt: skip
+                  if r is not None and r.ts_s is not None and n not in ("heartbeat", "probe") and n not in self.foreign]  # fmt: skip
         return max(stamps) if stamps else now
 
     def cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
@@ -407,6 +439,7 @@ class CycleLogic:
             self._restart()
             self.cold = True
             self.t0_ts = self.last_ts = self.k_last = self.t_prev = self.fresh_t_s = None
+            self.t_start = 0.0
             self.back_since_wall, back, restarted = None, False, True
         self.resync = False
         if back:
@@ -441,7 +474,43 @@ class CycleLogic:
         meas = readings.get("measuring")
         measuring = bool(meas is not None and meas.good and meas.value)
         self._step(c, t, measuring)
+        self._probe(c, readings.get("probe"), t)
         return self._predict(c, t)
+
+    # ------------------------------------------------------------------ probes ---
+    def _probe(self, c: Cycle, r: Reading | None, t: float) -> None:
+        """Take a probe reading (the measured error, µm, at the current axis position) once per new
+        timestamp (per new value where the server gives none): the filter is updated with the
+        model's total at the reading's machine time, which the runtime must still hold."""
+        if r is None or not r.good or not isinstance(r.value, (int, float)) or isinstance(r.value, bool):
+            return
+        v = float(r.value)
+        key = (r.ts_s,) if r.ts_s is not None else (None, v)
+        if not math.isfinite(v) or key == self.last_probe:
+            return
+        first = self.last_probe is None
+        self.last_probe = key
+        if first and r.ts_s is not None and self.t0_ts is not None and r.ts_s < self.t0_ts:
+            return  # a reading from before this timeline (the value the server held at start-up)
+        t_p = t if r.ts_s is None or self.s.clock != "source" or self.t0_ts is None else min(r.ts_s - self.t0_ts, t)
+        rc, _, total, _ = self.model.predict(t_p, c.inputs["axis_mm"])
+        if rc < 0:
+            return
+        if self.filter is None:
+            from ..export.native import LiveProbe
+
+            self.filter = LiveProbe(self.s.probe, min(self.t_start if self.t_start is not None else t_p, t_p))
+        if self.filter.probe(t_p, total, v)[0] == 0:
+            c.flags |= Flags.PROBE
+            c.probe_um = v
+
+    def _corrected(self, t: float, total):
+        """The model's total(s) at ``t`` corrected by the probe filter (as they are without one)."""
+        if self.filter is None:
+            return total
+        if np.ndim(total):
+            return np.array([self.filter.correct(t, float(v))[1] for v in np.asarray(total, dtype=float)])
+        return self.filter.correct(t, float(total))[1]
 
     def _step(self, c: Cycle, t: float, measuring: bool) -> None:
         k = math.floor(t / self.period_s + 1e-3)  # 0.1 % of a period: timestamps carry float rounding
@@ -464,6 +533,8 @@ class CycleLogic:
             c.flags |= Flags.RESTARTED
             self.fresh_t_s = None
             rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring, **kw)
+        if self.t_start is None and rc >= 0:
+            self.t_start = k * self.period_s
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc
@@ -484,6 +555,8 @@ class CycleLogic:
             c.rc = rc
             return self._held_from(c, Flags.NOT_READY if rc in (-14, -13) else Flags.RUNTIME)
         c.predicted_um, c.label = total, label
+        total = self._corrected(t, total)
+        c.correction_um = total - c.predicted_um
         # the rate limit acts on the change in time (at fixed positions), per cycle of machine time
         # (at most one sample period per cycle: no step after an outage or a freeze)
         dt = 0.0 if self.t_prev is None else min(max(0.0, t - self.t_prev), self.period_s)
@@ -496,6 +569,7 @@ class CycleLogic:
             if np.any(rcs < 0):
                 c.rc = int(rcs[rcs < 0][0])
                 return self._held_from(c, Flags.RUNTIME)
+            tot = self._corrected(t, tot)
             want_line = fit_line(xs, self.sign * tot, self._ref())
             want = (float(want_line.at(a)), float(want_line.at(b)))
             prev = self.ends_um or (0.0, 0.0)
@@ -508,7 +582,7 @@ class CycleLogic:
             base = None
             if self.fresh_t_s is not None:  # what the ramp would give here with the previous model state
                 rc_p, _, tot_p, _ = self.model.predict(self.fresh_t_s, x)
-                base = self.sign * tot_p + self.lag_um if rc_p == 0 else None
+                base = self.sign * self._corrected(self.fresh_t_s, tot_p) + self.lag_um if rc_p == 0 else None
             if base is None:  # start-up, or after a hold: the value the controller holds
                 base = 0.0 if self.value_um is None else self.value_um
             got = base + float(np.clip(want - base, -step, step))

@@ -27,14 +27,15 @@ class CycleLog:
         self.fh = self.out.fh
         self.w = csv.writer(self.fh)
         self.w.writerow(["wall_s", "cycle", "t_s", "late_ms", "cycle_ms", *inputs, "held", "value_um", "offset_um",
-                         "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names"])  # fmt: skip
+                         "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names", "correction_um", "probe_um"])  # fmt: skip
 
     def write(self, wall_s: float, k: int, c: Cycle, late_ms: float, cycle_ms: float) -> None:
         ln = c.line
         self.w.writerow([f"{wall_s:.6f}", k, _f(c.t_s), f"{late_ms:.3f}", f"{cycle_ms:.3f}",
                          *[_f(c.inputs.get(n)) for n in self.inputs], ";".join(c.held), _f(c.value_um),
                          _f(ln.offset_um if ln else None), _f(ln.slope_um_per_m if ln else None), _f(ln.ref_mm if ln else None),
-                         _f(c.predicted_um), c.label, c.rc, c.flags, flag_names(c.flags)])  # fmt: skip
+                         _f(c.predicted_um), c.label, c.rc, c.flags, flag_names(c.flags), _f(c.correction_um),
+                         _f(c.probe_um)])  # fmt: skip
 
     def close(self) -> None:
         self.out.close()

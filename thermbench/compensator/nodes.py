@@ -106,6 +106,7 @@ class Inputs(_Strict):
     measuring: str | None = None
     done: str | None = None
     heartbeat: str | None = None
+    probe: str | None = None  # a probe reading: the measured error (µm, the model's sign), taken once per new timestamp
     temperatures: dict[str, str]
     operating: dict[str, str] = {}  # operating inputs of the model by manifest name (a spindle's spindle_rpm)
 
@@ -131,7 +132,7 @@ class Nodes(_Strict):
         are named ``<sensor>_C`` (key ``inputs.temperatures.<sensor>``)."""
         i = self.inputs
         rows = [("axis_mm", "inputs.axis_mm", i.axis_mm), ("feed_mm_min", "inputs.feed_mm_min", i.feed_mm_min)]
-        rows += [(k, f"inputs.{k}", getattr(i, k)) for k in ("load_N", "measuring", "done", "heartbeat") if getattr(i, k)]
+        rows += [(k, f"inputs.{k}", getattr(i, k)) for k in ("load_N", "measuring", "done", "heartbeat", "probe") if getattr(i, k)]
         rows += [(f"{s}_C", f"inputs.temperatures.{s}", n) for s, n in i.temperatures.items()]
         rows += [(o, f"inputs.operating.{o}", n) for o, n in i.operating.items()]
         return rows

@@ -61,7 +61,19 @@ class tb_bank(ctypes.Structure):
                 ("n_members", ctypes.c_uint32)]  # fmt: skip
 
 
+class tb_probe_params(ctypes.Structure):
+    _fields_ = [("q_bias_um2_per_h", ctypes.c_double), ("q_gain_per_h", ctypes.c_double), ("r_um2", ctypes.c_double),
+                ("bias0_um", ctypes.c_double), ("gain0", ctypes.c_double)]  # fmt: skip
+
+
+class tb_probe_state(ctypes.Structure):
+    _fields_ = [("p", tb_probe_params), ("bias_um", ctypes.c_double), ("gain", ctypes.c_double),
+                ("P00", ctypes.c_double), ("P01", ctypes.c_double), ("P11", ctypes.c_double), ("t_s", ctypes.c_double),
+                ("n_probes", ctypes.c_uint32)]  # fmt: skip
+
+
 _M, _B = ctypes.POINTER(tb_model), ctypes.POINTER(tb_bank)
+_PS = ctypes.POINTER(tb_probe_state)
 _D, _I32 = ctypes.POINTER(ctypes.c_double), ctypes.POINTER(ctypes.c_int32)
 _SIGNATURES = {  # name: (restype, argtypes)
     "tb_strerror": (ctypes.c_char_p, [ctypes.c_int]),
@@ -75,6 +87,9 @@ _SIGNATURES = {  # name: (restype, argtypes)
     "tb_bank_step": (ctypes.c_int, [_B, ctypes.POINTER(tb_sample)]),
     "tb_bank_ready_s": (ctypes.c_double, [_B]),
     "tb_bank_predict": (ctypes.c_int, [_B, ctypes.c_double, ctypes.c_double, _D, _D, _I32]),
+    "tb_probe_init": (ctypes.c_int, [_PS, ctypes.POINTER(tb_probe_params), ctypes.c_double]),
+    "tb_probe_correct": (ctypes.c_int, [_PS, ctypes.c_double, ctypes.c_double, _D, _D]),
+    "tb_probe_update": (ctypes.c_int, [_PS, ctypes.c_double, ctypes.c_double, ctypes.c_double, _D]),
 }
 
 
@@ -217,3 +232,51 @@ class LiveModel:
     def __repr__(self) -> str:
         kind = "bank" if self.is_bank else self.manifest["kind"]
         return f"LiveModel({str(self.model_dir)!r}, {kind}, temperatures={self.temperatures})"
+
+
+class LiveProbe:
+    """The C runtime's probe filter (``tb_probe_*``, embedded/src/tb_probe.c) in-process: corrects a
+    model's total error from probe readings (:mod:`thermbench.adapt` for the model of it). ``params``:
+    a :class:`thermbench.adapt.ProbeParams`; the filter starts at ``t0_s``. Codes are returned, never
+    raised (a probe older than the state: ``TB_E_LATE``)."""
+
+    STATE_FIELDS = ("bias_um", "gain", "P00", "P01", "P11", "t_s", "n_probes")
+
+    def __init__(self, params, t0_s: float) -> None:
+        self._lib = library()
+        self.params = params
+        self._st = tb_probe_state()
+        p = tb_probe_params(*(float(getattr(params, f)) for f, _ in tb_probe_params._fields_))
+        rc = self._lib.tb_probe_init(ctypes.byref(self._st), ctypes.byref(p), float(t0_s))
+        if rc != TB_OK:
+            raise ExportError(f"the C runtime refuses the probe filter's parameters {params}: error {rc}")
+        self._v, self._var = ctypes.c_double(), ctypes.c_double()
+
+    def correct(self, t_s: float, predicted_um: float) -> tuple[int, float, float]:
+        """``(rc, corrected_um, var_um2)`` of the model's total ``predicted_um`` at ``t_s``."""
+        rc = self._lib.tb_probe_correct(ctypes.byref(self._st), float(t_s), float(predicted_um), ctypes.byref(self._v),
+                                        ctypes.byref(self._var))  # fmt: skip
+        return (rc, self._v.value, self._var.value) if rc == TB_OK else (rc, math.nan, math.nan)
+
+    def probe(self, t_s: float, predicted_um: float, measured_um: float) -> tuple[int, float]:
+        """Take a reading (``predicted_um``: the model's uncorrected total at its time and place);
+        ``(rc, innovation_um)``."""
+        rc = self._lib.tb_probe_update(ctypes.byref(self._st), float(t_s), float(predicted_um), float(measured_um),
+                                       ctypes.byref(self._v))  # fmt: skip
+        return rc, (self._v.value if rc == TB_OK else math.nan)
+
+    @property
+    def t_s(self) -> float:
+        return self._st.t_s
+
+    @property
+    def n_probes(self) -> int:
+        return int(self._st.n_probes)
+
+    def state(self) -> dict:
+        """The filter's state (with :meth:`restore`: a warm restart goes on with it)."""
+        return {f: (int(getattr(self._st, f)) if f == "n_probes" else float(getattr(self._st, f))) for f in self.STATE_FIELDS}
+
+    def restore(self, state: dict) -> None:
+        for f in self.STATE_FIELDS:
+            setattr(self._st, f, int(state[f]) if f == "n_probes" else float(state[f]))

@@ -120,8 +120,37 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     return view if run in view.run_ids else model_view(ds, channel, segments=False)  # no such run: the runs as they are
 
 
+def read_probes(path: Path) -> pd.DataFrame:
+    """A probe file for ``thermbench replay --probes``: CSV with a header, columns ``t_s`` (the run's
+    time of the reading, s) and ``measured_um`` (the measured error, the model's sign), optionally
+    ``axis_mm`` (where it was taken; default: the axis position then). Times nondecreasing."""
+    path = Path(path)
+    try:
+        df = pd.read_csv(path)
+    except FileNotFoundError:
+        raise ExportError(f"--probes {path}: no such file") from None
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ExportError(f"--probes {path}: not a CSV file with a header ({str(exc).splitlines()[0]})") from None
+    missing = [c for c in ("t_s", "measured_um") if c not in df.columns]
+    if missing:
+        raise ExportError(f"--probes {path}: no column {missing[0]!r}; expected t_s, measured_um and optionally axis_mm, "
+                          f"got {list(df.columns)}")  # fmt: skip
+    cols = [c for c in ("t_s", "measured_um", "axis_mm") if c in df.columns]
+    for c in cols:
+        v = pd.to_numeric(df[c], errors="coerce")
+        bad = np.flatnonzero(~np.isfinite(v.to_numpy(dtype=float)))
+        if bad.size:
+            raise ExportError(f"--probes {path}: column {c!r}, row {bad[0] + 2}: expected a finite number, got {df[c].iloc[bad[0]]!r}")
+        df[c] = v.astype(float)
+    back = np.flatnonzero(np.diff(df["t_s"].to_numpy()) < 0)
+    if back.size:
+        raise ExportError(f"--probes {path}: column 't_s', row {back[0] + 3}: times go back "
+                          f"({df['t_s'].iloc[back[0] + 1]} after {df['t_s'].iloc[back[0]]})")  # fmt: skip
+    return df[cols].reset_index(drop=True)
+
+
 def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False, channel: str | None = None,
-               live: bool = True) -> dict:  # fmt: skip
+               live: bool = True, probes: pd.DataFrame | None = None, probe_params=None) -> dict:  # fmt: skip
     """Replay ``run`` of the dataset at ``data_dir`` through the exported model at ``model_dir``
     (a format 2 dataset: the error ``channel`` the model predicts, see :func:`replay_view`).
 
@@ -130,7 +159,10 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     compensator achieves, cycle by cycle the values it writes. A model whose value at t is final
     only later (the screw physics between its macro steps) gives its provisional value there.
     ``live=False``: every query answered once its value is final (the values the export's parity
-    check compares with the Python model)."""
+    check compares with the Python model). ``probes`` (:func:`read_probes`): probe readings correct
+    the model as the compensator's probe input does (the C runtime's ``tb_probe``, ``probe_params``:
+    :class:`thermbench.adapt.ProbeParams`, default ``probe`` of ``conf/compensator.yaml``); readings
+    at a probe's time are left out of the figures (they were measured, not compensated)."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
     ds = load_dataset(data_dir)
@@ -152,16 +184,32 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     order = np.argsort(both["t_s"].to_numpy(), kind="stable")
     # as the compensator answers (tb_replay --live): each cycle and reading with the log up to its
     # time only; before the runtime has a state nothing is written (0)
+    if probes is not None:
+        from ..adapt import ProbeParams
+        from ..config import with_defaults
+
+        probe_params = probe_params or ProbeParams.from_config(with_defaults("compensator", {})["probe"])
+        probes = probes.copy()
+        if "axis_mm" not in probes:
+            probes["axis_mm"] = np.interp(probes["t_s"], pr["t_s"], pr["axis_mm"])
+        outside = probes[(probes["t_s"] < pr["t_s"].iloc[0]) | (probes["t_s"] > pr["t_s"].iloc[-1])]
+        if len(outside):
+            raise ExportError(f"--probes: a reading at t_s={outside['t_s'].iloc[0]} s is outside run {run!r} "
+                              f"({pr['t_s'].iloc[0]} to {pr['t_s'].iloc[-1]} s)")  # fmt: skip
     res = replay_dir(model_dir, ds, run, both.iloc[order][["t_s", "axis_mm"]].reset_index(drop=True), sanitize=sanitize,
-                     live=live)  # fmt: skip
+                     live=live, probes=probes, probe_params=probe_params if probes is not None else None)  # fmt: skip
     res.index = order
     res = res.sort_index()
+    if probes is not None:  # the compensator writes the corrected value
+        res["total_um"] = res["corrected_um"].where(res["rc"] == 0)
     res[["thermal_um", "total_um"]] = res[["thermal_um", "total_um"]].fillna(0.0)
     src = both["src"].to_numpy()
     rd, ctrl = res[src == 0].reset_index(drop=True), res[src == 1].reset_index(drop=True)
     readings = te[["t_s", "target_mm", "error_um", "thermal_um"]].copy()
     readings["predicted_um"] = rd["total_um"].to_numpy()
     readings["residual_um"] = readings["error_um"] - readings["predicted_um"]
+    if probes is not None:
+        readings["probe"] = readings["t_s"].isin(probes["t_s"]).to_numpy()
     labels = None
     if man["kind"] == "bank":
         names = [m["label"] for m in man["bank"]["members"]]
@@ -174,8 +222,13 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     figures = {"model": man["name"], "kind": man["kind"], "run": run, "dataset": str(data_dir),
                "answers": "live (the log up to each query's time)" if live else "final",
                "frame": frame_text(ds.metadata),
-               "n_readings": len(readings), "n_control_cycles": len(comp),
-               **(compensation_figures(readings) if len(readings) else {})}  # fmt: skip
+               "n_readings": len(readings), "n_control_cycles": len(comp)}  # fmt: skip
+    scored = readings[~readings["probe"]] if probes is not None else readings
+    if probes is not None:
+        figures["n_probes"] = len(probes)
+        figures["probe_params"] = probe_params.as_dict()
+        figures["n_readings_scored"] = len(scored)
+    figures.update(compensation_figures(scored) if len(scored) else {})
     if ds.channel is not None:
         figures["channel"] = ds.channel
     if labels is not None:
@@ -283,6 +336,9 @@ def format_replay(f: dict) -> str:
         lines.insert(1, "  answered as the compensator does: each cycle and reading with the log up to its time")
     if f.get("frame"):
         lines.insert(1, f"  scored on {f['frame']}")
+    if "n_probes" in f:
+        lines.insert(1, f"  corrected by {f['n_probes']} probe readings (tb_probe); scored on the "
+                        f"{f['n_readings_scored']} readings that were not probes")  # fmt: skip
     if "condition_switches" in f:
         if f["first_condition_at_s"] is None:
             lines.append("  classifier: no motion window was classified (no condition model used; geometric part only)")
