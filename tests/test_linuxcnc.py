@@ -127,6 +127,33 @@ def test_counts_machine_off_and_inch_units(seed001_exports, tmp_path):
     assert hi["eoffset-counts"] == round(ci.value_um / 25.4e3 / 1e-5) and hi["eoffset-scale"] == 1e-5
 
 
+def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_exports, tmp_path):
+    """probe-valid rising takes probe-um once (flag PROBE on that cycle only, however long it stays
+    high); the compensation is then minus the total corrected as the Python filter corrects it."""
+    from thermbench.adapt import ProbeFilter, ProbeParams
+
+    comp = HalCompensator(seed001_exports / "mlr", {"log": str(tmp_path / "a.csv"), "time_source": "pin",
+                                                     "rate_limit_um_s": 1000.0})  # fmt: skip
+    assert {("probe-um", "float", "in"), ("probe-valid", "bit", "in")} <= set(comp.pins())
+    ref = ProbeFilter(ProbeParams(), 0.0)
+    valid = {10: True, 11: True, 12: True, 25: True}  # rising at 10 and at 25
+    for k in range(40):
+        h = _pins(comp, **{"temp.T_nut": 20.0 + 0.5 * k, "temp.T_bed": 20.0, "axis-pos": 350.0, "axis-vel": 100.0,
+                           "time-s": float(k), "machine-on": True, "all-homed": True,
+                           "probe-valid": valid.get(k, False), "probe-um": 4.0 + 0.1 * k})  # fmt: skip
+        c = comp.step(h, now_wall_s=0.01 * k)
+        taken = k in (10, 25)
+        assert bool(c.flags & Flags.PROBE) == taken, k
+        if not math.isfinite(c.predicted_um):
+            continue
+        if taken:
+            ref.probe(float(k), c.predicted_um, 4.0 + 0.1 * k)
+        want = ref.correct(float(k), c.predicted_um)[0]
+        assert c.correction_um == pytest.approx(want - c.predicted_um, abs=1e-9)
+        assert h["comp-um"] == pytest.approx(-want, abs=1e-9)
+    assert ref.n_probes == 2
+
+
 def test_gcode_duty_cycle_is_a_linuxcnc_loop():
     text = gcode({"start_mm": 210, "end_mm": 490, "feed_mm_min": 8000, "repeats": 3, "dwell_s": 5})
     assert "o100 repeat [3]" in text and "o100 endrepeat" in text and "G1 X490.000 F8000.0" in text and "G4 P5.000" in text

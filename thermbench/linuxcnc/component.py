@@ -130,6 +130,7 @@ class HalCompensator:
         self.stop_requested = False
         self.t0_wall: float | None = None
         self.was_on = False
+        self.probe_was_valid = False
 
     # ------------------------------------------------------------------ pins ---
     def pins(self) -> list[tuple[str, str, str]]:
@@ -140,6 +141,7 @@ class HalCompensator:
             ins.append(("load-N", "float"))
         if self.time_source == "pin":
             ins.append(("time-s", "float"))
+        ins += [("probe-um", "float"), ("probe-valid", "bit")]  # a probe reading, taken when probe-valid rises
         outs = [("eoffset-counts", "s32"), ("eoffset-scale", "float"), ("eoffset-enable", "bit"), ("eoffset-clear", "bit"),
                 ("comp-um", "float"), ("predicted-um", "float"), ("flags", "s32"), ("ok", "bit"),
                 ("machine-time-s", "float")]  # fmt: skip
@@ -171,6 +173,10 @@ class HalCompensator:
             r[f"{s}_C"] = Reading(float(h[temp_pin(s)]), ts)
         if self.model.needs_load:
             r["load_N"] = Reading(float(h["load-N"]), ts)
+        valid = bool(h["probe-valid"])
+        if valid and not self.probe_was_valid:  # a new probe reading: measured error (µm), taken now, once
+            r["probe"] = Reading(float(h["probe-um"]), ts)
+        self.probe_was_valid = valid
         return r
 
     def counts(self, value_um: float | None) -> int:
