@@ -92,3 +92,20 @@ def test_a_cv_mistake_is_one_line_before_any_fit(lathe, tmp_path, extra, message
     with pytest.raises(ExperimentError) as err:
         bm.tasks(cfg)
     assert str(err.value) == message
+
+
+def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa: F811
+    """approaches global + adaptive on the three days: results.csv has the probe rows with their
+    counts and intervals, the report is written, and the chosen model is an open-loop one."""
+    import pandas as pd
+
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[thermal_lag]", "bank_families=[]",
+               "approaches=[global,adaptive]", "probe.every_s=[600]")  # fmt: skip
+    res = bm.benchmark(cfg)
+    table = pd.read_csv(tmp_path / "reports" / "results.csv")
+    probe = table[table["approach"].str.startswith(("adaptive-", "naive_probe-"))]
+    assert set(probe["approach"]) == {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty"}
+    assert (probe["probes"] >= 1).all() and not probe["own"].any()
+    glob = table[table["approach"] == "global"]
+    assert glob["coverage_90"].between(0, 1).all() and (glob["half_width_um"] > 0).all()
+    assert (tmp_path / "reports" / "report.md").is_file() and res is not None

@@ -371,3 +371,23 @@ def test_probe_readings_correct_the_compensation_as_the_python_filter_does_once_
     again.warm_start(st, [(k, 50.0, 3000.0, 0.0, 0.0, 20.0 + 0.05 * k) for k in range(120)])
     assert again.filter.state() == lg.filter.state()
     assert again._corrected(150.0, 3.0) == pytest.approx(ref.correct(150.0, 3.0)[0])
+
+
+@pytest.mark.parametrize("policy", ["report", "hold"])
+def test_outside_the_training_envelope_is_flagged_and_held_when_asked(policy):
+    """The model's manifest says its nut rose at most 2 K: a rise past it flags EXTRAPOLATING on
+    every cycle it lasts; 'hold' keeps the last value written inside, 'report' writes as usual."""
+    m = FakeModel()
+    m.manifest = {"envelope": {"sensors": ["T_nut"], "operating": [], "names": ["rise:T_nut", "rate:T_nut"],
+                               "lo": [0.0, -100.0], "hi": [2.0, 100.0], "width": [2.0, 200.0], "rate_tau_s": 600.0}}
+    lg = _logic(m, extrapolation=policy)
+    out = [lg.cycle(_r(1000.0 + k, temp=20.0 + 0.1 * k), now_wall_s=0.01 * k) for k in range(40)]
+    ext = [bool(c.flags & Flags.EXTRAPOLATING) for c in out]
+    assert ext == [k > 20 for k in range(40)]  # the rise passes 2 K after sample 20 (0.1 K per sample)
+    inside = out[20].value_um
+    if policy == "hold":
+        assert all(c.value_um == inside and c.flags & Flags.HELD for c in out[21:])
+    else:
+        assert all(not c.flags & Flags.HELD for c in out[21:]) and out[-1].value_um < inside - 1.0
+    with pytest.raises(Exception, match="config key 'extrapolation': expected report or hold, got 'limit'"):
+        _logic(m, extrapolation="limit")

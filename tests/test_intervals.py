@@ -137,7 +137,7 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
     out = bm.run_task(dcfg, "thermal_lag", cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
                       probe={"every_s": [600], "trigger": "uncertainty", "threshold_um": 0.6, "noise": noise})  # fmt: skip
     res = out["results"]
-    assert {"adaptive@600s", "naive_probe@600s", "adaptive@uncertainty", "global"} == set(res["approach"])
+    assert {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty", "global"} == set(res["approach"])
     ds = load_split({**dcfg, "channel": "dia"}).dataset
     model = build_model(cfg, seed=0)
     for held in ds.run_ids:
@@ -155,10 +155,46 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
                 f.probe(t[i], p[i], y[i])
         keep = ~probe
         rows = res[(res["fold"] == held) & (res["run_id"] == held)].set_index("approach")
-        assert rows.loc["naive_probe@600s", "probes"] == probe.sum() >= 4
-        assert rows.loc["naive_probe@600s", "rmse_um"] == pytest.approx(np.sqrt(np.mean((naive - y)[keep] ** 2)))
-        assert rows.loc["adaptive@600s", "rmse_um"] == pytest.approx(np.sqrt(np.mean((filt - y)[keep] ** 2)))
-        assert 0 <= rows.loc["adaptive@600s", "coverage_90"] <= 1 and rows.loc["adaptive@600s", "half_width_um"] > 0
-        assert rows.loc["adaptive@uncertainty", "probes"] >= 1
+        assert rows.loc["naive_probe-600s", "probes"] == probe.sum() >= 4
+        assert rows.loc["naive_probe-600s", "rmse_um"] == pytest.approx(np.sqrt(np.mean((naive - y)[keep] ** 2)))
+        assert rows.loc["adaptive-600s", "rmse_um"] == pytest.approx(np.sqrt(np.mean((filt - y)[keep] ** 2)))
+        assert 0 <= rows.loc["adaptive-600s", "coverage_90"] <= 1 and rows.loc["adaptive-600s", "half_width_um"] > 0
+        assert rows.loc["adaptive-uncertainty", "probes"] >= 1
     chosen = bm.choose(res.assign(reference=False), exclude=[])
     assert not chosen["approach"].map(bm.probe_approach).any()
+
+
+def test_the_streaming_guard_is_the_envelope_of_the_log_sample_by_sample(lathe):  # noqa: F811
+    """EnvelopeGuard fed a day's log sample by sample gives, at every sample, the distance the batch
+    features of that log give (the same rise and high-pass rate, computed two ways)."""
+    from thermbench.intervals import EnvelopeGuard
+
+    _, dcfg = dataset_option(str(lathe), "datasets")
+    ds = load_split({**dcfg, "channel": "dia"}).dataset
+    sensors = list(ds.metadata.sensors)[:2]
+    env = Envelope.fit(ds, [ds.run_ids[0]], sensors)
+    run = ds.run_ids[2]  # another day: partly outside the first day's envelope
+    pr = ds.process_run(run)
+    t = pr["t_s"].to_numpy(float)
+    batch = env.distance(Envelope.features(ds, run, t, sensors))
+    g = EnvelopeGuard(env)
+    stream = [g.step(tt, [pr[ds.metadata.sensor_column(s)].iloc[i] for s in sensors]) for i, tt in enumerate(t)]
+    assert np.allclose(stream, batch, atol=1e-12) and (batch > 0).any()
+
+
+def test_the_export_manifest_carries_the_training_envelope(seed001_exports, seed001_data_root):
+    from thermbench import datasets
+    from thermbench.export.bundle import read_manifest
+
+    man = read_manifest(seed001_exports / "mlr")
+    ds = datasets.load_benchmark("seed001_vmc_x", seed001_data_root)
+    env = Envelope.from_dict(man["envelope"])
+    assert env.sensors == tuple(man["temperatures"]) and man["envelope"]["rate_tau_s"] == 600.0
+    # the largest rise of each sensor over the five training states, from the log as written
+    for j, s in enumerate(man["temperatures"]):
+        col = ds.metadata.sensor_column(s)
+        top = []
+        for r in man["training"]["runs"]:
+            pr, t = ds.process_run(r), ds.errors_run(r)["t_s"].to_numpy(float)
+            top.append((np.interp(t, pr["t_s"], pr[col]) - pr[col].iloc[0]).max())
+        assert env.hi[j] == pytest.approx(max(top))

@@ -278,15 +278,15 @@ def trigger_level(runs: list[tuple[np.ndarray, np.ndarray]], params: ProbeParams
 def probe_replays(t_s, measured_um, predicted_um, plan: ProbePlan, params: ProbeParams,
                   calibration: list[tuple[np.ndarray, np.ndarray]]):  # fmt: skip
     """One held-out run replayed with probes as ``plan`` says: yields (approach, corrected, var,
-    probed) for ``adaptive@<every>s`` and ``naive_probe@<every>s`` per schedule, then
-    ``adaptive@uncertainty``; ``var`` is None for the naive peer."""
+    probed) for ``adaptive-<every>s`` and ``naive_probe-<every>s`` per schedule, then
+    ``adaptive-uncertainty``; ``var`` is None for the naive peer."""
     t, y, p = (np.asarray(a, dtype=float) for a in (t_s, measured_um, predicted_um))
     for every in plan.every_s:
         sched = probe_schedule(t, every)
         c, var, probed = apply_probes(t, p, y, params, schedule=sched)
-        yield f"adaptive@{every:g}s", c, var, probed
-        yield f"naive_probe@{every:g}s", naive_probes(p, y, sched), None, sched
+        yield f"adaptive-{every:g}s", c, var, probed
+        yield f"naive_probe-{every:g}s", naive_probes(p, y, sched), None, sched
     if plan.trigger == "uncertainty":
         level = plan.threshold_um if plan.threshold_um is not None else trigger_level(calibration, params, plan.every_s[0])
         c, var, probed = apply_probes(t, p, y, params, trigger_um=level)
-        yield "adaptive@uncertainty", c, var, probed
+        yield "adaptive-uncertainty", c, var, probed

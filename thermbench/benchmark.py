@@ -83,7 +83,7 @@ def run_task(
     prediction intervals of the global approach (:mod:`thermbench.intervals`), calibrated on each
     outer fold's inner folds: its rows get ``coverage_<level %>`` and ``half_width_um``. ``probe``: how
     approach ``adaptive`` probes each held-out run (:class:`thermbench.adapt.ProbePlan`): rows
-    ``adaptive@<every>s``, ``naive_probe@<every>s`` (the peer) and ``adaptive@uncertainty``, scored
+    ``adaptive-<every>s``, ``naive_probe-<every>s`` (the peer) and ``adaptive-uncertainty``, scored
     without the probe readings (``probes``, ``probes_per_h``).
 
     Returns ``results`` (one row per fitted model x test run, the columns of
@@ -360,8 +360,9 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
     for r, (t, measured, thermal, pred, dist) in cal["held"].items():
         for name, c, var, probed in probe_replays(t, measured, pred, plan, params, calib):
             keep = ~probed
-            row = {"run_id": r, **residual_metrics(measured[keep], c[keep], thermal[keep]), "nonfinite_predictions": 0,
-                   "probes": int(probed.sum()), "probes_per_h": float(probed.sum() / max((t[-1] - t[0]) / 3600.0, 1e-9))}  # fmt: skip
+            row = {"run_id": r, "own": False, **residual_metrics(measured[keep], c[keep], thermal[keep]),
+                   "nonfinite_predictions": 0, "fit_s": 0.0, "probes": int(probed.sum()),
+                   "probes_per_h": float(probed.sum() / max((t[-1] - t[0]) / 3600.0, 1e-9))}  # fmt: skip
             if var is not None:
                 hw = qs[name] * np.sqrt(var + params.r_um2) * (1.0 + kappa * dist)
                 row["_coverage"] = float(np.mean(np.abs(measured - c)[keep] <= hw[keep]))
@@ -376,14 +377,18 @@ APPROACHES = ("single", "global", *BANKS, "adaptive")
 
 
 def probe_approach(approach: str) -> bool:
-    """True for an approach scored with probe readings of the run it scores (``adaptive@...``,
-    ``naive_probe@...``): never compared with the open-loop approaches for a choice."""
-    return "@" in str(approach)
+    """True for an approach scored with probe readings of the run it scores (``adaptive-...``,
+    ``naive_probe-...``): never compared with the open-loop approaches for a choice."""
+    return str(approach).startswith(PROBE_PREFIXES)
+
+
+#: the row names of the probe approaches begin so (thermbench.adapt.probe_replays)
+PROBE_PREFIXES = ("adaptive-", "naive_probe-")
 
 
 def probe_rows(results: pd.DataFrame) -> pd.Series:
     """Which rows of ``results`` are of a :func:`probe_approach` (a boolean Series)."""
-    return results["approach"].astype(str).str.contains("@", regex=False).astype(bool)
+    return results["approach"].astype(str).str.startswith(PROBE_PREFIXES).astype(bool)
 
 
 def families_by_dataset(cfg, datasets: Sequence[str]) -> dict[str, list[str]]:

@@ -28,7 +28,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["Envelope", "conformal_quantile", "half_widths", "interval_scores", "RATE_WINDOW_S"]
+__all__ = ["Envelope", "EnvelopeGuard", "conformal_quantile", "half_widths", "interval_scores", "rise_and_rate", "RATE_WINDOW_S"]
 
 #: the time constant of a sensor's rate of change (:func:`rise_and_rate`)
 RATE_WINDOW_S = 600.0
@@ -79,7 +79,8 @@ class Envelope:
         names = [f"rise:{s}" for s in sensors] + [f"rate:{s}" for s in sensors] + [f"op:{c}" for c in operating]
         if F.shape[0] == 0:
             raise ValueError("an envelope of no readings")
-        lo, hi = F.min(axis=0), F.max(axis=0)
+        with np.errstate(invalid="ignore"):  # a sensor's gaps (NaN) are not a range
+            lo, hi = np.nan_to_num(np.nanmin(F, axis=0)), np.nan_to_num(np.nanmax(F, axis=0))
         floor = np.array([MIN_WIDTH["rise"]] * len(sensors) + [MIN_WIDTH["rate"]] * len(sensors)
                          + [max(MIN_WIDTH_OPERATING * max(abs(a), abs(b)), 1.0) for a, b in
                             zip(lo[2 * len(sensors):], hi[2 * len(sensors):])])  # fmt: skip
@@ -145,3 +146,34 @@ def conformal_quantile(scores, level: float = 0.9) -> float:
 def half_widths(q: float, distance, kappa: float = 1.0) -> np.ndarray:
     """The interval's half-width (µm) at readings ``distance`` from the envelope."""
     return q * (1.0 + kappa * np.asarray(distance, dtype=float))
+
+
+class EnvelopeGuard:
+    """The envelope followed sample by sample, as a compensator (and the C runtime) sees the
+    inputs: each sensor's rise above the first sample and its high-pass rate (the recursion of
+    :func:`rise_and_rate`), each operating signal as it is. :meth:`step` returns the sample's
+    distance to the envelope (0 inside): a reading beyond it is ``EXTRAPOLATING``."""
+
+    def __init__(self, envelope: Envelope, tau_s: float = RATE_WINDOW_S) -> None:
+        self.env = envelope
+        self.tau_s = float(tau_s)
+        self.T0: np.ndarray | None = None
+        self.e: np.ndarray | None = None
+        self.t_last: float | None = None
+        self.distance = 0.0
+        self.outside: list[str] = []
+
+    def reset(self) -> None:
+        self.T0 = self.e = self.t_last = None
+
+    def step(self, t_s: float, temps_C, operating=()) -> float:
+        T = np.asarray(temps_C, dtype=float).ravel()
+        if self.T0 is None:
+            self.T0, self.e = T.copy(), T.copy()
+        elif t_s > self.t_last:
+            self.e = self.e + (1.0 - math.exp(-(t_s - self.t_last) / self.tau_s)) * (T - self.e)
+        self.t_last = float(t_s)
+        F = np.concatenate([T - self.T0, (T - self.e) * (3600.0 / self.tau_s), np.asarray(operating, dtype=float).ravel()])
+        self.distance = float(self.env.distance(F[None, :])[0])
+        self.outside = self.env.outside(F[None, :])[0] if self.distance > 0 else []
+        return self.distance

@@ -70,6 +70,7 @@ class Flags(enum.IntFlag):
     COLD = 2048  # the model started cold on a machine that may be warm (no usable saved state, or a gap longer
     # than the runtime bridges): its zero is the machine as it was then; set on every cycle after
     PROBE = 4096  # a probe reading (a new timestamp on the probe input) updated the correction this cycle
+    EXTRAPOLATING = 8192  # the inputs are outside the envelope the model was fitted on (manifest 'envelope')
 
 
 class Deadlines:
@@ -169,6 +170,7 @@ class Settings:
     line_ref_mm: float | None = None
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
     probe: Any = None  # thermbench.adapt.ProbeParams of the probe filter (config key probe)
+    extrapolation: str = "report"  # outside the training envelope: report (flag only) | hold the last value inside
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Settings":
@@ -182,13 +184,15 @@ class Settings:
                 line_points=_count(line, "n_points", 21, "line.n_points"),
                 line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, False, "line.ref_mm"),
                 ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()},
-                probe=_probe_params(cfg.get("probe")))  # fmt: skip
+                probe=_probe_params(cfg.get("probe")), extrapolation=str(cfg.get("extrapolation", "report")))  # fmt: skip
         if s.convention not in ("compensation", "error"):
             raise config_error(f"config key 'convention': expected compensation or error, got {s.convention!r}")
         if s.clock not in ("source", "client"):
             raise config_error(f"config key 'clock': expected source or client, got {s.clock!r}")
         if s.line_points < 2:
             raise config_error(f"config key 'line.n_points': at least 2, got {s.line_points}")
+        if s.extrapolation not in ("report", "hold"):
+            raise config_error(f"config key 'extrapolation': expected report or hold, got {s.extrapolation!r}")
         return s
 
     def range_of(self, name: str) -> tuple[float, float]:
@@ -294,6 +298,13 @@ class CycleLogic:
         self.filter = None
         self.last_probe: tuple | None = None
         self.t_start: float | None = 0.0  # machine time of the model's (re)start: the filter's start
+        env = (getattr(model, "manifest", None) or {}).get("envelope")
+        if env is not None:
+            from ..intervals import Envelope, EnvelopeGuard
+
+            self.guard = EnvelopeGuard(Envelope.from_dict(env), float(env.get("rate_tau_s", 600.0)))
+        else:
+            self.guard = None  # an export without an envelope (before issue 41): nothing to flag
 
     def _restart(self) -> None:
         self.model.start()
@@ -301,6 +312,8 @@ class CycleLogic:
         self.starts += 1
         self.filter = None  # a new model state: the old correction is of another zero
         self.t_start = None  # set by the first sample after it
+        if getattr(self, "guard", None) is not None:
+            self.guard.reset()  # the rises count from the new first sample, as the model's
 
     # ------------------------------------------------------------ warm restart ---
     STATE_COLUMNS = ("k", "axis_mm", "feed_mm_min", "load_N", "measuring")
@@ -349,6 +362,8 @@ class CycleLogic:
                                  measuring=bool(row[4]), operating=list(row[n0 + nt :]))  # fmt: skip
             if rc >= 0:
                 self.stepped.append(tuple(float(v) for v in row))
+                if self.guard is not None:
+                    self.guard.step(k * self.period_s, list(row[n0 : n0 + nt]), list(row[n0 + nt :]))
         self.t0_ts, self.last_ts = float(state["t0_ts"]), float(state["last_ts"])
         self.k_last = int(rows[-1][0])
         self.t_start = float(rows[0][0]) * self.period_s if len(rows) else 0.0
@@ -475,6 +490,10 @@ class CycleLogic:
         measuring = bool(meas is not None and meas.good and meas.value)
         self._step(c, t, measuring)
         self._probe(c, readings.get("probe"), t)
+        if self.guard is not None and self.guard.distance > 0:
+            c.flags |= Flags.EXTRAPOLATING
+            if self.s.extrapolation == "hold" and self.value_um is not None:
+                return self._held_from(c, Flags.EXTRAPOLATING)
         return self._predict(c, t)
 
     # ------------------------------------------------------------------ probes ---
@@ -535,6 +554,8 @@ class CycleLogic:
             rc = self.model.step(*args, load_N=i.get("load_N", 0.0), measuring=measuring, **kw)
         if self.t_start is None and rc >= 0:
             self.t_start = k * self.period_s
+        if self.guard is not None and rc >= 0:
+            self.guard.step(k * self.period_s, temps, op)
         if rc < 0:
             c.flags |= Flags.RUNTIME
             c.rc = rc

@@ -374,6 +374,12 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                                                 "frame": frame_text(ds.metadata)}
                            if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
                            **source.pop("training", {})}  # fmt: skip
+        if ds is not None:  # what the model was fitted on: the guard's envelope (thermbench/intervals.py)
+            from ..intervals import RATE_WINDOW_S, Envelope
+
+            env = Envelope.fit(ds, list(model.train_runs_), temps, ops)
+            man["envelope"] = {**env.to_dict(), "rate_tau_s": RATE_WINDOW_S,
+                               "note": "rises above the run's first sample (K), high-pass rates (K/h), operating values"}  # fmt: skip
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
