@@ -35,15 +35,6 @@ def rmse(a, b) -> float:
     return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
 
 
-def naive(pred, meas, probes):
-    out, off = np.array(pred, dtype=float), 0.0
-    for i in range(out.size):
-        out[i] += off
-        if probes[i]:
-            off = meas[i] - pred[i]
-    return out
-
-
 def channel_runs(family: str, ch: str, seed: int):
     """(tail t, measured, predicted) and the leave-one-block-out residual runs of the training blocks."""
     from sklearn.base import clone
@@ -75,7 +66,7 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the table as CSV here")
     args = ap.parse_args()
     os.environ.setdefault("THERMBENCH_DATA", str(Path("data/benchmark").resolve()))
-    from thermbench.adapt import apply_probes, estimate_noise, probe_schedule
+    from thermbench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
 
     rows = []
     for fam in args.families.split(","):
@@ -88,7 +79,7 @@ def main() -> None:
                 sched = probe_schedule(t, every)
                 keep = ~sched
                 rows.append(dict(family=fam, channel=ch, method="naive", every_s=every, probes=int(sched.sum()),
-                                 rmse_um=rmse(naive(p, y, sched)[keep], y[keep])))  # fmt: skip
+                                 rmse_um=rmse(naive_probes(p, y, sched)[keep], y[keep])))  # fmt: skip
                 seg = np.cumsum(sched)  # the best constant offset per probe interval, with hindsight: a bound
                 best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
                 rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
@@ -97,13 +88,7 @@ def main() -> None:
                 rows.append(dict(family=fam, channel=ch, method="adaptive", every_s=every, probes=int(sched.sum()),
                                  rmse_um=rmse(c[keep], y[keep]), q_bias_um2_per_h=params.q_bias_um2_per_h,
                                  r_um2=params.r_um2, bias0_um=params.bias0_um))  # fmt: skip
-                # the trigger level: the filter's std just before a scheduled probe, on the training blocks
-                before = []
-                for tt, d in loro:
-                    s = probe_schedule(tt, every)
-                    _, v, _ = apply_probes(tt, np.zeros_like(d), d, params, schedule=s)
-                    before.extend(np.sqrt(v[s][1:] + params.r_um2))
-                level = float(np.median(before))
+                level = trigger_level(loro, params, every)  # the std just before a scheduled probe, training blocks
                 c, _, probed = apply_probes(t, p, y, params, trigger_um=level)
                 keep = ~probed
                 rows.append(dict(family=fam, channel=ch, method="trigger", every_s=every, probes=int(probed.sum()),

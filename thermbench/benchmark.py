@@ -343,12 +343,16 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
     first schedule's interval. An adaptive approach's interval is conformal too: the calibration
     runs replayed the same way, each residual normalised by the filter's standard deviation (the
     reading's scatter included) and the envelope distance. (approach, metrics rows) pairs."""
-    from .adapt import estimate_noise, probe_replays
+    import dataclasses
+
+    from .adapt import estimate_noise, probe_replays, trigger_level
     from .intervals import conformal_quantile
     from .metrics import residual_metrics
 
     calib = [(t, d) for t, d, _ in cal["calibration"]]
     params = plan.noise or estimate_noise(calib, plan.every_s[0])
+    if plan.trigger == "uncertainty" and plan.threshold_um is None:  # the fold's level, found once
+        plan = dataclasses.replace(plan, threshold_um=trigger_level(calib, params, plan.every_s[0]))
     scores: dict[str, list[np.ndarray]] = {}
     for t, d, dist in cal["calibration"]:  # the calibration runs as residuals (prediction 0, measured d)
         for name, c, var, probed in probe_replays(t, d, np.zeros_like(d), plan, params, calib):
