@@ -471,7 +471,8 @@ def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exp
     80 s of machine time (more than the 60 s the runtime bridges) replays the outage from it and
     resumes warm. Its predictions are then thermbench replay's, sample by sample, over the run as
     the machine played it: as if it had never stopped."""
-    from thermbench.data.io import save_dataset
+    from thermbench.data.io import load_dataset, save_dataset
+    from thermbench.export.bundle import process_samples, replay_dir
 
     said = asyncio.run(_restarted_compensators(machine, seed001_exports / "mlr", nodes_file, tmp_path, (0.0, 4.0), 2.0,
                                                start="on_compensator", history=True))  # 4 s wall = 80 s machine
@@ -481,16 +482,33 @@ def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exp
     gap = second["t_s"].iloc[0] - first["t_s"].iloc[-1]
     assert 61 < gap < 200 and not (second["flags"] & int(Flags.COLD)).any()
     save_dataset(machine.dataset, tmp_path / "ds")
-    comp = replay_run(seed001_exports / "mlr", tmp_path / "ds", RUN)["compensation"].set_index("t_s")
+    ds = load_dataset(tmp_path / "ds")
+    samples = process_samples(ds, RUN)
+    # the samples the model stepped (the state file's record): the loops' own and the outage's from history
+    stepped = pd.read_csv(tmp_path / "state.json.samples.csv", header=None)
+    k_s = stepped[0].to_numpy()
+    outage = (k_s > first["t_s"].max()) & (k_s < second["t_s"].min())
+    want_outage = np.arange(np.floor(first["t_s"].max() + 1e-3) + 1, second["t_s"].min())
+    np.testing.assert_array_equal(k_s[outage], want_outage)  # the history fills every grid point of the outage
+    rows = samples.set_index("t_s").loc[k_s]  # ... with the machine's values there (the dataset's, 1 s samples)
+    np.testing.assert_allclose(stepped[[1, 2, 5, 6]].to_numpy(), rows[["axis_mm", "feed_mm_min", "T_nut_C", "T_bed_C"]].to_numpy(),
+                               rtol=0, atol=1e-9)  # fmt: skip
+    # The reference: the C runtime replaying the run over those samples. A loaded host's loop may miss a
+    # sample the machine played (its model then steps over it); with none missed this is replay_run's run.
+    played = samples[samples["t_s"].isin(k_s) | (samples["t_s"] > k_s.max())].reset_index(drop=True)
+    comp = replay_dir(seed001_exports / "mlr", ds, RUN, played[["t_s", "axis_mm"]], samples=played, live=True)
+    comp = comp.set_index("t_s")["total_um"]
+    if len(played) == len(samples):
+        full = replay_run(seed001_exports / "mlr", tmp_path / "ds", RUN)["compensation"].set_index("t_s")
+        np.testing.assert_allclose(comp.fillna(0.0).to_numpy(), -full["compensation_um"].to_numpy(), rtol=0, atol=1e-9)
     # the first run saw the run from its start: replay's numbers, as the closed loop always gave
     f1 = first[(first["flags"] & HELD) == 0]
     k1 = np.floor(f1["t_s"].to_numpy() + 1e-3)
-    np.testing.assert_allclose(f1["predicted_um"].to_numpy(), -comp.loc[k1, "compensation_um"].to_numpy(), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(f1["predicted_um"].to_numpy(), comp.loc[k1].to_numpy(), rtol=0, atol=1e-6)
     fresh = second[(second["flags"] & HELD) == 0]
     k = np.floor(fresh["t_s"].to_numpy() + 1e-3)  # the model's last grid point (1 s) at each cycle
     assert len(fresh) > 50 and set(k) <= set(comp.index)
-    want = -comp.loc[k, "compensation_um"].to_numpy()  # replay: the total error predicted at the sample
-    np.testing.assert_allclose(fresh["predicted_um"].to_numpy(), want, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(fresh["predicted_um"].to_numpy(), comp.loc[k].to_numpy(), rtol=0, atol=1e-6)
 
 
 async def _restarted_compensators(machine, model_dir, nodes_file, tmp_path, pauses_s, duration_s, **sim_kw):

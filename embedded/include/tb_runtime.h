@@ -110,6 +110,8 @@ enum {
     TB_KIND_THERMAL_LAG = 10, /* first-order lags of the rises and an operating input (thermal_lag) */
     TB_KIND_MAX = 10
 };
+/* not a model: a model's training envelope, read by tb_guard_open (src/tb_guard.c) */
+#define TB_KIND_ENVELOPE 11u
 
 /* error codes (all < 0) */
 enum {
@@ -223,6 +225,28 @@ int tb_probe_correct(const tb_probe_state *f, tb_real t_s, tb_real predicted_um,
 /* TB_E_LATE for a probe older than the state's time */
 int tb_probe_update(tb_probe_state *f, tb_real t_s, tb_real predicted_um, tb_real measured_um, tb_real *innovation_um);
 int tb_probe(const tb_model *m, tb_probe_state *f, tb_real t_s, tb_real axis_mm, tb_real measured_um);
+
+/* the extrapolation guard (src/tb_guard.c; thermbench/intervals.py EnvelopeGuard): a model's
+ * training envelope (the export's envelope.tbm, read in place) followed sample by sample. Per
+ * control cycle, after tb_model_step with the same sample:
+ *   tb_guard_step(&g, &sample, &distance);   distance > 0: EXTRAPOLATING (in widths of the range)
+ * g.outside has bit i set for input i beyond its range (rise:<sensor>..., rate:<sensor>...,
+ * op:<input>..., the envelope's order); tb_guard_reset starts again from the next sample (a model
+ * restart). */
+typedef struct {
+    const uint8_t *payload;   /* the file's [tau_s, lo, hi, width], float32 */
+    uint32_t n_sensors, n_operating;
+    tb_real tau_s;
+    tb_real T0_C[TB_MAX_SENSORS], e_C[TB_MAX_SENSORS]; /* first sample, exponential average */
+    tb_real t_last_s;
+    int started;
+    tb_real distance;         /* the last sample's */
+    uint32_t outside;         /* the last sample's inputs beyond their range (bit i, the first 32) */
+} tb_guard;
+
+int tb_guard_open(tb_guard *g, const uint8_t *file, size_t len);
+void tb_guard_reset(tb_guard *g);
+int tb_guard_step(tb_guard *g, const tb_sample *s, tb_real *distance);
 
 #ifdef __cplusplus
 }

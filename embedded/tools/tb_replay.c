@@ -10,6 +10,9 @@
  *   --probe QB QG R B0 G0 (an option before the model): probe readings 'P' correct the model by the
  *   bias + gain filter of tb_probe (its tb_probe_params in that order); every query line then
  *   ends in the corrected total error and its variance
+ *   --guard FILE (an option before the model, with --live): the extrapolation guard of tb_guard over
+ *   the samples, FILE an envelope file (the export's envelope.tbm); every query line then ends in
+ *   the guard's distance at the last sample before it (0 inside the envelope, nan before any)
  *   --live (an option before the model): every query is answered with the samples up to its time
  *   only, before the next sample is stepped, as a compensator answers for the time it writes (a
  *   model whose values at t are final later, e.g. the screw physics between macro steps, gives its
@@ -23,7 +26,7 @@
  *                                                              time as a probe comes before it)
  * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s), the
  * rest after tb_*_finish at the end of the stream (--live: see above). Output, one line per query:
- *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2]
+ *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance]
  * A probe prints nothing; one the runtime cannot answer yet (or refuses) is skipped and counted
  * on stderr.
  */
@@ -89,11 +92,20 @@ static query_t *queries;
 static size_t n_q, q_done;
 
 static tb_bank bank;
-static int use_bank, lenient, live, probing;
+static int use_bank, lenient, live, probing, guarding;
+static tb_guard guard;
 static unsigned long rejected, probes_skipped;
 static tb_probe_state filt;
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
+
+/* the end of an answer line: the guard's distance at the last sample stepped (--guard) */
+static void end_line(void)
+{
+    if (guarding && guard.started) printf(" %.17g\n", (double)guard.distance);
+    else if (guarding) printf(" nan\n");
+    else printf("\n");
+}
 
 /* the queries up to time upto (all: every one left; before: strictly before upto, --live), each
  * with the runtime's answer, or TB_E_NOTREADY while it has no state yet (--live: the compensator
@@ -106,8 +118,11 @@ static void answer_until(double upto, int all, int before)
         int rc;
         if (live && !(ready() > (tb_real)-1e29)) {
             if (queries[q_done].probe) probes_skipped++;
-            else if (probing) printf("%.17g %.17g nan nan -1 %d nan nan\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
-            else printf("%.17g %.17g nan nan -1 %d\n", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+            else {
+                printf("%.17g %.17g nan nan -1 %d", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
+                if (probing) printf(" nan nan");
+                end_line();
+            }
             q_done++;
             continue;
         }
@@ -119,10 +134,12 @@ static void answer_until(double upto, int all, int before)
         } else if (probing) {
             tb_real corr = 0, var = 0;
             if (rc == TB_OK) tb_probe_correct(&filt, (tb_real)queries[q_done].t, tot, &corr, &var);
-            printf("%.17g %.17g %.17g %.17g %d %d %.17g %.17g\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot,
+            printf("%.17g %.17g %.17g %.17g %d %d %.17g %.17g", queries[q_done].t, queries[q_done].x, (double)th, (double)tot,
                    (int)lab, rc, (double)corr, (double)var);
+            end_line();
         } else {
-            printf("%.17g %.17g %.17g %.17g %d %d\n", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
+            printf("%.17g %.17g %.17g %.17g %d %d", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
+            end_line();
         }
         q_done++;
     }
@@ -135,8 +152,29 @@ int main(int argc, char **argv)
     int i, rc, n_files = 0;
     char line[8192];
     size_t cap_q = 1024;
-    while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0 || strcmp(argv[1], "--probe") == 0)) {
-        if (strcmp(argv[1], "--probe") == 0) {
+    while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0 || strcmp(argv[1], "--probe") == 0 ||
+                         strcmp(argv[1], "--guard") == 0)) {
+        if (strcmp(argv[1], "--guard") == 0) {
+            FILE *f;
+            size_t n;
+            if (argc < 3) return 1;
+            f = fopen(argv[2], "rb");
+            if (!f) {
+                fprintf(stderr, "tb_replay: cannot open %s\n", argv[2]);
+                return 2;
+            }
+            n = fread(file_pool + file_used, 1, FILE_POOL - file_used, f);
+            fclose(f);
+            rc = tb_guard_open(&guard, file_pool + file_used, n);
+            if (rc != TB_OK) {
+                fprintf(stderr, "tb_replay: %s: error %d: %s\n", argv[2], rc, tb_strerror(rc));
+                return 3;
+            }
+            file_used += (n + 7u) & ~(size_t)7u;
+            guarding = 1;
+            argv++;
+            argc--;
+        } else if (strcmp(argv[1], "--probe") == 0) {
             tb_probe_params pp;
             if (argc < 7) return 1;
             pp.q_bias_um2_per_h = (tb_real)strtod(argv[2], 0);
@@ -157,7 +195,11 @@ int main(int argc, char **argv)
         argc--;
     }
     if (argc < 2) {
-        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--probe QB QG R B0 G0] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--probe QB QG R B0 G0] [--guard FILE] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        return 1;
+    }
+    if (guarding && !live) {
+        fprintf(stderr, "tb_replay: --guard needs --live (a query's distance is that of the last sample before it)\n");
         return 1;
     }
     if (strcmp(argv[1], "--info") == 0) {
@@ -238,6 +280,10 @@ int main(int argc, char **argv)
             if (rc != TB_OK) {
                 fprintf(stderr, "tb_replay: sample t=%.17g: error %d: %s\n", (double)s.t_s, rc, tb_strerror(rc));
                 return 8;
+            }
+            if (guarding && (rc = tb_guard_step(&guard, &s, 0)) != TB_OK) {
+                fprintf(stderr, "tb_replay: guard: sample t=%.17g: error %d: %s\n", (double)s.t_s, rc, tb_strerror(rc));
+                return 10;
             }
             if (!live) answer(ready(), 0);
         }

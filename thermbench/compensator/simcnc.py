@@ -234,6 +234,7 @@ class SimCnc:
         self.linger_s = float(self.cfg.get("linger_s", 1.0))
         self.faults = _faults(self.cfg.get("faults"), machine.sensors)
         self.server = None
+        self.history_keys: list[str] = []
         self.k = 0
         self.started = asyncio.Event()
         self.first_read = asyncio.Event()
@@ -313,8 +314,17 @@ class SimCnc:
         try:
             await server.start()
             if self.cfg.get("history"):  # OPC UA Historical Access on the inputs: a compensator back from an outage replays it
-                keys = ["axis_mm", "feed_mm_min", "measuring", *[k for k in self.ids if k.endswith("_C") or k == "load_N"]]
-                await server.historize_node_data_change([server.get_node(self.ids[k]) for k in keys], period=None)
+                # Stored at the source, every value as published, as a controller's historian logs it. The
+                # server's own data-change historising samples through a subscription (a queue of one per
+                # 10 ms publish), so a burst of samples (a loaded host catching up) kept only the last.
+                self.history_keys = ["axis_mm", "feed_mm_min", "measuring",
+                                     *[k for k in self.ids if k.endswith("_C") or k == "load_N"]]  # fmt: skip
+                for k in self.history_keys:
+                    node = server.get_node(self.ids[k])
+                    await node.write_attribute(ua.AttributeIds.Historizing, ua.DataValue(True))
+                    for attr in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
+                        await node.set_attr_bit(attr, ua.AccessLevel.HistoryRead)
+                    await server.iserver.history_manager.storage.new_historized_node(self.ids[k], None)
         except OSError as exc:
             raise SimCncError(f"config key 'endpoint': cannot serve {self.endpoint}: {exc}") from None
         self.server = server
@@ -366,8 +376,10 @@ class SimCnc:
                 vals[f"{f['sensor']}_C"] = float(f["value"])
         for key, v in vals.items():
             vt = ua.VariantType.Boolean if isinstance(v, bool) else ua.VariantType.Double
-            await self.server.write_attribute_value(self.ids[key], ua.DataValue(ua.Variant(v, vt), SourceTimestamp=ts,
-                                                                                 ServerTimestamp=now))  # fmt: skip
+            dv = ua.DataValue(ua.Variant(v, vt), SourceTimestamp=ts, ServerTimestamp=now)
+            await self.server.write_attribute_value(self.ids[key], dv)
+            if key in self.history_keys:
+                await self.server.iserver.history_manager.storage.save_node_value(self.ids[key], dv)
 
     def _score_readings(self, upto_t: float) -> None:
         rd = self.m.readings

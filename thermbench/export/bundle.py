@@ -224,13 +224,21 @@ def readings_queries(ds, run: str) -> pd.DataFrame:
 def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
                exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
                lenient: bool = False, live: bool = False, probes: pd.DataFrame | None = None,
-               probe_params=None) -> pd.DataFrame:  # fmt: skip
+               probe_params=None, guard: bool = False) -> pd.DataFrame:  # fmt: skip
     """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory
     (``live``: as the compensator answers; ``probes`` with ``probe_params``: corrected by probe
-    readings, :func:`.runtime.replay`)."""
+    readings; ``guard``: with the extrapolation guard's distance from the export's envelope file,
+    :func:`.runtime.replay`)."""
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
+    env = None
+    if guard:
+        man = manifest if manifest is not None else read_manifest(Path(model_dir))
+        env = Path(model_dir) / man.get("envelope", {}).get("file", "")
+        if not man.get("envelope", {}).get("file") or not env.is_file():
+            raise ExportError(f"{model_dir}: no envelope file (exported without its training data, or before thermbench "
+                              "wrote one): the guard needs it")  # fmt: skip
     return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient,
-                          live=live, probes=probes, probe_params=probe_params)  # fmt: skip
+                          live=live, probes=probes, probe_params=probe_params, guard=env)  # fmt: skip
 
 
 def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,
@@ -377,9 +385,13 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         if ds is not None:  # what the model was fitted on: the guard's envelope (thermbench/intervals.py)
             from ..intervals import RATE_WINDOW_S, Envelope
 
+            from .guard import ENVELOPE_FILE, write_envelope
+
             env = Envelope.fit(ds, list(model.train_runs_), temps, ops)
-            man["envelope"] = {**env.to_dict(), "rate_tau_s": RATE_WINDOW_S,
-                               "note": "rises above the run's first sample (K), high-pass rates (K/h), operating values"}  # fmt: skip
+            man["envelope"] = {**env.to_dict(), "rate_tau_s": RATE_WINDOW_S, "file": ENVELOPE_FILE,
+                               "bytes": write_envelope(tmp / ENVELOPE_FILE, env, RATE_WINDOW_S),
+                               "note": "rises above the run's first sample (K), high-pass rates (K/h), operating values; "
+                                       "the file: the C runtime's guard (tb_guard_open)"}  # fmt: skip
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source

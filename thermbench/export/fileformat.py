@@ -57,6 +57,15 @@ class Kind(enum.IntEnum):
     THERMAL_LAG = 10  # first-order lags of the rises and an operating input (:mod:`.lag_encoding`)
 
 
+#: not a model: a model's training envelope (``TB_KIND_ENVELOPE`` of tb_runtime.h, read by
+#: ``tb_guard_open``; :mod:`thermbench.export.guard`), in the same file format
+ENVELOPE_KIND = 11
+
+
+def kind_name(kind) -> str:
+    return "ENVELOPE" if int(kind) == ENVELOPE_KIND else Kind(kind).name
+
+
 #: kinds whose latest payload layout is beyond version 1 (tbi_kind.max_version in the C runtime)
 KIND_VERSIONS: dict[Kind, int] = {Kind.PHYSICS: 2}
 MAX_VERSION = max(KIND_VERSIONS.values(), default=VERSION)
@@ -64,7 +73,7 @@ MAX_VERSION = max(KIND_VERSIONS.values(), default=VERSION)
 
 def kind_version(kind) -> int:
     """The latest payload version of ``kind`` (what :func:`pack` writes)."""
-    return KIND_VERSIONS.get(Kind(kind), VERSION)
+    return VERSION if int(kind) == ENVELOPE_KIND else KIND_VERSIONS.get(Kind(kind), VERSION)
 
 
 class ModelFileError(ValueError):
@@ -73,7 +82,7 @@ class ModelFileError(ValueError):
 
 @dataclass
 class ModelFile:
-    kind: Kind
+    kind: Kind  # or ENVELOPE_KIND
     dims: tuple[int, ...]
     payload: np.ndarray  # float32
     version: int = VERSION  # of the kind's payload layout
@@ -90,7 +99,7 @@ def pack(kind: Kind, dims: Sequence[int], payload, version: int | None = None) -
     latest = kind_version(kind)
     version = latest if version is None else int(version)
     if not 1 <= version <= latest:
-        raise ModelFileError(f"{Kind(kind).name}: payload version {version}; this thermbench writes 1 to {latest}")
+        raise ModelFileError(f"{kind_name(kind)}: payload version {version}; this thermbench writes 1 to {latest}")
     dims = [int(d) for d in dims]
     if len(dims) > MAX_DIMS or any(d < 0 or d >= 2**32 for d in dims):
         raise ModelFileError(f"dims must be at most {MAX_DIMS} integers in [0, 2**32), got {dims}")
@@ -100,7 +109,7 @@ def pack(kind: Kind, dims: Sequence[int], payload, version: int | None = None) -
     bad = np.flatnonzero(~np.isfinite(p))
     if bad.size:
         raise ModelFileError(
-            f"{Kind(kind).name}: payload value #{bad[0]} = {p64[bad[0]]!r} is not a finite float32"
+            f"{kind_name(kind)}: payload value #{bad[0]} = {p64[bad[0]]!r} is not a finite float32"
         )
     header = _HEADER.pack(MAGIC, version, int(kind), len(dims), 0, *(dims + [0] * (MAX_DIMS - len(dims))), p.size)
     body = header + p.tobytes()
@@ -124,11 +133,11 @@ def unpack(data: bytes, name: str = "model file") -> ModelFile:
     if crc != zlib.crc32(data[:-4]) & 0xFFFFFFFF:
         raise ModelFileError(f"{name}: CRC-32 mismatch (the file is damaged)")
     try:
-        kind = Kind(kind)
+        kind = kind if kind == ENVELOPE_KIND else Kind(kind)
     except ValueError:
         raise ModelFileError(f"{name}: unknown model kind {kind}") from None
     if version > kind_version(kind):
-        raise ModelFileError(f"{name}: format version {version} of kind {kind.name}, which has versions 1 to "
+        raise ModelFileError(f"{name}: format version {version} of kind {kind_name(kind)}, which has versions 1 to "
                              f"{kind_version(kind)}")  # fmt: skip
     payload = np.frombuffer(data, dtype="<f4", count=n, offset=HEADER_BYTES)
     return ModelFile(kind, tuple(dims[:n_dims]), payload.copy(), version)
