@@ -373,13 +373,16 @@ def test_probe_readings_correct_the_compensation_as_the_python_filter_does_once_
     assert again._corrected(150.0, 3.0) == pytest.approx(ref.correct(150.0, 3.0)[0])
 
 
-@pytest.mark.parametrize("policy", ["report", "hold"])
+@pytest.mark.parametrize("policy", ["report", "hold", "limit"])
 def test_outside_the_training_envelope_is_flagged_and_held_when_asked(policy):
     """The model's manifest says its nut rose at most 2 K: a rise past it flags EXTRAPOLATING on
-    every cycle it lasts; 'hold' keeps the last value written inside, 'report' writes as usual."""
+    every cycle it lasts; 'hold' keeps the last value written inside, 'report' writes as usual,
+    'limit' writes the interval's inner edge (the prediction moved toward 0 by the half-width
+    q (1 + kappa d), d the distance in widths of the range)."""
     m = FakeModel()
     m.manifest = {"envelope": {"sensors": ["T_nut"], "operating": [], "names": ["rise:T_nut", "rate:T_nut"],
-                               "lo": [0.0, -100.0], "hi": [2.0, 100.0], "width": [2.0, 200.0], "rate_tau_s": 600.0}}
+                               "lo": [0.0, -100.0], "hi": [2.0, 100.0], "width": [2.0, 200.0], "rate_tau_s": 600.0},
+                  "interval": {"level": 0.9, "kappa": 0.5, "q_um": 1.5}}  # fmt: skip
     lg = _logic(m, extrapolation=policy)
     out = [lg.cycle(_r(1000.0 + k, temp=20.0 + 0.1 * k), now_wall_s=0.01 * k) for k in range(40)]
     ext = [bool(c.flags & Flags.EXTRAPOLATING) for c in out]
@@ -387,7 +390,16 @@ def test_outside_the_training_envelope_is_flagged_and_held_when_asked(policy):
     inside = out[20].value_um
     if policy == "hold":
         assert all(c.value_um == inside and c.flags & Flags.HELD for c in out[21:])
-    else:
+    elif policy == "report":
         assert all(not c.flags & Flags.HELD for c in out[21:]) and out[-1].value_um < inside - 1.0
-    with pytest.raises(Exception, match="config key 'extrapolation': expected report or hold, got 'limit'"):
+    else:
+        for k, c in enumerate(out):
+            d = max(0.0, (0.1 * k - 2.0) / 2.0)  # the rise beyond 2 K, in widths of 2 K
+            want = c.predicted_um if k <= 20 else max(c.predicted_um - 1.5 * (1 + 0.5 * d), 0.0)  # positive here
+            assert c.predicted_um > 0 and (k == 0 or c.value_um == pytest.approx(-want, abs=1e-9)), k
+        assert out[-1].value_um > -out[-1].predicted_um + 1.5
+    with pytest.raises(Exception, match="config key 'extrapolation': expected report, hold or limit, got 'clip'"):
+        _logic(m, extrapolation="clip")
+    m.manifest.pop("interval")
+    with pytest.raises(Exception, match="config key 'extrapolation': limit needs the model's interval"):
         _logic(m, extrapolation="limit")

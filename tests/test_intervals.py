@@ -198,3 +198,40 @@ def test_the_export_manifest_carries_the_training_envelope(seed001_exports, seed
             pr, t = ds.process_run(r), ds.errors_run(r)["t_s"].to_numpy(float)
             top.append((np.interp(t, pr["t_s"], pr[col]) - pr[col].iloc[0]).max())
         assert env.hi[j] == pytest.approx(max(top))
+
+
+def test_an_export_calibrates_its_interval_over_its_training_runs(seed001_data_root, tmp_path):
+    """export.interval_level: each training run predicted by a fit on the others; with kappa = 0 the
+    half-width is the ⌈(n + 1) · 0.9⌉-th smallest |residual| (computed here from fits made by hand),
+    and it covers most of valid1, a run none of the fits saw."""
+    from thermbench import datasets
+    from thermbench.export import ExportOptions, export_model
+    from thermbench.models.mlr import MLRSeed002
+
+    ds = datasets.load_benchmark("seed001_vmc_x", seed001_data_root)
+    states = ["state1", "state2", "state3", "state4", "state5"]
+    man = export_model(MLRSeed002().fit(ds, states), tmp_path / "m", "m", ds, ["valid1"],
+                       options=ExportOptions(verify=False, onnx=False, interval_level=0.9, interval_kappa=0.0))  # fmt: skip
+    res = np.concatenate([ds.errors_run(r)["error_um"].to_numpy() - MLRSeed002().fit(ds, [o for o in states if o != r]).predict(ds, r)
+                          for r in states])  # fmt: skip
+    s = np.sort(np.abs(res))
+    assert man["interval"]["n_readings"] == s.size and man["interval"]["n_runs"] == 5
+    assert man["interval"]["q_um"] == pytest.approx(s[math.ceil((s.size + 1) * 0.9) - 1], rel=1e-12)
+    er = ds.errors_run("valid1")
+    full = MLRSeed002().fit(ds, states)
+    inside = np.abs(er["error_um"].to_numpy() - full.predict(ds, "valid1")) <= man["interval"]["q_um"]
+    print(f"valid1 coverage of the exported 90 % interval: {inside.mean():.2f} (q = {man['interval']['q_um']:.2f} um)")
+    assert inside.mean() >= 0.7
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("interval_level", 1.5, "config key 'export.interval_level': expected null or a number between 0 and 1, got 1.5"),
+    ("interval_level", True, "config key 'export.interval_level': expected null or a number between 0 and 1, got True"),
+    ("interval_kappa", -1, "config key 'export.interval_kappa': expected a number >= 0, got -1"),
+])  # fmt: skip
+def test_bad_interval_options_are_one_line_config_errors(key, value, message):
+    from thermbench.export.job import _options
+
+    with pytest.raises(Exception, match=message.replace("(", r"\(").replace(")", r"\)")):
+        _options({key: value})
+    assert _options({"interval_level": 0.9}).interval_level == 0.9 and _options({}).interval_level is None

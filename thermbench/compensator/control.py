@@ -155,6 +155,16 @@ def _count(cfg: Mapping[str, Any], key: str, default: int, name: str) -> int:
     return int(v)
 
 
+def inner_edge(total_um, interval: Mapping[str, Any], distance: float):
+    """The inner edge of a prediction's interval (the ``limit`` policy): the prediction moved toward
+    0 by its half-width ``q_um * (1 + kappa * distance)`` (manifest ``interval``), and 0 when the
+    interval holds 0: compensate only what the model is sure of."""
+    hw = float(interval["q_um"]) * (1.0 + float(interval.get("kappa", 1.0)) * float(distance))
+    v = np.asarray(total_um, dtype=float)
+    out = np.sign(v) * np.maximum(np.abs(v) - hw, 0.0)
+    return out if np.ndim(total_um) else float(out)
+
+
 @dataclass
 class Settings:
     """The ``conf/compensator.yaml`` keys the cycle logic uses (see there)."""
@@ -171,6 +181,7 @@ class Settings:
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
     probe: Any = None  # thermbench.adapt.ProbeParams of the probe filter (config key probe)
     extrapolation: str = "report"  # outside the training envelope: report (flag only) | hold the last value inside
+    # | limit: the interval's inner edge (manifest 'interval': the prediction moved toward 0 by its half-width)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Settings":
@@ -191,8 +202,8 @@ class Settings:
             raise config_error(f"config key 'clock': expected source or client, got {s.clock!r}")
         if s.line_points < 2:
             raise config_error(f"config key 'line.n_points': at least 2, got {s.line_points}")
-        if s.extrapolation not in ("report", "hold"):
-            raise config_error(f"config key 'extrapolation': expected report or hold, got {s.extrapolation!r}")
+        if s.extrapolation not in ("report", "hold", "limit"):
+            raise config_error(f"config key 'extrapolation': expected report, hold or limit, got {s.extrapolation!r}")
         return s
 
     def range_of(self, name: str) -> tuple[float, float]:
@@ -305,6 +316,11 @@ class CycleLogic:
             self.guard = EnvelopeGuard(Envelope.from_dict(env), float(env.get("rate_tau_s", 600.0)))
         else:
             self.guard = None  # an export without an envelope (before issue 41): nothing to flag
+        self.interval = (getattr(model, "manifest", None) or {}).get("interval")
+        if self.s.extrapolation == "limit" and (self.guard is None or not self.interval):
+            what = "no training envelope" if self.guard is None else "no interval"
+            raise config_error(f"config key 'extrapolation': limit needs the model's interval and envelope, and its "
+                               f"manifest has {what} (export it with its dataset and export.interval_level=0.9)")  # fmt: skip
 
     def _restart(self) -> None:
         self.model.start()
@@ -524,12 +540,16 @@ class CycleLogic:
             c.probe_um = v
 
     def _corrected(self, t: float, total):
-        """The model's total(s) at ``t`` corrected by the probe filter (as they are without one)."""
-        if self.filter is None:
-            return total
-        if np.ndim(total):
-            return np.array([self.filter.correct(t, float(v))[1] for v in np.asarray(total, dtype=float)])
-        return self.filter.correct(t, float(total))[1]
+        """The model's total(s) at ``t`` corrected by the probe filter (as they are without one),
+        then, outside the envelope with ``extrapolation: limit``, at the interval's inner edge."""
+        if self.filter is not None:
+            if np.ndim(total):
+                total = np.array([self.filter.correct(t, float(v))[1] for v in np.asarray(total, dtype=float)])
+            else:
+                total = self.filter.correct(t, float(total))[1]
+        if self.s.extrapolation == "limit" and self.guard is not None and self.guard.distance > 0:
+            total = inner_edge(total, self.interval, self.guard.distance)
+        return total
 
     def _step(self, c: Cycle, t: float, measuring: bool) -> None:
         k = math.floor(t / self.period_s + 1e-3)  # 0.1 % of a period: timestamps carry float rounding

@@ -65,7 +65,9 @@ class ExportOptions:
     LSSVM with that many centres; ``verify``: run the C runtime (double and single precision) on
     the dataset's held-out runs and fail when the build ``target`` runs differs from Python by
     more than ``parity_tol_um``; ``onnx``: ONNX for the neural families; ``target``: the
-    compensator the files are for (:data:`TARGETS`)."""
+    compensator the files are for (:data:`TARGETS`); ``interval_level``: the conformal interval of
+    that level calibrated over the training runs (:func:`interval_calibration`; the compensator's
+    ``extrapolation: limit`` needs it)."""
 
     lssvm_reduced_size: int | None = None
     seed: int = 0
@@ -73,6 +75,8 @@ class ExportOptions:
     verify: bool = True
     parity_tol_um: float = 0.01
     target: str = "host"
+    interval_level: float | None = None  # calibrate the model's conformal interval (manifest 'interval')
+    interval_kappa: float = 1.0
 
     @property
     def precision(self) -> str:
@@ -392,6 +396,9 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                "bytes": write_envelope(tmp / ENVELOPE_FILE, env, RATE_WINDOW_S),
                                "note": "rises above the run's first sample (K), high-pass rates (K/h), operating values; "
                                        "the file: the C runtime's guard (tb_guard_open)"}  # fmt: skip
+            if opts.interval_level is not None:
+                man["interval"] = interval_calibration(model, ds, list(model.train_runs_), temps, ops, opts.interval_level,
+                                                       opts.interval_kappa, name)  # fmt: skip
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
@@ -407,6 +414,36 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                 man["target"]["measured"] = _measure_on_target(tmp, man, ds, runs, name)
         (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
+
+
+def interval_calibration(model: ThermalErrorModel, ds, runs: Sequence[str], sensors: Sequence[str],
+                         operating: Sequence[str], level: float, kappa: float, name: str = "model") -> dict:
+    """The split-conformal interval of a model (:mod:`thermbench.intervals`) from its training runs,
+    each left out once: a clone fitted on the others predicts it, and its residuals, normalised
+    by their distance to the others' envelope, are the calibration scores. ``q_um``: the interval's
+    half-width inside the envelope (``q * (1 + kappa * distance)`` outside)."""
+    from sklearn.base import clone
+
+    from ..intervals import Envelope, conformal_quantile, interval_scores
+
+    runs = list(runs)
+    if len(runs) < 2:
+        raise ExportError(f"{name}: export.interval_level needs a model fitted on >= 2 runs (each left out once); "
+                          f"it was fitted on {runs}")  # fmt: skip
+    scores = []
+    for r in runs:
+        others = [o for o in runs if o != r]
+        er = ds.errors_run(r)
+        residual = er["error_um"].to_numpy(dtype=float) - clone(model).fit(ds, others).predict(ds, r)
+        env = Envelope.fit(ds, others, sensors, operating)
+        scores.append(interval_scores(residual, env.distance(Envelope.features(ds, r, er["t_s"], sensors, operating)), kappa))
+    s = np.concatenate(scores)
+    q = conformal_quantile(s, level)
+    if not np.isfinite(q):
+        raise ExportError(f"{name}: export.interval_level={level}: {s.size} calibration readings are too few for it")
+    return {"level": float(level), "kappa": float(kappa), "q_um": float(q), "n_runs": len(runs), "n_readings": int(s.size),
+            "calibration": "each training run left out once (a clone fitted on the others); scores |residual| / "
+                           "(1 + kappa * distance to the others' envelope); half-width = q_um * (1 + kappa * distance)"}  # fmt: skip
 
 
 #: seed 002's compensator, an STM32F407 (1 MB flash, 192 KB RAM, 168 MHz): the issue's budget per model

@@ -31,7 +31,7 @@ from .bundle import TARGETS, ExportOptions, TargetRefused, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",
-        "verify", "parity_tol_um", "target", "seed", "force", "n_jobs"}  # fmt: skip
+        "verify", "parity_tol_um", "target", "seed", "force", "n_jobs", "interval_level", "interval_kappa"}  # fmt: skip
 
 
 def _options(e: dict) -> ExportOptions:
@@ -50,7 +50,13 @@ def _options(e: dict) -> ExportOptions:
     target = e.get("target", "host")
     if target not in TARGETS:
         raise ConfigError(f"config key 'export.target': expected one of {sorted(TARGETS)}, got {target!r}")
-    return ExportOptions(size, seed, bool(e.get("onnx", True)), bool(e.get("verify", True)), float(tol), target)
+    level, kappa = e.get("interval_level"), e.get("interval_kappa", 1.0)
+    if level is not None and (isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1):
+        raise ConfigError(f"config key 'export.interval_level': expected null or a number between 0 and 1, got {level!r}")
+    if isinstance(kappa, bool) or not isinstance(kappa, (int, float)) or not kappa >= 0:
+        raise ConfigError(f"config key 'export.interval_kappa': expected a number >= 0, got {kappa!r}")
+    return ExportOptions(size, seed, bool(e.get("onnx", True)), bool(e.get("verify", True)), float(tol), target,
+                         None if level is None else float(level), float(kappa))  # fmt: skip
 
 
 def _dataset_names() -> list[str]:
