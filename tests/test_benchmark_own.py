@@ -109,3 +109,11 @@ def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa
     glob = table[table["approach"] == "global"]
     assert glob["coverage_90"].between(0, 1).all() and (glob["half_width_um"] > 0).all()
     assert (tmp_path / "reports" / "report.md").is_file() and res is not None
+    # the report's RMSE against probes per hour: the table is the mean over the held-out runs of results.csv
+    text = (tmp_path / "reports" / "report.md").read_text()
+    assert "## Probe readings: RMSE against probes per hour" in text
+    figs = list((tmp_path / "reports" / "figures").glob("probes__*.png"))
+    assert len(figs) == 1 and f"figures/{figs[0].name}" in text
+    ad = probe[probe["approach"] == "adaptive-600s"]
+    line = next(ln for ln in text.splitlines() if "| adaptive " in ln and "| 600s " in ln)
+    assert f"{ad['rmse_um'].mean():.2f}" in line and f"{ad['probes_per_h'].mean():.2f}" in line

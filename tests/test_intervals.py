@@ -235,3 +235,44 @@ def test_bad_interval_options_are_one_line_config_errors(key, value, message):
     with pytest.raises(Exception, match=message.replace("(", r"\(").replace(")", r"\)")):
         _options({key: value})
     assert _options({"interval_level": 0.9}).interval_level == 0.9 and _options({}).interval_level is None
+
+
+def test_the_gp_refit_peer_is_the_gp_posterior_given_its_probes_by_hand(lathe):  # noqa: F811
+    """run_task with the gp family and a probe every 600 s: the gp_refit-600s rows score, on the
+    readings that were not probes, a GP conditioned on its training readings plus the probes so
+    far. Here that posterior mean is computed by hand (numpy: the kernel matrix solved, y
+    standardised over the readings it is fitted on, as normalize_y does) from a fit of the fold's
+    runs made by hand."""
+    _, dcfg = dataset_option(str(lathe), "datasets")
+    cfg = {**group_option("model", "gp"), "max_samples": 60}
+    noise = {"q_bias_um2_per_h": 2.0, "q_gain_per_h": 1e-3, "r_um2": 0.05, "bias0_um": 1.0, "gain0": 0.1}
+    out = bm.run_task(dcfg, "gp", cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
+                      probe={"every_s": [600], "trigger": None, "noise": noise})  # fmt: skip
+    res = out["results"]
+    assert {"adaptive-600s", "naive_probe-600s", "gp_refit-600s", "global"} == set(res["approach"])
+    ds = load_split({**dcfg, "channel": "dia"}).dataset
+    model = build_model(cfg, seed=0)
+    for held in ds.run_ids:
+        e = ds.errors_run(held)
+        t, x, y = (e[c].to_numpy(float) for c in ("t_s", "target_mm", "error_um"))
+        m = clone(model).fit(ds, [d for d in ds.run_ids if d != held])
+        Z = m._X(ds, held, t, x)
+        k = m.gp_.kernel_
+        pred = np.asarray(m.gp_.predict(Z), dtype=float)
+        probe = np.isin(t, np.arange(0.0, t[-1] + 1, 600.0))
+        seen = []
+        for i in range(t.size):
+            if seen:  # the posterior mean given the training readings and the probes before i
+                X = np.vstack([m.train_Z_, Z[seen]])
+                Y = np.concatenate([m.train_y_um_, y[seen]])
+                mu, sd = Y.mean(), Y.std()
+                alpha = np.linalg.solve(k(X) + 1e-10 * np.eye(len(X)), (Y - mu) / sd)
+                pred[i] = float((k(Z[i : i + 1], X) @ alpha)[0]) * sd + mu
+            if probe[i]:
+                seen.append(i)
+        keep = ~probe
+        assert np.abs(pred - m.gp_.predict(Z)).max() > 1e-3  # the probes moved the GP
+        row = res[(res["fold"] == held) & (res["run_id"] == held) & (res["approach"] == "gp_refit-600s")].iloc[0]
+        assert row["probes"] == probe.sum() >= 4
+        assert row["rmse_um"] == pytest.approx(np.sqrt(np.mean((pred - y)[keep] ** 2)), rel=1e-6)
+    assert not bm.choose(res.assign(reference=False), exclude=[])["approach"].map(bm.probe_approach).any()

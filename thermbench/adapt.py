@@ -225,6 +225,32 @@ def naive_probes(predicted_um: np.ndarray, measured_um: np.ndarray, schedule: np
     return p + offset
 
 
+def gp_refit(model, ds, run: str, t_s, axis_mm, measured_um, schedule) -> np.ndarray:
+    """The GP-refit peer: the recalibration of petrkaftan/Thermal_Compensation (a Gaussian process
+    refitted on all data so far), made realistic: it sees only the probe readings, not the error
+    at every sample. ``model``: a fitted :class:`~thermbench.models.gp.GaussianProcessLag`; at each
+    probe of ``schedule`` (a mask over the run's readings) its GP is refitted on its training
+    readings plus every probe so far, with the kernel its fit found (a refit is one Cholesky
+    factorisation, as a compensator could afford), and predicts the readings after the probe up
+    to the next one (a reading's own prediction is the one before its probe)."""
+    from sklearn.base import clone
+
+    x = np.asarray(axis_mm, dtype=float)
+    Z = model._X(ds, run, np.asarray(t_s, dtype=float), x)
+    geo = model.geometric_um(x)
+    y = np.asarray(measured_um, dtype=float) - geo  # the GP's part of the error
+    pred = np.asarray(model.gp_.predict(Z), dtype=float)
+    idx = np.flatnonzero(np.asarray(schedule, dtype=bool))
+    base = clone(model.gp_).set_params(kernel=model.gp_.kernel_, optimizer=None, n_restarts_optimizer=0)
+    for i, (a, b) in enumerate(zip(idx, list(idx[1:]) + [y.size - 1])):
+        if b <= a:
+            continue
+        probes = idx[: i + 1]
+        gp = clone(base).fit(np.vstack([model.train_Z_, Z[probes]]), np.concatenate([model.train_y_um_, y[probes]]))
+        pred[a + 1 : b + 1] = gp.predict(Z[a + 1 : b + 1])
+    return pred + geo
+
+
 @dataclass(frozen=True)
 class ProbePlan:
     """How the benchmark probes a held-out run (config key ``probe``): a schedule per ``every_s``,

@@ -51,6 +51,7 @@ from .splits import dataset_option, load_source, load_split, outer_folds
 from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError
+from .models.gp import GaussianProcessLag
 
 
 def run_task(
@@ -229,6 +230,9 @@ def run_task(
                         interval_cols.update(fold_intervals(cal, f.name, level, kappa))
                         for name, df in probe_results(cal, plan, level, kappa) if plan is not None else []:
                             rows.append(tag(df, name, "all", fold_models[f.name], fold=f.name))
+                        if plan is not None and isinstance(fold_models[f.name], GaussianProcessLag):
+                            for name, df in gp_refit_results(ds, cal, fold_models[f.name], plan):
+                                rows.append(tag(df, name, "all", fold_models[f.name], fold=f.name))
                     sq = pd.Series((y - pred) ** 2).groupby(groups, sort=False).mean()
                     inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
                                       .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
@@ -347,7 +351,6 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
 
     from .adapt import estimate_noise, probe_replays, trigger_level
     from .intervals import conformal_quantile
-    from .metrics import residual_metrics
 
     calib = [(t, d) for t, d, _ in cal["calibration"]]
     params = plan.noise or estimate_noise(calib, plan.every_s[0])
@@ -363,16 +366,44 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
     out: dict[str, list[dict]] = {}
     for r, (t, measured, thermal, pred, dist) in cal["held"].items():
         for name, c, var, probed in probe_replays(t, measured, pred, plan, params, calib):
+            row = _probe_row(r, t, measured, thermal, c, probed)
             keep = ~probed
-            row = {"run_id": r, "own": False, **residual_metrics(measured[keep], c[keep], thermal[keep]),
-                   "nonfinite_predictions": 0, "fit_s": 0.0, "probes": int(probed.sum()),
-                   "probes_per_h": float(probed.sum() / max((t[-1] - t[0]) / 3600.0, 1e-9))}  # fmt: skip
             if var is not None:
                 hw = qs[name] * np.sqrt(var + params.r_um2) * (1.0 + kappa * dist)
                 row["_coverage"] = float(np.mean(np.abs(measured - c)[keep] <= hw[keep]))
                 row["_half_width"] = float(np.mean(hw[keep]))
             out.setdefault(name, []).append(row)
     return [(name, pd.DataFrame(v)) for name, v in out.items()]
+
+
+def _probe_row(run: str, t, measured, thermal, corrected, probed) -> dict:
+    """A probe approach's metrics row of one held-out run: scored on the readings that were not probes."""
+    from .metrics import residual_metrics
+
+    keep = ~np.asarray(probed, dtype=bool)
+    return {"run_id": run, "own": False, **residual_metrics(measured[keep], corrected[keep], thermal[keep]),
+            "nonfinite_predictions": 0, "fit_s": 0.0, "probes": int((~keep).sum()),
+            "probes_per_h": float((~keep).sum() / max((t[-1] - t[0]) / 3600.0, 1e-9))}  # fmt: skip
+
+
+def gp_refit_results(ds, cal: Mapping[str, Any], fitted, plan) -> list[tuple[str, pd.DataFrame]]:
+    """The GP-refit peer (:func:`thermbench.adapt.gp_refit`) of one outer fold of the ``gp`` family:
+    ``gp_refit-<every>s`` per schedule of ``plan``, each held-out run scored on the readings that
+    were not probes, as the adaptive approach is."""
+    from .adapt import gp_refit, probe_schedule
+
+    out = []
+    for every in plan.every_s:
+        rows = []
+        for r, (t, measured, thermal, _, _) in cal["held"].items():
+            er = ds.errors_run(r)
+            if not np.array_equal(er["t_s"].to_numpy(dtype=float), t):
+                raise ModelError(f"gp_refit: run {r!r}: the readings' order differs from the calibration's")
+            sched = probe_schedule(t, every)
+            c = gp_refit(fitted, ds, r, t, er["target_mm"].to_numpy(dtype=float), measured, sched)
+            rows.append(_probe_row(r, t, measured, thermal, c, sched))
+        out.append((f"gp_refit-{every:g}s", pd.DataFrame(rows)))
+    return out
 
 
 #: the bank approaches: name -> how the members are combined (ConditionBank ``blend``)
@@ -387,7 +418,7 @@ def probe_approach(approach: str) -> bool:
 
 
 #: the row names of the probe approaches begin so (thermbench.adapt.probe_replays)
-PROBE_PREFIXES = ("adaptive-", "naive_probe-")
+PROBE_PREFIXES = ("adaptive-", "naive_probe-", "gp_refit-")
 
 
 def probe_rows(results: pd.DataFrame) -> pd.Series:

@@ -1356,6 +1356,78 @@ LIMITS_COLUMNS = {"target_um": "target µm", "choice_median_um": "choice median 
                   "inner_cv_median_um": "choice's inner CV median µm"}  # fmt: skip
 
 
+#: the probe approaches' strategies (thermbench.adapt.probe_replays, benchmark.gp_refit_results)
+PROBE_STRATEGIES = {"adaptive": "adaptive (bias + gain filter)", "naive_probe": "naive (last residual added)",
+                    "gp_refit": "GP refit on all data so far", "open_loop": "open loop (no probes)"}  # fmt: skip
+
+
+def probe_curve(r: pd.DataFrame) -> pd.DataFrame:
+    """RMSE against probes per hour: per (dataset, channel, family, strategy, schedule) the mean
+    over the held-out runs of the RMSE (on the readings that were not probes), the probes per
+    hour, the coverage and half-width of the 90 % interval, beside the same runs' open-loop
+    (global) scores at 0 probes. Empty without probe rows."""
+    cov = next((c for c in r.columns if str(c).startswith("coverage_")), None)
+    is_probe = r["approach"].astype(str).str.match(r"^(adaptive|naive_probe|gp_refit)-")
+    if "probes_per_h" not in r.columns or not is_probe.any():
+        return pd.DataFrame()
+    pr = r[is_probe].copy()
+    pr["strategy"] = pr["approach"].str.split("-", n=1).str[0]
+    pr["schedule"] = pr["approach"].str.split("-", n=1).str[1]
+    ch = CHANNEL if CHANNEL in r.columns else None
+    keys = ["dataset", *([ch] if ch else []), "family", "fold", "run_id"]
+    held = pr[keys].drop_duplicates()
+    gl = r[(r["approach"] == "global")].merge(held, on=keys)
+    gl = gl.assign(strategy="open_loop", schedule="none", probes_per_h=0.0)
+    both = pd.concat([pr, gl], ignore_index=True)
+    agg = {"rmse_um": ("rmse_um", "mean"), "probes_per_h": ("probes_per_h", "mean"), "runs": ("run_id", "count")}
+    if cov:
+        agg.update(coverage=(cov, "mean"), half_width_um=("half_width_um", "mean"))
+    out = both.groupby(["dataset", *([ch] if ch else []), "family", "strategy", "schedule"], sort=False).agg(**agg)
+    return out.reset_index().sort_values(["dataset", *([ch] if ch else []), "family", "strategy", "probes_per_h"])
+
+
+def probe_figure(curve: pd.DataFrame, title: str, path: Path, top: int = 4) -> Path:
+    """One panel per channel: RMSE against probes per hour, the ``top`` families by their
+    adaptive RMSE (solid: adaptive, dashed: the naive peer, from their open-loop point), and the
+    GP-refit peer (black)."""
+    chans = _unique(curve[CHANNEL]) if CHANNEL in curve.columns else [ALL_CHANNELS]
+    fig = _new_figure(max(3.0 * len(chans) + 0.6, 6.0), 4.2)
+    axes = fig.subplots(1, len(chans), squeeze=False)[0]
+    for ax, chan in zip(axes, chans):
+        c = curve[curve[CHANNEL] == chan] if CHANNEL in curve.columns else curve
+        ad = c[c["strategy"] == "adaptive"].groupby("family")["rmse_um"].mean().sort_values()
+        for i, fam in enumerate(ad.index[:top]):
+            f = c[c["family"] == fam]
+            base = f[f["strategy"] == "open_loop"]
+            for strat, style in (("adaptive", "-o"), ("naive_probe", "--s")):
+                g = pd.concat([base, f[(f["strategy"] == strat) & (f["schedule"] != "uncertainty")]]).sort_values("probes_per_h")
+                ax.plot(g["probes_per_h"], g["rmse_um"], style, color=f"C{i}", markersize=3, linewidth=1.2,
+                        label=f"{fam} {strat.replace('_probe', '')}" if chan == chans[0] else None)  # fmt: skip
+            trig = f[(f["strategy"] == "adaptive") & (f["schedule"] == "uncertainty")]
+            ax.plot(trig["probes_per_h"], trig["rmse_um"], "*", color=f"C{i}", markersize=9)
+        gp = c[c["strategy"] == "gp_refit"].sort_values("probes_per_h")
+        if len(gp):
+            ax.plot(gp["probes_per_h"], gp["rmse_um"], "-^", color="black", markersize=3, linewidth=1.0,
+                    label="gp refit" if chan == chans[0] else None)  # fmt: skip
+        ax.set_title(str(chan), fontsize=9)
+        ax.set_xlabel("probes per hour")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("RMSE on the readings not probed (µm)")
+    fig.legend(loc="outside lower center", fontsize=7, ncol=4)
+    fig.suptitle(f"{title}: RMSE against probes per hour\n(star: adaptive, probing triggered by uncertainty)", fontsize=9)
+    return _save(fig, path)
+
+
+PROBES_MD = (
+    "## Probe readings: RMSE against probes per hour\n\n"
+    "Each held-out run replayed with probe readings taken from its own measurements (approaches "
+    "`adaptive-<every>s`, the bias + gain filter; `naive_probe-<every>s`, the last probe's residual added; "
+    "`gp_refit-<every>s`, the GP refitted on all data so far; `adaptive-uncertainty`, probing when the filter's "
+    "uncertainty exceeds its level), scored on the readings that were not probes, beside the same runs open "
+    "loop. These rows never take part in choosing the model to deploy: they use the scored run's own readings."
+)
+
+
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
                  held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None) -> Path:
@@ -1511,6 +1583,15 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                     md += [f"_No curves for validation run(s) {', '.join(missing)}._", ""]
             else:
                 md += ["_No before/after curves for this dataset's validation runs._", ""]
+        curve = probe_curve(r)
+        if len(curve):
+            md += [PROBES_MD, ""]
+            for ds in _unique(curve["dataset"]):
+                cd = curve[curve["dataset"] == ds]
+                name = fig_name("probes", ds)
+                draw(probe_figure, cd, str(ds), fig_dir / name)
+                md += [f"### {ds}", "", f"![{ds} probes]({FIGURES_DIR}/{name})", "",
+                       markdown_table(cd.drop(columns="dataset").round(3), index=False), ""]  # fmt: skip
         draw.run(n_jobs)
         text = "\n".join(md).rstrip() + "\n"
         (stage / REPORT_NAME).write_text(text, encoding="utf-8")
