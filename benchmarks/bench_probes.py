@@ -13,7 +13,9 @@ probes being the tail's own readings at those times, and **scored on the other r
 * ``trigger``: the filter, probing when its standard deviation exceeds the one it reaches
   just before a scheduled probe on the training blocks (median), no schedule;
 * ``oracle``: the best constant offset per probe interval, chosen with hindsight from the tail
-  itself (not a method: the bound a bias correction alone cannot beat).
+  itself (not a method: the bound a bias correction alone cannot beat);
+* ``gp_refit`` (family ``gp`` only): the GP refitted on its training readings plus the probes so
+  far (:func:`thermbench.adapt.gp_refit`, the issue's second peer).
 
     python benchmarks/bench_probes.py [--families physics_spindle_hybrid,baseline_ridge] [--every 7200,3600,1800]
 """
@@ -54,7 +56,15 @@ def channel_runs(family: str, ch: str, seed: int):
         m = clone(model).fit(ds, [s for s in split.states if s != r])
         e = ds.errors_run(r)
         loro.append((e["t_s"].to_numpy(float), e["error_um"].to_numpy(float) - np.asarray(m.predict(ds, r), dtype=float)))
-    return tail["t_s"].to_numpy(float), tail["error_um"].to_numpy(float), pred, loro
+    out = tail["t_s"].to_numpy(float), tail["error_um"].to_numpy(float), pred, loro
+    if not hasattr(fitted, "train_Z_"):  # not a GP: no refit peer
+        return (*out, None)
+    from thermbench.adapt import gp_refit
+
+    def refit(sched):
+        return gp_refit(fitted, ds, split.validation[0], out[0], tail["target_mm"].to_numpy(float), out[1], sched)
+
+    return (*out, refit)
 
 
 def main() -> None:
@@ -72,7 +82,7 @@ def main() -> None:
     for fam in args.families.split(","):
         for ch in args.channels.split(","):
             t0 = time.perf_counter()
-            t, y, p, loro = channel_runs(fam, ch, args.seed)
+            t, y, p, loro, refit = channel_runs(fam, ch, args.seed)
             rows.append(dict(family=fam, channel=ch, method="open", every_s=np.nan, probes=0, rmse_um=rmse(p, y)))
             for every in (float(e) for e in args.every.split(",")):
                 params = estimate_noise(loro, every)
@@ -84,6 +94,9 @@ def main() -> None:
                 best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
                 rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
                                  rmse_um=rmse(best[keep], y[keep])))  # fmt: skip
+                if refit is not None:
+                    rows.append(dict(family=fam, channel=ch, method="gp_refit", every_s=every, probes=int(sched.sum()),
+                                     rmse_um=rmse(refit(sched)[keep], y[keep])))  # fmt: skip
                 c, _, _ = apply_probes(t, p, y, params, schedule=sched)
                 rows.append(dict(family=fam, channel=ch, method="adaptive", every_s=every, probes=int(sched.sum()),
                                  rmse_um=rmse(c[keep], y[keep]), q_bias_um2_per_h=params.q_bias_um2_per_h,

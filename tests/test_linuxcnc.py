@@ -154,6 +154,43 @@ def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_ex
     assert ref.n_probes == 2
 
 
+def test_the_plants_probe_reads_the_thermal_error_at_the_axis_every_probe_period(tmp_path):
+    """The plant stepped by hand (no LinuxCNC, its simulator in this process) with a probe every
+    20 machine minutes over 70: probe-valid rises three times, each high a moment (0.1 s of wall
+    clock) then low; each reading is the thermal error the plant's simulator gives, over the whole
+    run at the end, at the reading's time and axis position (a run over the motion so far gives the
+    error of the run over all of it up to that time); the readings are in probes.csv."""
+    from thermbench.linuxcnc.plant import ThermalPlant
+
+    plant = ThermalPlant({"out_dir": str(tmp_path / "plant"), "probe_every_s": 1200.0, "update_every_s": 120.0})
+    assert {("probe-um", "float", "out"), ("probe-valid", "bit", "out")} <= set(plant.pins())
+    h = {n: (False if t == "bit" else 0.0) for n, t, _ in plant.pins()}
+    h["machine-on"] = True
+    rises, prev, high_s = [], False, []
+    for k in range(int(4200 / 120 / 0.02) + 1):  # 70 machine minutes, a plant cycle every 0.02 s of wall clock
+        wall = 0.02 * k
+        phase = (120.0 * wall / 60.0) % 2.0  # a 280 mm stroke forth and back every two machine minutes
+        h["axis-pos"] = 210.0 + 280.0 * (phase if phase < 1 else 2 - phase)
+        h["axis-vel"] = 280.0 / 60.0
+        plant.step(h, wall)
+        if h["probe-valid"] and not prev:
+            rises.append(wall)
+        if h["probe-valid"]:
+            high_s.append(wall)
+        prev = h["probe-valid"]
+    assert len(rises) == 3 and len(plant.probes) == 3
+    assert [round(120.0 * w / 60.0) for w in rises] == pytest.approx([20, 40, 60], abs=2.1)  # machine minutes
+    assert len(high_s) <= 3 * (0.1 / 0.02 + 1)  # high a moment each time
+    f = plant.finish()
+    assert f["probes"] == 3
+    hist = plant.history()
+    for t, x, measured in plant.probes:
+        assert measured == pytest.approx(float(hist.error_um(np.array([t]), np.array([x]))[0]), rel=1e-9, abs=1e-9)
+    assert abs(plant.probes[-1][2]) > 1.0  # the screw grew: a reading worth taking
+    table = pd.read_csv(tmp_path / "plant" / "probes.csv")
+    assert table[["t_s", "axis_mm", "measured_um"]].to_numpy() == pytest.approx(np.array(plant.probes))
+
+
 def test_gcode_duty_cycle_is_a_linuxcnc_loop():
     text = gcode({"start_mm": 210, "end_mm": 490, "feed_mm_min": 8000, "repeats": 3, "dwell_s": 5})
     assert "o100 repeat [3]" in text and "o100 endrepeat" in text and "G1 X490.000 F8000.0" in text and "G4 P5.000" in text

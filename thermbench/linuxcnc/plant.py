@@ -61,12 +61,24 @@ def _worker_init(key: str) -> None:
     _WORKER["sensors"] = dict(bcfg["machine"].get("sensors") or {})
 
 
-def _worker_temps(motion: np.ndarray) -> dict[str, float]:
-    """The sensor temperatures at the newest step of a run over ``motion`` (t, axis, feed rows)."""
+def _worker_temps(motion: np.ndarray, probe: bool = False) -> dict[str, float]:
+    """The sensor temperatures at the newest step of a run over ``motion`` (t, axis, feed rows);
+    ``probe``: also the thermal error there (key ``PROBE_KEY``), what a probe would measure."""
     from ..sim.model import Motion
 
     hist = _WORKER["model"].run(Motion(motion[:, 0], motion[:, 1], motion[:, 2]), ambient_C=_WORKER["ambient_C"])
-    return {s: float(hist.housing_C[loc][-1]) for s, loc in _WORKER["sensors"].items()}
+    return _readout(hist, _WORKER["sensors"], motion, probe)
+
+
+#: the key of the probe's reading in a re-run's result
+PROBE_KEY = "_probe_um"
+
+
+def _readout(hist, sensors: Mapping[str, str], motion: np.ndarray, probe: bool) -> dict[str, float]:
+    out = {s: float(hist.housing_C[loc][-1]) for s, loc in sensors.items()}
+    if probe:  # the thermal error at the newest time, where the axis is then (the dataset's sign)
+        out[PROBE_KEY] = float(np.asarray(hist.error_um(np.array([motion[-1, 0]]), np.array([motion[-1, 1]])))[0])
+    return out
 
 
 class ThermalPlant:
@@ -96,6 +108,10 @@ class ThermalPlant:
         self.sample_s = _positive(cfg, "sample_s")
         self.update_every_s = _positive(cfg, "update_every_s")
         self.reading_every_s = _positive(cfg, "reading_every_s")
+        self.probe_every_s = None if cfg.get("probe_every_s") is None else _positive(cfg, "probe_every_s")
+        self.next_probe = self.probe_every_s
+        self.probe_high_until: float | None = None  # wall clock: probe-valid is held high a while (the reader polls)
+        self.probes: list[tuple[float, float, float]] = []  # (machine s, axis mm, measured µm)
         self.unit_mm = UNITS_MM[_choice(cfg, "units", tuple(UNITS_MM))]
         self.run_id = str(cfg["run"])
         self.out_dir = Path(str(cfg["out_dir"]))
@@ -109,6 +125,7 @@ class ThermalPlant:
         self.next_update = self.update_every_s
         self.stop_requested = False
         self.pending = None  # the re-run under way in the simulator's process
+        self.pending_at = None  # the newest (t, axis, feed) of its motion
         self.reruns = 0
         self.pool = None
 
@@ -126,6 +143,8 @@ class ThermalPlant:
     def pins(self) -> list[tuple[str, str, str]]:
         ins = [("axis-pos", "float", "in"), ("axis-vel", "float", "in"), ("eoffset", "float", "in"), ("machine-on", "bit", "in")]
         outs = [("time-s", "float", "out"), *((temp_pin(s), "float", "out") for s in self.sensors)]
+        if self.probe_every_s is not None:  # a simulated touch probe: the thermal error at the axis, every probe_every_s
+            outs += [("probe-um", "float", "out"), ("probe-valid", "bit", "out")]
         return ins + outs
 
     def component(self):
@@ -160,15 +179,21 @@ class ThermalPlant:
         if not self.motion or t > self.motion[-1][0]:
             self.motion.append((t, x, feed))
         if self.pending is not None and self.pending.done():
-            self.temps_C = self.pending.result()
+            self._took(self.pending.result(), h, now_wall_s)
             self.pending = None
-            self.reruns += 1
+        if self.probe_high_until is not None and now_wall_s >= self.probe_high_until:
+            h["probe-valid"] = False
+            self.probe_high_until = None
         if t >= self.next_update and len(self.motion) > 1 and self.pending is None:
+            probe = self.next_probe is not None and t >= self.next_probe
+            motion = np.asarray(self.motion, dtype=float)
             if self.pool is None:  # no worker (a test stepping the plant by hand): re-run here
-                hist = self.history()
-                self.temps_C = {s: float(hist.housing_C[loc][-1]) for s, loc in self.sensors.items()}
+                self._took(_readout(self.history(), self.sensors, motion, probe), h, now_wall_s, motion[-1])
             else:
-                self.pending = self.pool.submit(_worker_temps, np.asarray(self.motion, dtype=float))
+                self.pending = self.pool.submit(_worker_temps, motion, probe)
+                self.pending_at = motion[-1]
+            if probe:
+                self.next_probe += self.probe_every_s * max(1, math.floor((t - self.next_probe) / self.probe_every_s) + 1)
             self.next_update += self.update_every_s * max(1, math.floor((t - self.next_update) / self.update_every_s) + 1)
         for s, v in self.temps_C.items():
             h[temp_pin(s)] = v
@@ -183,6 +208,19 @@ class ThermalPlant:
             self.rows += [{"t_s": j * self.sample_s, **row} for j in range(k0 if self.rows else k, k + 1)]
             self.next_sample = (k + 1) * self.sample_s
         return t
+
+    def _took(self, result: dict, h, now_wall_s: float, at=None) -> None:
+        """A re-run's result: the temperatures, and a probe's reading (held on probe-um, probe-valid
+        high for 0.1 s of wall clock: a new reading per rising edge)."""
+        at = self.pending_at if at is None else at
+        probe = result.pop(PROBE_KEY, None)
+        self.temps_C = result
+        self.reruns += 1
+        if probe is not None:
+            self.probes.append((float(at[0]), float(at[1]), probe))
+            h["probe-um"] = probe
+            h["probe-valid"] = True
+            self.probe_high_until = now_wall_s + 0.1
 
     def stop(self, *_: Any) -> None:
         self.stop_requested = True
@@ -239,11 +277,14 @@ class ThermalPlant:
         process = process[["run_id", "t_s", "axis_mm", "feed_mm_min", *[f"{s}_C" for s in self.sensors]]]
         ds = Dataset(meta, process, errors)
         figures = tool_errors(proc, hist)
-        figures.update(time_scale=self.time_scale, machine_s=t_end, samples=len(proc), readings=len(t_read))
+        figures.update(time_scale=self.time_scale, machine_s=t_end, samples=len(proc), readings=len(t_read),
+                       probes=len(self.probes))  # fmt: skip
         with output_dir(self.out_dir, "linuxcnc-plant", force=self.force, force_option="force=true") as stage:
             proc.assign(thermal_um=figures.pop("thermal_um"), after_um=figures.pop("after_um")).to_csv(stage / "process.csv", index=False)
             save_dataset(ds, stage / "dataset")
             (stage / "closed_loop.json").write_text(json.dumps(figures, indent=2) + "\n")
+            if self.probes:  # what the simulated probe read (the thermal error, the model's sign)
+                pd.DataFrame(self.probes, columns=["t_s", "axis_mm", "measured_um"]).to_csv(stage / "probes.csv", index=False)
         return figures
 
 

@@ -136,7 +136,8 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
     """The HAL file: plant, compensator, nets, sampler (the snippet docs/linuxcnc.md explains)."""
     env = "env NUMBA_CACHE_DIR=numba_cache MPLBACKEND=Agg"
     plant = (f"loadusr -Wn tbplant {env} {python} linuxcnc plant benchmark={cfg['benchmark']} "
-             f"time_scale={float(cfg['time_scale'])} period_s={float(cfg['period_s'])} out_dir=plant")  # fmt: skip
+             f"time_scale={float(cfg['time_scale'])} period_s={float(cfg['period_s'])} out_dir=plant"
+             + (f" probe_every_s={float(cfg['probe_every_s'])}" if cfg.get("probe_every_s") is not None else ""))  # fmt: skip
     extra = dict(cfg.get("component") or {})
     bad = [k for k, v in extra.items() if not isinstance(v, (int, float, str, bool)) or " " in str(v)]
     if bad:
@@ -155,6 +156,10 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
              "net tb-homed motion.is-all-homed => tbcomp.all-homed",
              "# the temperature pins (on a real machine: the sensors' HAL pins)"]  # fmt: skip
     lines += [f"net tb-{s} tbplant.temp.{s} => tbcomp.temp.{s}" for s in sensors]
+    if cfg.get("probe_every_s") is not None:
+        lines += ["# the probe (on a real machine: the touch probe cycle's result, e.g. from a probing macro)",
+                  "net tb-probe tbplant.probe-um => tbcomp.probe-um",
+                  "net tb-probe-valid tbplant.probe-valid => tbcomp.probe-valid"]  # fmt: skip
     lines += ["# the compensation into LinuxCNC's external offset of X",
               "net tb-counts tbcomp.eoffset-counts => axis.x.eoffset-counts",
               "net tb-scale tbcomp.eoffset-scale => axis.x.eoffset-scale",
@@ -291,6 +296,9 @@ def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=Non
 
     cfg = with_defaults("linuxcnc_sim", cfg or {})
     say = say or (lambda line: None)
+    every = cfg.get("probe_every_s")
+    if every is not None and (isinstance(every, bool) or not isinstance(every, (int, float)) or not every > 0):
+        raise LinuxCncSimError(f"config key 'probe_every_s': expected null or a number of machine seconds > 0, got {every!r}")
     if shutil.which("linuxcnc") is None:
         raise LinuxCncSimError("LinuxCNC is not installed (Debian: apt-get install --no-install-recommends linuxcnc-uspace)")
     user = _unprivileged(cfg)

@@ -74,13 +74,21 @@ def controller_figures(samples: pd.DataFrame, scale_mm: float, ratio: float, max
     }  # fmt: skip
 
 
-def replay_figures(model_dir: Path, plant_dir: Path, log: pd.DataFrame, run: str) -> dict:
+def replay_figures(model_dir: Path, plant_dir: Path, log: pd.DataFrame, run: str, probe_params=None) -> dict:
     """``thermbench replay`` of the plant's dataset against what the component wrote: at each
     of the plant's process samples (grid time t_k, its axis position), the component's value
-    at its first cycle at or past t_k (the cycle that stepped the model with grid point k)."""
+    at its first cycle at or past t_k (the cycle that stepped the model with grid point k). The
+    probe readings the component took (flag PROBE in its log) are replayed as ``--probes``, with
+    the component's filter noise ``probe_params``."""
     from ..export.replay import replay_run
+    from ..compensator.control import Flags
 
-    rep = replay_run(model_dir, plant_dir / "dataset", run)
+    took = log[(log["flags"].astype(int) & int(Flags.PROBE)) != 0] if "probe_um" in log else log.iloc[:0]
+    probes = None
+    if len(took):
+        probes = pd.DataFrame({"t_s": took["t_s"].to_numpy(float), "axis_mm": took["axis_mm"].to_numpy(float),
+                               "measured_um": took["probe_um"].to_numpy(float)})  # fmt: skip
+    rep = replay_run(model_dir, plant_dir / "dataset", run, probes=probes, probe_params=probe_params)
     comp = rep["compensation"]
     ok = log[log["value_um"].notna() & ~log["flag_names"].astype(str).str.contains("HELD|NOT_READY")]
     t_log = ok["t_s"].to_numpy()
@@ -97,7 +105,7 @@ def replay_figures(model_dir: Path, plant_dir: Path, log: pd.DataFrame, run: str
         "written_minus_replay_rms_um": float(np.sqrt(np.mean(d**2))),
         "position_difference_max_mm": float(np.max(np.abs(x_log - comp["axis_mm"].to_numpy()[has]))),
         "replay_before_max_abs_um": f.get("before_max_abs_um"), "replay_after_max_abs_um": f.get("after_max_abs_um"),
-        "replay_readings": f.get("n_readings"),
+        "replay_readings": f.get("n_readings"), "probes": 0 if probes is None else len(probes),
     }  # fmt: skip
 
 
@@ -109,7 +117,11 @@ def check_run(stage: Path, cfg: Mapping[str, Any]) -> dict:
     plant = json.loads((stage / "plant" / "closed_loop.json").read_text())
     ctrl = controller_figures(samples, float(cfg["scale_per_count"]), float(cfg["offset_av_ratio"]),
                               float(cfg["max_velocity_mm_s"]))  # fmt: skip
-    rep = replay_figures(stage / "model", stage / "plant", log, "linuxcnc")
+    from ..adapt import ProbeParams
+    from ..config import with_defaults
+
+    comp_cfg = with_defaults("linuxcnc_component", dict(cfg.get("component") or {}))
+    rep = replay_figures(stage / "model", stage / "plant", log, "linuxcnc", ProbeParams.from_config(comp_cfg["probe"]))
     summary = json.loads((stage / "compensator_log.summary.json").read_text())
     return {"ok": True, "time_scale": float(cfg["time_scale"]), "tool": plant, "controller": ctrl, "replay": rep,
             "component": {k: summary.get(k) for k in ("cycles", "cycle_ms", "flags", "ended")}}  # fmt: skip
