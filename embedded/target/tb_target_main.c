@@ -5,15 +5,24 @@
  * semihosting, a line at a time (nothing of the stream is kept: RAM is 128 KB).
  *
  *   samples.txt   S t_s axis_mm feed_mm_min load_N measuring T_0 ... T_{n-1}   (tb_replay's records)
- *   queries.txt   Q t_s axis_mm, times nondecreasing
+ *   queries.txt   Q t_s axis_mm, times nondecreasing; and, as tb_replay's options:
+ *                 L                    (before any Q or P) answer live, as tb_replay --live
+ *                 F QB QG R B0 G0      (before any Q or P) the probe filter tb_probe with these
+ *                                      tb_probe_params, as tb_replay --probe; then
+ *                 P t_s axis_mm measured_um   a probe reading, in time order with the queries (a
+ *                                      query at a probe's time comes before it)
  *
  * One file: a model. Several: a per-condition bank, the classifier first (members in class
- * order). Every query is answered as soon as the runtime is ready for its time, the rest after
- * finish. Output (semihosting stdout), one line per query as tb_replay's:
- *   t_s axis_mm thermal_um total_um label rc
- * then "END rc stack_bytes arena_bytes": the deepest stack of any runtime call (the stack is painted
- * before each call and read after it) and the arena the models took. Between TB_MARK_BEGIN and TB_MARK_END of each
- * operation the harness calls tb_target_mark (an instruction-count marker for the budget runs).
+ * order). An envelope file linked beside them (tb_guard_file, tb_guard_bytes > 0: models.S) runs
+ * the extrapolation guard tb_guard over the samples, as tb_replay --guard (it needs L). Every query
+ * is answered as soon as the runtime is ready for its time, the rest after finish (L: with the
+ * samples up to its time only). Output (semihosting stdout), one line per query as tb_replay's:
+ *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance]
+ * then a COUNT line per operation (below), "INFO key value ..." (the target's sizeof of the
+ * runtime's structures, the probes taken and skipped) and "END rc stack_bytes arena_bytes": the
+ * deepest stack of any runtime call (the stack is painted before each call and read after it) and
+ * the arena the models took. Between TB_MARK_BEGIN and TB_MARK_END of each operation the harness
+ * calls tb_target_mark (an instruction-count marker for the budget runs).
  */
 #include "tb_runtime.h"
 #include "../tools/tb_stream.h"
@@ -30,6 +39,8 @@
 extern const uint8_t *const tb_files[];
 extern const uint32_t tb_file_bytes[];
 extern const uint32_t tb_n_files;
+extern const uint8_t *const tb_guard_file; /* the envelope file (models.S), when tb_guard_bytes > 0 */
+extern const uint32_t tb_guard_bytes;
 extern void initialise_monitor_handles(void);
 extern void tb_target_stack_repaint(void);
 extern uint32_t tb_target_stack_below(uint32_t sp);
@@ -37,28 +48,42 @@ extern uint32_t tb_target_stack_below(uint32_t sp);
 static uint64_t arena[(TB_ARENA_BYTES + 7) / 8];
 static tb_model models[TB_MAX_CONDITIONS + 1];
 static tb_bank bank;
-static int use_bank;
+static int use_bank, live, probing, guarding;
 static size_t arena_used;
+static tb_probe_state filt;
+static tb_guard guard;
+static unsigned long probes_skipped;
 
 /* semihosting exit and faults: tb_target_semihost.c; stdout is flushed before the exit */
 void tb_target_flush(void) { fflush(stdout); }
 
 /* ---- instruction counts ---------------------------------------------------------------
- * Under `qemu -icount shift=0` every instruction advances the virtual clock by 1 ns, so the
- * SysTick counting the 25 MHz processor clock of the mps2-an386 ticks every 40 instructions:
- * a deterministic instruction count of each runtime call, to 40 instructions. */
+ * Under `qemu -icount shift=S` every instruction advances the virtual clock by 2^S ns, so the
+ * SysTick counting the 25 MHz processor clock of the mps2-an386 ticks every 40 / 2^S instructions
+ * (S = TB_ICOUNT_SHIFT, 0 to 3: QEMU must run with the same shift): a deterministic instruction
+ * count of each runtime call, to 40 instructions (S = 0) or 5 (S = 3). */
 #define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
 #define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
 #define SYST_CVR (*(volatile uint32_t *)0xE000E018u)
-#define INSN_PER_TICK 40u
+#ifndef TB_ICOUNT_SHIFT
+#define TB_ICOUNT_SHIFT 0
+#endif
+#if TB_ICOUNT_SHIFT < 0 || TB_ICOUNT_SHIFT > 3
+#error "TB_ICOUNT_SHIFT: 0 to 3 (40 >> shift instructions per SysTick tick)"
+#endif
+#define INSN_PER_TICK (40u >> TB_ICOUNT_SHIFT)
 /* "finish": tb_*_finish at the stream's end (it integrates the last partial step: what it costs depends on
-   where the stream ends), counted apart from the per-sample control cycle ("step") */
-enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3, MARK_CALIBRATE = 4, MARK_FINISH = 5, N_MARKS = 6 };
-static const char *const mark_name[N_MARKS] = {"none", "step", "predict", "open", "calibrate", "finish"};
+   where the stream ends), counted apart from the per-sample control cycle ("step"); "probe_update",
+   "probe_correct": tb_probe_update per probe reading, tb_probe_correct per answer (the prediction before
+   each is counted as "predict"); "guard_step": tb_guard_step per sample */
+enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3, MARK_CALIBRATE = 4, MARK_FINISH = 5,
+       MARK_PROBE_UPDATE = 6, MARK_PROBE_CORRECT = 7, MARK_GUARD_STEP = 8, N_MARKS = 9 };
+static const char *const mark_name[N_MARKS] = {"none", "step", "predict", "open", "calibrate", "finish",
+                                               "probe_update", "probe_correct", "guard_step"};
 static uint32_t mark_at, mark_what;
 static unsigned long mark_n[N_MARKS];
 static double mark_sum[N_MARKS]; /* newlib-nano prints no long long */
-static uint32_t mark_max[N_MARKS];
+static uint32_t mark_max[N_MARKS], mark_stack[N_MARKS]; /* the most instructions, the deepest stack (bytes) */
 
 static void count_init(void)
 {
@@ -101,7 +126,8 @@ static void count_report(void)
 {
     int k;
     for (k = 1; k < N_MARKS; k++)
-        printf("COUNT %s %lu %.0f %lu\n", mark_name[k], mark_n[k], mark_sum[k], (unsigned long)mark_max[k]);
+        printf("COUNT %s %lu %.0f %lu %lu\n", mark_name[k], mark_n[k], mark_sum[k], (unsigned long)mark_max[k],
+               (unsigned long)mark_stack[k]);
 }
 
 /* With TB_TRAP_UNALIGNED, an unaligned halfword or word access faults (CCR.UNALIGN_TRP) inside
@@ -118,7 +144,7 @@ static void rt_trap(int on)
 #endif
 }
 
-/* the runtime's own stack: the deepest any runtime call went below the harness's frame */
+/* the runtime's own stack: the deepest any runtime call went below the harness's frame (and per operation) */
 static uint32_t rt_sp, rt_stack_max;
 
 __attribute__((noinline)) static void rt_begin(int what)
@@ -133,42 +159,118 @@ __attribute__((noinline)) static void rt_begin(int what)
 
 __attribute__((noinline)) static void rt_end(void)
 {
-    uint32_t used;
+    uint32_t used, what = mark_what;
     tb_target_mark(MARK_END);
     rt_trap(0);
     used = tb_target_stack_below(rt_sp);
     if (used > rt_stack_max) rt_stack_max = used;
+    if (what < N_MARKS && used > mark_stack[what]) mark_stack[what] = used;
 }
 
-/* ---- queries: read lazily, one ahead ---------------------------------------------------- */
+/* ---- queries and probe readings: read lazily, one ahead -------------------------------- */
 static FILE *qf;
-static int have_q;
-static double q_t, q_x;
+static int have_q, q_probe, q_first = 1, bad_header;
+static double q_t, q_x, q_m;
 
 static int next_query(void)
 {
     char line[256];
     while (fgets(line, sizeof line, qf)) {
-        if (line[0] == 'Q' && sscanf(line + 1, "%lf %lf", &q_t, &q_x) == 2) return have_q = 1;
+        if (line[0] == 'Q' && sscanf(line + 1, "%lf %lf", &q_t, &q_x) == 2) q_probe = 0;
+        else if (line[0] == 'P' && probing && sscanf(line + 1, "%lf %lf %lf", &q_t, &q_x, &q_m) == 3) q_probe = 1;
+        else if (line[0] == 'L' && q_first) {
+            live = 1;
+            continue;
+        } else if (line[0] == 'F' && q_first) {
+            double v[5];
+            tb_probe_params pp;
+            if (sscanf(line + 1, "%lf %lf %lf %lf %lf", &v[0], &v[1], &v[2], &v[3], &v[4]) != 5) {
+                bad_header = 1;
+                continue;
+            }
+            pp.q_bias_um2_per_h = (tb_real)v[0];
+            pp.q_gain_per_h = (tb_real)v[1];
+            pp.r_um2 = (tb_real)v[2];
+            pp.bias0_um = (tb_real)v[3];
+            pp.gain0 = (tb_real)v[4];
+            if (tb_probe_init(&filt, &pp, 0) != TB_OK) bad_header = 1;
+            else probing = 1;
+            continue;
+        } else continue;
+        if (q_first && probing) filt.t_s = (tb_real)q_t; /* the filter starts at the first record, as tb_replay's */
+        q_first = 0;
+        return have_q = 1;
     }
     return have_q = 0;
 }
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
-static void answer(double upto, int all)
+/* the end of an answer line: the guard's distance at the last sample stepped */
+static void end_line(void)
 {
-    while (have_q && (all || q_t <= upto)) {
+    if (guarding && guard.started) printf(" %.17g\n", (double)guard.distance);
+    else if (guarding) printf(" nan\n");
+    else printf("\n");
+}
+
+/* the queries and probes up to time upto (all: every one left; before: strictly before upto, live),
+   as tb_replay's answer_until: live, a query before the runtime has a state gets TB_E_NOTREADY and a
+   probe then is skipped */
+static void answer_until(double upto, int all, int before)
+{
+    while (have_q && (all || (before ? q_t < upto : q_t <= upto))) {
         tb_real th = 0, tot = 0;
         int32_t lab = -1;
         int rc;
+        if (live && !(ready() > (tb_real)-1e29)) {
+            if (q_probe) probes_skipped++;
+            else {
+                printf("%.17g %.17g nan nan -1 %d", q_t, q_x, TB_E_NOTREADY);
+                if (probing) printf(" nan nan");
+                end_line();
+            }
+            next_query();
+            continue;
+        }
         rt_begin(MARK_PREDICT);
         if (use_bank) rc = tb_bank_predict(&bank, (tb_real)q_t, (tb_real)q_x, &th, &tot, &lab);
         else rc = tb_model_predict(&models[0], (tb_real)q_t, (tb_real)q_x, &th, &tot);
         rt_end();
-        printf("%.17g %.17g %.17g %.17g %d %d\n", q_t, q_x, (double)th, (double)tot, (int)lab, rc);
+        if (q_probe) {
+            if (rc == TB_OK) {
+                rt_begin(MARK_PROBE_UPDATE);
+                rc = tb_probe_update(&filt, (tb_real)q_t, tot, (tb_real)q_m, 0);
+                rt_end();
+            }
+            if (rc != TB_OK) probes_skipped++;
+        } else {
+            printf("%.17g %.17g %.17g %.17g %d %d", q_t, q_x, (double)th, (double)tot, (int)lab, rc);
+            if (probing) {
+                tb_real corr = 0, var = 0;
+                if (rc == TB_OK) {
+                    rt_begin(MARK_PROBE_CORRECT);
+                    tb_probe_correct(&filt, (tb_real)q_t, tot, &corr, &var);
+                    rt_end();
+                }
+                printf(" %.17g %.17g", (double)corr, (double)var);
+            }
+            end_line();
+        }
         next_query();
     }
+}
+
+static void answer(double upto, int all) { answer_until(upto, all, 0); }
+
+static void report(int rc)
+{
+    count_report();
+    printf("INFO sizeof_tb_model %lu sizeof_tb_bank %lu sizeof_tb_probe_state %lu sizeof_tb_guard %lu sizeof_tb_real %lu "
+           "probes_taken %lu probes_skipped %lu\n",
+           (unsigned long)sizeof(tb_model), (unsigned long)sizeof(tb_bank), (unsigned long)sizeof(tb_probe_state),
+           (unsigned long)sizeof(tb_guard), (unsigned long)sizeof(tb_real), (unsigned long)filt.n_probes, probes_skipped);
+    printf("END %d %lu %lu\n", rc, (unsigned long)rt_stack_max, (unsigned long)arena_used);
 }
 
 static int open_start(uint32_t i)
@@ -220,17 +322,37 @@ int main(void)
             return 0;
         }
     }
+    if (tb_guard_bytes > 0) {
+        rt_begin(MARK_OPEN);
+        rc = tb_guard_open(&guard, tb_guard_file, tb_guard_bytes);
+        rt_end();
+        if (rc != TB_OK) {
+            printf("END %d 0 0 guard %s\n", rc, tb_strerror(rc));
+            return 0;
+        }
+        guarding = 1;
+    }
     sf = fopen("samples.txt", "r");
     qf = fopen("queries.txt", "r");
     if (!sf || !qf) {
         printf("END -100 0 0 cannot open samples.txt / queries.txt\n");
         return 1;
     }
-    next_query();
+    next_query(); /* and the options before the first record */
+    if (bad_header) {
+        printf("END %d 0 0 queries.txt: F: bad probe filter parameters\n", TB_E_ARG);
+        return 0;
+    }
+    if (guarding && !live) {
+        printf("END %d 0 0 the guard needs L in queries.txt (a query's distance is that of the last sample before it)\n",
+               TB_E_ARG);
+        return 0;
+    }
     while (fgets(line, sizeof line, sf)) {
         tb_sample s;
         tb_real temps[MAX_TEMPS];
         if (!tb_parse_sample(line, &s, temps, MAX_TEMPS)) continue;
+        if (live) answer_until((double)s.t_s, 0, 1); /* the queries this sample comes after */
         rt_begin(MARK_STEP);
         rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
         rt_end();
@@ -239,14 +361,24 @@ int main(void)
                    (unsigned long)arena_used, (double)s.t_s, tb_strerror(rc));
             return 0;
         }
-        answer(ready(), 0);
+        if (guarding) {
+            rt_begin(MARK_GUARD_STEP);
+            rc = tb_guard_step(&guard, &s, 0);
+            rt_end();
+            if (rc != TB_OK) {
+                printf("END %d %lu %lu guard: sample t=%.17g %s\n", rc, (unsigned long)rt_stack_max,
+                       (unsigned long)arena_used, (double)s.t_s, tb_strerror(rc));
+                return 0;
+            }
+        }
+        if (!live) answer(ready(), 0);
     }
+    if (live) answer(0, 1); /* after the last sample, before the end is known */
     rt_begin(MARK_FINISH);
     rc = use_bank ? tb_bank_finish(&bank) : tb_model_finish(&models[0]);
     rt_end();
     answer(0, 1);
-    count_report();
-    printf("END %d %lu %lu\n", rc, (unsigned long)rt_stack_max, (unsigned long)arena_used);
+    report(rc);
     fclose(sf);
     fclose(qf);
     return 0;

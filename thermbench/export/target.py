@@ -3,9 +3,11 @@
 :func:`build` cross-compiles the runtime (``embedded/src``), the start-up code and the
 firmware-style harness (``embedded/target``) with ``arm-none-eabi-gcc`` for the Cortex-M4F
 (``-mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16``) in double or single precision
-(``TB_REAL``), links the model files into flash (``.incbin``) and returns the firmware image;
-:func:`replay` runs it on QEMU's ``mps2-an386`` board with semihosting over a run's process log
-and returns the predictions, as :func:`thermbench.export.runtime.replay` does on the host.
+(``TB_REAL``), links the model files (and an envelope file for the extrapolation guard) into flash
+(``.incbin``) and returns the firmware image; :func:`replay` runs it on QEMU's ``mps2-an386`` board
+with semihosting over a run's process log and returns the predictions, as
+:func:`thermbench.export.runtime.replay` does on the host (live, with probe readings corrected by
+``tb_probe``, with ``tb_guard``'s distance), and what the run measured.
 
 Needs Debian's ``gcc-arm-none-eabi``, ``libnewlib-arm-none-eabi`` and ``qemu-system-arm``
 (``make target-test`` installs them: tools/sysdeps.sh); without them :class:`~.runtime.RuntimeUnavailable` says so.
@@ -25,6 +27,7 @@ from typing import Sequence
 
 import pandas as pd
 
+from . import runtime
 from .runtime import RuntimeFailed, RuntimeUnavailable, cache_dir, embedded_dir, runtime_sources, stream_text
 from .fileformat import Kind
 
@@ -53,6 +56,7 @@ class Firmware:
     text_bytes: int
     data_bytes: int
     bss_bytes: int
+    icount_shift: int = 0  # QEMU's -icount shift the harness counts instructions for (build)
 
     @property
     def flash_bytes(self) -> int:
@@ -81,30 +85,40 @@ def _run(cmd: Sequence[str], what: str, cwd: Path | None = None) -> str:
 
 
 def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 16384, offset: int = 0,
-          trap_unaligned: bool = False) -> Firmware:  # fmt: skip
+          trap_unaligned: bool = False, guard: Path | None = None, icount_shift: int = 0) -> Firmware:  # fmt: skip
     """The firmware image running ``files`` (one model, or a bank: the classifier then the
     members in class order) from flash, in ``precision`` ("double" or "float"), with a static
     arena of ``arena_bytes``. ``offset``: the first file starts this many bytes past an
-    8-byte boundary (the alignment tests); ``trap_unaligned``: unaligned accesses fault.
-    Cached by a hash of the sources, the model files and the options."""
+    8-byte boundary (the alignment tests); ``trap_unaligned``: unaligned accesses fault;
+    ``guard``: an envelope file (the export's ``envelope.tbm``) linked into flash beside the models,
+    followed by ``tb_guard`` over the samples; ``icount_shift`` (0 to 3): the image counts
+    instructions for ``qemu -icount shift=icount_shift``, in steps of 40 >> shift (:func:`run` runs
+    it so). Cached by a hash of the sources, the files and the options."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
+    if icount_shift not in range(4):
+        raise ValueError(f"icount_shift: expected 0 to 3 (40 >> shift instructions per SysTick tick), got {icount_shift!r}")
     cc, _ = toolchain()
     d, t = embedded_dir(), _target_dir()
     files = [Path(f) for f in files]
-    harness = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else [])]
+    guard = Path(guard) if guard is not None else None
+    harness = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else []),
+               *([f"-DTB_ICOUNT_SHIFT={icount_shift}"] if icount_shift else [])]  # fmt: skip
     objs = _objects(precision)  # the runtime and the start-up: one compilation per precision
     key = _hash([t / "tb_target_main.c", d / "tools" / "tb_stream.h", t / "stm32f407.ld", *objs, *files], cc, *harness,
-                f"offset={offset}")  # fmt: skip
+                f"offset={offset}", *([f"guard={_hash([guard])}"] if guard is not None else []))  # fmt: skip
     own = lambda work: [_compile(cc, s, work, harness) for s in (t / "tb_target_main.c", work / "models.S")]  # noqa: E731
     specs = ["--specs=rdimon.specs", "-u", "_printf_float", "-u", "_scanf_float"]  # semihosting stdio
-    return _sized(_linked(key, files, offset, objs, own, specs, "linking the firmware"))
+    fw = _sized(_linked(key, files, offset, objs, own, specs, "linking the firmware", guard))
+    fw.icount_shift = icount_shift
+    return fw
 
 
-def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], own, specs: Sequence[str], what: str) -> Path:
+def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], own, specs: Sequence[str], what: str,
+            guard: Path | None = None) -> Path:  # fmt: skip
     """``<cache>/target/<key>/firmware.elf``: ``objs`` and the objects ``own(work)`` compiles (after
-    ``models.S`` holds ``files`` in flash) linked by the STM32F407 script with newlib-nano and
-    ``specs``; made in a temporary directory and renamed (reused when present)."""
+    ``models.S`` holds ``files``, and the envelope file ``guard``, in flash) linked by the STM32F407
+    script with newlib-nano and ``specs``; made in a temporary directory and renamed (reused when present)."""
     cc, _ = toolchain()
     out_dir = cache_dir() / "target" / key
     elf = out_dir / "firmware.elf"
@@ -112,7 +126,7 @@ def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], 
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=out_dir.parent))
         try:
-            (work / "models.S").write_text(_models_asm(files, offset))
+            (work / "models.S").write_text(_models_asm(files, offset, guard))
             _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", *specs, f"-T{_target_dir() / 'stm32f407.ld'}",
                   "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}", *objs, *own(work), "-lm", "-o",
                   work / "firmware.elf"], what, cwd=work)  # fmt: skip
@@ -123,11 +137,12 @@ def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], 
     return elf
 
 
-def _qemu(elf: Path, cwd: str | None = None, timeout_s: float = 600.0, icount: bool = False) -> subprocess.CompletedProcess:
-    """``elf`` on QEMU's mps2-an386 with semihosting (``icount``: one instruction per virtual ns)."""
+def _qemu(elf: Path, cwd: str | None = None, timeout_s: float = 600.0, icount: bool = False,
+          shift: int = 0) -> subprocess.CompletedProcess:  # fmt: skip
+    """``elf`` on QEMU's mps2-an386 with semihosting (``icount``: one instruction per 2^``shift`` virtual ns)."""
     _, qemu = toolchain()
     cmd = [qemu, "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
-           *(["-icount", "shift=0"] if icount else []), "-semihosting-config", "enable=on,target=native",
+           *(["-icount", f"shift={int(shift)}"] if icount else []), "-semihosting-config", "enable=on,target=native",
            "-kernel", str(elf)]  # fmt: skip
     return subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, timeout=timeout_s)
 
@@ -261,16 +276,23 @@ def soft_routines(fw: Firmware) -> dict[str, list[str]]:
     return {k: v for k, v in reached_routines(fw).items() if SOFT_ROUTINE.match(k)}
 
 
-def _models_asm(files: Sequence[Path], offset: int) -> str:
-    """The model files in flash (``.rodata``), each on an 8-byte boundary plus ``offset``."""
+def _models_asm(files: Sequence[Path], offset: int, guard: Path | None = None) -> str:
+    """The model files in flash (``.rodata``), each on an 8-byte boundary plus ``offset``; and the
+    envelope file ``guard`` on an 8-byte boundary (``tb_guard_file``, ``tb_guard_bytes``: 0 without;
+    in a section of their own, which an image that does not read them drops)."""
     lines = ['    .section .rodata.tb_models,"a"']
     for i, f in enumerate(files):
         lines += ["    .balign 8", *([f"    .space {offset}"] if offset else []), f"tb_file_{i}:",
                   f'    .incbin "{Path(f).resolve()}"', f"tb_file_{i}_end:"]  # fmt: skip
+    if guard is not None:
+        lines += ["    .balign 8", "tb_guard_0:", f'    .incbin "{Path(guard).resolve()}"', "tb_guard_0_end:"]
     lines += ['    .section .rodata.tb_index,"a"', "    .balign 4", "    .global tb_files", "tb_files:",
               *[f"    .word tb_file_{i}" for i in range(len(files))], "    .global tb_file_bytes", "tb_file_bytes:",
               *[f"    .word tb_file_{i}_end - tb_file_{i}" for i in range(len(files))], "    .global tb_n_files",
-              "tb_n_files:", f"    .word {len(files)}", ""]  # fmt: skip
+              "tb_n_files:", f"    .word {len(files)}",
+              '    .section .rodata.tb_guard_index,"a"', "    .balign 4", "    .global tb_guard_file", "tb_guard_file:",
+              f"    .word {'tb_guard_0' if guard is not None else 0}", "    .global tb_guard_bytes", "tb_guard_bytes:",
+              f"    .word {'tb_guard_0_end - tb_guard_0' if guard is not None else 0}", ""]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -286,40 +308,61 @@ def _sized(elf: Path) -> Firmware:
 
 
 def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 600.0) -> tuple[list[str], str, list[str]]:
-    """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F, ``-icount shift=0``: one instruction per virtual
-    ns) with ``samples.txt`` and ``queries.txt`` in its semihosting directory; returns (the query
-    lines, the END line, the COUNT lines: instructions per runtime call)."""
+    """Run ``fw`` on QEMU's mps2-an386 (Cortex-M4F, ``-icount shift=fw.icount_shift``: one
+    instruction per 2^shift virtual ns) with ``samples.txt`` and ``queries.txt`` in its semihosting
+    directory; returns (the query lines, the END line, the COUNT lines: instructions and stack per
+    runtime call, and the INFO line: the target's sizes of the runtime's structures, the probes taken)."""
     with tempfile.TemporaryDirectory(prefix="tb_target_") as tmp:
         Path(tmp, "samples.txt").write_text(samples_text)
         Path(tmp, "queries.txt").write_text(queries_text)
         try:
-            res = _qemu(fw.elf, cwd=tmp, timeout_s=timeout_s, icount=True)
+            res = _qemu(fw.elf, cwd=tmp, timeout_s=timeout_s, icount=True, shift=fw.icount_shift)
         except subprocess.TimeoutExpired:
             raise RuntimeFailed(f"the firmware did not finish within {timeout_s:.0f} s on QEMU ({fw.elf})") from None
     lines = res.stdout.splitlines()
     end = next((ln for ln in reversed(lines) if ln.startswith("END ")), None)
     if res.returncode != 0 or end is None:
         raise RuntimeFailed(f"the firmware stopped (QEMU exit {res.returncode}): {(res.stdout + res.stderr).strip()[-2000:]}")
-    return [ln for ln in lines if ln and not ln.startswith(("END ", "COUNT "))], end, [ln for ln in lines if ln.startswith("COUNT ")]
+    info = ("COUNT ", "INFO ")
+    return [ln for ln in lines if ln and not ln.startswith(("END ", *info))], end, [ln for ln in lines if ln.startswith(info)]
 
 
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
-           precision: str = "double", arena_bytes: int = 16384, **build_kw) -> tuple[pd.DataFrame, dict]:  # fmt: skip
+           precision: str = "double", arena_bytes: int = 16384, live: bool = False, probes: pd.DataFrame | None = None,
+           probe_params=None, guard: Path | None = None, **build_kw) -> tuple[pd.DataFrame, dict]:  # fmt: skip
     """:func:`thermbench.export.runtime.replay` on the target: the predictions (``t_s``, ``axis_mm``,
-    ``thermal_um``, ``total_um``, ``label``, ``rc``) and what the run reports (``rc``,
-    ``stack_bytes``, ``arena_bytes``, ``flash_bytes``, ``ram_bytes``)."""
-    fw = build(files, precision, arena_bytes, **build_kw)
-    text = stream_text(samples, temps, queries)
-    q = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("Q"))
+    ``thermal_um``, ``total_um``, ``label``, ``rc``; with ``probe_params``, ``corrected_um`` and
+    ``var_um2``: the probe readings ``probes`` correct the model by ``tb_probe``; with ``guard``, an
+    envelope file linked into flash, ``distance``: ``tb_guard``'s at the last sample before each
+    query, which needs ``live``) and what the run reports (``rc``, ``stack_bytes``, ``arena_bytes``,
+    ``flash_bytes``, ``ram_bytes``; per operation ``<what>_calls``, ``_insn_mean``, ``_insn_max`` and
+    ``_stack_bytes``, ``what`` one of step, predict, open, calibrate, finish, probe_update,
+    probe_correct, guard_step; ``sizeof_tb_model``, ``sizeof_tb_probe_state``, ``sizeof_tb_guard``
+    ... on the target; ``probes_taken``, ``probes_skipped``). ``build_kw``: :func:`build`'s."""
+    if guard is not None and not live:
+        raise ValueError("replay: a guard answers live (live=True)")
+    fw = build(files, precision, arena_bytes, guard=guard, **build_kw)
+    text = stream_text(samples, temps, queries, probes if probe_params is not None else None)
+    head = ["L"] if live else []
+    if probe_params is not None:
+        head.append("F " + " ".join(repr(float(v)) for v in (probe_params.q_bias_um2_per_h, probe_params.q_gain_per_h,
+                                                             probe_params.r_um2, probe_params.bias0_um, probe_params.gain0)))  # fmt: skip
+    q = "".join(ln + "\n" for ln in [*head, *(ln for ln in text.splitlines() if ln.startswith(("Q", "P")))])
     s = "".join(ln + "\n" for ln in text.splitlines() if ln.startswith("S"))
     lines, end, counts = run(fw, s, q)
     parts = end.split()
     rep = {"rc": int(parts[1]), "stack_bytes": int(parts[2]), "arena_bytes": int(parts[3]),
            "flash_bytes": fw.flash_bytes, "ram_bytes": fw.data_bytes + fw.bss_bytes, "end": end}  # fmt: skip
-    for ln in counts:  # COUNT what n sum max: instructions per runtime call
-        _, what, n, total, most = ln.split()
+    for ln in counts:
+        if ln.startswith("INFO "):  # key value ...
+            kv = ln.split()[1:]
+            rep.update({k: int(v) for k, v in zip(kv[::2], kv[1::2])})
+            continue
+        # COUNT what n sum max stack: instructions per runtime call, the deepest stack of its calls
+        _, what, n, total, most, stack = ln.split()
         rep[f"{what}_calls"], rep[f"{what}_insn_mean"], rep[f"{what}_insn_max"] = int(n), float(total) / max(int(n), 1), int(most)
-    rows = [ln.split() for ln in lines]
-    df = pd.DataFrame(rows, columns=["t_s", "axis_mm", "thermal_um", "total_um", "label", "rc"])
-    df = df.astype({"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int})
+        rep[f"{what}_stack_bytes"] = int(stack)
+    cols = {**runtime.REPLAY_COLUMNS, **({"corrected_um": float, "var_um2": float} if probe_params is not None else {}),
+            **({"distance": float} if guard is not None else {})}  # fmt: skip
+    df = pd.DataFrame([ln.split() for ln in lines], columns=list(cols)).astype(cols)
     return df, rep
