@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from tests.test_target import ds, queries  # noqa: F401  (the fixtures: seed001_vmc_x and valid1's readings)
 from thermbench.adapt import ProbeParams
-from thermbench.datasets import load_benchmark
 from thermbench.export import bundle, read_manifest, runtime, target
 from thermbench.export.bundle import TARGETS
 
@@ -23,16 +23,6 @@ RUN = "valid1"
 FLOAT_UM = 0.01  # issue 21: single-precision parity
 PARAMS = ProbeParams(q_bias_um2_per_h=1.5, q_gain_per_h=1e-3, r_um2=0.04, bias0_um=2.0, gain0=0.1)  # tests/test_probe_runtime.py's
 BUDGET = TARGETS["cortex-m4f"]["budget"]
-
-
-@pytest.fixture(scope="module")
-def ds(seed001_data_root):
-    return load_benchmark("seed001_vmc_x", seed001_data_root)
-
-
-@pytest.fixture(scope="module")
-def queries(ds):
-    return bundle.readings_queries(ds, RUN)
 
 
 @pytest.fixture(scope="module")

@@ -121,7 +121,7 @@ def check_run(stage: Path, cfg: Mapping[str, Any]) -> dict:
     from ..config import with_defaults
 
     comp_cfg = with_defaults("linuxcnc_component", dict(cfg.get("component") or {}))
-    rep = replay_figures(stage / "model", stage / "plant", log, "linuxcnc", ProbeParams.from_config(comp_cfg["probe"]))
+    rep = replay_figures(stage / "model", stage / "plant", log, "linuxcnc", ProbeParams.from_config(comp_cfg.get("probe")))
     summary = json.loads((stage / "compensator_log.summary.json").read_text())
     return {"ok": True, "time_scale": float(cfg["time_scale"]), "tool": plant, "controller": ctrl, "replay": rep,
             "component": {k: summary.get(k) for k in ("cycles", "cycle_ms", "flags", "ended")}}  # fmt: skip
