@@ -38,6 +38,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=45)
     ap.add_argument("--dwell", type=float, default=20.0, help="wall seconds of the stop at the end")
     ap.add_argument("--every", type=float, default=3600.0, help="machine seconds between probes")
+    ap.add_argument("--keep", action="store_true", help="keep the runs' directories (printed)")
     a = ap.parse_args()
 
     from thermbench import datasets
@@ -74,7 +75,10 @@ def main() -> None:
     finally:
         for d, m in modes.items():
             d.chmod(m)
-        shutil.rmtree(work, ignore_errors=True)
+        if a.keep:
+            print(f"runs kept in {work}")
+        else:
+            shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

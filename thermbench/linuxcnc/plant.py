@@ -141,7 +141,8 @@ class ThermalPlant:
 
     # ------------------------------------------------------------------ pins ---
     def pins(self) -> list[tuple[str, str, str]]:
-        ins = [("axis-pos", "float", "in"), ("axis-vel", "float", "in"), ("eoffset", "float", "in"), ("machine-on", "bit", "in")]
+        ins = [("axis-pos", "float", "in"), ("axis-vel", "float", "in"), ("eoffset", "float", "in"), ("machine-on", "bit", "in"),
+               ("finish", "bit", "in")]  # finish: write the results now (the sim's display sets it before LinuxCNC stops)
         outs = [("time-s", "float", "out"), *((temp_pin(s), "float", "out") for s in self.sensors)]
         if self.probe_every_s is not None:  # a simulated touch probe: the thermal error at the axis, every probe_every_s
             outs += [("probe-um", "float", "out"), ("probe-valid", "bit", "out")]
@@ -226,12 +227,15 @@ class ThermalPlant:
         self.stop_requested = True
 
     def run(self, h=None) -> dict:
+        """The loop, until stopped (SIGTERM, SIGINT) or asked to finish (pin ``finish``): then the
+        results. LinuxCNC's shutdown gives a component 2 s after SIGTERM, too little for the
+        results of a long run: the sim's display sets ``finish`` first and waits for them."""
         h = self.component() if h is None else h
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self.stop)
         sched = Deadlines(self.period_s, time.monotonic())
         try:
-            while not self.stop_requested:
+            while not self.stop_requested and not h["finish"]:
                 time.sleep(sched.wait_s(time.monotonic()))
                 self.step(h, time.monotonic())
                 sched.next(time.monotonic())
@@ -240,7 +244,10 @@ class ThermalPlant:
         finally:
             if self.pool is not None:
                 self.pool.shutdown(wait=False, cancel_futures=True)
-        return self.finish()
+        figures = self.finish()
+        while not self.stop_requested:  # finished on request: a HAL component stays until LinuxCNC unloads it
+            time.sleep(0.05)
+        return figures
 
     # ---------------------------------------------------------------- results ---
     def finish(self) -> dict:

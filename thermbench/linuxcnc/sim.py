@@ -85,6 +85,7 @@ POSITION_FEEDBACK = ACTUAL
 RESULT = display_result.json
 TIMEOUT_S = {float(cfg['timeout_s'])}
 SETTLE_S = {float(cfg['settle_s'])}
+PLANT_RESULT = plant/closed_loop.json
 
 [TASK]
 TASK = milltask
