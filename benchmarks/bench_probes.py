@@ -82,7 +82,11 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the table as CSV here")
     ap.add_argument("--figure", default=None, help="draw the first family's tail on --figure-channel here (PNG)")
     ap.add_argument("--figure-channel", default="ch3")
+    ap.add_argument("--force", action="store_true", help="replace --figure when it exists (a figure this script wrote)")
     args = ap.parse_args()
+    if args.figure and Path(args.figure).exists() and not args.force:
+        ap.exit(2, f"bench_probes.py: error: --figure {args.figure} exists; add --force to replace it (never a file this "
+                   "script did not write)\n")  # fmt: skip
     os.environ.setdefault("THERMBENCH_DATA", str(Path("data/benchmark").resolve()))
     from thermbench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
 
