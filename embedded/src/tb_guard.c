@@ -17,37 +17,37 @@
 
 int tb_guard_open(tb_guard *g, const uint8_t *file, size_t len)
 {
-    uint32_t n_payload, crc, n, i;
+    uint32_t n_payload, n, i, dims[TB_MAX_DIMS];
+    uint16_t version, kind;
+    int rc;
     if (!g) return TB_E_ARG;
     memset(g, 0, sizeof *g);
     if (!file) return TB_E_ARG;
-    if (((uintptr_t)file & 3u) != 0u) return TB_E_ALIGN;
-    if (len < TB_HEADER_BYTES + 4u) return TB_E_SIZE;
-    if (memcmp(file, TB_MAGIC, 4) != 0) return TB_E_MAGIC;
-    if (tbi_rd_u16(file + 4) != TB_FORMAT_VERSION) return TB_E_VERSION;
-    if (tbi_rd_u16(file + 6) != TB_KIND_ENVELOPE) return TB_E_KIND;
-    n_payload = tbi_rd_u32(file + 44);
-    if (n_payload > TB_MAX_PAYLOAD || (size_t)n_payload * 4u + TB_HEADER_BYTES + 4u != len) return TB_E_SIZE;
-    tb_crc32_check(file, len - 4u, &crc);
-    if (crc != tbi_rd_u32(file + len - 4u)) return TB_E_CRC;
-    if (tbi_rd_u16(file + 8) != 2u || tbi_rd_u16(file + 10) != 0) return TB_E_DIMS;
-    for (i = 2; i < TB_MAX_DIMS; i++)
-        if (tbi_rd_u32(file + 12 + 4 * i) != 0) return TB_E_DIMS;
-    g->n_sensors = tbi_rd_u32(file + 12);
-    g->n_operating = tbi_rd_u32(file + 16);
+    if ((rc = tbi_check_file(file, len, &version, &kind, &n_payload)) != TB_OK) return rc;
+    if (version != TB_FORMAT_VERSION) return TB_E_VERSION;
+    if (kind != TB_KIND_ENVELOPE) return TB_E_KIND;
+    if ((rc = tbi_check_dims(file, dims)) != TB_OK) return rc;
+    if (tbi_rd_u16(file + 8) != 2u) return TB_E_DIMS;
+    g->n_sensors = dims[0];
+    g->n_operating = dims[1];
     if (g->n_sensors > TB_MAX_SENSORS || g->n_operating > TB_MAX_SENSORS) return TB_E_DIMS;
     n = 2u * g->n_sensors + g->n_operating;
     if (n_payload != 1u + 3u * n) return TB_E_DIMS;
+    if ((rc = tbi_payload_finite(file + TB_HEADER_BYTES, n_payload)) != TB_OK) return rc;
     g->payload = file + TB_HEADER_BYTES;
-    for (i = 0; i < n_payload; i++)
-        if (!isfinite(tbi_rd_f32(g->payload + 4u * i))) return TB_E_NAN;
     g->tau_s = (tb_real)tbi_rd_f32(g->payload);
-    if (!(g->tau_s > 0)) return TB_E_PAYLOAD;
+    if (!(g->tau_s > 0)) {
+        memset(g, 0, sizeof *g); /* a refused envelope guards nothing (tb_guard_step: TB_E_ARG) */
+        return TB_E_PAYLOAD;
+    }
     for (i = 0; i < n; i++) { /* lo <= hi, width > 0 */
         tb_real lo = (tb_real)tbi_rd_f32(g->payload + 4u * (1u + i));
         tb_real hi = (tb_real)tbi_rd_f32(g->payload + 4u * (1u + n + i));
         tb_real w = (tb_real)tbi_rd_f32(g->payload + 4u * (1u + 2u * n + i));
-        if (!(lo <= hi) || !(w > 0)) return TB_E_PAYLOAD;
+        if (!(lo <= hi) || !(w > 0)) {
+            memset(g, 0, sizeof *g);
+            return TB_E_PAYLOAD;
+        }
     }
     return TB_OK;
 }

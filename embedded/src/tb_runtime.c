@@ -470,46 +470,65 @@ static void flush_start(const tbi_kind *ops, tb_model *m, tbi_state *st)
 }
 
 /* ------------------------------------------------------------- open */
-int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
+int tbi_check_file(const uint8_t *file, size_t len, uint16_t *version, uint16_t *kind, uint32_t *n_payload)
 {
-    uint32_t n_payload, crc, i;
-    uint16_t version, kind, n_dims;
-    const tbi_kind *ops;
-    tbi_cur c;
-    if (!m) return TB_E_ARG;
-    memset(m, 0, sizeof *m);
-    if (!file) return TB_E_ARG;
+    uint32_t crc;
     /* the file is read in place with 16- and 32-bit loads at their natural offsets (a compiler may
        merge the byte reads into them): a file on a 4-byte boundary is never read unaligned */
     if (((uintptr_t)file & 3u) != 0u) return TB_E_ALIGN;
     if (len < TB_HEADER_BYTES + 4u) return TB_E_SIZE;
     if (memcmp(file, TB_MAGIC, 4) != 0) return TB_E_MAGIC;
-    version = tbi_rd_u16(file + 4);
-    if (version < TB_FORMAT_VERSION || version > TBI_MAX_VERSION) return TB_E_VERSION;
-    kind = tbi_rd_u16(file + 6);
-    n_dims = tbi_rd_u16(file + 8);
-    n_payload = tbi_rd_u32(file + 44);
-    if (n_payload > TB_MAX_PAYLOAD) return TB_E_DIMS;
-    if ((size_t)n_payload * 4u + TB_HEADER_BYTES + 4u != len) return TB_E_SIZE;
+    *version = tbi_rd_u16(file + 4);
+    if (*version < TB_FORMAT_VERSION || *version > TBI_MAX_VERSION) return TB_E_VERSION;
+    *kind = tbi_rd_u16(file + 6);
+    *n_payload = tbi_rd_u32(file + 44);
+    if (*n_payload > TB_MAX_PAYLOAD) return TB_E_DIMS;
+    if ((size_t)*n_payload * 4u + TB_HEADER_BYTES + 4u != len) return TB_E_SIZE;
     tb_crc32_check(file, len - 4u, &crc);
     if (crc != tbi_rd_u32(file + len - 4u)) return TB_E_CRC;
+    return TB_OK;
+}
+
+int tbi_check_dims(const uint8_t *file, uint32_t dims[TB_MAX_DIMS])
+{
+    uint32_t i, n_dims = tbi_rd_u16(file + 8);
+    if (n_dims > TB_MAX_DIMS || tbi_rd_u16(file + 10) != 0) return TB_E_DIMS;
+    for (i = 0; i < TB_MAX_DIMS; i++) {
+        dims[i] = tbi_rd_u32(file + 12 + 4 * i);
+        if (i >= n_dims && dims[i] != 0) return TB_E_DIMS;
+    }
+    return TB_OK;
+}
+
+int tbi_payload_finite(const uint8_t *payload, uint32_t n)
+{
+    uint32_t i;
+    for (i = 0; i < n; i++)
+        if (!isfinite(tbi_rd_f32(payload + 4u * i))) return TB_E_NAN;
+    return TB_OK;
+}
+
+int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
+{
+    uint32_t n_payload;
+    uint16_t version, kind;
+    const tbi_kind *ops;
+    tbi_cur c;
+    int rc;
+    if (!m) return TB_E_ARG;
+    memset(m, 0, sizeof *m);
+    if (!file) return TB_E_ARG;
+    if ((rc = tbi_check_file(file, len, &version, &kind, &n_payload)) != TB_OK) return rc;
     ops = tbi_kind_of(kind);
     if (!ops || ops->kind != kind) return TB_E_KIND;
     if (version > ops->max_version) return TB_E_VERSION; /* a payload version this kind does not have */
-    if (n_dims > TB_MAX_DIMS || tbi_rd_u16(file + 10) != 0) return TB_E_DIMS;
-    for (i = 0; i < TB_MAX_DIMS; i++) {
-        m->dims[i] = tbi_rd_u32(file + 12 + 4 * i);
-        if (i >= n_dims && m->dims[i] != 0) return TB_E_DIMS;
-    }
+    if ((rc = tbi_check_dims(file, m->dims)) != TB_OK) return rc;
     m->payload = file + TB_HEADER_BYTES;
     m->n_payload = n_payload;
     m->kind = kind;
-    for (i = 0; i < n_payload; i++) {
-        float f = tbi_rd_f32(m->payload + 4u * i);
-        if (!isfinite(f)) {
-            memset(m, 0, sizeof *m);
-            return TB_E_NAN;
-        }
+    if ((rc = tbi_payload_finite(m->payload, n_payload)) != TB_OK) {
+        memset(m, 0, sizeof *m);
+        return rc;
     }
     c.m = m;
     c.pos = 0;
