@@ -531,3 +531,51 @@ async def _restarted_compensators(machine, model_dir, nodes_file, tmp_path, paus
         clock.cancel()
         await sim.stop_server()
     return said
+
+
+def test_probe_node_corrects_the_loop_as_replay_with_the_same_probes(machine, seed001_exports, tmp_path):
+    """sim-cnc's touch probe (``probe_every_s``: node X.Probe_um, the thermal error at the axis,
+    stamped when taken) feeds the compensator's probe input: each reading is taken once, at its
+    source time, and the loop's corrected compensation is what the C runtime gives replaying the
+    samples the loop stepped with the probes sim-cnc wrote to probes.csv (``thermbench replay
+    --probes``). The probe's values are the simulator's, checked against the interferometer."""
+    from thermbench.data.io import load_dataset
+    from thermbench.export.bundle import process_samples, replay_dir
+    from thermbench.export.replay import read_probes
+    from thermbench.adapt import ProbeParams
+    from thermbench.config import with_defaults
+
+    nodes = tmp_path / "nodes.yaml"
+    nodes.write_text(yaml.safe_dump(nodes_yaml(machine, probe=True)))
+    f, s, log = asyncio.run(_closed_loop(machine, seed001_exports / "mlr", nodes, tmp_path,
+                                         sim_kw={"probe_every_s": 120.0, "speed": 40.0}, period_s=0.01))  # fmt: skip
+    probes = read_probes(tmp_path / "sim" / "probes.csv")
+    assert f["n_probes"] == len(probes) == 7 and np.allclose(probes["t_s"], 120.0 * np.arange(1, 8))
+    # the probe reads the simulator's thermal error: at a dwell on a reading's target, the reading less its noise
+    rd = machine.readings.set_index("t_s")
+    at = probes[probes["t_s"].isin(rd.index)]
+    for _, p in at.iterrows():
+        if np.isclose(rd.loc[p["t_s"], "target_mm"], p["axis_mm"]):
+            assert abs(rd.loc[p["t_s"], "thermal_um"] - p["measured_um"]) < 1.5
+    # each probe taken once, at the cycle that first saw it, with its value
+    took = log[(log["flags"] & int(Flags.PROBE)) > 0]
+    assert len(took) == len(probes) and s["flags"].get("PROBE", 0) == len(probes)
+    np.testing.assert_array_equal(took["probe_um"].to_numpy(), probes["measured_um"].to_numpy())
+    assert (took["t_s"].to_numpy() >= probes["t_s"].to_numpy()).all()
+    # the reference: the C runtime over the samples the loop stepped, with the same probes and filter
+    ds = load_dataset(tmp_path / "sim" / "dataset")
+    samples = process_samples(ds, RUN)
+    fresh = log[((log["flags"] & HELD) == 0) & log["predicted_um"].notna()]
+    k = np.floor(fresh["t_s"].to_numpy() + 1e-3)
+    seen = np.floor(log["t_s"].dropna().to_numpy() + 1e-3)  # every sample the loop stepped (held cycles too)
+    played = samples[samples["t_s"].isin(seen)].reset_index(drop=True)
+    q = pd.DataFrame({"t_s": k, "axis_mm": fresh["axis_mm"].to_numpy()})
+    params = ProbeParams.from_config(with_defaults("compensator", {})["probe"])
+    ref = replay_dir(seed001_exports / "mlr", ds, RUN, q, samples=played, live=True, probes=probes, probe_params=params)
+    corrected = fresh["predicted_um"].to_numpy() + fresh["correction_um"].to_numpy()
+    # a cycle at a probe's own second may have taken it before answering (replay answers first): left out
+    away = ~np.isin(k, probes["t_s"].to_numpy())
+    assert away.sum() > 500 and np.abs(fresh["correction_um"].to_numpy()[k > probes["t_s"].iloc[0]]).max() > 0.05
+    ok = away & (ref["rc"].to_numpy() == 0)
+    np.testing.assert_allclose(fresh["predicted_um"].to_numpy()[ok], ref["total_um"].to_numpy()[ok], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(corrected[ok], ref["corrected_um"].to_numpy()[ok], rtol=0, atol=1e-3)  # issue 41: <= 0.01

@@ -28,7 +28,7 @@ def machines():
 
 def _station_file(tmp_path, model, ports, machines) -> "Path":
     a, b = machines
-    nx, ny = nodes_yaml(a, "X"), nodes_yaml(b, "Y")
+    nx, ny = nodes_yaml(a, "X", probe=True), nodes_yaml(b, "Y")  # X's touch probe on a
     for n in (nx, ny):
         n["inputs"].pop("done")
         n["outputs"].pop("line")
@@ -53,7 +53,7 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
 
     async def scenario():
         sims = [SimCnc(m, {"endpoint": f"opc.tcp://127.0.0.1:{p}/{n}", "run": m.run, "speed": 20.0, "start": "immediate",
-                           "axis": ax})
+                           "axis": ax, "probe_every_s": 15.0 if ax == "X" else None})
                 for m, p, n, ax in zip(machines, ports, "ab", "XY")]  # fmt: skip
         clocks = []
         for s in sims:
@@ -78,9 +78,9 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
         applied = sims[0]._read("value")  # what a holds as X's compensation
         clocks[0].cancel()
         await sims[0].stop_server()
-        return summary, stop_wall, kill_wall, applied
+        return summary, stop_wall, kill_wall, applied, sims[0].results()["probes"]
 
-    summary, stop_wall, kill_wall, applied = asyncio.run(scenario())
+    summary, stop_wall, kill_wall, applied, probes = asyncio.run(scenario())
     x = pd.read_csv(tmp_path / "logs" / "X.csv")
     y = pd.read_csv(tmp_path / "logs" / "Y.csv")
     assert len(x) == len(y) == summary["cycles"] > 100  # one line per channel per cycle
@@ -100,6 +100,17 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
     status = [ln for ln in lines if ln.startswith("cycle ")]
     assert status and all(" | Y " in ln and ln.split(": ", 1)[1].count("X ") >= 1 for ln in status)
     assert summary["channels"]["Y"]["flags"]["DISCONNECTED"] == len(y[(y["flags"] & int(Flags.DISCONNECTED)) > 0])
+    # X's probe readings (on a, every 15 machine s) correct X alone, each taken once with its value
+    took = x[(x["flags"] & int(Flags.PROBE)) > 0]
+    # (a machine started before the station: the readings published before X was ready are gone; the
+    # last may come after the station's end): from X's first, every one of a's readings, once, in order
+    idx = [int(np.flatnonzero(probes["measured_um"].to_numpy() == v)[0]) for v in took["probe_um"]]
+    assert len(took) >= 3 and idx == list(range(idx[0], idx[0] + len(took))) and idx[-1] >= len(probes) - 2
+    lag = took["t_s"].to_numpy() - probes["t_s"].to_numpy()[idx]  # the station's timeline starts where it joined
+    assert np.ptp(lag) <= 1.0  # each taken at the cycle that first saw it
+    after = x[x["t_s"] > took["t_s"].iloc[0]]
+    assert (after["correction_um"].abs() > 0).any() and (y["correction_um"].fillna(0) == 0).all()
+    assert not ((y["flags"] & int(Flags.PROBE)) > 0).any()
 
 
 def test_station_file_mistakes_are_one_line(tmp_path, seed001_exports, machines):

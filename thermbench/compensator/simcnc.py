@@ -59,6 +59,7 @@ COMP_OFFSET = ("SD43900_TEMP_COMP_ABS_VALUE", "mm")
 COMP_SLOPE = ("SD43910_TEMP_COMP_SLOPE", "ratio")
 COMP_REF = ("SD43920_TEMP_COMP_REF_POSITION", "mm")
 COMP_STATUS = "TempComp_Status"
+PROBE = ("Probe_um", "um")  # a touch probe's reading: the thermal error (the model's sign), stamped when taken
 
 
 class SimCncError(ValueError):
@@ -76,6 +77,23 @@ class Machine:
     sample_error_um: np.ndarray
     sensors: list[str]
     dataset: Any
+    sample_thermal_um: np.ndarray | None = None  # the thermal part of sample_error_um (no geometric error): a probe's reading
+
+    def probes(self, every_s: float) -> pd.DataFrame:
+        """What a touch probe reads every ``every_s`` machine seconds (the first one ``every_s``
+        after the run starts): the thermal error (µm, the dataset's and the model's sign) at the
+        first sample at or after each time, where the axis then is; a played-back dataset, whose
+        error is known at its readings only, gives the first reading's ``thermal_um`` instead."""
+        simulated = self.sample_thermal_um is not None and np.isfinite(self.sample_thermal_um).all()
+        src = self.samples if simulated else self.readings
+        t = src["t_s"].to_numpy(dtype=float)
+        x = src["axis_mm" if simulated else "target_mm"].to_numpy(dtype=float)
+        v = self.sample_thermal_um if simulated else src["thermal_um"].to_numpy(dtype=float)
+        t0 = float(self.samples["t_s"].iloc[0])
+        due = t0 + every_s * np.arange(1, int((t[-1] - t0) // every_s) + 1) if t.size else np.zeros(0)
+        k = np.unique(np.searchsorted(t, due - 1e-9))
+        k = k[k < t.size]
+        return pd.DataFrame({"t_s": t[k], "axis_mm": x[k], "measured_um": v[k]})
 
 
 def build_machine(cfg: Mapping[str, Any]) -> Machine:
@@ -89,7 +107,7 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
     run = str(cfg.get("run") or "")
     if not run:
         raise SimCncError("config key 'run': which run of the dataset the machine runs (e.g. run=valid1)")
-    err_fn = None
+    err_fn = thermal_fn = None
     if cfg.get("data_dir"):
         ds = load_dataset(Path(str(cfg["data_dir"])))
         if run not in ds.run_ids:
@@ -104,8 +122,11 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
         ds, summary = simulate_dataset(datasets.benchmark_config(key), runs_only=[run])
         hist, geo = summary["histories"][run], summary["geometric"]
 
+        def thermal_fn(t, x):
+            return hist.error_um(t, x)
+
         def err_fn(t, x):
-            return hist.error_um(t, x) + geo(x)
+            return thermal_fn(t, x) + geo(x)
 
     dur = cfg.get("duration_s")
     if dur is not None:
@@ -125,18 +146,22 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
     te = thermal_errors(one)
     t, x = samples["t_s"].to_numpy(), samples["axis_mm"].to_numpy()
     e = err_fn(t, x) if err_fn is not None else np.full(t.size, np.nan)
-    return Machine(run, samples, te, np.asarray(e, dtype=float), list(one.metadata.sensors), one)
+    th = np.asarray(thermal_fn(t, x), dtype=float) if thermal_fn is not None else None
+    return Machine(run, samples, te, np.asarray(e, dtype=float), list(one.metadata.sensors), one, th)
 
 
-def nodes_yaml(machine: Machine, axis: str = "X") -> dict:
+def nodes_yaml(machine: Machine, axis: str = "X", probe: bool = False) -> dict:
     """The nodes file of this server's address space (``thermbench compensator --nodes``). The
     node ids carry the namespace URI (``nsu=urn:thermbench:sim-cnc;s=...``), which the
-    compensator resolves to this server's index when it connects."""
+    compensator resolves to this server's index when it connects. ``probe``: the server has the
+    probe node (``probe_every_s``), and the compensator takes it."""
     ns = f"nsu={NAMESPACE};s="
     inputs = {"axis_mm": f"{ns}{axis}.Position_mm", "feed_mm_min": f"{ns}{axis}.Feed_mm_min",
               "load_N": f"{ns}{axis}.Load_N" if "load_N" in machine.samples else None,
               "measuring": f"{ns}{axis}.Measuring", "done": f"{ns}Machine.ProgramDone",
               "temperatures": {s: f"{ns}{axis}.{s}_C" for s in machine.sensors}}  # fmt: skip
+    if probe:
+        inputs["probe"] = f"{ns}{axis}.{PROBE[0]}"
     outputs = {"value": {"node": f"{ns}{axis}.{COMP_VALUE[0]}", "unit": COMP_VALUE[1]},
                "line": {"offset": {"node": f"{ns}{axis}.{COMP_OFFSET[0]}", "unit": COMP_OFFSET[1]},
                         "slope": {"node": f"{ns}{axis}.{COMP_SLOPE[0]}", "unit": COMP_SLOPE[1]},
@@ -233,6 +258,12 @@ class SimCnc:
         self.axis = str(self.cfg.get("axis", "X"))
         self.linger_s = float(self.cfg.get("linger_s", 1.0))
         self.faults = _faults(self.cfg.get("faults"), machine.sensors)
+        pe = self.cfg.get("probe_every_s")
+        if pe is not None and (isinstance(pe, bool) or not isinstance(pe, (int, float)) or not pe > 0):
+            raise SimCncError(f"config key 'probe_every_s': expected a time > 0 s (or null: no probe), got {pe!r}")
+        self.probe_every_s = None if pe is None else float(pe)
+        self.probe_plan = machine.probes(self.probe_every_s) if pe is not None else None
+        self.probes_published = 0
         self.server = None
         self.history_keys: list[str] = []
         self.k = 0
@@ -297,6 +328,8 @@ class SimCnc:
                     "error_um": await var(ax, f"{a}.Error_um", math.nan), "residual_um": await var(ax, f"{a}.Residual_um", math.nan)}  # fmt: skip
         if "load_N" in self.m.samples:
             self.ids["load_N"] = await var(ax, f"{a}.Load_N", 0.0)
+        if self.probe_plan is not None:
+            self.ids["probe"] = await var(ax, f"{a}.{PROBE[0]}", math.nan)
         for s in self.m.sensors:
             self.ids[f"{s}_C"] = await var(ax, f"{a}.{s}_C", 0.0)
         self.comp = {"value": await var(ax, f"{a}.{COMP_VALUE[0]}", math.nan, writable=True),
@@ -380,6 +413,25 @@ class SimCnc:
             await self.server.write_attribute_value(self.ids[key], dv)
             if key in self.history_keys:
                 await self.server.iserver.history_manager.storage.save_node_value(self.ids[key], dv)
+        await self._publish_probe(t, base)
+
+    async def _publish_probe(self, t: float, base: _dt.datetime) -> None:
+        """The newest probe reading taken by machine time ``t``, stamped with its own time (a probe
+        cycle's result, which the PLC publishes once the cycle is done)."""
+        from asyncua import ua
+
+        plan = self.probe_plan
+        if plan is None:
+            return
+        n = int(np.searchsorted(plan["t_s"].to_numpy(), t + 1e-9, side="right"))
+        if n <= self.probes_published:
+            return
+        self.probes_published = n
+        t_p, v = float(plan["t_s"].iloc[n - 1]), float(plan["measured_um"].iloc[n - 1])
+        ts = base + _dt.timedelta(seconds=t_p - float(self.m.samples["t_s"].iloc[0]))
+        dv = ua.DataValue(ua.Variant(v, ua.VariantType.Double), SourceTimestamp=ts,
+                          ServerTimestamp=_dt.datetime.now(_dt.timezone.utc))  # fmt: skip
+        await self.server.write_attribute_value(self.ids["probe"], dv)
 
     def _score_readings(self, upto_t: float) -> None:
         rd = self.m.readings
@@ -434,7 +486,10 @@ class SimCnc:
             f["samples_before_max_abs_um"] = float(np.max(np.abs(sm["error_um"].to_numpy()[ok])))
             f["samples_after_max_abs_um"] = float(np.max(np.abs(sm["residual_um"].to_numpy()[ok])))
             f["samples_after_rms_um"] = float(np.sqrt(np.mean(sm["residual_um"].to_numpy()[ok] ** 2)))
-        return {"figures": f, "readings": rd, "samples": sm}
+        if self.probe_plan is not None:
+            f["n_probes"] = self.probes_published
+        pr = self.probe_plan.iloc[: self.probes_published] if self.probe_plan is not None else None
+        return {"figures": f, "readings": rd, "samples": sm, "probes": pr}
 
     def write_results(self, out_dir: Path, force: bool = False) -> Path:
         from ..data.io import save_dataset
@@ -444,6 +499,8 @@ class SimCnc:
             (tmp / "closed_loop.json").write_text(json.dumps(res["figures"], indent=2, default=float) + "\n", encoding="utf-8")
             res["readings"].to_csv(tmp / "readings.csv", index=False)
             res["samples"].to_csv(tmp / "samples.csv", index=False)
+            if res["probes"] is not None:  # what the probe read (thermbench replay --probes takes this file)
+                res["probes"].to_csv(tmp / "probes.csv", index=False)
             save_dataset(self.m.dataset, tmp / "dataset", file_format="csv")
         return Path(out_dir)
 
@@ -468,7 +525,7 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     await sim.start_server()
     try:
         if cfg.get("write_nodes"):  # written once the server listens: the file appearing means "connect now"
-            write_text(Path(str(cfg["write_nodes"])), dump_yaml(nodes_yaml(machine, sim.axis), sort_keys=False), "nodes")
+            write_text(Path(str(cfg["write_nodes"])), dump_yaml(nodes_yaml(machine, sim.axis, sim.probe_plan is not None), sort_keys=False), "nodes")
         if ready is not None:
             ready.set()
         await sim.run_clock()
