@@ -99,14 +99,16 @@ def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa
     counts and intervals, the report is written, and the chosen model is an open-loop one."""
     import pandas as pd
 
-    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[thermal_lag]", "bank_families=[]",
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[thermal_lag,baseline_ridge]", "bank_families=[]",
                "approaches=[global,adaptive]", "probe.every_s=[600]")  # fmt: skip
     res = bm.benchmark(cfg)
     table = pd.read_csv(tmp_path / "reports" / "results.csv")
     probe = table[table["approach"].str.startswith(("adaptive-", "naive_probe-"))]
     assert set(probe["approach"]) == {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty"}
     assert (probe["probes"] >= 1).all() and not probe["own"].any()
+    assert set(probe["family"]) == {"thermal_lag", "baseline_ridge"}  # the baseline's naive peer too
     glob = table[table["approach"] == "global"]
+    assert set(glob["family"]) == {"thermal_lag", "baseline_ridge"}
     assert glob["coverage_90"].between(0, 1).all() and (glob["half_width_um"] > 0).all()
     assert (tmp_path / "reports" / "report.md").is_file() and res is not None
     # the report's RMSE against probes per hour: the table is the mean over the held-out runs of results.csv
@@ -114,6 +116,6 @@ def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa
     assert "## Probe readings: RMSE against probes per hour" in text
     figs = list((tmp_path / "reports" / "figures").glob("probes__*.png"))
     assert len(figs) == 1 and f"figures/{figs[0].name}" in text
-    ad = probe[probe["approach"] == "adaptive-600s"]
-    line = next(ln for ln in text.splitlines() if "| adaptive " in ln and "| 600s " in ln)
+    ad = probe[(probe["approach"] == "adaptive-600s") & (probe["family"] == "thermal_lag")]
+    line = next(ln for ln in text.splitlines() if "| thermal_lag " in ln and "| adaptive " in ln and "| 600s " in ln)
     assert f"{ad['rmse_um'].mean():.2f}" in line and f"{ad['probes_per_h'].mean():.2f}" in line

@@ -75,18 +75,20 @@ def test_the_envelope_of_a_dataset_is_its_rises_and_rates(lathe):  # noqa: F811
     assert env.distance(Envelope.features(ds, run, t, [sensor])).max() == 0.0  # its own readings are inside
 
 
-@pytest.mark.parametrize("kappa", [0.0, 5.0])
-def test_benchmark_intervals_equal_the_conformal_interval_made_by_hand(lathe, kappa):  # noqa: F811
-    """thermal_lag, global, leave-one-run-out on the three days: for the fold holding out day 1, the
+@pytest.mark.parametrize("family,kappa", [("thermal_lag", 0.0), ("thermal_lag", 5.0), ("baseline_ridge", 5.0)])
+def test_benchmark_intervals_equal_the_conformal_interval_made_by_hand(lathe, family, kappa):  # noqa: F811
+    """thermal_lag (and a baseline: every family has its interval, though a baseline is never a
+    candidate of the choice), global, leave-one-run-out on the three days: for the fold holding out day 1, the
     scores are |residual| / (1 + kappa·distance) of day 2 predicted by a fit on day 3 (distance to
     day 3's envelope) and of day 3 by a fit on day 2, q their ⌈(n+1)·0.9⌉-th smallest; coverage_90
     is the share of day 1's readings within q·(1 + kappa·distance to the envelope of days 2 and 3)
     of the fit on days 2 and 3. kappa 0: no envelope at all."""
     _, dcfg = dataset_option(str(lathe), "datasets")
-    cfg = group_option("model", "thermal_lag")
-    out = bm.run_task(dcfg, "thermal_lag", cfg, ["global"], None, seed=0, channel="dia", cv="loro",
+    cfg = group_option("model", family)
+    out = bm.run_task(dcfg, family, cfg, ["global"], None, seed=0, channel="dia", cv="loro",
                       interval={"level": 0.9, "kappa": kappa})  # fmt: skip
     res = out["results"]
+    assert out["inner"].empty == (family == "baseline_ridge")  # inner scores: the candidates' only
     ds = load_split({**dcfg, "channel": "dia"}).dataset
     model = build_model(cfg, seed=0)
     days = list(ds.run_ids)

@@ -210,7 +210,8 @@ def run_task(
             say(f"{approach} classifier", time.perf_counter() - t1)
         except ModelError as exc:
             errors.append(f"{where}/{family}/{approach}: {exc}")
-    if not reference_only_model(model):  # a candidate of the nested choice: scored by the inner folds
+    ref_only = reference_only_model(model)  # a baseline: inner folds for its intervals and probe peers only
+    if not ref_only or "global" in approaches:  # a candidate of the nested choice: scored by the inner folds
         ref = DatasetRef(ds)
         for f in outer:
             inner = inner_folds(f.train)
@@ -234,11 +235,12 @@ def run_task(
                             for name, df in gp_refit_results(ds, cal, fold_models[f.name], plan):
                                 rows.append(tag(df, name, "all", fold_models[f.name], fold=f.name))
                     sq = pd.Series((y - pred) ** 2).groupby(groups, sort=False).mean()
-                    inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
-                                      .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
+                    if not ref_only:  # never a candidate
+                        inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
+                                          .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
                 except ModelError as exc:
                     errors.append(f"{where}/{family}/global fold {f.name}, inner folds: {exc}")
-            for approach in [a for a in approaches if a in BANKS] if classifier_cfg is not None else []:
+            for approach in [a for a in approaches if a in BANKS] if classifier_cfg is not None and not ref_only else []:
                 for g in inner:  # the bank of the single models of the inner fold's training runs
                     members = {s: m for s, m in singles.items() if s in g.train}
                     if len(members) < 2:

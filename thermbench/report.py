@@ -1386,16 +1386,23 @@ def probe_curve(r: pd.DataFrame) -> pd.DataFrame:
     return out.reset_index().sort_values(["dataset", *([ch] if ch else []), "family", "strategy", "probes_per_h"])
 
 
-def probe_figure(curve: pd.DataFrame, title: str, path: Path, top: int = 4) -> Path:
-    """One panel per channel: RMSE against probes per hour, the ``top`` families by their
-    adaptive RMSE (solid: adaptive, dashed: the naive peer, from their open-loop point), and the
-    GP-refit peer (black)."""
+def probe_figure(curve: pd.DataFrame, title: str, path: Path, top: int = 4, ref: frozenset[str] = frozenset()) -> Path:
+    """One panel per channel: RMSE against probes per hour, the ``top`` thermbench families by
+    their adaptive RMSE (solid: adaptive, dashed: the naive peer, from their open-loop point), the
+    GP-refit peer (black) and the best baseline's naive peer (grey, dashed: what a user gets from a
+    baseline fit and the last probe's residual)."""
     chans = _unique(curve[CHANNEL]) if CHANNEL in curve.columns else [ALL_CHANNELS]
     fig = _new_figure(max(3.0 * len(chans) + 0.6, 6.0), 4.2)
     axes = fig.subplots(1, len(chans), squeeze=False)[0]
     for ax, chan in zip(axes, chans):
         c = curve[curve[CHANNEL] == chan] if CHANNEL in curve.columns else curve
-        ad = c[c["strategy"] == "adaptive"].groupby("family")["rmse_um"].mean().sort_values()
+        ad = c[(c["strategy"] == "adaptive") & ~c["family"].isin(list(ref))].groupby("family")["rmse_um"].mean().sort_values()
+        nb = c[(c["strategy"] == "naive_probe") & c["family"].isin(list(ref))].groupby("family")["rmse_um"].mean().sort_values()
+        for fam in nb.index[:1]:
+            f = c[c["family"] == fam]
+            g = pd.concat([f[f["strategy"] == "open_loop"], f[f["strategy"] == "naive_probe"]]).sort_values("probes_per_h")
+            ax.plot(g["probes_per_h"], g["rmse_um"], "--", color="0.5", linewidth=1.2,
+                    label=f"{fam} naive (baseline)" if chan == chans[0] else None)  # fmt: skip
         for i, fam in enumerate(ad.index[:top]):
             f = c[c["family"] == fam]
             base = f[f["strategy"] == "open_loop"]
@@ -1589,7 +1596,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
             for ds in _unique(curve["dataset"]):
                 cd = curve[curve["dataset"] == ds]
                 name = fig_name("probes", ds)
-                draw(probe_figure, cd, str(ds), fig_dir / name)
+                draw(probe_figure, cd, str(ds), fig_dir / name, 4, ref)
                 md += [f"### {ds}", "", f"![{ds} probes]({FIGURES_DIR}/{name})", "",
                        markdown_table(cd.drop(columns="dataset").round(3), index=False), ""]  # fmt: skip
         draw.run(n_jobs)
