@@ -39,6 +39,10 @@ def main() -> None:
     ap.add_argument("--dwell", type=float, default=20.0, help="wall seconds of the stop at the end")
     ap.add_argument("--every", type=float, default=3600.0, help="machine seconds between probes")
     ap.add_argument("--keep", action="store_true", help="keep the runs' directories (printed)")
+    ap.add_argument("--noise", choices=["default", "estimated"], default="default",
+                    help="the filter's noise: conf/linuxcnc_component.yaml's (measured on fl_thermal), or estimated "
+                         "(thermbench.adapt.estimate_noise) from the model's residuals on the dataset's other runs")
+    ap.add_argument("--gain0", type=float, default=0.1, help="with --noise estimated: the gain's std before the first probe")
     a = ap.parse_args()
 
     from thermbench import datasets
@@ -57,11 +61,24 @@ def main() -> None:
             d.chmod(m | 0o001)
         export_model(MLRSeed002().fit(ds, [a.state]), work / "model", f"mlr-{a.state}", ds, [],
                      options=ExportOptions(onnx=False, verify=False))  # fmt: skip
+        comp = {}
+        if a.noise == "estimated":  # the model's residuals on runs it was not fitted on (none is the program run here)
+            from thermbench.adapt import estimate_noise
+
+            m = MLRSeed002().fit(ds, [a.state])
+            runs = []
+            for r in [r for r in ds.run_ids if r != a.state]:
+                e = ds.errors_run(r)
+                runs.append((e["t_s"].to_numpy(float), e["error_um"].to_numpy(float) - m.predict(ds, r)))
+            params = estimate_noise(runs, a.every, gain0=a.gain0)
+            comp = {"probe": params.as_dict()}
+            print(f"probe noise estimated on {len(runs)} runs: {params.as_dict()}")
         start, end = (float(v) for v in a.stroke.split(","))
         program = {"start_mm": start, "end_mm": end, "feed_mm_min": a.feed, "repeats": a.repeats, "dwell_s": a.dwell}
         out = {}
         for name, every in (("no probes", None), (f"probe every {a.every:g} s", a.every)):
-            cfg = {"out_dir": str(work / name.replace(" ", "_")), "user": a.user, "program": program, "probe_every_s": every}
+            cfg = {"out_dir": str(work / name.replace(" ", "_")), "user": a.user, "program": program, "probe_every_s": every,
+                   "component": comp}
             f = run_sim(work / "model", cfg, say=lambda line: None)
             out[name] = f
             t = f["tool"]

@@ -127,15 +127,18 @@ def test_counts_machine_off_and_inch_units(seed001_exports, tmp_path):
     assert hi["eoffset-counts"] == round(ci.value_um / 25.4e3 / 1e-5) and hi["eoffset-scale"] == 1e-5
 
 
-def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_exports, tmp_path):
+@pytest.mark.parametrize("noise", [None, {"q_bias_um2_per_h": 4.0, "q_gain_per_h": 1e-3, "r_um2": 0.25, "bias0_um": 2.5,
+                                           "gain0": 0.3}])  # fmt: skip
+def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_exports, tmp_path, noise):
     """probe-valid rising takes probe-um once (flag PROBE on that cycle only, however long it stays
-    high); the compensation is then minus the total corrected as the Python filter corrects it."""
+    high); the compensation is then minus the total corrected as the Python filter corrects it,
+    with the component's probe noise (its config key ``probe``; the defaults without)."""
     from thermbench.adapt import ProbeFilter, ProbeParams
 
     comp = HalCompensator(seed001_exports / "mlr", {"log": str(tmp_path / "a.csv"), "time_source": "pin",
-                                                     "rate_limit_um_s": 1000.0})  # fmt: skip
+                                                     "rate_limit_um_s": 1000.0, **({"probe": noise} if noise else {})})  # fmt: skip
     assert {("probe-um", "float", "in"), ("probe-valid", "bit", "in")} <= set(comp.pins())
-    ref = ProbeFilter(ProbeParams(), 0.0)
+    ref = ProbeFilter(ProbeParams(**(noise or {})), 0.0)
     valid = {10: True, 11: True, 12: True, 25: True}  # rising at 10 and at 25
     for k in range(40):
         h = _pins(comp, **{"temp.T_nut": 20.0 + 0.5 * k, "temp.T_bed": 20.0, "axis-pos": 350.0, "axis-vel": 100.0,
@@ -152,6 +155,22 @@ def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_ex
         assert c.correction_um == pytest.approx(want - c.predicted_um, abs=1e-9)
         assert h["comp-um"] == pytest.approx(-want, abs=1e-9)
     assert ref.n_probes == 2
+
+
+def test_sim_component_overrides_go_on_the_loadusr_line_and_an_unknown_key_is_named():
+    """linuxcnc sim's ``component`` (nested, or dotted as +component.probe.r_um2=... gives) becomes
+    the component's key=value overrides; a key conf/linuxcnc_component.yaml lacks is refused."""
+    from thermbench.linuxcnc.sim import component_overrides, hal_text
+
+    over = component_overrides({"probe": {"r_um2": 0.25}, "probe.gain0": 0.3, "rate_limit_um_s": 10})
+    assert over == {"probe": {"r_um2": 0.25, "gain0": 0.3}, "rate_limit_um_s": 10}
+    from thermbench.config import with_defaults
+
+    hal = hal_text({**with_defaults("linuxcnc_sim", {}), "component": over}, ["T_nut"], "python3")
+    line = next(ln for ln in hal.splitlines() if ln.startswith("loadusr -Wn tbcomp"))
+    assert " probe.r_um2=0.25 " in line and " probe.gain0=0.3 " in line and " rate_limit_um_s=10" in line
+    with pytest.raises(LinuxCncSimError, match=r"config key 'component': key 'probe.r': .*conf/linuxcnc_component.yaml"):
+        component_overrides({"probe": {"r": 1.0}})
 
 
 def test_the_plants_probe_reads_the_thermal_error_at_the_axis_every_probe_period(tmp_path):

@@ -139,7 +139,7 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
     plant = (f"loadusr -Wn tbplant {env} {python} linuxcnc plant benchmark={cfg['benchmark']} "
              f"time_scale={float(cfg['time_scale'])} period_s={float(cfg['period_s'])} out_dir=plant"
              + (f" probe_every_s={float(cfg['probe_every_s'])}" if cfg.get("probe_every_s") is not None else ""))  # fmt: skip
-    extra = dict(cfg.get("component") or {})
+    extra = dict(_flat(cfg.get("component") or {}))
     bad = [k for k, v in extra.items() if not isinstance(v, (int, float, str, bool)) or " " in str(v)]
     if bad:
         raise LinuxCncSimError(f"config key 'component': {bad} are not plain values (a number, a word): they go on the "
@@ -287,6 +287,42 @@ def run_linuxcnc(stage: Path, user: str | None, timeout_s: float) -> subprocess.
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
+def component_overrides(extra: Mapping[str, Any]) -> dict[str, Any]:
+    """Key ``component`` (overrides of conf/linuxcnc_component.yaml, nested or dotted: ``{probe:
+    {r_um2: 0.25}}``, ``+component.probe.r_um2=0.25``) as a nested mapping (the HAL file's loadusr
+    line gets its leaves as ``key=value``); a key the component does not have is an error naming it."""
+    from ..config import ConfigError, with_defaults
+
+    if not isinstance(extra, Mapping):
+        raise LinuxCncSimError(f"config key 'component': expected a mapping of conf/linuxcnc_component.yaml's keys, got {extra!r}")
+    nested: dict[str, Any] = {}
+    for k, v in extra.items():
+        cur = nested
+        *head, last = str(k).split(".")
+        for h in head:
+            cur = cur.setdefault(h, {})
+        if isinstance(v, Mapping):
+            cur.setdefault(last, {}).update(dict(v))
+        else:
+            cur[last] = v
+    try:
+        with_defaults("linuxcnc_component", nested)
+    except ConfigError as exc:
+        raise LinuxCncSimError(f"config key 'component': {str(exc).split(': ', 1)[-1]} "
+                               "(the keys are conf/linuxcnc_component.yaml's)") from None
+
+    return nested
+
+
+def _flat(d: Mapping[str, Any], prefix: str = ""):
+    """A nested mapping's leaves as (dotted key, value) pairs."""
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            yield from _flat(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
 def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=None) -> dict:
     """Write the configuration, run LinuxCNC once, check the run; returns the figures (also in
     ``out_dir/linuxcnc_sim.json``). A run that fails is a :class:`LinuxCncSimError` naming why;
@@ -295,7 +331,10 @@ def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=Non
     from ..export.native import LiveModel
     from . import verify
 
-    cfg = with_defaults("linuxcnc_sim", cfg or {})
+    cfg = dict(cfg or {})
+    extra = cfg.pop("component", None) or {}  # the component's own keys: checked against its config
+    cfg = with_defaults("linuxcnc_sim", cfg)
+    cfg["component"] = component_overrides(extra)
     say = say or (lambda line: None)
     every = cfg.get("probe_every_s")
     if every is not None and (isinstance(every, bool) or not isinstance(every, (int, float)) or not every > 0):
