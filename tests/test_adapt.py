@@ -150,3 +150,25 @@ def test_the_schedule_and_the_uncertainty_trigger_by_hand():
     post = v * 0.5 / (v + 0.5)
     wait_h = (2.25 - 0.5 - post) / 0.5
     assert t[np.flatnonzero(probed)[1]] - t[first] == pytest.approx(np.floor(wait_h * 60 + 1) * 60.0)
+
+
+def test_the_trigger_reads_the_half_width_widened_outside_the_envelope():
+    """``widen`` (1 + kappa·distance) multiplies the std the trigger compares: with the std of the
+    test above (var = 1 + 0.5·Δt_h + r, r = 0.5) and a widening of 1.2 from 30 min on, the trigger at
+    1.5 µm fires at 30 min (1.2²·(1.5 + 0.5·Δt_h) > 2.25 from Δt_h > 0.125, by hand), not at 1.5 h;
+    and trigger_level with kappa is the widened std just before the schedule's probes."""
+    from thermbench.adapt import trigger_level
+
+    p = ProbeParams(q_bias_um2_per_h=0.5, q_gain_per_h=0.0, r_um2=0.5, bias0_um=1.0, gain0=0.0)
+    t = np.arange(0.0, 6 * 3600.0 + 1, 60.0)
+    widen = np.where(t >= 1800.0, 1.2, 1.0)
+    _, _, probed = apply_probes(t, np.zeros(t.size), np.zeros(t.size), p, trigger_um=1.5, widen=widen)
+    assert t[np.flatnonzero(probed)[0]] == 1800.0  # 1.2·sqrt(1.5 + 0.25) = 1.59 > 1.5 at once at 30 min
+    _, _, probed = apply_probes(t, np.zeros(t.size), np.zeros(t.size), p, trigger_um=1.65, widen=widen)
+    # 1.44·(1.5 + 0.5·Δt_h) > 1.65² = 2.7225 at Δt_h > 0.78125 h = 46.875 min: the first reading after
+    assert t[np.flatnonzero(probed)[0]] == 47 * 60.0
+    # the level: the median std just before the hourly probes, here all widened by 1 + 0.4·0.5
+    dist = np.full(t.size, 0.5)
+    lvl0 = trigger_level([(t, np.zeros(t.size))], p, 3600.0)
+    lvl = trigger_level([(t, np.zeros(t.size), dist)], p, 3600.0, kappa=0.4)
+    assert lvl == pytest.approx(1.2 * lvl0)

@@ -136,22 +136,26 @@ class ProbeFilter:
 
 
 def apply_probes(t_s: np.ndarray, predicted_um: np.ndarray, measured_um: np.ndarray, params: ProbeParams | None = None,
-                 schedule: np.ndarray | None = None, trigger_um: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+                 schedule: np.ndarray | None = None, trigger_um: float | None = None,
+                 widen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """One run's corrected predictions, their variances and the readings taken as probes, in
     time order: those where ``schedule`` is true, and (``trigger_um``) any whose corrected
     prediction's standard deviation, the reading's scatter included (``sqrt(var + r_um2)``),
-    exceeds ``trigger_um``: probing when the filter is unsure. A reading's own correction is the
+    times ``widen`` (the interval's widening ``1 + kappa * distance`` outside the training
+    envelope; none: 1) exceeds ``trigger_um``: probing when the interval's half-width is wide,
+    which it is sooner where the inputs leave the envelope. A reading's own correction is the
     one before its probe (what the compensator applied when it was taken)."""
     t = np.asarray(t_s, dtype=float)
     p = np.asarray(predicted_um, dtype=float)
     m = np.asarray(measured_um, dtype=float)
     sched = np.zeros(t.size, bool) if schedule is None else np.asarray(schedule, dtype=bool)
+    w = np.ones(t.size) if widen is None else np.asarray(widen, dtype=float)
     f = ProbeFilter(params, float(t[0]) if t.size else 0.0)
     r = f.params.r_um2
     out, var, probed = np.empty_like(p), np.empty_like(p), np.zeros(t.size, dtype=bool)
     for i in range(t.size):
         out[i], var[i] = f.correct(t[i], p[i])
-        if sched[i] or (trigger_um is not None and math.sqrt(var[i] + r) > trigger_um):
+        if sched[i] or (trigger_um is not None and math.sqrt(var[i] + r) * w[i] > trigger_um):
             f.probe(t[i], p[i], m[i])
             probed[i] = True
     return out, var, probed
@@ -288,24 +292,29 @@ class ProbePlan:
                    None if noise is None else ProbeParams.from_config(noise))  # fmt: skip
 
 
-def trigger_level(runs: list[tuple[np.ndarray, np.ndarray]], params: ProbeParams, every_s: float) -> float:
+def trigger_level(runs: list[tuple], params: ProbeParams, every_s: float, kappa: float = 0.0) -> float:
     """The filter's standard deviation (the reading's scatter included) just before a probe of a
-    schedule every ``every_s``, median over the probes after the first of the residual ``runs``."""
+    schedule every ``every_s``, median over the probes after the first of the residual ``runs``
+    ((t_s, residual_um) or (t_s, residual_um, distance to their envelope): with ``kappa``, the
+    standard deviation times ``1 + kappa * distance``, as :func:`apply_probes` compares it)."""
     before: list[float] = []
-    for t, d in runs:
+    for run in runs:
+        t, d = run[0], run[1]
+        w = 1.0 + kappa * np.asarray(run[2], dtype=float) if len(run) > 2 and kappa else np.ones(len(t))
         sched = probe_schedule(t, every_s)
         _, var, _ = apply_probes(t, np.zeros_like(d), d, params, schedule=sched)  # a residual: the prediction is 0
-        before.extend(np.sqrt(var[sched][1:] + params.r_um2))
+        before.extend((np.sqrt(var + params.r_um2) * w)[sched][1:])
     if not before:
         raise ValueError(f"no calibration run is longer than one probe interval ({every_s:g} s)")
     return float(np.median(before))
 
 
 def probe_replays(t_s, measured_um, predicted_um, plan: ProbePlan, params: ProbeParams,
-                  calibration: list[tuple[np.ndarray, np.ndarray]]):  # fmt: skip
+                  calibration: list[tuple], distance=None, kappa: float = 0.0):  # fmt: skip
     """One held-out run replayed with probes as ``plan`` says: yields (approach, corrected, var,
     probed) for ``adaptive-<every>s`` and ``naive_probe-<every>s`` per schedule, then
-    ``adaptive-uncertainty``; ``var`` is None for the naive peer."""
+    ``adaptive-uncertainty`` (probing when the half-width, widened by ``1 + kappa * distance``
+    outside the envelope, exceeds its level); ``var`` is None for the naive peer."""
     t, y, p = (np.asarray(a, dtype=float) for a in (t_s, measured_um, predicted_um))
     for every in plan.every_s:
         sched = probe_schedule(t, every)
@@ -313,6 +322,7 @@ def probe_replays(t_s, measured_um, predicted_um, plan: ProbePlan, params: Probe
         yield f"adaptive-{every:g}s", c, var, probed
         yield f"naive_probe-{every:g}s", naive_probes(p, y, sched), None, sched
     if plan.trigger == "uncertainty":
-        level = plan.threshold_um if plan.threshold_um is not None else trigger_level(calibration, params, plan.every_s[0])
-        c, var, probed = apply_probes(t, p, y, params, trigger_um=level)
+        level = plan.threshold_um if plan.threshold_um is not None else trigger_level(calibration, params, plan.every_s[0], kappa)
+        widen = None if distance is None or not kappa else 1.0 + kappa * np.asarray(distance, dtype=float)
+        c, var, probed = apply_probes(t, p, y, params, trigger_um=level, widen=widen)
         yield "adaptive-uncertainty", c, var, probed

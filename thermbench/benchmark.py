@@ -357,17 +357,17 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
     calib = [(t, d) for t, d, _ in cal["calibration"]]
     params = plan.noise or estimate_noise(calib, plan.every_s[0])
     if plan.trigger == "uncertainty" and plan.threshold_um is None:  # the fold's level, found once
-        plan = dataclasses.replace(plan, threshold_um=trigger_level(calib, params, plan.every_s[0]))
+        plan = dataclasses.replace(plan, threshold_um=trigger_level(cal["calibration"], params, plan.every_s[0], kappa))
     scores: dict[str, list[np.ndarray]] = {}
     for t, d, dist in cal["calibration"]:  # the calibration runs as residuals (prediction 0, measured d)
-        for name, c, var, probed in probe_replays(t, d, np.zeros_like(d), plan, params, calib):
+        for name, c, var, probed in probe_replays(t, d, np.zeros_like(d), plan, params, calib, dist, kappa):
             if var is not None:
                 s = np.abs(d - c) / (np.sqrt(var + params.r_um2) * (1.0 + kappa * dist))
                 scores.setdefault(name, []).append(s[~probed])
     qs = {name: conformal_quantile(np.concatenate(v), level) for name, v in scores.items()}
     out: dict[str, list[dict]] = {}
     for r, (t, measured, thermal, pred, dist) in cal["held"].items():
-        for name, c, var, probed in probe_replays(t, measured, pred, plan, params, calib):
+        for name, c, var, probed in probe_replays(t, measured, pred, plan, params, calib, dist, kappa):
             row = _probe_row(r, t, measured, thermal, c, probed)
             keep = ~probed
             if var is not None:
