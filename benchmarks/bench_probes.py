@@ -14,6 +14,8 @@ probes being the tail's own readings at those times, and **scored on the other r
   just before a scheduled probe on the training blocks (median), no schedule;
 * ``oracle``: the best constant offset per probe interval, chosen with hindsight from the tail
   itself (not a method: the bound a bias correction alone cannot beat);
+* ``oracle_gain``: the best bias and gain per probe interval, with hindsight (least squares on the
+  tail's readings in it): the bound of the filter's own correction, ``(1 + gain)·predicted + bias``;
 * ``gp_refit`` (family ``gp`` only): the GP refitted on its training readings plus the probes so
   far (:func:`thermbench.adapt.gp_refit`, the issue's second peer).
 
@@ -106,6 +108,13 @@ def main() -> None:
                 best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
                 rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
                                  rmse_um=rmse(best[keep], y[keep])))  # fmt: skip
+                aff = p.copy()  # the best bias and gain per probe interval, with hindsight: the filter's own bound
+                for k in np.unique(seg):
+                    m = seg == k
+                    A = np.c_[np.ones(m.sum()), p[m]]
+                    aff[m] = p[m] + A @ np.linalg.lstsq(A, (y - p)[m], rcond=None)[0]
+                rows.append(dict(family=fam, channel=ch, method="oracle_gain", every_s=every, probes=int(sched.sum()),
+                                 rmse_um=rmse(aff[keep], y[keep])))  # fmt: skip
                 if refit is not None:
                     rows.append(dict(family=fam, channel=ch, method="gp_refit", every_s=every, probes=int(sched.sum()),
                                      rmse_um=rmse(refit(sched)[keep], y[keep])))  # fmt: skip
