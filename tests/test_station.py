@@ -106,8 +106,10 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
     # last may come after the station's end): from X's first, every one of a's readings, once, in order
     idx = [int(np.flatnonzero(probes["measured_um"].to_numpy() == v)[0]) for v in took["probe_um"]]
     assert len(took) >= 3 and idx == list(range(idx[0], idx[0] + len(took))) and idx[-1] >= len(probes) - 2
-    lag = took["t_s"].to_numpy() - probes["t_s"].to_numpy()[idx]  # the station's timeline starts where it joined
-    assert np.ptp(lag) <= 1.0  # each taken at the cycle that first saw it
+    # each taken within moments of its time (the station's timeline starts where it joined): 10 machine
+    # seconds are 0.5 s of wall clock at 20x, room for a loaded host's late cycles (one came 3 s late in CI)
+    lag = took["t_s"].to_numpy() - probes["t_s"].to_numpy()[idx]
+    assert np.ptp(lag) <= 10.0
     after = x[x["t_s"] > took["t_s"].iloc[0]]
     assert (after["correction_um"].abs() > 0).any() and (y["correction_um"].fillna(0) == 0).all()
     assert not ((y["flags"] & int(Flags.PROBE)) > 0).any()

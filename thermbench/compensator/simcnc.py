@@ -525,7 +525,8 @@ async def serve(cfg: Mapping[str, Any], machine: Machine | None = None, ready: a
     await sim.start_server()
     try:
         if cfg.get("write_nodes"):  # written once the server listens: the file appearing means "connect now"
-            write_text(Path(str(cfg["write_nodes"])), dump_yaml(nodes_yaml(machine, sim.axis, sim.probe_plan is not None), sort_keys=False), "nodes")
+            nodes = nodes_yaml(machine, sim.axis, probe=sim.probe_plan is not None)
+            write_text(Path(str(cfg["write_nodes"])), dump_yaml(nodes, sort_keys=False), "nodes")
         if ready is not None:
             ready.set()
         await sim.run_clock()
