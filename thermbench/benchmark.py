@@ -354,12 +354,12 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
     from .adapt import estimate_noise, probe_replays, trigger_level
     from .intervals import conformal_quantile
 
-    calib = [(t, d) for t, d, _ in cal["calibration"]]
-    params = plan.noise or estimate_noise(calib, plan.every_s[0])
+    calib = cal["calibration"]  # (t_s, residual_um, distance) per inner held-out run
+    params = plan.noise or estimate_noise([(t, d) for t, d, _ in calib], plan.every_s[0])
     if plan.trigger == "uncertainty" and plan.threshold_um is None:  # the fold's level, found once
-        plan = dataclasses.replace(plan, threshold_um=trigger_level(cal["calibration"], params, plan.every_s[0], kappa))
+        plan = dataclasses.replace(plan, threshold_um=trigger_level(calib, params, plan.every_s[0], kappa))
     scores: dict[str, list[np.ndarray]] = {}
-    for t, d, dist in cal["calibration"]:  # the calibration runs as residuals (prediction 0, measured d)
+    for t, d, dist in calib:  # the calibration runs as residuals (prediction 0, measured d)
         for name, c, var, probed in probe_replays(t, d, np.zeros_like(d), plan, params, calib, dist, kappa):
             if var is not None:
                 s = np.abs(d - c) / (np.sqrt(var + params.r_um2) * (1.0 + kappa * dist))

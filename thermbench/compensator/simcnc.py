@@ -261,8 +261,7 @@ class SimCnc:
         pe = self.cfg.get("probe_every_s")
         if pe is not None and (isinstance(pe, bool) or not isinstance(pe, (int, float)) or not pe > 0):
             raise SimCncError(f"config key 'probe_every_s': expected a time > 0 s (or null: no probe), got {pe!r}")
-        self.probe_every_s = None if pe is None else float(pe)
-        self.probe_plan = machine.probes(self.probe_every_s) if pe is not None else None
+        self.probe_plan = machine.probes(float(pe)) if pe is not None else None  # (t_s, axis_mm, measured_um) rows
         self.probes_published = 0
         self.server = None
         self.history_keys: list[str] = []
