@@ -21,6 +21,13 @@ probes being the tail's own readings at those times, and **scored on the other r
 
     python benchmarks/bench_probes.py [--families physics_spindle_hybrid,baseline_ridge] [--every 7200,3600,1800]
 
+``--smooth-s 0,300,1200``: a diagnostic, not a method: replay every column above with the
+prediction first smoothed causally (an exponential moving average with that time constant, 0: as
+predicted; the leave-one-block-out residuals the same way). The family's prediction follows its
+sensors' noise, which the measured error does not have; this shows how much of each channel's
+error at a given probe interval that noise is. Picking the constant by its score on the tail
+would be tuning on the tail: the table gives every constant asked for.
+
 ``--figure PATH``: also draw the first family's prediction on one channel's tail (``--figure-channel``):
 open loop with its 90 % interval, and with a probe every ``--every``'s second interval (hourly by
 default), the filter's corrected prediction with its own 90 % interval; both intervals conformal,
@@ -46,7 +53,7 @@ def rmse(a, b) -> float:
 
 
 def channel_runs(family: str, ch: str, seed: int):
-    """(tail t, measured, predicted) and the leave-one-block-out residual runs of the training blocks."""
+    """(tail t, measured, predicted) and the training blocks' ``(t, measured, predicted)``, each predicted by a fit without it."""
     from sklearn.base import clone
 
     from thermbench.config import group_option
@@ -63,7 +70,7 @@ def channel_runs(family: str, ch: str, seed: int):
     for r in split.states:
         m = clone(model).fit(ds, [s for s in split.states if s != r])
         e = ds.errors_run(r)
-        loro.append((e["t_s"].to_numpy(float), e["error_um"].to_numpy(float) - np.asarray(m.predict(ds, r), dtype=float)))
+        loro.append((e["t_s"].to_numpy(float), e["error_um"].to_numpy(float), np.asarray(m.predict(ds, r), dtype=float)))
     out = tail["t_s"].to_numpy(float), tail["error_um"].to_numpy(float), pred, loro
     if not hasattr(fitted, "train_Z_"):  # not a GP: no refit peer
         return (*out, None)
@@ -75,12 +82,58 @@ def channel_runs(family: str, ch: str, seed: int):
     return (*out, refit)
 
 
+def smooth(t_s: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
+    """A causal exponential moving average of ``x`` with time constant ``tau_s`` (0: ``x`` itself)."""
+    if tau_s <= 0:
+        return x
+    return pd.Series(x).ewm(halflife=pd.Timedelta(seconds=tau_s * np.log(2)), times=pd.to_datetime(t_s, unit="s")).mean().to_numpy()
+
+
+def channel_rows(fam, ch, t, y, p, loro, refit, every_list: str) -> list[dict]:
+    """The table's rows of one family and channel (module docstring), ``loro`` the training blocks' residuals."""
+    from thermbench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
+
+    rows = []
+    rows.append(dict(family=fam, channel=ch, method="open", every_s=np.nan, probes=0, rmse_um=rmse(p, y)))
+    for every in (float(e) for e in every_list.split(",")):
+        params = estimate_noise(loro, every)
+        sched = probe_schedule(t, every)
+        keep = ~sched
+        rows.append(dict(family=fam, channel=ch, method="naive", every_s=every, probes=int(sched.sum()),
+                         rmse_um=rmse(naive_probes(p, y, sched)[keep], y[keep])))  # fmt: skip
+        seg = np.cumsum(sched)  # the best constant offset per probe interval, with hindsight: a bound
+        best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
+        rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
+                         rmse_um=rmse(best[keep], y[keep])))  # fmt: skip
+        aff = p.copy()  # the best bias and gain per probe interval, with hindsight: the filter's own bound
+        for k in np.unique(seg):
+            m = seg == k
+            A = np.c_[np.ones(m.sum()), p[m]]
+            aff[m] = p[m] + A @ np.linalg.lstsq(A, (y - p)[m], rcond=None)[0]
+        rows.append(dict(family=fam, channel=ch, method="oracle_gain", every_s=every, probes=int(sched.sum()),
+                         rmse_um=rmse(aff[keep], y[keep])))  # fmt: skip
+        if refit is not None:
+            rows.append(dict(family=fam, channel=ch, method="gp_refit", every_s=every, probes=int(sched.sum()),
+                             rmse_um=rmse(refit(sched)[keep], y[keep])))  # fmt: skip
+        c, _, _ = apply_probes(t, p, y, params, schedule=sched)
+        rows.append(dict(family=fam, channel=ch, method="adaptive", every_s=every, probes=int(sched.sum()),
+                         rmse_um=rmse(c[keep], y[keep]), q_bias_um2_per_h=params.q_bias_um2_per_h,
+                         r_um2=params.r_um2, bias0_um=params.bias0_um))  # fmt: skip
+        level = trigger_level(loro, params, every)  # the std just before a scheduled probe, training blocks
+        c, _, probed = apply_probes(t, p, y, params, trigger_um=level)
+        keep = ~probed
+        rows.append(dict(family=fam, channel=ch, method="trigger", every_s=every, probes=int(probed.sum()),
+                         rmse_um=rmse(c[keep], y[keep]), trigger_um=level))  # fmt: skip
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--families", default="physics_spindle_hybrid,baseline_ridge")
     ap.add_argument("--every", default="7200,3600,1800", help="probe intervals, s")
     ap.add_argument("--channels", default=",".join(CHANNELS))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--smooth-s", default="0", help="time constants (s) of a causal smoothing of the prediction (module docstring)")
     ap.add_argument("--out", default=None, help="write the table as CSV here")
     ap.add_argument("--figure", default=None, help="draw the first family's tail on --figure-channel here (PNG)")
     ap.add_argument("--figure-channel", default="ch3")
@@ -90,43 +143,15 @@ def main() -> None:
         ap.exit(2, f"bench_probes.py: error: --figure {args.figure} exists; add --force to replace it (never a file this "
                    "script did not write)\n")  # fmt: skip
     os.environ.setdefault("THERMBENCH_DATA", str(Path("data/benchmark").resolve()))
-    from thermbench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
-
     rows = []
     for fam in args.families.split(","):
         for ch in args.channels.split(","):
             t0 = time.perf_counter()
-            t, y, p, loro, refit = channel_runs(fam, ch, args.seed)
-            rows.append(dict(family=fam, channel=ch, method="open", every_s=np.nan, probes=0, rmse_um=rmse(p, y)))
-            for every in (float(e) for e in args.every.split(",")):
-                params = estimate_noise(loro, every)
-                sched = probe_schedule(t, every)
-                keep = ~sched
-                rows.append(dict(family=fam, channel=ch, method="naive", every_s=every, probes=int(sched.sum()),
-                                 rmse_um=rmse(naive_probes(p, y, sched)[keep], y[keep])))  # fmt: skip
-                seg = np.cumsum(sched)  # the best constant offset per probe interval, with hindsight: a bound
-                best = p + pd.Series(y - p).groupby(seg).transform("mean").to_numpy()
-                rows.append(dict(family=fam, channel=ch, method="oracle", every_s=every, probes=int(sched.sum()),
-                                 rmse_um=rmse(best[keep], y[keep])))  # fmt: skip
-                aff = p.copy()  # the best bias and gain per probe interval, with hindsight: the filter's own bound
-                for k in np.unique(seg):
-                    m = seg == k
-                    A = np.c_[np.ones(m.sum()), p[m]]
-                    aff[m] = p[m] + A @ np.linalg.lstsq(A, (y - p)[m], rcond=None)[0]
-                rows.append(dict(family=fam, channel=ch, method="oracle_gain", every_s=every, probes=int(sched.sum()),
-                                 rmse_um=rmse(aff[keep], y[keep])))  # fmt: skip
-                if refit is not None:
-                    rows.append(dict(family=fam, channel=ch, method="gp_refit", every_s=every, probes=int(sched.sum()),
-                                     rmse_um=rmse(refit(sched)[keep], y[keep])))  # fmt: skip
-                c, _, _ = apply_probes(t, p, y, params, schedule=sched)
-                rows.append(dict(family=fam, channel=ch, method="adaptive", every_s=every, probes=int(sched.sum()),
-                                 rmse_um=rmse(c[keep], y[keep]), q_bias_um2_per_h=params.q_bias_um2_per_h,
-                                 r_um2=params.r_um2, bias0_um=params.bias0_um))  # fmt: skip
-                level = trigger_level(loro, params, every)  # the std just before a scheduled probe, training blocks
-                c, _, probed = apply_probes(t, p, y, params, trigger_um=level)
-                keep = ~probed
-                rows.append(dict(family=fam, channel=ch, method="trigger", every_s=every, probes=int(probed.sum()),
-                                 rmse_um=rmse(c[keep], y[keep]), trigger_um=level))  # fmt: skip
+            t, y, p0, loro0, refit = channel_runs(fam, ch, args.seed)
+            for tau in (float(x) for x in args.smooth_s.split(",")):
+                p = smooth(t, p0, tau)
+                loro = [(tr, yr - smooth(tr, pr, tau)) for tr, yr, pr in loro0]
+                rows.extend(dict(r, smooth_s=tau) for r in channel_rows(fam, ch, t, y, p, loro, refit if tau <= 0 else None, args.every))
             print(f"{fam} {ch}: {time.perf_counter() - t0:.0f} s", flush=True)
     if args.figure:
         every = [float(e) for e in args.every.split(",")]
@@ -135,8 +160,9 @@ def main() -> None:
     if args.out:
         df.to_csv(args.out, index=False)
     with pd.option_context("display.width", 200, "display.max_rows", 500, "display.float_format", "{:.2f}".format):
-        for fam, g in df.groupby("family", sort=False):
-            print(f"\n{fam}: tail RMSE (µm) without the probe readings; probes in brackets")
+        for (fam, tau), g in df.groupby(["family", "smooth_s"], sort=False):
+            how = f", the prediction smoothed over {tau:g} s" if tau > 0 else ""
+            print(f"\n{fam}{how}: tail RMSE (µm) without the probe readings; probes in brackets")
             g = g.assign(col=[m if m == "open" else f"{m} {e / 3600:g}h" for m, e in zip(g["method"], g["every_s"])],
                          cell=[f"{r:.2f} ({n})" for r, n in zip(g["rmse_um"], g["probes"])])  # fmt: skip
             print(g.pivot(index="channel", columns="col", values="cell").to_string())
@@ -150,6 +176,7 @@ def figure(family: str, ch: str, every: float, seed: int, path: str) -> None:
     from thermbench.intervals import conformal_quantile
 
     t, y, p, loro, _ = channel_runs(family, ch, seed)
+    loro = [(tr, yr - pr) for tr, yr, pr in loro]
     params = estimate_noise(loro, every)
     q_open = conformal_quantile(np.concatenate([np.abs(d) for _, d in loro]), 0.9)
     scores = []
