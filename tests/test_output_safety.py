@@ -307,3 +307,30 @@ def test_sigterm_while_writing_leaves_no_staging_directory(tmp_path, seed001_exp
     p.send_signal(signal.SIGTERM)
     assert p.wait(timeout=30) == 128 + signal.SIGTERM
     assert not out.exists() and [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []
+
+
+def test_precompensate_with_models_never_writes_over_a_program(tmp_path):
+    from tests.test_precompensate import SAMPLE, oracle, seed000_metadata
+    from thermbench.precompensate_axes import run_precompensate_axes
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "metadata.yaml").write_text(yaml.safe_dump(seed000_metadata().model_dump(mode="json", exclude_none=True)))
+    joblib.dump(oracle(), tmp_path / "physics.joblib")
+    axes = tmp_path / "axes.yaml"
+    axes.write_text("X: {model: physics.joblib, dataset: data}\nY: {model: physics.joblib, dataset: data}\n")
+    prog = tmp_path / "nc" / "part.nc"
+    prog.parent.mkdir()
+    prog.write_text(SAMPLE.read_text())
+    other = _plant(tmp_path / "nc" / "part_v2.nc")
+    with pytest.raises(OutputRefused, match="part_v2.nc: exists and thermbench did not write it"):
+        run_precompensate_axes(prog, axes, other)
+    with pytest.raises(OutputRefused, match="lies inside the dataset"):
+        run_precompensate_axes(prog, axes, data / "comp.nc")
+    with pytest.raises(ValueError, match="would overwrite the input program"):
+        run_precompensate_axes(prog, axes, prog)
+    out = tmp_path / "nc" / "part_comp.nc"
+    run_precompensate_axes(prog, axes, out)
+    run_precompensate_axes(prog, axes, out)  # its own earlier output: replaced
+    assert other.read_text() == NOTE and prog.read_text() == SAMPLE.read_text()
+    assert sorted(p.name for p in prog.parent.iterdir()) == [RECORD, "part.nc", "part_comp.nc", "part_v2.nc"]

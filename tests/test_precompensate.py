@@ -388,6 +388,7 @@ def test_run_precompensate_from_files(tmp_path):
         ("G1 X#1 F100\n", 1, "(a word whose value is a parameter or an expression)"),
         ("X10\n", 1, "no motion mode"),
         ("G0 X0\nG28 X0\n", 2, "G28"),
+        ("G0 X0\nG53 G0 X0\n", 2, "G53"),  # no work offset given: the machine position is not a program one
         ("G1 X1 X2 F100\n", 1, "at most one"),
         ("G0 X0 (open\n", 1, "unclosed"),
         ("G1 G95 X1 F0.1\n", 1, "G94"),
@@ -482,3 +483,18 @@ def test_building_the_models_benchmark_dataset_is_said_first(tmp_path, monkeypat
     monkeypatch.setattr(datasets, "is_built", lambda name, root=None: True)
     resolve_metadata("seed000_x")
     assert said_before[1:] == [""] and capsys.readouterr().err == ""
+
+
+def test_a_move_in_machine_coordinates_is_followed_with_the_work_offset():
+    """G53 G0 X0 goes to machine X0, which is program X-20 under a work offset of +20 mm: 30 mm at
+    the rapid from X10 (0.18 s), then 70 mm at F600 (7 s); the G53 block is timed, not compensated,
+    and its word stays as written."""
+    text = "G21 G90\nG0 X10\nG53 G0 X0\nG1 X50 F600\n"
+    res = precompensate(text, stub(), seed000_metadata(), work_offset_mm=20.0)
+    mv = res.moves
+    assert mv["kind"].tolist() == ["G0", "G53", "G1"] and mv["compensate"].tolist() == [True, False, True]
+    np.testing.assert_allclose(mv["target_mm"], [10.0, -20.0, 50.0])
+    np.testing.assert_allclose(mv["axis_target_mm"], [30.0, 0.0, 70.0])
+    np.testing.assert_allclose(mv["t_end_s"], [0.0, 0.18, 7.18])
+    assert res.text.splitlines()[2] == "G53 G0 X0"
+    assert any("machine coordinates" in u.reason for u in res.unsupported)

@@ -299,3 +299,28 @@ def test_precompensate_says_why_it_flattened_and_where_each_line_came_from(tmp_p
     assert re.search(r"line \d+ \(from holes\.ngc:\d+\): ", format_summary(res))
     comp = res.moves[res.moves["compensate"]]
     assert len(comp) == 2 + 6 * 3  # the first move, up to the R plane, then per hole: to the hole, down, back up
+
+
+def test_a_lathe_program_in_diameter_mode_is_flattened_to_radii(tmp_path, seed000_physics):
+    """G7: the X words are diameters (X20 is 10 mm from the axis). The interpreter gives radii, so
+    the flattened program says G8 and X10; pre-compensating every axis flattens it first (the
+    reader refuses diameters), and without flattening the refusal is one line."""
+    from thermbench.precompensate_axes import run_precompensate_axes
+
+    prog = tmp_path / "lathe.ngc"
+    prog.write_text("G18 G7 G21 G90\nG0 X20 Z5\nG1 X10 Z0 F100\nG1 X30 Z-40\nM2\n")
+    flat = flatten(prog)
+    moves = [tuple(float(v) for v in m) for m in re.findall(r"G[01] X(\S+) Z(\S+)", flat.text)]
+    assert moves == [(10.0, 5.0), (5.0, 0.0), (15.0, -40.0)]  # by hand: half of each X word
+    assert re.search(r"^G8\b", flat.text, re.M) and not re.search(r"^G7\b", flat.text, re.M)
+    model, data = seed000_physics
+    axes = tmp_path / "axes.yaml"
+    axes.write_text(f"X: {{model: {model}, dataset: {data}}}\nZ: {{model: {model}, dataset: {data}}}\n")
+    res = run_precompensate_axes(prog, axes, tmp_path / "out.ngc", verify=True)
+    assert res.settings["flattened"] and "G7 (lathe diameter mode)" in res.notes[0]
+    assert set(res.axes) == {"X", "Z"}
+    np.testing.assert_allclose(res.axes["X"].moves.loc[res.axes["X"].moves["compensate"], "target_mm"], [10, 5, 15])
+    assert all(v["max_abs_after_um"] < 0.5 for v in res.verification.values())
+    with pytest.raises(PrecompError, match=r"lathe.ngc:1: G7 \(lathe diameter mode\)") as exc:
+        run_precompensate_axes(prog, axes, tmp_path / "out2.ngc", flatten="never")
+    assert "\n" not in str(exc.value) and not (tmp_path / "out2.ngc").exists()

@@ -13,6 +13,7 @@
     thermbench replay MODEL_DIR DATA_DIR --run ID [--probes FILE] [--out OUT_DIR] [--force]
                                                an exported model in the C runtime over a run's log: before/after
     thermbench precompensate PROGRAM.nc --model MODEL.joblib --out OUT.nc [--verify] [...]
+    thermbench precompensate PROGRAM.nc --models axes.yaml --out OUT.nc [--verify] [...]
                                                seed 003: rewrite a part program against the predicted error
     thermbench compensator MODEL_DIR --endpoint opc.tcp://HOST:PORT --nodes nodes.yaml [overrides...]
                                                OPC UA compensator: the exported model against a live machine
@@ -214,11 +215,27 @@ def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: 
 
 
 def cmd_precompensate(args) -> int:
-    from .precompensate import format_summary, run_precompensate
+    from .precompensate import PrecompError, format_summary, run_precompensate
 
+    if (args.model is None) == (args.models is None):
+        raise PrecompError("precompensate: expected one of --model MODEL.joblib (one axis) or --models AXES.yaml "
+                           "(each axis its own model)")  # fmt: skip
+    if args.models is not None:
+        from .precompensate_axes import format_axes_summary, run_precompensate_axes
+
+        given = [o for o, v in (("--axis", args.axis), ("--start-mm", args.start_mm), ("--work-offset", args.work_offset),
+                                ("--dataset", args.dataset)) if v is not None]  # fmt: skip
+        if given:
+            raise PrecompError(f"precompensate: {', '.join(given)} with --models: give them per axis in {args.models} "
+                               "(X: {model: ..., dataset: ..., start_mm: ..., work_offset_mm: ...})")  # fmt: skip
+        res = run_precompensate_axes(args.program, args.models, args.out, verify=args.verify, rapid_mm_min=args.rapid,
+                                     sample_s=args.sample, ambient_C=args.ambient, decimals=args.decimals,
+                                     flatten=args.flatten, tool_table=args.tool_table, ini=args.ini)  # fmt: skip
+        print(format_axes_summary(res))
+        return 0
     res = run_precompensate(args.program, args.model, args.out, dataset=args.dataset,
-                            truth="auto" if args.verify else None, axis=args.axis, rapid_mm_min=args.rapid,
-                            sample_s=args.sample, start_mm=args.start_mm, work_offset_mm=args.work_offset,
+                            truth="auto" if args.verify else None, axis=args.axis or "X", rapid_mm_min=args.rapid,
+                            sample_s=args.sample, start_mm=args.start_mm, work_offset_mm=args.work_offset or 0.0,
                             ambient_C=args.ambient, decimals=args.decimals, flatten=args.flatten,
                             tool_table=args.tool_table, ini=args.ini)  # fmt: skip
     print(format_summary(res))
@@ -483,16 +500,20 @@ def _main(argv: list[str] | None) -> int:
                        "(never over them; never into a dataset)")  # fmt: skip
     p_pre = sub.add_parser("precompensate", help="seed 003: revise a part program before machining (no sensors)")
     p_pre.add_argument("program", help="G-code program (mm, G21)")
-    p_pre.add_argument("--model", required=True, help="fitted physics or AR model (.joblib), e.g. "
+    p_pre.add_argument("--model", default=None, help="fitted physics or AR model (.joblib) of the one axis --axis, e.g. "
                        "models/benchmark/seed000_x__physics__global.joblib")  # fmt: skip
+    p_pre.add_argument("--models", default=None, help="YAML mapping each axis to its model (X: m.joblib, Y: {model: ..., "
+                       "dataset: ..., start_mm: ..., work_offset_mm: ...}): every axis revised by its own, on one time line "
+                       "(docs/precompensate.md)")  # fmt: skip
     p_pre.add_argument("--out", required=True, help="rewritten program (written atomically)")
     p_pre.add_argument("--dataset", default=None, help="dataset the model was trained on: benchmark name or directory "
                        "(default: from a benchmark model file name <dataset>__<family>__<approach>.joblib)")  # fmt: skip
-    p_pre.add_argument("--axis", default="X")
+    p_pre.add_argument("--axis", default=None, help="the axis --model revises (default X)")
     p_pre.add_argument("--rapid", type=float, default=10000.0, help="G0 feed, mm/min")
     p_pre.add_argument("--sample", type=float, default=1.0, help="planned process log step, s (<= 1)")
     p_pre.add_argument("--start-mm", type=float, default=None, help="axis position before the first block")
-    p_pre.add_argument("--work-offset", type=float, default=0.0, help="axis position = program coordinate + this, mm")
+    p_pre.add_argument("--work-offset", type=float, default=None, help="axis position = program coordinate + this, mm "
+                       "(default 0)")
     p_pre.add_argument("--ambient", type=float, default=20.0, help="ambient held constant for a physics model, °C")
     p_pre.add_argument("--decimals", type=int, default=4)
     p_pre.add_argument("--flatten", choices=["auto", "always", "never"], default="auto",

@@ -31,9 +31,8 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -186,12 +185,18 @@ def _number(text: str) -> tuple[float, int]:
     return float(text), (len(text.split(".", 1)[1]) if "." in text else 0)
 
 
+def _an(letter: str) -> str:
+    """The article before a letter's name ("an X", "a Y")."""
+    return "an" if letter.upper() in "AEFHILMNORSX" else "a"
+
+
 def _gcode(value: float) -> str:
     return f"G{int(value)}" if value == int(value) else f"G{value:g}"
 
 
 def parse_program(
-    text: str, axis: str = "X", source: str = "<program>", start_mm: float | None = None
+    text: str, axis: str = "X", source: str = "<program>", start_mm: float | None = None,
+    work_offset_mm: float | None = None,
 ) -> Program:
     """Read a G-code program for one feed axis (seed 003 §1: the planned operation).
 
@@ -207,6 +212,10 @@ def parse_program(
 
     ``start_mm``: the axis position before the first block; None takes the first
     absolute target (so an incremental move before any absolute one is an error).
+    ``work_offset_mm``: the axis position is the program coordinate plus this (:func:`plan_motion`);
+    given, a ``G53 G0``/``G53 G1`` move in machine coordinates is followed to its end (program
+    coordinate = machine - offset), timed and not compensated; None refuses it (the position after
+    it is not known).
     Raises :class:`ProgramError` naming ``source:line`` for G93/G95,
     a G1 before any F, F <= 0, G4 without P, two axis words, an axis word with no
     G0/G1 in force or in a block the planner cannot follow (G28, G92, macros ...).
@@ -263,6 +272,7 @@ def parse_program(
         new_motion: str | None = None
         motion_set = False
         dwell = False
+        machine = False  # G53: this block's axis word is a machine coordinate
         for letter, value, *_ in words:
             if letter != "G":
                 continue
@@ -283,18 +293,23 @@ def parse_program(
                 incremental = True
             elif g == "G21":
                 mm_per_unit = 1.0
-            elif g == "G94":
+            elif g in ("G94", "G8"):  # G8: lathe radius mode, the X words are positions
                 pass
+            elif g == "G7" and axis == "X":
+                raise ProgramError(f"{where}: G7 (lathe diameter mode): its X words are diameters; expected a radius "
+                                   "program (G8), or LinuxCNC's rs274 to flatten it (--flatten auto gives radii)")  # fmt: skip
             elif g == "G33":
                 raise ProgramError(f"{where}: G33 (threading, F per revolution) is not supported; expected G0/G1 moves")
             elif g in ("G93", "G95"):
                 raise ProgramError(
                     f"{where}: {g} (inverse-time / per-revolution feed) is not supported; expected G94 feeds in mm/min"
                 )
+            elif g == "G53" and axis_words and work_offset_mm is not None:
+                machine = True
             elif value == int(value) and int(value) in _POSITION_CODES:
                 if axis_words:
                     raise ProgramError(
-                        f"{where}: {g} with an {axis} word: the {axis} position after it is not known to the planner; "
+                        f"{where}: {g} with {_an(axis)} {axis} word: the {axis} position after it is not known to the planner; "
                         f"expected a plain G0/G1 move (move {axis} explicitly before and after it)"
                     )
                 reasons.append(f"{g} not interpreted ({axis} not involved)")
@@ -325,7 +340,7 @@ def parse_program(
         if dwell:
             if axis_words:
                 raise ProgramError(
-                    f"{where}: G4 with an {axis} word; expected the dwell as P<seconds> (an {axis} word there is "
+                    f"{where}: G4 with {_an(axis)} {axis} word; expected the dwell as P<seconds> ({_an(axis)} {axis} word there is "
                     f"a dwell time on some controls, not a move)"
                 )
             p = [w[1] for w in words if w[0] == "P"]
@@ -349,7 +364,9 @@ def parse_program(
                     f"{where}: incremental (G91) {axis} move before the {axis} position is known; expected an absolute "
                     f"(G90) move first, or give the start position (start_mm)"
                 )
-            target = pos + value if incremental else value
+            if machine and motion not in ("G0", "G1"):
+                raise ProgramError(f"{where}: G53 with {motion}; expected G0 or G1 (a move in machine coordinates)")
+            target = value - float(work_offset_mm) if machine else pos + value if incremental else value
             start = pos if pos is not None else target
             rapid = motion not in ("G1", "G2", "G3")  # G0, and canned cycles position at rapid
             if not rapid and feed is None:
@@ -358,10 +375,13 @@ def parse_program(
                     f"{motion} block"
                 )
             blocks.append(
-                Block(number, motion, start, target, None if rapid else feed, 0.0, incremental, (s0, s1), decimals,
-                      mm_per_unit)
+                Block(number, "G53" if machine else motion, start, target, None if rapid else feed, 0.0,
+                      incremental and not machine, (s0, s1), decimals, mm_per_unit)
             )
-            if motion not in ("G0", "G1"):
+            if machine:
+                reasons.append(f"G53 {motion} with {axis}: a move in machine coordinates, followed to {axis}{value:g} - the "
+                               f"work offset {float(work_offset_mm):g} mm, timed, not compensated")  # fmt: skip
+            elif motion not in ("G0", "G1"):
                 reasons.append(
                     f"{motion} with {axis}: end point followed, timed on the {axis} distance, not compensated"
                 )
@@ -643,7 +663,25 @@ def _rewrite(
     """The program text with the axis word of block i (index in ``program.blocks``)
     set so that its absolute end point is ``new_target_mm[i]`` (rounded); other text
     untouched. Returns the text and, per rewritten block, (written number, absolute end)."""
-    lines = list(program.lines)
+    edits, written = _edits(program, new_target_mm, min_decimals)
+    return "".join(apply_edits(program.lines, edits)), written
+
+
+def apply_edits(lines: list[str], edits: list[tuple[int, int, int, str]]) -> list[str]:
+    """``lines`` with each edit ``(line index, start, end, text)`` put in place of that span; the
+    edits of one line (several axes' words) are applied from the right, so their spans hold."""
+    out = list(lines)
+    for i, s0, s1, text in sorted(edits, key=lambda e: (e[0], e[1]), reverse=True):
+        body = out[i].rstrip("\r\n")
+        out[i] = body[:s0] + text + body[s1:] + out[i][len(body):]
+    return out
+
+
+def _edits(
+    program: Program, new_target_mm: dict[int, float], min_decimals: int
+) -> tuple[list[tuple[int, int, int, str]], dict[int, tuple[float, float]]]:
+    """The edits of :func:`_rewrite` (``(line index, start, end, text)``) and what they write."""
+    edits: list[tuple[int, int, int, str]] = []
     written: dict[int, tuple[float, float]] = {}
     pos = program.start_mm  # where the rewritten program has put the axis
     for i, b in enumerate(program.blocks):
@@ -663,13 +701,10 @@ def _rewrite(
         else:
             value = round(new_target_mm[i] / u, decimals)
             end = value * u
-        raw = lines[b.line - 1]
-        body = raw.rstrip("\r\n")
-        s0, s1 = b.span
-        lines[b.line - 1] = body[:s0] + _format(value, decimals) + body[s1:] + raw[len(body):]
+        edits.append((b.line - 1, *b.span, _format(value, decimals)))
         written[i] = (value, end)
         pos = end
-    return "".join(lines), written
+    return edits, written
 
 
 @dataclass
@@ -731,7 +766,7 @@ def precompensate(
         raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}")
     meta = resolve_metadata(dataset_metadata_source)
     _model_drive(model, meta)  # a model that cannot be driven fails before the program is read
-    program = parse_program(program_text, axis, source, start_mm)
+    program = parse_program(program_text, axis, source, start_mm, work_offset_mm)
     moves, process = plan_motion(program, rapid_mm_min, sample_s, start_s, work_offset_mm)
 
     comp = moves["compensate"].to_numpy()
@@ -831,11 +866,13 @@ def simulate_true_errors(
     ambient = s["ambient_C"] if ambient_C is None else float(ambient_C)
     hist = truth.run(Motion(t, x, f), ambient_C=ambient, duration_s=t_end - start_s)
 
-    rewritten = parse_program(result.text, s["axis"], result.source, s["start_mm"])
+    rewritten = parse_program(result.text, s["axis"], result.source, s["start_mm"], s["work_offset_mm"])
     if len(rewritten.blocks) != len(result.program.blocks):
         raise PrecompError(f"{result.source}: the rewritten program has different blocks than the original")  # a bug
     comp = moves["compensate"].to_numpy()
-    new_axis = np.array([b.target_mm for b in rewritten.blocks])[comp] + s["work_offset_mm"]
+    # a row per block (one axis planned alone), or a row per step of several axes' time line (its block column)
+    blocks = moves.loc[comp, "block"].to_numpy(int) if "block" in moves else np.flatnonzero(comp)
+    new_axis = np.array([b.target_mm for b in rewritten.blocks])[blocks] + s["work_offset_mm"]
     te = moves.loc[comp, "t_end_s"].to_numpy()
     xa = moves.loc[comp, "axis_target_mm"].to_numpy()
     before = hist.error_um(te, xa)
@@ -938,28 +975,7 @@ def run_precompensate(
     lines a flattened program passes through name the line of the original they come from.
     """
     program_path, model_path, out_path = Path(program_path), Path(model_path), Path(out_path)
-    text = _read_program(program_path)
-    flat_note = flat = None
-    reason = _flatten_reason(text, axis, str(program_path), start_mm) if flatten == "auto" else None
-    if flatten not in ("auto", "always", "never"):
-        raise PrecompError(f"--flatten: expected auto, always or never, got {flatten!r}")
-    if flatten == "always" or reason is not None:
-        from .linuxcnc.rs274 import flatten as rs274_flatten, rs274_path
-
-        if rs274_path() is None:
-            if flatten == "always":
-                raise PrecompError(f"{program_path}: --flatten always needs LinuxCNC's rs274 (apt-get install "
-                                   "--no-install-recommends linuxcnc-uspace)")  # fmt: skip
-            parse_program(text, axis=axis, source=str(program_path), start_mm=start_mm)  # the reader's own error, if any
-        else:
-            flat = rs274_flatten(program_path, tool_table=None if tool_table is None else Path(tool_table),
-                                 ini=None if ini is None else Path(ini))  # fmt: skip
-            if flat.moves == 0:
-                raise PrecompError(f"{program_path}: LinuxCNC's interpreter finds no move in it; nothing to compensate")
-            text = flat.text
-            flat_note = (f"flattened with LinuxCNC's rs274 ({reason or '--flatten always'}): {flat.canonical_calls} "
-                         f"canonical calls -> {flat.moves} straight moves ({flat.arcs} arcs in chords), in {flat.units}; "
-                         "the output is the flattened program, compensated")  # fmt: skip
+    text, flat, flat_note = program_text(program_path, {axis: (start_mm, work_offset_mm)}, flatten, tool_table, ini)
     if out_path.resolve() == program_path.resolve():
         raise PrecompError(f"{out_path}: the output would overwrite the input program; expected another file name")
     check_output_file(out_path, "part-program")  # an existing file thermbench did not write is refused now
@@ -998,12 +1014,45 @@ def run_precompensate(
     return result
 
 
-def _flatten_reason(text: str, axis: str, source: str, start_mm) -> str | None:
+def program_text(program_path: Path, axes: dict[str, tuple[float | None, float]], flatten: str, tool_table=None,
+                 ini=None):  # fmt: skip
+    """The program's text to compensate, and the flattening it went through (:func:`run_precompensate`'s
+    ``flatten``): ``(text, the rs274 result or None, the note that says so or None)``. ``axes``: the
+    axes the reader must follow, each with its start position (None: its first absolute target) and
+    work offset (:func:`parse_program`)."""
+    text = _read_program(program_path)
+    if flatten not in ("auto", "always", "never"):
+        raise PrecompError(f"--flatten: expected auto, always or never, got {flatten!r}")
+    reason = None
+    if flatten == "auto":
+        reason = next((r for a, (s0, w) in axes.items() if (r := _flatten_reason(text, a, str(program_path), s0, w))), None)
+    if flatten != "always" and reason is None:
+        return text, None, None
+    from .linuxcnc.rs274 import flatten as rs274_flatten, rs274_path
+
+    if rs274_path() is None:
+        if flatten == "always":
+            raise PrecompError(f"{program_path}: --flatten always needs LinuxCNC's rs274 (apt-get install "
+                               "--no-install-recommends linuxcnc-uspace)")  # fmt: skip
+        for a, (s0, w) in axes.items():
+            parse_program(text, a, str(program_path), s0, w)  # the reader's own error, if any
+        return text, None, None
+    flat = rs274_flatten(program_path, tool_table=None if tool_table is None else Path(tool_table),
+                         ini=None if ini is None else Path(ini))  # fmt: skip
+    if flat.moves == 0:
+        raise PrecompError(f"{program_path}: LinuxCNC's interpreter finds no move in it; nothing to compensate")
+    note = (f"flattened with LinuxCNC's rs274 ({reason or '--flatten always'}): {flat.canonical_calls} "
+            f"canonical calls -> {flat.moves} straight moves ({flat.arcs} arcs in chords), in {flat.units}; "
+            "the output is the flattened program, compensated")  # fmt: skip
+    return flat.text, flat, note
+
+
+def _flatten_reason(text: str, axis: str, source: str, start_mm, work_offset_mm=None) -> str | None:
     """Why the line reader cannot follow ``text`` alone (None: it can): its own refusal, or O-codes,
     parameters or expressions it passed over. (Arcs it follows, uncompensated: ``--flatten always``
     turns them into compensated chords.)"""
     try:
-        prog = parse_program(text, axis=axis, source=source, start_mm=start_mm)
+        prog = parse_program(text, axis, source, start_mm, work_offset_mm)
     except ProgramError as exc:
         return f"the reader refused it: {str(exc).split(': ', 1)[-1]}"
     kinds = dict.fromkeys(re.search(r"\((.*)\)", u.reason).group(1) for u in prog.unsupported

@@ -32,6 +32,8 @@ where the interpreter only assumed the machine to be. So:
   relative to those at the start, so the flattened program runs under the same work offset;
   spindle, coolant, tool change, stops and comments are kept (``M3``/``M4``/``M5``, ``S``,
   ``M7``/``M8``/``M9``, ``T.. M6``, ``M0``/``M1``, ``M2``);
+* a lathe program's diameter mode (``G7``): the interpreter gives radii, so the flattened program
+  switches to ``G8`` where the original switched to ``G7``;
 * anything else (probing, rotation of the XY plane, feed per revolution, spindle-synchronised
   motion, NURBS ...) is refused in one line naming the canonical call and the line;
 * each move ends with a comment naming the line of the original it comes from (``(part.ngc:12)``).
@@ -484,6 +486,10 @@ def flatten(program: str | Path, chord_tol: float | None = None, tool_table: Pat
         elif name == "COMMENT":
             text = args[0].strip().strip('"').replace("(", "[").replace(")", "]")
             emit(f"({text})", n)
+            if "lathe diameter mode changed to diameter" in text.lower():
+                # the interpreter halves X words under G7 before the canonical calls: its positions are radii, so the
+                # flattened program says G8 (a lathe that starts in G7 would read them as diameters)
+                emit("G8 (the positions below are radii: the interpreter has folded the diameter mode in)", n)
         elif name == "MESSAGE":
             emit(f"(MSG, {args[0].strip().strip(chr(34))})", n)
         elif name == "PROGRAM_END":
