@@ -105,8 +105,11 @@ def main() -> int:
                 if kind == "refused":
                     reasons[group(msg)] += 1
                 many = axes and res is not None and len(res.axes) > 1
-                chosen = p.name in a.verify_programs.split(",") if a.verify_programs else n_verified < a.verify
-                if flatten == "auto" and kind == "compensated" and res.settings.get("flattened") and (many or not axes) and chosen:
+                if a.verify_programs:
+                    chosen = p.name in a.verify_programs.split(",")
+                else:
+                    chosen = res is not None and res.settings.get("flattened") and (many or not axes) and n_verified < a.verify
+                if flatten == "auto" and kind == "compensated" and chosen:
                     n_verified += 1
                     _, _, vres = outcome(p, model, Path(tmp) / f"v_{p.stem}.ngc", a.dataset, flatten, True, axes)
                     vs = vres.verification if axes else {vres.settings["axis"]: vres.verification}
