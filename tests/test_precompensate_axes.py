@@ -173,7 +173,10 @@ def test_axes_file(tmp_path):
         ("X: nothere.joblib\n", "nothere.joblib: no such model file"),
         ("X: x.joblib\n", "key 'X': cannot tell which dataset"),
         ("- X\n", "expected a mapping of axes to models"),
-        ("X: [\n", "not YAML"),
+        ("Y: x.joblib\nX: [\n", "axes.yaml:3: not YAML"),  # the line of the problem
+        ("X: {model: x.joblib, dataset: data}\nX: {model: x.joblib, dataset: data}\n", "axes.yaml:2: not YAML (key 'X' given twice)"),
+        ("X: {model: x.joblib, dataset: nosuch}\n", "key 'X': dataset 'nosuch'"),
+        ("X: {model: ., dataset: data}\n", "key 'X': " + str(tmp_path) + ": a directory"),
     ]:
         f.write_text(body)
         with pytest.raises(PrecompError, match=re.escape(expected)) as exc:
@@ -212,8 +215,10 @@ def test_cli_models(tmp_path):
     assert "axis X" in ok.stdout and "axis Y" in ok.stdout and ok.stdout.count("verification") == 2
     assert (tmp_path / "o.nc").read_text().startswith("(thermbench precompensate")
     for args, expected in [
-        (("p.nc", "--out", "o2.nc"), "expected one of --model"),
-        (("p.nc", "--models", "axes.yaml", "--model", "x.joblib", "--out", "o2.nc"), "expected one of --model"),
+        (("p.nc", "--out", "o2.nc"), "no model; expected one of --model"),
+        (("p.nc", "--models", "axes.yaml", "--model", "x.joblib", "--out", "o2.nc"), "--model and --models together"),
+        (("p.nc", "--models", "axes.yaml", "--work-offset", "3", "--out", "o2.nc"), "--work-offset with --models"),
+        (("o.nc", "--models", "axes.yaml", "--out", "o2.nc"), "o.nc:1: already revised by thermbench precompensate"),
         (("p.nc", "--models", "axes.yaml", "--axis", "Y", "--out", "o2.nc"), "--axis with --models"),
         (("p.nc", "--models", "nothere.yaml", "--out", "o2.nc"), "nothere.yaml: cannot read the axes file"),
     ]:
@@ -236,3 +241,12 @@ def test_an_axis_without_a_model_that_the_reader_cannot_follow_is_left_out_of_th
     assert "(axis Z: as written, no model; its motion is not timed" in res.text
     with pytest.raises(ProgramError, match="p.nc:4: G28 with a Z word"):
         precompensate_axes(text, {"X": AxisModel(stub(), meta, "x"), "Z": AxisModel(stub(), meta, "z")}, source="p.nc")
+
+
+def test_arcs_and_other_axes_notes_are_said_once_for_the_time_line():
+    text = "G21 G90 G17\nG0 X0 Y0\nG2 X10 Y0 I5 J0 F600\nG91 G28 Z0\nG90 G1 X20 Y5\nM2\n"
+    res = precompensate_axes(text, {"X": AxisModel(stub(), seed000_metadata(), "x"),
+                                    "Y": AxisModel(stub_y(), seed000_metadata(), "y")})  # fmt: skip
+    listed = {u.line: u.reason for u in res.unsupported}
+    assert listed[3] == "G2 with X, Y: end point followed, timed on its chord over the axes, not compensated"
+    assert "G28 not interpreted (X, Y not involved)" in listed[4] and listed[4].count("G28") == 1

@@ -324,3 +324,26 @@ def test_a_lathe_program_in_diameter_mode_is_flattened_to_radii(tmp_path, seed00
     with pytest.raises(PrecompError, match=r"lathe.ngc:1: G7 \(lathe diameter mode\)") as exc:
         run_precompensate_axes(prog, axes, tmp_path / "out2.ngc", flatten="never")
     assert "\n" not in str(exc.value) and not (tmp_path / "out2.ngc").exists()
+
+
+def test_a_refusal_in_the_flattened_program_names_the_users_line(tmp_path, seed000_physics):
+    """A G28 on Z (line 5 of the user's file) stays a G28 in the flattened program, at another
+    line: the refusal (Z has a model) and the header's note (Z has none) name line 5."""
+    from thermbench.precompensate_axes import run_precompensate_axes
+
+    prog = tmp_path / "part.ngc"
+    prog.write_text("G21 G90\n#<a> = 10\nG0 X#<a> Y0 Z5\nG1 X20 F600\nG28 Z0\nG0 X0\nM2\n")
+    model, data = seed000_physics
+    xz = tmp_path / "xz.yaml"
+    xz.write_text(f"X: {{model: {model}, dataset: {data}}}\nZ: {{model: {model}, dataset: {data}}}\n")
+    with pytest.raises(PrecompError) as exc:
+        run_precompensate_axes(prog, xz, tmp_path / "out.ngc")
+    assert re.search(rf"{re.escape(str(prog))}:5 \(line \d+ of the program as flattened by rs274\): G28 with a Z word", str(exc.value))
+    x = tmp_path / "x.yaml"
+    x.write_text(f"X: {{model: {model}, dataset: {data}}}\n")
+    res = run_precompensate_axes(prog, x, tmp_path / "out.ngc")
+    assert f"{prog}:5 (line" in res.as_written["Z"]
+    header = [ln for ln in res.text.splitlines() if ln.startswith("(axis Z")][0]
+    assert f"{prog}:5 [line" in header and header.count("(") == 1 and header.endswith(")")
+    with pytest.raises(PrecompError, match=rf"{re.escape(str(prog))}:5 \(line \d+ of the program as flattened by rs274\)"):
+        run_precompensate(prog, model, tmp_path / "out_z.ngc", dataset=data, axis="Z")  # one axis: the same

@@ -217,13 +217,19 @@ def cmd_replay(model_dir: str, data_dir: str, run: str, out: str | None, force: 
 def cmd_precompensate(args) -> int:
     from .precompensate import PrecompError, format_summary, run_precompensate
 
-    if (args.model is None) == (args.models is None):
-        raise PrecompError("precompensate: expected one of --model MODEL.joblib (one axis) or --models AXES.yaml "
-                           "(each axis its own model)")  # fmt: skip
+    if args.model is not None and args.models is not None:
+        raise PrecompError("precompensate: --model and --models together; expected one of them (--model: one axis, "
+                           "--models: each axis its own model)")  # fmt: skip
+    if args.model is None and args.models is None:
+        raise PrecompError("precompensate: no model; expected one of --model MODEL.joblib (one axis) or --models "
+                           "AXES.yaml (each axis its own model)")  # fmt: skip
     if args.models is not None:
         from .precompensate_axes import format_axes_summary, run_precompensate_axes
 
-        given = [o for o, v in (("--axis", args.axis), ("--start-mm", args.start_mm), ("--work-offset", args.work_offset),
+        if args.axis is not None:
+            raise PrecompError(f"precompensate: --axis with --models: the axes are the keys of {args.models} (X: ..., "
+                               "Y: ..., Z: ...)")  # fmt: skip
+        given = [o for o, v in (("--start-mm", args.start_mm), ("--work-offset", args.work_offset),
                                 ("--dataset", args.dataset)) if v is not None]  # fmt: skip
         if given:
             raise PrecompError(f"precompensate: {', '.join(given)} with --models: give them per axis in {args.models} "

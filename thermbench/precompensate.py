@@ -929,9 +929,13 @@ def _read_program(path: Path) -> str:
 def _load_model(path: Path):
     import joblib
 
+    if path.is_dir():
+        raise PrecompError(f"{path}: a directory; expected a fitted model file saved with joblib "
+                           "(models/benchmark/<dataset>__<family>__<approach>.joblib)")  # fmt: skip
     if not path.is_file():
         raise PrecompError(
-            f"{path}: no such model file; expected a fitted model saved with joblib (models/benchmark/<key>.joblib)"
+            f"{path}: no such model file; expected a fitted model saved with joblib "
+            "(models/benchmark/<dataset>__<family>__<approach>.joblib)"
         )
     try:
         return joblib.load(path)
@@ -997,11 +1001,14 @@ def run_precompensate(
             truth_model = truth_from_metadata(meta)
         else:
             truth_model = truth_from_metadata(resolve_metadata(truth))
-    result = precompensate(
-        text, model, meta, axis=axis, rapid_mm_min=rapid_mm_min, sample_s=sample_s, start_s=start_s,
-        start_mm=start_mm, work_offset_mm=work_offset_mm, ambient_C=ambient_C, decimals=decimals,
-        source=str(program_path),
-    )  # fmt: skip
+    try:
+        result = precompensate(
+            text, model, meta, axis=axis, rapid_mm_min=rapid_mm_min, sample_s=sample_s, start_s=start_s,
+            start_mm=start_mm, work_offset_mm=work_offset_mm, ambient_C=ambient_C, decimals=decimals,
+            source=str(program_path),
+        )  # fmt: skip
+    except PrecompError as exc:  # a line of the flattened program: named by the user's line
+        raise type(exc)(at_origin(str(exc), str(program_path), flat)) from None
     if flat is not None:
         result.notes.insert(0, flat_note)
         result.settings["flattened"] = True
@@ -1045,6 +1052,21 @@ def program_text(program_path: Path, axes: dict[str, tuple[float | None, float]]
             f"canonical calls -> {flat.moves} straight moves ({flat.arcs} arcs in chords), in {flat.units}; "
             "the output is the flattened program, compensated")  # fmt: skip
     return flat.text, flat, note
+
+
+def at_origin(message: str, source: str, flat) -> str:
+    """``message`` with each ``source:N`` (a line of the flattened program ``flat``) naming the line of
+    the user's file it comes from: ``part.ngc:850 (line 997 of the flattened program)``."""
+    if flat is None:
+        return message
+    folder = Path(source).parent
+
+    def sub(m):
+        origin = flat.origin(int(m.group(1)))
+        where = f"{folder / origin}" if origin else source
+        return f"{where} (line {m.group(1)} of the program as flattened by rs274)"
+
+    return re.sub(rf"{re.escape(source)}:(\d+)", sub, message)
 
 
 def _flatten_reason(text: str, axis: str, source: str, start_mm, work_offset_mm=None) -> str | None:

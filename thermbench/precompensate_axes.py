@@ -76,6 +76,28 @@ class AxisModel:
     work_offset_mm: float = 0.0  # axis position = program coordinate + this
 
 
+def _unique_key_loader():
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        """A SafeLoader that refuses a key given twice (YAML keeps the last one silently)."""
+
+    def mapping(loader, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} given twice", key_node.start_mark)
+            seen.add(key)
+        return yaml.SafeLoader.construct_mapping(loader, node, deep)
+
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    return Loader
+
+
+_UniqueKeyLoader = _unique_key_loader()
+
+
 def read_axes_file(path) -> dict[str, AxisModel]:
     """The axes file of ``--models``: a YAML mapping of axis letters to models,
 
@@ -88,18 +110,23 @@ def read_axes_file(path) -> dict[str, AxisModel]:
     A value is a model file (what ``--model`` takes) or a mapping with ``model`` and optionally
     ``dataset`` (what it was trained on; default: from a benchmark model file's name, as ``--model``),
     ``start_mm`` and ``work_offset_mm`` (``--start-mm`` and ``--work-offset`` for that axis). Relative
-    paths are relative to the axes file's directory. Every mistake names the file and the key."""
+    paths are relative to the axes file's directory; the axis letters may be lower case. Every mistake
+    names the file and the key (a YAML syntax error, the line)."""
     import yaml
 
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+        raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
     except OSError as exc:
         raise PrecompError(f"{path}: cannot read the axes file ({exc.strerror or exc}); expected a YAML file "
                            "mapping axes to models (X: model.joblib)") from None  # fmt: skip
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise PrecompError(f"{path}: not YAML ({str(exc).splitlines()[0]}); expected a mapping of axes to models "
-                           "(X: model.joblib)") from None  # fmt: skip
+    except UnicodeDecodeError:
+        raise PrecompError(f"{path}: not UTF-8 text; expected a YAML file mapping axes to models (X: model.joblib)") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise PrecompError(f"{at}: not YAML ({what}); expected a mapping of axes to models (X: model.joblib)") from None
     if not isinstance(raw, dict) or not raw:
         raise PrecompError(f"{path}: expected a mapping of axes to models (X: model.joblib), got {type(raw).__name__}")
     out: dict[str, AxisModel] = {}
@@ -137,12 +164,12 @@ def read_axes_file(path) -> dict[str, AxisModel]:
                                    f"{{model: ..., dataset: NAME_OR_DIR}}")  # fmt: skip
         elif Path(str(dataset)).parts and (path.parent / str(dataset)).is_dir():
             dataset = path.parent / str(dataset)
-        meta = resolve_metadata(dataset)
         try:
+            meta = resolve_metadata(dataset)
             _model_drive(model, meta)
         except PrecompError as exc:
             raise PrecompError(f"{where}: {exc}") from None
-        out[axis] = AxisModel(model, meta, str(entry["model"]), numbers["start_mm"], numbers["work_offset_mm"] or 0.0)
+        out[axis] = AxisModel(model, meta, str(model_path), numbers["start_mm"], numbers["work_offset_mm"] or 0.0)
     return out
 
 
@@ -226,7 +253,7 @@ class AxesResult:
 
 
 def _header(models: dict[str, AxisModel], revised: dict[str, PrecompResult], as_written: dict[str, str]) -> list[str]:
-    clean = lambda s: re.sub(r"[()]", "_", str(s))  # noqa: E731  (a comment cannot hold parentheses)
+    clean = lambda s: str(s).replace("(", "[").replace(")", "]")  # noqa: E731  (a comment cannot hold parentheses)
     lines = ["(thermbench precompensate: each axis's G0/G1 targets moved by -e/1000 mm, e its own model's "
              "predicted thermal error at the move's end)"]  # fmt: skip
     for a in LINEAR_AXES:
@@ -260,6 +287,11 @@ def precompensate_axes(
         raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}")
     if not models:
         raise PrecompError("models: expected at least one axis with a model")
+    revised_before = re.search(r"^\s*\(thermbench precompensate:", program_text_, re.M)
+    if revised_before:
+        n = program_text_.count("\n", 0, revised_before.start()) + 1
+        raise PrecompError(f"{source}:{n}: already revised by thermbench precompensate (its header); expected the "
+                           "program as written (revising it again would subtract the errors twice)")  # fmt: skip
     programs, as_written, notes = {}, {}, []
     for a in LINEAR_AXES:
         try:
@@ -324,12 +356,35 @@ def precompensate_axes(
         for u in programs[a].unsupported:
             if u.line not in merged:
                 merged[u.line] = Unsupported(u.line, u.text, u.reason)
-            elif u.reason not in merged[u.line].reason:
+            else:
                 merged[u.line].reason += "; " + u.reason
+    for u in merged.values():
+        u.reason = _one_time_line(u.reason)
     settings = {"rapid_mm_min": float(rapid_mm_min), "sample_s": float(sample_s), "start_s": float(start_s),
                 "ambient_C": float(ambient_C), "decimals": decimals, "header_lines": len(_header(models, revised, as_written)),
                 "header_at": at}  # fmt: skip
     return AxesResult(source, text, revised, as_written, [merged[k] for k in sorted(merged)], settings, notes)
+
+
+def _one_time_line(reason: str) -> str:
+    """One line's reasons from every axis's reading, said once for the one time line: an arc or cycle
+    is followed on each axis and timed on its chord; ``G28 not interpreted (X not involved)`` per
+    axis becomes one."""
+    parts = list(dict.fromkeys(p.strip() for p in reason.split(";") if p.strip()))
+    out, followed, uninvolved = [], {}, {}
+    for p in parts:
+        if m := re.fullmatch(r"(G[\d.]+) with ([XYZ]): end point followed, timed on the [XYZ] distance, not compensated", p):
+            followed.setdefault(m.group(1), []).append(m.group(2))
+        elif m := re.fullmatch(r"(G[\d.]+) not interpreted \(([XYZ]) not involved\)", p):
+            uninvolved.setdefault(m.group(1), []).append(m.group(2))
+        else:
+            out.append(p)
+    out = [p for p in out if not (m := re.fullmatch(r"(G[\d.]+) motion: not timed, not compensated", p)) or m.group(1)
+           not in followed]  # fmt: skip
+    out += [f"{g} with {', '.join(ax)}: end point followed, timed on its chord over the axes, not compensated"
+            for g, ax in followed.items()]  # fmt: skip
+    out += [f"{g} not interpreted ({', '.join(ax)} not involved)" for g, ax in uninvolved.items()]
+    return "; ".join(out)
 
 
 def run_precompensate_axes(
@@ -360,8 +415,23 @@ def run_precompensate_axes(
     # flattened where the reader cannot follow an axis with a model (one without is left out of the time line)
     text, flat, note = program_text(program_path, {a: (m.start_mm, m.work_offset_mm) for a, m in models.items()}, flatten,
                                     tool_table, ini)  # fmt: skip
-    result = precompensate_axes(text, models, rapid_mm_min, sample_s, start_s, ambient_C, decimals, str(program_path))
+    from .precompensate import at_origin
+
+    try:
+        result = precompensate_axes(text, models, rapid_mm_min, sample_s, start_s, ambient_C, decimals, str(program_path))
+    except PrecompError as exc:  # a line of the flattened program: named by the user's line
+        raise type(exc)(at_origin(str(exc), str(program_path), flat)) from None
     if flat is not None:
+        result.as_written = {a: at_origin(r, str(program_path), flat) for a, r in result.as_written.items()}
+        lines = result.text.splitlines(keepends=True)
+        at, n = result.settings["header_at"], result.settings["header_lines"]
+        for i in range(at, at + n):  # the header's "as written" reasons too; a comment holds no parentheses
+            body = lines[i].rstrip("\r\n")
+            inner = at_origin(body[1:-1], str(program_path), flat).replace("(", "[").replace(")", "]")
+            lines[i] = f"({inner})" + lines[i][len(body):]
+        result.text = "".join(lines)
+        for r in result.axes.values():
+            r.text = result.text
         result.notes.insert(0, note)
         result.settings["flattened"] = True
         for u in result.unsupported:
