@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import joblib
@@ -197,7 +196,7 @@ def test_lathe_diameter_mode_is_refused_in_one_line_by_the_reader():
     assert set(res.axes) == {"X", "Z"} and not any("G8" in u.reason for u in res.unsupported)
 
 
-def test_cli_models(tmp_path):
+def test_cli_models(tmp_path, monkeypatch, capsys):
     sim = {"core": CoreParams().as_dict(), "effects": {}, "numerics": {"dx_m": 0.02, "dt_s": 0.5, "macro_dt_s": 10.0}}
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "metadata.yaml").write_text(yaml.safe_dump(seed000_metadata(sim).model_dump(mode="json", exclude_none=True)))
@@ -206,9 +205,14 @@ def test_cli_models(tmp_path):
     prog = tmp_path / "p.nc"
     prog.write_text(DIAGONAL)
 
-    def run(*args):
-        return subprocess.run([sys.executable, "-m", "thermbench", "precompensate", *args], capture_output=True, text=True,
-                              cwd=tmp_path)  # fmt: skip
+    from thermbench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+
+    def run(*args):  # the CLI in this process: its exit code, stdout and stderr
+        code = main(["precompensate", *args])
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(args, code, out.out, out.err)
 
     ok = run("p.nc", "--models", "axes.yaml", "--out", "o.nc", "--verify")
     assert ok.returncode == 0, ok.stderr
