@@ -347,3 +347,29 @@ def test_a_refusal_in_the_flattened_program_names_the_users_line(tmp_path, seed0
     assert f"{prog}:5 [line" in header and header.count("(") == 1 and header.endswith(")")
     with pytest.raises(PrecompError, match=rf"{re.escape(str(prog))}:5 \(line \d+ of the program as flattened by rs274\)"):
         run_precompensate(prog, model, tmp_path / "out_z.ngc", dataset=data, axis="Z")  # one axis: the same
+
+
+def test_rs274_killed_by_a_signal_is_run_again_then_named(tmp_path, monkeypatch):
+    """Two rs274 at once can kill each other (SIGBUS, seen 1 run in 3 with six at once): they take
+    turns, and a run killed by a signal is run again; killed every time, the error says so in one
+    line instead of flattening a cut-short output."""
+    import os
+
+    import thermbench.linuxcnc.rs274 as r
+
+    real = shutil.which("rs274")
+    count = tmp_path / "count"
+    fake = tmp_path / "rs274"
+    # the first run dies of SIGBUS, the ones after run the real interpreter
+    fake.write_text(f"#!/bin/sh\necho x >> {count}\n[ $(wc -l < {count}) -eq 1 ] && kill -BUS $$\nexec {real} \"$@\"\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(r, "rs274_path", lambda: str(fake))
+    prog = tmp_path / "part.ngc"
+    prog.write_text("G21 G90\nG0 X1 Y2\nG1 X5 F100\nM2\n")
+    calls, _ = r.run_rs274(prog)
+    assert [c[0] for c in calls].count("STRAIGHT_FEED") == 1 and count.read_text().count("x") == 2
+    fake.write_text(f"#!/bin/sh\necho x >> {count}\nkill -BUS $$\n")
+    os.remove(count)
+    with pytest.raises(FlattenError, match=r"part.ngc: LinuxCNC's rs274 was killed by signal 7 in each of 3 runs") as exc:
+        r.run_rs274(prog)
+    assert count.read_text().count("x") == 3 and "\n" not in str(exc.value)
