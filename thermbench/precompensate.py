@@ -758,12 +758,7 @@ def precompensate(
     it was trained on (:func:`resolve_metadata`). Other options: :func:`parse_program`
     and :func:`plan_motion`.
     """
-    try:
-        decimals = int(decimals)
-    except (TypeError, ValueError):
-        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}") from None
-    if decimals < 1:
-        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}")
+    decimals = check_decimals(decimals)
     meta = resolve_metadata(dataset_metadata_source)
     _model_drive(model, meta)  # a model that cannot be driven fails before the program is read
     program = parse_program(program_text, axis, source, start_mm, work_offset_mm)
@@ -1088,6 +1083,30 @@ def _duration(seconds: float) -> str:
     return f"{m // 60} h {m % 60:02d} min" if m >= 60 else f"{seconds / 60.0:.1f} min"
 
 
+def notes_and_passed_through(notes: list[str], unsupported: list[Unsupported], max_lines: int) -> list[str]:
+    """The summary's lines for the notes and the lines passed through (the first ``max_lines``)."""
+    lines = [f"  note: {n}" for n in notes]
+    if unsupported:
+        lines.append(f"  passed through, not (fully) interpreted: {len(unsupported)} line(s)")
+        for u in unsupported[:max_lines]:
+            at = f"line {u.line}" + (f" (from {u.origin})" if u.origin else "")
+            lines.append(f"    {at}: {u.text.strip()}  -- {u.reason}")
+        if len(unsupported) > max_lines:
+            lines.append(f"    ... and {len(unsupported) - max_lines} more")
+    return lines
+
+
+def check_decimals(decimals) -> int:
+    """``decimals`` as an integer >= 1, or the one-line error."""
+    try:
+        value = int(decimals)
+    except (TypeError, ValueError):
+        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}") from None
+    if value < 1:
+        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}")
+    return value
+
+
 def format_summary(result: PrecompResult, verification: dict | None = None, max_lines: int = 20) -> str:
     """A few lines for the terminal: what was compensated, what passed through, and
     the verification figures (``verification`` or ``result.verification``)."""
@@ -1105,15 +1124,7 @@ def format_summary(result: PrecompResult, verification: dict | None = None, max_
         f"  predicted thermal error at the move ends: {e.min():+.2f} .. {e.max():+.2f} µm "
         f"(mean |e| {np.mean(np.abs(e)):.2f} µm); targets moved by -e/1000 mm",
     ]
-    for n in result.notes:
-        lines.append(f"  note: {n}")
-    if result.unsupported:
-        lines.append(f"  passed through, not (fully) interpreted: {len(result.unsupported)} line(s)")
-        for u in result.unsupported[:max_lines]:
-            at = f"line {u.line}" + (f" (from {u.origin})" if u.origin else "")
-            lines.append(f"    {at}: {u.text.strip()}  -- {u.reason}")
-        if len(result.unsupported) > max_lines:
-            lines.append(f"    ... and {len(result.unsupported) - max_lines} more")
+    lines += notes_and_passed_through(result.notes, result.unsupported, max_lines)
     if ver:
         pct = lambda v: "n/a" if v is None or not math.isfinite(v) else f"{v:.0f} %"  # noqa: E731
         lines += [

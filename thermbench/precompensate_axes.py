@@ -49,6 +49,8 @@ from .precompensate import (
     _sample,
     _waypoints,
     apply_edits,
+    check_decimals,
+    notes_and_passed_through,
     parse_program,
     predict_thermal_errors,
     program_text,
@@ -279,12 +281,7 @@ def precompensate_axes(
 ) -> AxesResult:
     """Revise every axis of ``models`` by its own model on the program's one time line (module
     docstring); the options are :func:`~thermbench.precompensate.precompensate`'s."""
-    try:
-        decimals = int(decimals)
-    except (TypeError, ValueError):
-        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}") from None
-    if decimals < 1:
-        raise PrecompError(f"decimals: expected an integer >= 1, got {decimals!r}")
+    decimals = check_decimals(decimals)
     if not models:
         raise PrecompError("models: expected at least one axis with a model")
     revised_before = re.search(r"^\s*\(thermbench precompensate:", program_text_, re.M)
@@ -347,7 +344,8 @@ def precompensate_axes(
     at = 1 if lines and lines[0].strip() == "%" else 0  # a program between % lines: the header inside them
     if lines and not lines[-1].endswith("\n") and at >= len(lines):
         lines[-1] += eol
-    lines[at:at] = [h + eol for h in _header(models, revised, as_written)]
+    header = _header(models, revised, as_written)
+    lines[at:at] = [h + eol for h in header]
     text = "".join(lines)
     for r in revised.values():
         r.text = text
@@ -361,7 +359,7 @@ def precompensate_axes(
     for u in merged.values():
         u.reason = _one_time_line(u.reason)
     settings = {"rapid_mm_min": float(rapid_mm_min), "sample_s": float(sample_s), "start_s": float(start_s),
-                "ambient_C": float(ambient_C), "decimals": decimals, "header_lines": len(_header(models, revised, as_written)),
+                "ambient_C": float(ambient_C), "decimals": decimals, "header_lines": len(header),
                 "header_at": at}  # fmt: skip
     return AxesResult(source, text, revised, as_written, [merged[k] for k in sorted(merged)], settings, notes)
 
@@ -465,13 +463,5 @@ def format_axes_summary(result: AxesResult, max_lines: int = 20) -> str:
                              f"-> {v['rms_after_um']:.2f} µm")  # fmt: skip
         elif a in result.as_written:
             lines.append(f"  axis {a}: as written ({result.as_written[a]})")
-    for n in result.notes:
-        lines.append(f"  note: {n}")
-    if result.unsupported:
-        lines.append(f"  passed through, not (fully) interpreted: {len(result.unsupported)} line(s)")
-        for u in result.unsupported[:max_lines]:
-            at = f"line {u.line}" + (f" (from {u.origin})" if u.origin else "")
-            lines.append(f"    {at}: {u.text.strip()}  -- {u.reason}")
-        if len(result.unsupported) > max_lines:
-            lines.append(f"    ... and {len(result.unsupported) - max_lines} more")
+    lines += notes_and_passed_through(result.notes, result.unsupported, max_lines)
     return "\n".join(lines)
