@@ -403,3 +403,25 @@ def test_outside_the_training_envelope_is_flagged_and_held_when_asked(policy):
     m.manifest.pop("interval")
     with pytest.raises(Exception, match="config key 'extrapolation': limit needs the model's interval"):
         _logic(m, extrapolation="limit")
+
+
+def test_a_history_hole_is_a_time_without_any_input():
+    """history_hole (warm restart across an outage, from the server's history): a data-change
+    historian stores a value when it changes, so one input without a point for minutes held its
+    value; only a time in which no input has a point is a hole. By hand: an outage from 1000 to 1130 s."""
+    from thermbench.compensator.client import history_hole
+
+    axis = np.arange(1001.0, 1130.0, 5.0)  # moving: a point every 5 s
+    feed = np.array([1003.0])  # one change, then 127 s at the same feed
+    measuring = np.array([], dtype=float)  # no change in the whole outage
+    assert history_hole(1000.0, 1130.0, [axis, feed, measuring], 60.0) == ""
+    # the axis stands still from 1041 s to the end: 89 s with no point of any input
+    why = history_hole(1000.0, 1130.0, [axis[axis <= 1041.0], feed, measuring], 60.0)
+    assert why == ("the server's history has no value of any input for 89 s (from 41 s after the saved state), more "
+                   "than the 60 s the runtime bridges")  # fmt: skip
+    assert history_hole(1000.0, 1130.0, [np.array([]), np.array([])], 60.0).startswith(
+        "the server's history has no value of any input for 130 s (from 0 s after")
+    # points outside the outage (a server's bound values) do not fill it; a gap of exactly max_gap_s is bridged
+    assert history_hole(1000.0, 1130.0, [np.array([900.0, 1200.0])], 200.0) == ""
+    assert "for 130 s" in history_hole(1000.0, 1130.0, [np.array([900.0, 1200.0])], 60.0)
+    assert history_hole(1000.0, 1120.0, [np.array([1060.0])], 60.0) == ""

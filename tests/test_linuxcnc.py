@@ -245,9 +245,15 @@ def test_linuxcnc_closed_loop(seed001_exports, lcnc_user, shared_dir):
     assert c["samples_lost"] == 0 and c["servo_samples_machine_on"] > 20000  # > 20 s of 1 ms servo periods
     # actual = commanded + offset: basic_sim's PID is a pass-through (FF0 = 1), two servo periods behind
     assert c["servo_delay_periods"] == 2 and c["actual_minus_commanded_plus_offset_max_abs_um"] < 1.0
-    # the request is counts x scale (0.1 µm counts), the offset follows it within the rate limit
-    # not one count lost (0.1 µm): LinuxCNC took every change the component wrote
-    assert c["request_minus_counts_x_scale_max_abs_um"] < 0.05 and c["offset_minus_request_max_abs_um"] < 1.0
+    # the request is counts x scale (0.1 µm counts): not one count lost, LinuxCNC took every change the
+    # component wrote. The offset follows the request within the rate limit: at every servo period it lies
+    # between the requests of the last 50 periods, and it equals the request wherever that has held for 50
+    # periods (how far it lags a new request depends on the step the component wrote, which a loaded
+    # host makes bigger: 1.4 µm in one CI run, so that is not asserted)
+    assert c["request_minus_counts_x_scale_max_abs_um"] < 0.05
+    assert c["offset_outside_recent_requests_max_um"] < 0.01, c
+    assert c["request_held_samples"] >= 100, c["request_held_samples"]
+    assert c["offset_minus_held_request_max_abs_um"] < 0.01, c["offset_minus_held_request_max_abs_um"]
     assert c["offset_rate_max_mm_s"] <= c["offset_rate_limit_mm_s"] + 1e-9
     assert c["offset_max_abs_um"] > 20.0 and c["counts_max_abs"] > 200  # the compensation did grow
     # the component's writes are what thermbench replay computes from the plant's process log

@@ -18,6 +18,7 @@ from thermbench.compensator.station import Station, StationError, load_station
 from tests.test_compensator import _port
 
 # a real-time loop, but its checks are of flags and values, not of timing: it runs in the parallel suite
+pytestmark = pytest.mark.realtime
 
 
 @pytest.fixture(scope="module")

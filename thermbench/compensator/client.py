@@ -288,8 +288,8 @@ class Compensator:
     async def _history_rows(self, state: dict, rows, ts_now: float) -> tuple[list[tuple], str]:
         """The samples the model missed (grid points after the saved state, before now), from the
         server's raw history of every input (each value held until the next, as the loop holds
-        them); ([], why not) when the server keeps none or it has a hole longer than the runtime
-        bridges."""
+        them, from the saved state's last sample on); ([], why not) when the server keeps none or
+        its history has a hole longer than the runtime bridges (:func:`history_hole`)."""
         import datetime as dt
 
         ua = _ua()
@@ -310,13 +310,10 @@ class Compensator:
                 return [], f"the server keeps no history of {name} ({type(exc).__name__})"
             pts = sorted((dv.SourceTimestamp.timestamp(), dv.Value.Value) for dv in dvs
                          if dv.SourceTimestamp is not None and dv.Value is not None and dv.StatusCode.is_good())  # fmt: skip
-            if not pts:
-                return [], f"the server's history of {name} is empty for the outage"
-            t = np.array([q[0] for q in pts])
-            holes = np.diff(np.concatenate([[float(state["last_ts"])], t, [ts_now]]))
-            if holes.max() > self.state_max_gap_s:
-                return [], f"the server's history of {name} has a hole of {holes.max():.0f} s"
-            series[name] = (t, [q[1] for q in pts])
+            series[name] = (np.array([q[0] for q in pts], dtype=float), [q[1] for q in pts])
+        hole = history_hole(float(state["last_ts"]), ts_now, [t for t, _ in series.values()], self.state_max_gap_s)
+        if hole:
+            return [], hole
         n0 = len(lg.STATE_COLUMNS)
         last = rows[-1]
         held = {"axis_mm": last[1], "feed_mm_min": last[2], "load_N": last[3], "measuring": last[4],
@@ -338,6 +335,23 @@ class Compensator:
         """End the loop after the current cycle (the summary says ``reason``)."""
         self.stop_reason = reason
         self.stop_requested = True
+
+
+def history_hole(start_ts: float, end_ts: float, stamps: list[np.ndarray], max_gap_s: float) -> str:
+    """Why the server's history of an outage from ``start_ts`` to ``end_ts`` (source timestamps) cannot
+    be replayed, or "" when it can. A historian stores a value when it changes (OPC UA's data-change
+    historising, a deadband): one input with no point for a while held its value, as the loop would
+    have held it (the feed of a long cut, the measuring flag between two probing cycles, for
+    minutes). A hole is a time with no point of *any* input for longer than ``max_gap_s``: nothing
+    was recorded then, and the inputs are not known."""
+    t = np.sort(np.concatenate([[start_ts], *[np.asarray(s, dtype=float) for s in stamps], [end_ts]]))
+    t = t[(t >= start_ts) & (t <= end_ts)]
+    gaps = np.diff(t)
+    if not gaps.size or gaps.max() <= max_gap_s:
+        return ""
+    i = int(np.argmax(gaps))
+    return (f"the server's history has no value of any input for {gaps[i]:.0f} s (from {t[i] - start_ts:.0f} s after the "
+            f"saved state), more than the {max_gap_s:.0f} s the runtime bridges")
 
 
 def run_compensator(model_dir, endpoint: str, nodes_path, cfg: Mapping[str, Any]) -> dict:

@@ -264,7 +264,12 @@ class SimCnc:
         self.probe_plan = machine.probes(float(pe)) if pe is not None else None  # (t_s, axis_mm, measured_um) rows
         self.probes_published = 0
         self.server = None
+        self.history = self.cfg.get("history", False)
+        if self.history not in (False, True, "changes"):
+            raise SimCncError(f"config key 'history': expected false, true (every value published) or changes (a value "
+                              f"when it changes, as a data-change historian stores it), got {self.history!r}")  # fmt: skip
         self.history_keys: list[str] = []
+        self.history_last: dict[str, Any] = {}  # with history=changes: the last value stored per input
         self.k = 0
         self.started = asyncio.Event()
         self.first_read = asyncio.Event()
@@ -345,10 +350,12 @@ class SimCnc:
         server.subscribe_server_callback(CallbackType.PostRead, on_read)
         try:
             await server.start()
-            if self.cfg.get("history"):  # OPC UA Historical Access on the inputs: a compensator back from an outage replays it
-                # Stored at the source, every value as published, as a controller's historian logs it. The
-                # server's own data-change historising samples through a subscription (a queue of one per
-                # 10 ms publish), so a burst of samples (a loaded host catching up) kept only the last.
+            if self.history:  # OPC UA Historical Access on the inputs: a compensator back from an outage replays it
+                # Stored at the source, every value as published (true) or each value when it changes (changes:
+                # a data-change historian, whose history has no point while an input stands still), as a
+                # controller's historian logs it. The server's own data-change historising samples through a
+                # subscription (a queue of one per 10 ms publish), so a burst of samples (a loaded host
+                # catching up) would keep only the last.
                 self.history_keys = ["axis_mm", "feed_mm_min", "measuring",
                                      *[k for k in self.ids if k.endswith("_C") or k == "load_N"]]  # fmt: skip
                 for k in self.history_keys:
@@ -410,7 +417,9 @@ class SimCnc:
             vt = ua.VariantType.Boolean if isinstance(v, bool) else ua.VariantType.Double
             dv = ua.DataValue(ua.Variant(v, vt), SourceTimestamp=ts, ServerTimestamp=now)
             await self.server.write_attribute_value(self.ids[key], dv)
-            if key in self.history_keys:
+            unchanged = self.history == "changes" and key in self.history_last and self.history_last[key] == v
+            if key in self.history_keys and not unchanged:
+                self.history_last[key] = v
                 await self.server.iserver.history_manager.storage.save_node_value(self.ids[key], dv)
         await self._publish_probe(t, base)
 

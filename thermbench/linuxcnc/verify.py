@@ -24,6 +24,11 @@ import numpy as np
 import pandas as pd
 
 SERVO_S = 0.001  # [EMCMOT]SERVO_PERIOD of the sim configuration
+#: servo periods the external offset is given to reach a new request: LinuxCNC plans it within
+#: OFFSET_AV_RATIO x the axis's velocity and acceleration (25 mm/s, 150 mm/s² here), so a step of a
+#: few µm takes well under 10 ms; a step's size depends on how often the component got to write
+#: (a loaded host writes less often, in bigger steps), the time to follow it does not
+FOLLOW_PERIODS = 50
 
 
 def read_samples(path: Path) -> pd.DataFrame:
@@ -59,6 +64,13 @@ def controller_figures(samples: pd.DataFrame, scale_mm: float, ratio: float, max
     cs = s["counts"].to_numpy() * scale_mm
     req_vs_counts = np.minimum(np.abs(req - cs), np.abs(req - np.concatenate([[cs[0]], cs[:-1]])))
     lag = s["eoffset_mm"] - s["eoffset_request_mm"]
+    # the offset lies between the requests of the last FOLLOW_PERIODS servo periods (on its way from one
+    # to the next), and equals the request wherever that has held for as long
+    recent = s["eoffset_request_mm"].rolling(FOLLOW_PERIODS + 1, min_periods=1)
+    lo, hi = recent.min().to_numpy(), recent.max().to_numpy()
+    off = s["eoffset_mm"].to_numpy()
+    outside = np.maximum(np.maximum(lo - off, off - hi), 0.0)
+    held = (hi == lo) & (np.arange(len(s)) >= FOLLOW_PERIODS)
     rate = np.abs(np.diff(s["eoffset_mm"].to_numpy())) / SERVO_S
     return {
         "servo_samples": int(len(samples)), "servo_samples_machine_on": int(len(s)),
@@ -67,6 +79,9 @@ def controller_figures(samples: pd.DataFrame, scale_mm: float, ratio: float, max
         "actual_minus_commanded_plus_offset_max_abs_um": 1e3 * float(np.max(np.abs(actual_vs))),
         "request_minus_counts_x_scale_max_abs_um": 1e3 * float(np.max(np.abs(req_vs_counts))),
         "offset_minus_request_max_abs_um": 1e3 * float(np.max(np.abs(lag))),
+        "offset_outside_recent_requests_max_um": 1e3 * float(np.max(outside)),
+        "offset_minus_held_request_max_abs_um": 1e3 * float(np.max(np.abs(lag.to_numpy()[held]))) if held.any() else None,
+        "request_held_samples": int(held.sum()),
         "offset_rate_max_mm_s": float(rate.max()) if rate.size else 0.0,
         "offset_rate_limit_mm_s": ratio * max_velocity_mm_s,
         "offset_max_abs_um": 1e3 * float(np.max(np.abs(s["eoffset_mm"]))),
