@@ -67,7 +67,38 @@ def _time_steps_within(log: pd.DataFrame, rate_um_s: float, period_s: float = 1.
     same = np.diff(v["axis_mm"].to_numpy()) == 0
     dv, dt = np.abs(np.diff(v["value_um"].to_numpy())), np.minimum(np.diff(v["t_s"].to_numpy()), period_s)
     dt = np.where(np.isfinite(dt), dt, period_s)
-    return bool(same.sum() > 100 and np.all(dv[same] <= rate_um_s * dt[same] + 1e-9))
+    return bool(same.sum() > 10 and np.all(dv[same] <= rate_um_s * dt[same] + 1e-9))
+
+
+def fault_window(log: pd.DataFrame, rows: pd.DataFrame, length_s: float, step_s: float = 1.0) -> tuple[float, float]:
+    """Check that a block of consecutive cycles saw a fault of ``length_s`` machine seconds on a
+    ``step_s`` sample grid, by what the loop logged, whatever its pace: the block's cycles read
+    samples inside the fault (its span at most length - step), and the cycles either side of it
+    read samples outside (their span at least the length). A loaded host's loop reads fewer
+    samples, so the block's ends lie anywhere in those gaps; no count of cycles is asked for.
+    Returns the gaps before and after the block (machine s)."""
+    assert len(rows) and (np.diff(rows.index) == 1).all(), "not one block of consecutive cycles"
+    t = log["t_s"]
+    i0, i1 = rows.index[0], rows.index[-1]
+    assert i0 - 1 in t.index and i1 + 1 in t.index, "the block is at the log's edge: no cycle either side"
+    assert t[i1] - t[i0] <= length_s - step_s + 1e-6, (t[i0], t[i1])
+    assert t[i1 + 1] - t[i0 - 1] >= length_s - 1e-6, (t[i0 - 1], t[i1 + 1])
+    return float(t[i0] - t[i0 - 1]), float(t[i1 + 1] - t[i1])
+
+
+def replay_as_stepped(model_dir, ds, log: pd.DataFrame, **kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The loop's fresh cycles and the C runtime's answers at the same machine times, stepped with
+    exactly the samples the loop read (a loaded host's loop may skip a sample: its model steps over
+    it, zero-order hold, and so does this reference): thermbench replay --live of those samples."""
+    from thermbench.export.bundle import process_samples, replay_dir
+
+    samples = process_samples(ds, RUN)
+    fresh = log[((log["flags"] & HELD) == 0) & log["predicted_um"].notna()]
+    k = np.floor(fresh["t_s"].to_numpy() + 1e-3)  # the model's last grid point (1 s) at each cycle
+    seen = np.floor(log["t_s"].dropna().to_numpy() + 1e-3)  # every sample the loop stepped (held cycles too)
+    played = samples[samples["t_s"].isin(seen)].reset_index(drop=True)
+    q = pd.DataFrame({"t_s": k, "axis_mm": fresh["axis_mm"].to_numpy()})
+    return fresh, replay_dir(model_dir, ds, RUN, q, samples=played, live=True, **kw)
 
 
 def _cycle_starts(log: pd.DataFrame, period_s: float, attempts: np.ndarray) -> np.ndarray:
@@ -127,15 +158,27 @@ def test_closed_loop_reduces_the_error_as_replay_predicts(machine, seed001_expor
     nodes_before = nodes_file.read_bytes()
     f, s, log = asyncio.run(_closed_loop(machine, seed001_exports / "mlr", nodes_file, tmp_path))
     assert note.read_text() == "operator: spindle warm-up skipped\n" and nodes_file.read_bytes() == nodes_before
+    from thermbench.data.io import load_dataset
+
     rep = replay_run(seed001_exports / "mlr", tmp_path / "sim" / "dataset", RUN)["figures"]
     assert f["before_max_abs_um"] == rep["before_max_abs_um"] > 15.0
-    assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]  # the loop compensates ...
-    assert abs(f["after_max_abs_um"] - rep["after_max_abs_um"]) < 0.1  # ... as much as replay says
-    assert abs(f["after_rmse_um"] - rep["after_rmse_um"]) < 0.1
+    assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]  # the loop compensates
     assert f["samples_after_rms_um"] < 0.5 * f["samples_before_max_abs_um"]
-    # the client saw (nearly) every sample, and the log has one line per cycle
-    assert log["t_s"].dropna().nunique() > 0.9 * len(machine.samples)
+    # ... as replay says: at every cycle the loop's prediction is the C runtime's, replaying exactly the
+    # samples the loop read (how many it read, and so how close the machine comes to replay_run's figures
+    # over every sample, depends on the host's pace: 0.105 µm apart once under load)
+    fresh, ref = replay_as_stepped(seed001_exports / "mlr", load_dataset(tmp_path / "sim" / "dataset"), log)
+    assert len(fresh) > 10 and (ref["rc"] == 0).all()
+    np.testing.assert_allclose(fresh["predicted_um"].to_numpy(), ref["total_um"].to_numpy(), rtol=0, atol=1e-6)
+    # ... and the machine applied, at each reading, a value the loop had written by then (machine time)
+    rd = pd.read_csv(tmp_path / "sim" / "readings.csv")
+    wrote = log.dropna(subset=["value_um"])
+    for t_r, applied in rd.loc[rd["applied_um"] != 0, ["t_s", "applied_um"]].itertuples(index=False):
+        assert applied in set(wrote.loc[wrote["t_s"] <= t_r, "value_um"]), (t_r, applied)
+    assert (rd["applied_um"] != 0).sum() >= 0.5 * len(rd)
+    # the log has one line per cycle, and the program was read to its end
     assert len(log) == s["cycles"] and s["flags"].get("DISCONNECTED", 0) == 0
+    assert s["ended"] == "the machine's program is done" and log["t_s"].max() >= machine.samples["t_s"].iloc[-1] - 1
     assert _time_steps_within(log, 20.0)  # the compensation never changed in time faster than the limit
 
 
@@ -168,7 +211,7 @@ def test_namespace_uris_resolve_on_a_server_that_numbers_its_namespaces_differen
     assert refused.startswith(f"{hard}: key outputs.value.node: output value node 'ns=2;s=X.TempComp_um'"), refused
     assert "does not exist on opc.tcp://127.0.0.1:" in refused, refused
     assert "\n" not in refused
-    assert s["cycles"] > 100 and s["flags"].get("DISCONNECTED", 0) == 0
+    assert s["ended"] == "the machine's program is done" and s["flags"].get("DISCONNECTED", 0) == 0
     assert f["after_max_abs_um"] < 0.5 * f["before_max_abs_um"]
 
 
@@ -199,21 +242,20 @@ def test_faulty_sensors_and_frozen_data_are_held_and_flagged(ds, seed001_exports
     # first read, a few samples apart either way): each fault window is found in the log as
     # the one block of cycles holding its sensor, as long as the fault in machine time
     def window(sensor: str) -> pd.DataFrame:
-        holds = log["held"].fillna("").str.split(";").map(lambda h: sensor in h)
-        win = log[holds]
-        assert len(win) > 10 and (np.diff(win.index) == 1).all(), sensor
-        return win
+        return log[log["held"].fillna("").str.split(";").map(lambda h: sensor in h)]
 
     nan_win = window("T_nut_C")
-    assert 55 <= nan_win["t_s"].iloc[-1] - nan_win["t_s"].iloc[0] <= 61 and 95 <= nan_win["t_s"].iloc[0] <= 105
+    nan_in, _ = fault_window(log, nan_win, 60.0)
     assert nan_win["held"].eq("T_nut_C").all() and (nan_win["flags"] & INPUT_HELD).all()
     before = log.loc[nan_win.index[0] - 1, "T_nut_C"]
     assert (nan_win["T_nut_C"] == before).all()  # held at the last good value
     hot = window("T_bed_C")
-    assert 25 <= hot["t_s"].iloc[-1] - hot["t_s"].iloc[0] <= 31 and 95 <= hot["t_s"].iloc[0] - nan_win["t_s"].iloc[0] <= 101
+    hot_in, _ = fault_window(log, hot, 30.0)
+    # 100 s after the first (each window's first cycle lies within the gap before it of its fault's start)
+    assert 100.0 - nan_in - 1e-6 <= hot["t_s"].iloc[0] - nan_win["t_s"].iloc[0] <= 100.0 + hot_in + 1e-6
     assert hot["held"].eq("T_bed_C").all() and (hot["T_bed_C"] < 80).all()
     stale = log[(log["flags"] & STALE) > 0]
-    assert len(stale) > 10 and (stale["flags"] & HELD).all()
+    assert len(stale) >= 2 and (stale["flags"] & HELD).all()
     assert stale["value_um"].nunique() == 1  # the compensation held at one value while the data was frozen
     assert _time_steps_within(log, 2.0)  # never faster than the rate limit, faults or not
     assert (log[log["t_s"] > 420]["flags"] & (STALE | INPUT_HELD)).eq(0).all()  # recovered
@@ -276,7 +318,7 @@ def test_server_restart_reconnects_with_backoff_and_holds_the_compensation(machi
     comp, s = asyncio.run(scenario())
     log = pd.read_csv(tmp_path / "cycles.csv")
     down = log[(log["flags"] & DISCONNECTED) > 0]
-    assert len(down) > 50 and (down["flags"] & HELD).all()
+    assert len(down) >= len(comp.connect_attempts) and (down["flags"] & HELD).all()  # each attempt began in such a cycle
     last_good = log.loc[: down.index[0] - 1].dropna(subset=["value_um"])["value_um"].iloc[-1]
     assert (down["value_um"] == last_good).all()  # held at the last good value
     assert s["flags"]["reconnects"] >= 1 and s["flags"]["connection_lost"] >= 1 and s["ended"] == "stopped"
@@ -351,7 +393,10 @@ def test_security_user_password_and_basic256sha256(machine, seed001_exports, nod
             stopped = Compensator(seed001_exports / "mlr", ep, nodes_file, _client_cfg(tmp_path, log=str(tmp_path / "int.csv"),
                                                                                         security=sec()))  # fmt: skip
             t = asyncio.ensure_future(stopped.run())
-            await asyncio.sleep(1.0)
+            end = asyncio.get_running_loop().time() + 60.0  # a guard against a hang, not a speed limit
+            while not ((tmp_path / "int.csv").exists() and len((tmp_path / "int.csv").read_text().splitlines()) > 12):
+                assert asyncio.get_running_loop().time() < end and not t.done(), "the compensator does not cycle"
+                await asyncio.sleep(0.05)
             stopped.stop("interrupted")  # what the command's SIGINT handler does
             await t
             interrupted = json.loads((tmp_path / "int.summary.json").read_text())
@@ -440,13 +485,14 @@ def test_cli_errors_name_what_is_wrong(machine, seed001_exports, nodes_file, tmp
 
 
 def test_warm_restart_resumes_and_a_long_outage_starts_cold_loudly(machine, seed001_exports, nodes_file, tmp_path):
-    """Three compensator processes against one running machine (20x): the first saves its state;
+    """Three compensator processes against one running machine (10x): the first saves its state;
     the second, started at once, resumes it (says so, first cycle RESUMED, the value the
     controller holds continued); the third, started after more than 60 s of machine time, starts
-    cold and says so in one line, every cycle flagged COLD."""
+    cold and says so in one line, every cycle flagged COLD. (At 10x a loaded host has 6 s of wall
+    clock to start the second process within the 60 s the runtime bridges.)"""
     state = tmp_path / "state.json"
     said = asyncio.run(_restarted_compensators(machine, seed001_exports / "mlr", nodes_file, tmp_path,
-                                               (0.0, 0.0, 4.0), 1.5, start="immediate"))  # 4 s wall = 80 s machine
+                                               (0.0, 0.0, 7.0), 1.5, speed=10.0, start="immediate"))  # 7 s wall = 70 s machine
     logs = [pd.read_csv(tmp_path / f"run{n}.csv") for n in range(3)]
     first, second, third = logs
     assert any(ln.startswith("starting fresh: no saved state at ") for ln in said[0])  # the first start: nothing saved
@@ -526,11 +572,11 @@ def _longest_constant_s(t: np.ndarray, v: np.ndarray) -> float:
     return float(np.diff(t[edges]).max())
 
 
-async def _restarted_compensators(machine, model_dir, nodes_file, tmp_path, pauses_s, duration_s, **sim_kw):
-    """One 20x sim-cnc; a compensator with ``state.path`` started after each pause (wall s), run for
+async def _restarted_compensators(machine, model_dir, nodes_file, tmp_path, pauses_s, duration_s, speed=20.0, **sim_kw):
+    """One sim-cnc (``speed`` x real time); a compensator with ``state.path`` started after each pause (wall s), run for
     ``duration_s``; returns what each said (its log is ``run<n>.csv``)."""
     ep = f"opc.tcp://127.0.0.1:{_port()}/sim"
-    sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": 20.0, **sim_kw})
+    sim = SimCnc(machine, {"endpoint": ep, "run": RUN, "speed": speed, **sim_kw})
     await sim.start_server()
     clock = asyncio.ensure_future(sim.run_clock())
     said = []
@@ -589,12 +635,16 @@ def test_probe_node_corrects_the_loop_as_replay_with_the_same_probes(machine, se
     # the probes as the loop took them: their times and values, at the axis where the loop then was (a
     # loaded host's loop may miss the sample a probe came with: it sees the probe a sample later, there)
     took_at = probes.assign(axis_mm=took["axis_mm"].to_numpy())
-    assert (took_at["axis_mm"] == probes["axis_mm"]).sum() >= len(probes) - 2
+    # each taken by the first cycle that read the sample it came with: at most one cycle before read a sample
+    # at or past its time (sim-cnc writes a sample's nodes one by one, so a read may fall between them)
+    t_log = log["t_s"].dropna()
+    for i, t_p in zip(took.index, probes["t_s"]):
+        assert (t_log.loc[: i - 1] >= t_p).sum() <= 1 and t_p <= log.loc[i, "t_s"], (i, t_p)
     ref = replay_dir(seed001_exports / "mlr", ds, RUN, q, samples=played, live=True, probes=took_at, probe_params=params)
     corrected = fresh["predicted_um"].to_numpy() + fresh["correction_um"].to_numpy()
     # a cycle at a probe's own second may have taken it before answering (replay answers first): left out
     away = ~np.isin(k, probes["t_s"].to_numpy())
-    assert away.sum() > 500 and np.abs(fresh["correction_um"].to_numpy()[k > probes["t_s"].iloc[0]]).max() > 0.05
+    assert away.sum() > 100 and np.abs(fresh["correction_um"].to_numpy()[k > probes["t_s"].iloc[0]]).max() > 0.05
     ok = away & (ref["rc"].to_numpy() == 0)
     np.testing.assert_allclose(fresh["predicted_um"].to_numpy()[ok], ref["total_um"].to_numpy()[ok], rtol=0, atol=1e-6)
     np.testing.assert_allclose(corrected[ok], ref["corrected_um"].to_numpy()[ok], rtol=0, atol=1e-3)  # issue 41: <= 0.01

@@ -74,26 +74,29 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
         stop_wall = __import__("time").time()
         clocks[1].cancel()
         await sims[1].stop_server()  # b goes away: Y's controller and X's bed sensor
-        kill_wall = __import__("time").time()
         summary = await task
         applied = sims[0]._read("value")  # what a holds as X's compensation
         clocks[0].cancel()
         await sims[0].stop_server()
-        return summary, stop_wall, kill_wall, applied, sims[0].results()["probes"]
+        return summary, stop_wall, applied, sims[0].results()["probes"]
 
-    summary, stop_wall, kill_wall, applied, probes = asyncio.run(scenario())
+    summary, stop_wall, applied, probes = asyncio.run(scenario())
     x = pd.read_csv(tmp_path / "logs" / "X.csv")
     y = pd.read_csv(tmp_path / "logs" / "Y.csv")
-    assert len(x) == len(y) == summary["cycles"] > 100  # one line per channel per cycle
-    before_x, after_x = x[x["wall_s"] < stop_wall], x[x["wall_s"] > kill_wall + 0.3]
-    before_y, after_y = y[y["wall_s"] < stop_wall], y[y["wall_s"] > kill_wall + 0.3]
+    assert len(x) == len(y) == summary["cycles"] > 10  # one line per channel per cycle
+    before_x, before_y = x[x["wall_s"] < stop_wall], y[y["wall_s"] < stop_wall]
     ok = ~int(Flags.PROBE)  # compensating (a cycle that took a probe reading is flagged PROBE, and is as good)
-    assert ((before_x["flags"].iloc[-10:] & ok) == 0).all() and ((before_y["flags"].iloc[-10:] & ok) == 0).all()
+    assert ((before_x["flags"].iloc[-2:] & ok) == 0).all() and ((before_y["flags"].iloc[-2:] & ok) == 0).all()
+    # after the kill, from the first cycle that saw it (on the log's cycles, however long the host took to
+    # notice: no wall-clock window); the two logs have one line per cycle, so one index serves both
+    lost = max(y.index[(y["flags"] & int(Flags.DISCONNECTED)) > 0][0], x.index[x["held"].fillna("") == "T_bed_C"][0])
+    assert x.loc[lost, "wall_s"] > stop_wall
+    after_x, after_y = x.loc[lost:], y.loc[lost:]
     # Y: its controller is gone: held, disconnected
-    assert len(after_y) > 20 and ((after_y["flags"] & int(Flags.DISCONNECTED)) > 0).all()
+    assert len(after_y) >= 3 and ((after_y["flags"] & int(Flags.DISCONNECTED)) > 0).all()
     assert ((after_y["flags"] & int(Flags.HELD)) > 0).all()
     # X: only its bed sensor is held (at its last good value); it goes on compensating on a
-    assert len(after_x) > 20 and not ((after_x["flags"] & int(Flags.DISCONNECTED)) > 0).any()
+    assert len(after_x) >= 3 and not ((after_x["flags"] & int(Flags.DISCONNECTED)) > 0).any()
     assert (after_x["held"] == "T_bed_C").all() and ((after_x["flags"] & int(Flags.INPUT_HELD)) > 0).all()
     assert after_x["T_bed_C"].nunique() == 1 and after_x["T_bed_C"].iloc[0] == before_x["T_bed_C"].iloc[-1]
     assert after_x["t_s"].is_monotonic_increasing and after_x["t_s"].iloc[-1] > before_x["t_s"].iloc[-1] + 10
@@ -108,10 +111,15 @@ def test_a_dead_endpoint_holds_only_what_it_touches(machines, seed001_exports, t
     # last may come after the station's end): from X's first, every one of a's readings, once, in order
     idx = [int(np.flatnonzero(probes["measured_um"].to_numpy() == v)[0]) for v in took["probe_um"]]
     assert len(took) >= 3 and idx == list(range(idx[0], idx[0] + len(took))) and idx[-1] >= len(probes) - 2
-    # each taken within moments of its time (the station's timeline starts where it joined): 10 machine
-    # seconds are 0.5 s of wall clock at 20x, room for a loaded host's late cycles (one came 3 s late in CI)
-    lag = took["t_s"].to_numpy() - probes["t_s"].to_numpy()[idx]
-    assert np.ptp(lag) <= 10.0
+    # each taken by the first cycle that read the sample it came with, on one timeline: the station's t_s
+    # starts where it joined, at an offset o from a's program time, and then every probe time lies in the
+    # gap between the cycle that took it and the one before, shifted by o: o exists (in machine time, so a
+    # loaded host's late cycles widen the gaps, not the check; one came 3 s late in CI)
+    t_x = x["t_s"].to_numpy()
+    pos = x.index.get_indexer(took.index)
+    lag = t_x[pos] - probes["t_s"].to_numpy()[idx]  # t_took - t_probe = gap part - o
+    gap = np.where(pos >= 2, t_x[pos] - t_x[np.maximum(pos - 2, 0)], np.inf)  # one cycle between at most (a read between two node writes)
+    assert -lag.min() <= (gap - lag).min() + 1e-6, (lag, gap)
     after = x[x["t_s"] > took["t_s"].iloc[0]]
     assert (after["correction_um"].abs() > 0).any() and (y["correction_um"].fillna(0) == 0).all()
     assert not ((y["flags"] & int(Flags.PROBE)) > 0).any()

@@ -430,7 +430,7 @@ def test_unreachable_server_fails_before_any_data_is_loaded(workdir, monkeypatch
         t0 = time.monotonic()
         with pytest.raises(TrackingError) as err:
             experiment.train(cfg)
-        assert time.monotonic() - t0 < 5.0
+        assert time.monotonic() - t0 < 30.0  # no retries (MLflow's own back-off takes minutes); a loaded host's pace is no test
     assert f"tracking.uri={uri}" in str(err.value) and "\n" not in str(err.value)
     assert loaded == []
 
@@ -443,7 +443,7 @@ def test_server_that_never_answers_fails_after_timeout_s(workdir):
         t0 = time.monotonic()
         with pytest.raises(TrackingError, match=f"tracking.uri={uri}"):
             tracking.connect({"uri": uri, "timeout_s": 1.0})
-        assert 0.9 < time.monotonic() - t0 < 4.0
+        assert 0.9 < time.monotonic() - t0 < 30.0  # waited timeout_s, then no retries (MLflow's own back-off takes minutes)
 
 
 def test_cli_unreachable_server_exits_2_with_one_line_and_trains_nothing(workdir, seed001_data_root):
