@@ -32,7 +32,7 @@ CORE_VENV   ?= .venv-core
 FUZZ_SECONDS ?= 300
 FUZZ_DIR     ?= build/fuzz
 
-.PHONY: target-test demo test install install-dev core-check bench notebooks fuzz clean sysdeps-test sysdeps-target-test
+.PHONY: stress target-test demo test install install-dev core-check bench notebooks fuzz clean sysdeps-test sysdeps-target-test
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -78,6 +78,13 @@ core-check:
 test: sysdeps-test $(VENV)/.installed-dev $(NODE_OPCUA)
 	$(BIN)/python -m pytest -n 2 -q -m "not timing and not target"
 	$(BIN)/python -m pytest -q -m timing
+
+# the real-time tests (markers timing, realtime) STRESS_N times while STRESS_K busy loops take the cores:
+# pass counts per test (tools/stress.sh; every test should pass every run)
+STRESS_N ?= 10
+STRESS_K ?= 2
+stress: $(VENV)/.installed-dev $(NODE_OPCUA)
+	PYTHON=$(BIN)/python bash tools/stress.sh $(STRESS_N) $(STRESS_K)
 
 # the C runtime cross-compiled for the Cortex-M4F and run on QEMU's mps2-an386 (marker target);
 # its system packages (cross compiler, newlib, QEMU) come from sysdeps-target-test

@@ -7,8 +7,8 @@
 #   make stress STRESS_N=10 STRESS_K=2
 #
 # A test that asserts on wall-clock windows fails here first: every real-time test should pass N of N.
-# Each run's JUnit XML and output go to build/stress/<stamp>/ (a new directory per call; nothing
-# else is written). Exit 0 when every test passed every run, 1 otherwise.
+# Each run's JUnit XML and output go to $STRESS_OUT/<stamp>/ (default build/stress; a new directory
+# per call, nothing else is written). Exit 0 when every test passed every run, 1 otherwise.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 N=${1:-10}
@@ -17,8 +17,9 @@ shift $(( $# >= 2 ? 2 : $# ))
 case "$N$K" in *[!0-9]*) echo "stress.sh: N and K are whole numbers (runs, busy loops); got N=$N K=$K" >&2; exit 2 ;; esac
 PY=${PYTHON:-.venv/bin/python}
 [ -x "$PY" ] || { echo "stress.sh: $PY not found: run 'make install-dev' first (or set PYTHON)" >&2; exit 2; }
-out="build/stress/$(date -u +%Y%m%dT%H%M%SZ)-$$"
-mkdir -p "$out"
+out="${STRESS_OUT:-build/stress}/$(date -u +%Y%m%dT%H%M%SZ)-$$"
+mkdir -p "$(dirname "$out")"
+mkdir "$out"
 
 busy=()
 stop_busy() { for p in "${busy[@]:-}"; do [ -n "$p" ] && kill "$p" 2>/dev/null || true; done; }
