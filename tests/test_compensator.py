@@ -504,7 +504,8 @@ def test_warm_restart_resumes_and_a_long_outage_starts_cold_loudly(machine, seed
     last, nxt = first["value_um"].dropna().iloc[-1], second["value_um"].dropna().iloc[0]
     assert abs(nxt - last) <= 20.0 + 1e-9
     # the machine time goes on too: the second process's t_s continues the first's (same origin)
-    assert second["t_s"].iloc[0] > first["t_s"].iloc[-1]
+    # (at or past its last sample: a second process started at once may read the same sample, 0.1 s of wall at 10x)
+    assert second["t_s"].iloc[0] >= first["t_s"].iloc[-1] > 0
     cold = [ln for ln in said[2] if ln.startswith("COLD START: the saved state is ")]
     assert len(cold) == 1 and "more than the 60 s the runtime bridges" in cold[0] and "\n" not in cold[0]
     assert (third["flags"] & int(Flags.COLD)).all() and "COLD" in third["flag_names"].iloc[-1]
