@@ -54,6 +54,19 @@ from .models.base import ModelError
 from .models.gp import GaussianProcessLag
 
 
+#: what a cell (a family on a dataset: an approach, a fold) may fail with on its data: thermbench's own
+#: ModelError, and scikit-learn's and numpy's refusals of the numbers they were given (no input left after a
+#: selection, a singular matrix, non-finite values). Each is one line and a row of kind ``failed`` in
+#: results.csv; the cell is no candidate of that fold and the benchmark goes on.
+CELL_FAILURES = (ModelError, ValueError, np.linalg.LinAlgError, FloatingPointError)
+
+
+def failure_text(exc: BaseException) -> str:
+    """One line saying why a cell failed (a library's exception keeps its type name)."""
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, ModelError) else f"{type(exc).__name__}: {text}"
+
+
 def run_task(
     dataset_cfg: Mapping,
     family: str,
@@ -100,6 +113,7 @@ def run_task(
     ds = split.dataset
     model = build_model(model_cfg, seed=seed)
     rows, curves, models, errors = [], [], {}, []
+    failed: list[dict] = []  # one row per cell that could not fit or predict (results.csv, kind "failed")
     cv, folds, outer = outer_folds(split, cv, cv_folds)  # outer: the folds a choice is made for
     inner_rows = []
 
@@ -122,6 +136,13 @@ def run_task(
 
     where = split.name if channel == "all" else f"{split.name} {channel}"
 
+    def fail(what: str, exc: BaseException, approach: str, fold: str = "", inner_fold: str = "") -> None:
+        """A cell that could not fit or predict: one line, one row; never a candidate, the run goes on."""
+        why = failure_text(exc)
+        errors.append(f"{where}/{family}/{what}: {why}")
+        failed.append({"dataset": split.name, "channel": channel, "family": family, "approach": approach, "fold": fold,
+                       "inner_fold": inner_fold, "kind": "failed", "failure": why})  # fmt: skip
+
     def say(what: str, fit_s: float) -> None:
         if verbose:
             print(f"    {where} x {family}: {what} fitted in {fit_s:.1f} s", flush=True)
@@ -137,8 +158,8 @@ def run_task(
         for state in states:
             try:
                 fitted, res, _ = fit_evaluate(model, ds, [state])
-            except ModelError as exc:
-                errors.append(f"{where}/{family}/single {state}: {exc}")
+            except CELL_FAILURES as exc:
+                fail(f"single {state}", exc, "single")
                 continue
             singles[state] = fitted
             single_fit_s[state] = float(res["fit_s"].iloc[0])
@@ -153,22 +174,25 @@ def run_task(
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
             models["global"] = fitted
             say("global", float(res["fit_s"].iloc[0]))
-        except ModelError as exc:
-            errors.append(f"{where}/{family}/global: {exc}")
+        except CELL_FAILURES as exc:
+            fail("global", exc, "global", "+".join(split.validation))
     elif "global" in approaches:
         for fold in folds:  # one fit per fold, scored on the runs it holds out
             try:
                 fitted, res, cur = fit_evaluate(model, ds, fold.train, fold.held_out, curves=True)
+                if "rmse_um" in res and not np.isfinite(res["rmse_um"]).all():
+                    raise FloatingPointError(f"non-finite predictions on {', '.join(fold.held_out)}")
                 fold_models[fold.name] = fitted
                 rows.append(tag(res, "global", "all", fitted, fold=fold.name))
                 curves.append(tag(cur, "global", "all", fold=fold.name))
                 say(f"global without {fold.name}", float(res["fit_s"].iloc[0]))
-            except ModelError as exc:
-                errors.append(f"{where}/{family}/global fold {fold.name}: {exc}")
+            except CELL_FAILURES as exc:
+                fail(f"global fold {fold.name}", exc, "global", fold.name)
         try:  # the model to deploy: on every run
             models["global"] = clone(model).fit(ds, states)
-        except ModelError as exc:
-            errors.append(f"{where}/{family}/global: {exc}")
+        except CELL_FAILURES as exc:
+            fail("global (the model to deploy)", exc, "global", "all runs")
+
     def new_bank(approach: str):
         from .models.bank import ConditionBank
 
@@ -188,13 +212,13 @@ def run_task(
                 res["fit_s"] = sum(single_fit_s[s] for s in members)
                 rows.append(tag(res, approach, "all", bank, fold=fold.name))
                 curves.append(tag(cur, approach, "all", fold=fold.name))
-            except ModelError as exc:
-                errors.append(f"{where}/{family}/{approach} fold {fold.name}: {exc}")
+            except CELL_FAILURES as exc:
+                fail(f"{approach} fold {fold.name}", exc, approach, fold.name)
         try:
             models[approach] = new_bank(approach).fit_from_fitted(ds, singles)
             say(f"{approach} classifier", 0.0)
-        except ModelError as exc:
-            errors.append(f"{where}/{family}/{approach}: {exc}")
+        except CELL_FAILURES as exc:
+            fail(f"{approach} (the model to deploy)", exc, approach, "all runs")
     for approach in banks if len(singles) > 1 and classifier_cfg is not None and cv == "declared" else []:
         bank = new_bank(approach)
         try:
@@ -208,8 +232,8 @@ def run_task(
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], approach, "all"))
             models[approach] = bank
             say(f"{approach} classifier", time.perf_counter() - t1)
-        except ModelError as exc:
-            errors.append(f"{where}/{family}/{approach}: {exc}")
+        except CELL_FAILURES as exc:
+            fail(approach, exc, approach, "+".join(split.validation))
     ref_only = reference_only_model(model)  # a baseline: inner folds for its intervals and probe peers only
     if not ref_only or "global" in approaches:  # a candidate of the nested choice: scored by the inner folds
         ref = DatasetRef(ds)
@@ -226,6 +250,8 @@ def run_task(
                           for g in inner]  # fmt: skip
                 try:
                     pred = cross_val_predict(RunsRegressor(model, ref), X, y, groups=groups, cv=cv_idx)
+                    if not np.isfinite(pred).all():
+                        raise FloatingPointError("non-finite predictions on an inner fold's held-out runs")
                     if f.name in fold_models:  # intervals and probe replays of the fold's global fit
                         cal = calibrate_fold(ds, f, inner, fold_models[f.name], X, y - pred)
                         interval_cols.update(fold_intervals(cal, f.name, level, kappa))
@@ -238,8 +264,8 @@ def run_task(
                     if not ref_only:  # never a candidate
                         inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
                                           .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
-                except ModelError as exc:
-                    errors.append(f"{where}/{family}/global fold {f.name}, inner folds: {exc}")
+                except CELL_FAILURES as exc:
+                    fail(f"global fold {f.name}, inner folds", exc, "global", f.name, "(inner folds)")
             for approach in [a for a in approaches if a in BANKS] if classifier_cfg is not None and not ref_only else []:
                 for g in inner:  # the bank of the single models of the inner fold's training runs
                     members = {s: m for s, m in singles.items() if s in g.train}
@@ -247,8 +273,8 @@ def run_task(
                         continue
                     try:
                         res = evaluate_runs(new_bank(approach).fit_from_fitted(ds, members), ds, list(g.held_out))
-                    except ModelError as exc:
-                        errors.append(f"{where}/{family}/{approach} fold {f.name}, inner fold {g.name}: {exc}")
+                    except CELL_FAILURES as exc:
+                        fail(f"{approach} fold {f.name}, inner fold {g.name}", exc, approach, f.name, g.name)
                         continue
                     inner_rows.append(res.assign(**tag_inner, approach=approach, inner_fold=g.name))
             say(f"the {len(inner)} inner folds of {f.name}", time.perf_counter() - t1)
@@ -277,6 +303,7 @@ def run_task(
         "inner": pd.concat(inner_rows, ignore_index=True) if inner_rows else pd.DataFrame(),
         "seconds": time.perf_counter() - t0,
         "errors": errors,
+        "failed": failed,
     }
 
 
@@ -1036,7 +1063,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     if held_flags:
         meta["flagged on held-out runs"] = held_flags
     if errors:
-        meta["could not fit"] = "; ".join(errors)
+        meta["could not fit (never a candidate there)"] = errors
     flag_lines = [f"{d}/{f}/{a} ({t}): {'; '.join(why)}" for (d, f, a, t), why in flags.items()]
     if flag_lines:
         meta["flagged (never chosen)"] = flag_lines
@@ -1046,7 +1073,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     if unchosen:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
     report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
-                          n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines), limits=limits)  # with results.csv
+                          n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines), limits=limits,
+                          failed=pd.DataFrame([f for o in done_tasks for f in o.get("failed", [])]))  # with results.csv
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
@@ -1107,6 +1135,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         print(f"flagged on held-out runs: {line}")
     for line in flag_lines:
         print(f"flagged (never chosen): {line}")
+    for line in errors:
+        print(f"could not fit (never a candidate there): {line}")
     for d in unchosen:
         print(f"no model chosen for {d}: every candidate is flagged")
     print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")

@@ -1437,7 +1437,8 @@ PROBES_MD = (
 
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
-                 held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None) -> Path:
+                 held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None,
+                 failed: pd.DataFrame | None = None) -> Path:
     """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
     ``out_dir/results.csv`` (:func:`results_table`); return the report path.
 
@@ -1446,7 +1447,9 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     figures (:class:`_Drawing`). ``held_out``: the benchmark's held-out table
     (:func:`thermbench.benchmark.held_out_table`), a section of its own after the summary;
     ``limits``: its target per case and, where missed, the evidence why
-    (:func:`thermbench.evidence.held_out_limits`), after the held-out tables.
+    (:func:`thermbench.evidence.held_out_limits`), after the held-out tables. ``failed``: the cells that
+    could not fit or predict (dataset, channel, family, approach, fold, inner_fold, failure), appended to
+    results.csv as rows of kind ``failed`` with their one-line reason in ``failure``.
 
     Layout: header (``meta``), how to read, the terminal summary, the headline
     tables (:func:`headline`, one per dataset), then per dataset: single vs
@@ -1481,6 +1484,8 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     if multi and RMSE not in r.columns:
         raise ValueError(f"results has no column {RMSE!r}, needed for dataset(s) {multi} scored on several channels")
     table = results_table(r, ref)
+    if failed is not None and len(failed):
+        table = pd.concat([table, failed.assign(reference=failed["family"].isin(ref))], ignore_index=True)
     out_dir = Path(out_dir)
     h = headline(r)
     used: set[str] = set()

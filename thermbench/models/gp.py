@@ -97,6 +97,9 @@ class GaussianProcessLag(ThermalErrorModel):
         X = np.vstack([lag._features(ds, r, lag.inputs_, lag.taus_s_, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
                        for r, g in rd.groupby("run_id", sort=False)])  # fmt: skip
         y = np.concatenate([g["error_um"].to_numpy(dtype=float) for _, g in rd.groupby("run_id", sort=False)])
+        if X.shape[1] == 0:  # the selection found no input that lowers the held-out error of these runs
+            raise ModelError(f"the lag selection kept no input on runs {', '.join(runs)} (no sensor lowered the "
+                             f"held-out error of a constant): the Gaussian process has nothing to read")  # fmt: skip
         self.mean_ = X.mean(axis=0)
         sd = X.std(axis=0)
         self.scale_ = np.where(sd > 0, sd, 1.0)
