@@ -52,3 +52,46 @@ def test_a_family_that_cannot_fit_is_one_line_and_a_row_and_the_benchmark_finish
     scored = table[(table["kind"] == "validation") & (table["approach"] == "global")]
     assert {"thermal_lag", "baseline_ridge"} <= set(scored["family"]) and "gp" not in set(scored["family"])
     assert "chosen" not in table or not table.loc[table["family"] == "gp", "chosen"].fillna(False).astype(bool).any()
+
+
+def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp_path):
+    """One choice, used twice (issue 54): the model exported and marked chosen is what the nested rule
+    (smallest median inner RMSE over whole held-out runs) picks on the inner folds of every run, and those
+    folds hold each run out once; recomputed here from the inner scores with pandas."""
+    import yaml
+
+    path = _noise_dataset(tmp_path)
+    cfg = _cfg(tmp_path, f"datasets=[{path}]", "families=[thermal_lag,lssvm,baseline_ridge]", "bank_families=[]",
+               "approaches=[global]", "cv=loro")  # fmt: skip
+    inner = pd.concat([bm.run_task(**{**t, "approaches": ["global"], "cv": "loro"})["inner"] for t in bm.tasks(cfg)
+                       if t["family"] != "baseline_ridge"])  # fmt: skip
+    deploy = inner[inner["fold"] == bm.DEPLOY_FOLD]
+    assert sorted(deploy.groupby("family")["run_id"].apply(sorted).iloc[0]) == ["r0", "r1", "r2", "r3"]
+    by_hand = deploy.groupby("family")["rmse_um"].median().idxmin()
+    # each outer fold's inner folds never see the fold's own run
+    for fold, g in inner[inner["fold"] != bm.DEPLOY_FOLD].groupby("fold"):
+        assert fold not in set(g["run_id"])
+    bm.benchmark(cfg)
+    manifest = yaml.safe_load((tmp_path / "models" / "manifest.yaml").read_text())
+    chosen = [k for k, v in manifest.items() if v["chosen"]]
+    assert chosen == [f"synthetic__{by_hand}__global"], (chosen, deploy.groupby("family")["rmse_um"].median())
+    report = (tmp_path / "reports" / "report.md").read_text()
+    line = next(ln for ln in report.splitlines() if ln.startswith("| chosen models "))
+    assert f"synthetic: {by_hand} (global) (deployed; chosen by the inner cross-validation over every run" in line
+    held = next(ln for ln in report.splitlines() if ln.startswith("| held out, synthetic "))
+    assert f"deployed {by_hand} (global); 4 folds; choice " in held
+
+
+def test_a_case_without_inner_folds_falls_back_and_says_so():
+    nested = pd.DataFrame([{"dataset": "a", "channel": "all", "case": "a", "fold": bm.DEPLOY_FOLD, "family": "f1",
+                            "approach": "global", "inner_median_rmse_um": 1.0},
+                           {"dataset": "a", "channel": "all", "case": "a", "fold": "r1", "family": "f2",
+                            "approach": "global", "inner_median_rmse_um": 0.5}])  # fmt: skip
+    rows = [{"dataset": d, "channel": "all", "family": f, "approach": "global", "kind": "validation", "run_id": "v",
+             "compensation_rate": rate, "max_abs_residual_um": 1.0, "own": False, "train": "all", "fold": "v"}
+            for d, f, rate in [("a", "f1", 0.1), ("a", "f2", 0.9), ("b", "f1", 0.2), ("b", "f2", 0.8)]]  # fmt: skip
+    chosen, rest = bm.deployed_choice(nested, pd.DataFrame(rows), baselines=[])
+    got = {c: (f, rule) for c, f, rule in chosen[["case", "family", "rule"]].itertuples(index=False)}
+    assert got["a"] == ("f1", "nested")  # the deploy fold's pick, not the better validation rate of f2
+    assert got["b"][0] == "f2" and got["b"][1].startswith("the best worst-case rate on the validation runs (fewer")
+    assert list(rest["fold"]) == ["r1"]
