@@ -98,8 +98,10 @@ def test_inner_folds_never_hold_or_train_on_the_outer_held_out_run(lathe):  # no
     _, dcfg = dataset_option(str(lathe), "datasets")
     out = bm.run_task(dcfg, "mlr_seed002", group_option("model", "mlr_seed002"), ["global"], None, seed=0,
                       channel="dia", cv="loro")  # fmt: skip
-    inner = out["inner"]
+    inner, every = out["inner"][out["inner"]["fold"] != bm.DEPLOY_FOLD], out["inner"][out["inner"]["fold"] == bm.DEPLOY_FOLD]
     assert set(inner["fold"]) == {"Day_1", "Day_2", "Day_3"}
+    # the deployed model's choice: the inner folds over every run, each held out once
+    assert sorted(every["run_id"]) == ["Day_1", "Day_2", "Day_3"] and set(every["inner_fold"]) == set(every["run_id"])
     for fold, g in inner.groupby("fold"):
         assert fold not in set(g["run_id"]) and fold not in set(g["inner_fold"])  # what the choice scores on
         assert sorted(g["run_id"]) == sorted({"Day_1", "Day_2", "Day_3"} - {fold})  # each other run once
