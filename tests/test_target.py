@@ -357,3 +357,42 @@ def test_a_thermal_lag_export_for_the_cortex_m4f_is_within_its_budget(thermal_la
     man = export_model(model, tmp_path / "m4", "tl", ds=ds, heldout=["r4"],
                        options=ExportOptions(target="cortex-m4f", onnx=False))  # fmt: skip
     assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM
+
+
+@pytest.fixture(scope="module")
+def linear_history_export(tmp_path_factory):
+    """The linear-with-history family (LINEAR_HISTORY kind: three sensors' delay lines and the spindle
+    speed's) on the planted irregular runs of tests/test_linear_history.py; run "r4" held out."""
+    from thermbench.models.linear_history import LinearHistory
+
+    from .test_linear_history import SENSORS, SPECS, _runs
+    from .test_lumped import spindle_dataset
+
+    ds = spindle_dataset(_runs(SPECS), sensors=SENSORS, operating=["spindle_rpm"])
+    model = LinearHistory(operating=["spindle_rpm"]).fit(ds, ["r0", "r1", "r2", "r3"])
+    out = tmp_path_factory.mktemp("linear_history") / "lh"
+    export_model(model, out, "lh", ds=ds, heldout=["r4"])
+    return ds, model, out
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_the_linear_history_kind_runs_on_the_target(linear_history_export, precision):
+    """LINEAR_HISTORY from flash on the emulated Cortex-M4F over the held-out run: the host's numbers
+    in double, within 0.01 µm in float, at every reading."""
+    ds, _, model_dir = linear_history_export
+    q = bundle.readings_queries(ds, "r4")
+    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, "r4")
+    ref = bundle.replay_dir(model_dir, ds, "r4", q)
+    got, rep = target.replay(files, samples, temps, q, precision=precision)
+    assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > 1000 and (got["rc"] == 0).all()
+    tol = 5e-10 if precision == "double" else FLOAT_UM
+    assert np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy())) <= tol
+
+
+def test_a_linear_history_export_for_the_cortex_m4f_is_within_its_budget(linear_history_export, tmp_path):
+    """export.target=cortex-m4f measures the LINEAR_HISTORY model (delay lines of an hour at 60 s) on
+    the emulated M4 in float over every sample of the held-out run and holds it to the budget."""
+    ds, model, _ = linear_history_export
+    man = export_model(model, tmp_path / "m4", "lh", ds=ds, heldout=["r4"],
+                       options=ExportOptions(target="cortex-m4f", onnx=False))  # fmt: skip
+    assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM

@@ -66,7 +66,7 @@ typedef TB_REAL tb_real;
 #define TB_MAX_DIMS 8u
 
 /* hard limits: a file beyond them is "absurd" (TB_E_DIMS), never an overflow */
-#define TB_MAX_SENSORS 16u
+#define TB_MAX_SENSORS 32u
 #define TB_MAX_FILTER_STEPS 4u
 #define TB_MAX_PAYLOAD 4194304u /* float32 values (16 MB) */
 #define TB_MAX_POLY 16u
@@ -79,7 +79,8 @@ typedef TB_REAL tb_real;
 #define TB_MAX_NODES 4096u
 #define TB_MAX_AR_ORDER 64u
 #define TB_MAX_LUMPED_NODES 8u   /* nodes of a lumped network's chain (thermbench fits 1..6) */
-#define TB_MAX_LAG_TAUS 8u       /* time constants of a thermal-lag model */
+#define TB_MAX_LAG_TAUS 8u       /* time constants of a thermal-lag model, delays of a linear-history one */
+#define TB_MAX_DELAY_LINE 4096u  /* values in one input's delay line (linear_history) */
 #define TB_MIN_LUMPED_STEP_S ((tb_real)1.0) /* shortest grid step of a lumped network (its state ring is 60 s / step) */
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
@@ -108,7 +109,9 @@ enum {
     TB_KIND_CLASSIFIER = 8, /* seed 002 eq. 15-19 proximity naive Bayes */
     TB_KIND_LUMPED = 9,     /* lumped thermal network of a spindle (docs/concepts.md, physics_spindle) */
     TB_KIND_THERMAL_LAG = 10, /* first-order lags of the rises and an operating input (thermal_lag) */
-    TB_KIND_MAX = 10
+    /* 11: TB_KIND_ENVELOPE (a model's training envelope, not a model) */
+    TB_KIND_LINEAR_HISTORY = 12, /* the rises now and delayed, from delay lines (linear_history) */
+    TB_KIND_MAX = 12
 };
 /* not a model: a model's training envelope, read by tb_guard_open (src/tb_guard.c) */
 #define TB_KIND_ENVELOPE 11u

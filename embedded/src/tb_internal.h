@@ -203,6 +203,59 @@ int tbi_check_sample(const tb_model *m, const tb_sample *s);
 /* the first and last sample accepted (0 before the first) */
 int tbi_common_span(const tbi_common *c, tb_real *t_first, tb_real *t_last);
 
+/* ------------------------------------------ a query ring of A(t), B(t) */
+/* The last values of a kind whose error is A(t) + x B(t) at its samples (thermal_lag, linear_history):
+ * a query between samples interpolates A and B linearly (numpy.interp over the log, as thermbench) */
+#define TBI_AB_RING (TB_START_SAMPLES + 2u) /* as the core's dT history: queries near the newest sample */
+
+typedef struct {
+    tb_real t[TBI_AB_RING], a[TBI_AB_RING], b[TBI_AB_RING];
+    uint32_t head, n;
+} tbi_abring;
+
+static inline void tbi_ab_push(tbi_abring *r, tb_real t, tb_real A, tb_real B)
+{
+    r->t[r->head] = t;
+    r->a[r->head] = A;
+    r->b[r->head] = B;
+    r->head = (r->head + 1u) % TBI_AB_RING;
+    if (r->n < TBI_AB_RING) r->n++;
+}
+
+/* A(t) + x B(t) (B only with position terms): the newest values past the newest sample, the oldest
+ * before the first (numpy clamps), TB_E_LATE before what the ring still holds */
+static inline int tbi_ab_at(const tbi_abring *r, tb_real t, tb_real axis_mm, int position, tb_real *thermal)
+{
+    uint32_t newest, oldest, a, b, i;
+    tb_real A, B;
+    if (r->n == 0) return TB_E_NOTREADY;
+    newest = (r->head + TBI_AB_RING - 1u) % TBI_AB_RING;
+    oldest = (r->head + TBI_AB_RING - r->n) % TBI_AB_RING;
+    if (t >= r->t[newest]) {
+        A = r->a[newest];
+        B = r->b[newest];
+    } else if (t < r->t[oldest]) {
+        if (r->n == TBI_AB_RING) return TB_E_LATE;
+        A = r->a[oldest];
+        B = r->b[oldest];
+    } else {
+        A = r->a[oldest];
+        B = r->b[oldest];
+        b = newest;
+        for (i = 1; i < r->n; i++) {
+            a = (b + TBI_AB_RING - 1u) % TBI_AB_RING;
+            if (r->t[a] <= t) {
+                A = tbi_interp1(t, r->t[a], r->t[b], r->a[a], r->a[b]);
+                B = tbi_interp1(t, r->t[a], r->t[b], r->b[a], r->b[b]);
+                break;
+            }
+            b = a;
+        }
+    }
+    *thermal = position ? A + axis_mm * B : A;
+    return TB_OK;
+}
+
 /* ------------------------------------------------------- the kind table */
 /* One model kind. The core calls these; 0 (NULL) entries take the default noted. */
 typedef struct {

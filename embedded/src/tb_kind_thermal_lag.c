@@ -12,14 +12,11 @@
  */
 #include "tb_internal.h"
 
-#define TL_RING (TB_START_SAMPLES + 2u) /* as the core's dT history: queries near the newest sample */
-
 typedef struct {
     int started;
     tb_real t_last;
     tb_real *y; /* NI x NT lag states */
-    tb_real r_t[TL_RING], r_a[TL_RING], r_b[TL_RING];
-    uint32_t r_head, r_n;
+    tbi_abring ring; /* A and B at the last samples */
 } tl_t;
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
@@ -89,7 +86,7 @@ static int check(const tb_model *m, const void *ks, const tb_sample *s)
 static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_real *dT)
 {
     tl_t *r = (tl_t *)ks;
-    uint32_t NI = m->dims[1], NT = m->dims[2], S = m->dims[0], i, k, slot;
+    uint32_t NI = m->dims[1], NT = m->dims[2], S = m->dims[0], i, k;
     tb_real u_scale = PR(m, m->off[O_BODY] + 2u), A = PR(m, m->off[O_C]), B = PR(m, m->off[O_C] + 2u);
     tb_real dt = r->started ? mo->t_s - r->t_last : 0;
     for (i = 0; i < NI; i++) {
@@ -109,45 +106,12 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     }
     r->started = 1;
     r->t_last = mo->t_s;
-    slot = r->r_head;
-    r->r_t[slot] = mo->t_s;
-    r->r_a[slot] = A;
-    r->r_b[slot] = B;
-    r->r_head = (slot + 1u) % TL_RING;
-    if (r->r_n < TL_RING) r->r_n++;
+    tbi_ab_push(&r->ring, mo->t_s, A, B);
 }
 
 static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm, tb_real *thermal)
 {
-    const tl_t *r = (const tl_t *)ks;
-    uint32_t newest, oldest, a, b, i;
-    tb_real A, B;
-    if (r->r_n == 0) return TB_E_NOTREADY;
-    newest = (r->r_head + TL_RING - 1u) % TL_RING;
-    oldest = (r->r_head + TL_RING - r->r_n) % TL_RING;
-    if (t >= r->r_t[newest]) {
-        A = r->r_a[newest];
-        B = r->r_b[newest];
-    } else if (t < r->r_t[oldest]) {
-        if (r->r_n == TL_RING) return TB_E_LATE;
-        A = r->r_a[oldest]; /* before the first sample: numpy clamps */
-        B = r->r_b[oldest];
-    } else {
-        A = r->r_a[oldest];
-        B = r->r_b[oldest];
-        b = newest;
-        for (i = 1; i < r->r_n; i++) {
-            a = (b + TL_RING - 1u) % TL_RING;
-            if (r->r_t[a] <= t) {
-                A = tbi_interp1(t, r->r_t[a], r->r_t[b], r->r_a[a], r->r_a[b]);
-                B = tbi_interp1(t, r->r_t[a], r->r_t[b], r->r_b[a], r->r_b[b]);
-                break;
-            }
-            b = a;
-        }
-    }
-    *thermal = m->dims[3] ? A + axis_mm * B : A;
-    return TB_OK;
+    return tbi_ab_at(&((const tl_t *)ks)->ring, t, axis_mm, (int)m->dims[3], thermal);
 }
 
 const tbi_kind tbi_kind_thermal_lag = {

@@ -41,9 +41,9 @@ MAX_FILTER_STEPS = 4
 FSTEP_VALS = 5  # type, p1 (float32 hi, lo), p2 (hi, lo): the limit keeps its double value
 SENSOR_VALS = 1 + FSTEP_VALS * MAX_FILTER_STEPS
 #: the C runtime's limits (tb_runtime.h); a model beyond them is refused at export, not by the loader
-LIMITS = {"sensors": 16, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
+LIMITS = {"sensors": 32, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
           "lags": 4096, "nodes": 4096, "ar_order": 64, "ar_terms": 8, "levels": 64, "conditions": 64,
-          "window_samples": 20000, "lumped_nodes": 8, "effects": 8, "lag_taus": 8}  # fmt: skip
+          "window_samples": 20000, "lumped_nodes": 8, "effects": 8, "lag_taus": 8, "delay_line": 4096}  # fmt: skip
 ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
 
 
@@ -86,6 +86,7 @@ KIND_LIMITS: dict[Kind, Callable[[list[int]], list[tuple[str, int]]]] = {
     Kind.CLASSIFIER: lambda d: [("conditions", d[0]), ("levels", max(d[1:4]))],
     Kind.LUMPED: lambda d: [("lumped_nodes", d[0]), ("sensors", d[1])],
     Kind.THERMAL_LAG: lambda d: [("sensors", d[0]), ("lag_taus", d[2])],
+    Kind.LINEAR_HISTORY: lambda d: [("sensors", d[0]), ("lag_taus", d[2]), ("delay_line", d[5])],
 }
 
 

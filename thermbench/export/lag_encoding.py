@@ -1,4 +1,4 @@
-"""The thermal-lag family (:class:`thermbench.models.thermal_lag.ThermalLag`) as the C runtime's
+"""The linear families on lagged inputs: the thermal-lag family (:class:`thermbench.models.thermal_lag.ThermalLag`) as the C runtime's
 ``THERMAL_LAG`` kind (``embedded/src/tb_kind_thermal_lag.c``).
 
 What the runtime does is what the model does: each input (a sensor's rise above the run's first
@@ -27,6 +27,12 @@ real ``R`` a float32 (hi, lo) pair::
 
 dims ``[S, NI, NT, P, U]``. At most one operating input: a model that chose two is refused in one
 line (the runtime carries one operating value per sample).
+
+The linear-with-history family (:class:`thermbench.models.linear_history.LinearHistory`) is the
+``LINEAR_HISTORY`` kind (``embedded/src/tb_kind_linear_history.c``): the same body with the delay line's
+step ``h R`` after ``u_scale`` and delays (s; 0: the input now) in place of the time constants, each
+input delayed by a delay line of step h (:func:`~thermbench.models.linear_history.delay_line`); dims
+``[S, NI, ND, P, U, C]``, C the values one input's line holds (:func:`delay_line_length`).
 """
 
 from __future__ import annotations
@@ -41,21 +47,20 @@ from .lumped_encoding import CHANNEL_SOURCE, MAX_CHANNEL, SAMPLE_SOURCES, _pair
 MAX_TAUS = 8
 
 
-def encode_thermal_lag(model, channels: dict[str, int] | None = None, period_s: float = 0.0,
-                       where: str = "model") -> Encoded:  # fmt: skip
-    """The ``THERMAL_LAG`` model file of a fitted thermal-lag model (module docstring)."""
+def _linear_inputs(model, channels, where: str, kind: str):
+    """What THERMAL_LAG and LINEAR_HISTORY share: the inputs (sensors, at most one operating input),
+    their channels, the operating input's source, channel and scale, and the weights with the ridge's
+    standardisation folded in: (sensors, ch, [source, channel, scale pair], codes, [a0, b0], wA, wB, U,
+    operating, notes)."""
     if not hasattr(model, "coef_"):
-        raise ExportError(f"{where}: the thermal-lag model is not fitted")
+        raise ExportError(f"{where}: the {kind} model is not fitted")
     inputs = list(model.inputs_)
     sensors = [i for i in inputs if i in model.sensor_names_]
     ops = [i for i in inputs if i not in model.sensor_names_]
     if len(ops) > 1:
         raise ExportError(f"{where}: it chose {len(ops)} operating inputs {ops}; the C runtime carries one per "
                           "sample (fit it with operating=[one column])")  # fmt: skip
-    taus = [float(t) for t in model.taus_s_]
-    if len(taus) > MAX_TAUS:
-        raise ExportError(f"{where}: {len(taus)} time constants exceed the C runtime's {MAX_TAUS} (THERMAL_LAG)")
-    S, NI, NT, P, U = len(sensors), len(inputs), len(taus), int(bool(model.uses_position_)), int(bool(ops))
+    S = len(sensors)
     ch = _channels_for(sensors, channels)
     source, channel, scale, operating = 0, 0, 1.0, []
     if ops:
@@ -76,20 +81,53 @@ def encode_thermal_lag(model, channels: dict[str, int] | None = None, period_s: 
     coef = np.asarray(model.coef_, dtype=float) / np.asarray(model.scale_, dtype=float)
     mean = np.asarray(model.mean_, dtype=float)
     a0 = float(model.intercept_) - float(coef @ mean)
-    n = NI * NT
-    if P:  # features [x, lags (n), x * lags (n)]
+    n = (coef.size - 1) // 2 if model.uses_position_ else coef.size
+    if model.uses_position_:  # features [x, lags (n), x * lags (n)]
         b0, wA, wB = float(coef[0]), coef[1 : 1 + n], coef[1 + n : 1 + 2 * n]
     else:
         b0, wA, wB = 0.0, coef, np.zeros(0)
-    body = [float(source), float(channel), *_pair(scale)]
-    for t in taus:
-        body += _pair(t)
-    body += [float(sensors.index(i)) if i in sensors else float(S) for i in inputs]
-    body += [*_pair(a0), *_pair(b0)]
-    for w in wA:
-        body += _pair(float(w))
-    for w in wB:
-        body += _pair(float(w))
+    head = [float(source), float(channel), *_pair(scale)]
+    codes = [float(sensors.index(i)) if i in sensors else float(S) for i in inputs]
+    notes = {"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}}
+    return sensors, ch, head, codes, [*_pair(a0), *_pair(b0)], wA, wB, int(bool(ops)), ops, notes
+
+
+def _pairs(values) -> list[float]:
+    return [v for w in values for v in _pair(float(w))]
+
+
+def encode_thermal_lag(model, channels: dict[str, int] | None = None, period_s: float = 0.0,
+                       where: str = "model") -> Encoded:  # fmt: skip
+    """The ``THERMAL_LAG`` model file of a fitted thermal-lag model (module docstring)."""
+    sensors, ch, head, codes, ab, wA, wB, U, ops, notes = _linear_inputs(model, channels, where, "thermal-lag")
+    taus = [float(t) for t in model.taus_s_]
+    if len(taus) > MAX_TAUS:
+        raise ExportError(f"{where}: {len(taus)} time constants exceed the C runtime's {MAX_TAUS} (THERMAL_LAG)")
+    body = [*head, *_pairs(taus), *codes, *ab, *_pairs(wA), *_pairs(wB)]
     payload = [0.0, *sensor_block(sensors, None, ch, where), *geometric_block(model.geometric_, where), *body]
-    return Encoded(Kind.THERMAL_LAG, [S, NI, NT, P, U], payload, sensors, needs_load=bool(ops) and ops[0] == "load_N",
-                   notes={"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}})
+    dims = [len(sensors), len(codes), len(taus), int(bool(model.uses_position_)), U]
+    return Encoded(Kind.THERMAL_LAG, dims, payload, sensors, needs_load=bool(ops) and ops[0] == "load_N", notes=notes)
+
+
+def delay_line_length(delays_s, step_s: float) -> int:
+    """The values one input's delay line holds (``C`` of ``LINEAR_HISTORY``): the longest delay's steps
+    and three more (the two values around the delayed time, and the one being filled)."""
+    return int(np.floor(max(delays_s) / step_s)) + 3
+
+
+def encode_linear_history(model, channels: dict[str, int] | None = None, period_s: float = 0.0,
+                          where: str = "model") -> Encoded:  # fmt: skip
+    """The ``LINEAR_HISTORY`` model file of a fitted linear-with-history model
+    (:class:`thermbench.models.linear_history.LinearHistory`; ``embedded/src/tb_kind_linear_history.c``):
+    the body of THERMAL_LAG with the delay line's step before the delays in place of the time constants,
+    dims ``[S, NI, ND, P, U, C]`` (``C``: :func:`delay_line_length`)."""
+    sensors, ch, head, codes, ab, wA, wB, U, ops, notes = _linear_inputs(model, channels, where, "linear-history")
+    delays, step = [float(d) for d in model.delays_s_], float(model.step_s_)
+    if len(delays) > MAX_TAUS:
+        raise ExportError(f"{where}: {len(delays)} delays exceed the C runtime's {MAX_TAUS} (LINEAR_HISTORY)")
+    C = delay_line_length(delays, step)
+    body = [*head, *_pair(step), *_pairs(delays), *codes, *ab, *_pairs(wA), *_pairs(wB)]
+    payload = [0.0, *sensor_block(sensors, None, ch, where), *geometric_block(model.geometric_, where), *body]
+    dims = [len(sensors), len(codes), len(delays), int(bool(model.uses_position_)), U, C]
+    return Encoded(Kind.LINEAR_HISTORY, dims, payload, sensors, needs_load=bool(ops) and ops[0] == "load_N",
+                   notes=notes | {"limits": [("delay_line", C)]})
