@@ -29,21 +29,14 @@ typedef struct {
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 {
-    uint32_t *d = m->dims, i, src, ch;
-    uint32_t S = d[0], NI = d[1], ND = d[2], P = d[3], U = d[4], C = d[5];
+    uint32_t ND = m->dims[2], C = m->dims[5], i, src, ch;
     tb_real h, dmax = 0;
     (void)version;
-    if (S > TB_MAX_SENSORS || NI < 1 || NI > TB_MAX_SENSORS + 1 || ND < 1 || ND > TB_MAX_LAG_TAUS || P > 1 || U > 1 ||
-        C < 3 || C > TB_MAX_DELAY_LINE) {
+    if (C < 3 || C > TB_MAX_DELAY_LINE) {
         c->err = TB_E_DIMS;
         return;
     }
-    tbi_parse_sensors(c, m, S);
-    tbi_parse_geom(c, m);
-    m->off[O_BODY] = c->pos;
-    src = tbi_take_int(c, 0, 3);                 /* u_source */
-    ch = tbi_take_int(c, 0, 4u * TB_MAX_SENSORS); /* u_channel */
-    tbi_take_pair(c, 0, TB_R(1e30), 1);          /* u_scale > 0 */
+    if (!tbi_parse_lag_head(c, m, &src, &ch)) return;
     m->off[O_F] = c->pos;
     h = tbi_take_pair(c, 0, TB_R(1e9), 1); /* the line's step > 0 */
     m->off[O_A] = c->pos;                  /* delays */
@@ -53,19 +46,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
         if (dl > dmax) dmax = dl;
     }
     if (!c->err && (tb_real)C < dmax / h + 3) c->err = TB_E_DIMS; /* the line cannot hold the longest delay */
-    m->off[O_B] = c->pos; /* input codes */
-    for (i = 0; i < NI && !c->err; i++) tbi_take_int(c, 0, U ? S : (S ? S - 1 : 0));
-    if (!U && S == 0) c->err = TB_E_DIMS; /* no input at all */
-    m->off[O_C] = tbi_take(c, 4);             /* a0, b0 */
-    m->off[O_D] = tbi_take(c, 2 * NI * ND);   /* wA */
-    m->off[O_E] = tbi_take(c, P ? 2 * NI * ND : 0); /* wB */
-    if (c->err) return;
-    if ((src != 3 || !U) && ch != 0) c->err = TB_E_PAYLOAD;
-    if (U && src == 3) {
-        for (i = 0; i < S; i++) /* a temperature channel read as the operating input */
-            if ((uint32_t)PV(m, m->off[O_SENS] + i) == ch) c->err = TB_E_PAYLOAD;
-        if (ch + 1u > m->max_channel) m->max_channel = ch + 1u;
-    }
+    tbi_parse_lag_weights(c, m, ND, src, ch);
 }
 
 static void carve(const tb_model *m, tbi_arena *a, void **ks)

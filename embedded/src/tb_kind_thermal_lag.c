@@ -21,27 +21,44 @@ typedef struct {
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 {
-    uint32_t *d = m->dims, i, src, ch;
-    uint32_t S = d[0], NI = d[1], NT = d[2], P = d[3], U = d[4];
+    uint32_t NT = m->dims[2], i, src, ch;
     (void)version;
-    if (S > TB_MAX_SENSORS || NI < 1 || NI > TB_MAX_SENSORS + 1 || NT < 1 || NT > TB_MAX_LAG_TAUS || P > 1 || U > 1) {
+    if (!tbi_parse_lag_head(c, m, &src, &ch)) return;
+    m->off[O_A] = c->pos; /* taus */
+    for (i = 0; i < NT && !c->err; i++) tbi_take_pair(c, 0, TB_R(1e9), 0);
+    tbi_parse_lag_weights(c, m, NT, src, ch);
+}
+
+/* THERMAL_LAG's and LINEAR_HISTORY's dims [S, NI, NW, P, U] checked, the sensor and geometric blocks and
+ * the body's head: u_source (*src), u_channel (*ch), u_scale; 0 on an error (c->err set) */
+int tbi_parse_lag_head(tbi_cur *c, tb_model *m, uint32_t *src, uint32_t *ch)
+{
+    uint32_t *d = m->dims, S = d[0], NI = d[1], NW = d[2], P = d[3], U = d[4];
+    if (S > TB_MAX_SENSORS || NI < 1 || NI > TB_MAX_SENSORS + 1 || NW < 1 || NW > TB_MAX_LAG_TAUS || P > 1 || U > 1) {
         c->err = TB_E_DIMS;
-        return;
+        return 0;
     }
     tbi_parse_sensors(c, m, S);
     tbi_parse_geom(c, m);
     m->off[O_BODY] = c->pos;
-    src = tbi_take_int(c, 0, 3);                 /* u_source */
-    ch = tbi_take_int(c, 0, 4u * TB_MAX_SENSORS); /* u_channel */
-    tbi_take_pair(c, 0, TB_R(1e30), 1);          /* u_scale > 0 */
-    m->off[O_A] = c->pos;                  /* taus */
-    for (i = 0; i < NT && !c->err; i++) tbi_take_pair(c, 0, TB_R(1e9), 0);
+    *src = tbi_take_int(c, 0, 3);                 /* u_source */
+    *ch = tbi_take_int(c, 0, 4u * TB_MAX_SENSORS); /* u_channel */
+    tbi_take_pair(c, 0, TB_R(1e30), 1);           /* u_scale > 0 */
+    return !c->err;
+}
+
+/* THERMAL_LAG's and LINEAR_HISTORY's body after their per-input columns (NW of them: time constants
+ * or delays): the input codes, a0, b0, wA and with position terms wB (offsets O_B..O_E), and the
+ * operating input's source src and channel ch checked (dims [S, NI, NW, P, U] as both kinds') */
+void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch)
+{
+    uint32_t S = m->dims[0], NI = m->dims[1], P = m->dims[3], U = m->dims[4], i;
     m->off[O_B] = c->pos; /* input codes */
     for (i = 0; i < NI && !c->err; i++) tbi_take_int(c, 0, U ? S : (S ? S - 1 : 0));
     if (!U && S == 0) c->err = TB_E_DIMS; /* no input at all */
     m->off[O_C] = tbi_take(c, 4);          /* a0, b0 */
-    m->off[O_D] = tbi_take(c, 2 * NI * NT); /* wA */
-    m->off[O_E] = tbi_take(c, P ? 2 * NI * NT : 0); /* wB */
+    m->off[O_D] = tbi_take(c, 2 * NI * NW); /* wA */
+    m->off[O_E] = tbi_take(c, P ? 2 * NI * NW : 0); /* wB */
     if (c->err) return;
     if ((src != 3 || !U) && ch != 0) c->err = TB_E_PAYLOAD;
     if (U && src == 3) {

@@ -46,7 +46,7 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from ..data.dataset import Dataset
-from .base import Inputs, ModelError, _name, derived, readings
+from .base import Inputs, ModelError, derived, readings
 from .params import Expect, Params, check_params
 from .thermal_lag import ThermalLag, _ridge
 
@@ -129,32 +129,12 @@ class LinearHistory(ThermalLag):
         from ..splits import row_folds
 
         p = check_params(self, self.params_model)
-        sensors = list(ds.metadata.sensors) if p.sensors is None else list(p.sensors)
-        unknown = [s for s in sensors if s not in ds.metadata.sensors]
-        if unknown:
-            raise ModelError(f"sensors: {unknown} are not sensors of the dataset {_name(ds)}; it has "
-                             f"{list(ds.metadata.sensors)}")  # fmt: skip
-        operating = [c for c in (ds.metadata.operating_inputs() if p.operating is None else p.operating)
-                     if c not in sensors]  # fmt: skip
-        if not sensors and not operating:
-            raise ModelError(f"the dataset {_name(ds)} has no temperature sensor and no operating input: nothing to "
-                             "regress on")  # fmt: skip
         shortest = min((float(d) for s in p.delays_s for d in s if d > 0), default=np.inf)
         if p.delay_step_s > shortest:
             raise ModelError(f"LinearHistory.delay_step_s: {p.delay_step_s:g} s is longer than the shortest delay "
                              f"{shortest:g} s; expected a step at most that")  # fmt: skip
         self.step_s_ = float(p.delay_step_s)
-        self.sensor_names_ = sensors
-        self.scale_of_ = {}
-        for c in operating:  # each operating signal over its largest training value
-            top = 0.0
-            for run in runs:
-                pr = ds.process_run(run)
-                if c not in pr.columns:
-                    raise ModelError(f"operating: column {c!r} is not in the process log of run {run!r}; "
-                                     f"columns: {list(pr.columns)}")  # fmt: skip
-                top = max(top, float(np.nanmax(np.abs(np.asarray(pr[c], dtype=float)), initial=0.0)))
-            self.scale_of_[c] = top if top > 0 else 1.0
+        sensors, operating = self._set_inputs(ds, runs, p)
         self.inputs_ = sensors + operating
         self.all_delays_ = sorted({float(d) for s in p.delays_s for d in s})
         rd = readings(ds, runs)

@@ -152,10 +152,9 @@ class ThermalLag(ThermalErrorModel):
         return np.hstack([p, z, p * z])
 
     # ----------------------------------------------------------------- fit ---
-    def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        from ..splits import row_folds
-
-        p = check_params(self, self.params_model)
+    def _set_inputs(self, ds: Dataset, runs: list[str], p) -> tuple[list[str], list[str]]:
+        """The sensors and operating columns of parameters ``p`` (checked against the dataset), each
+        operating signal's scale (its largest training value, ``scale_of_``) and ``sensor_names_``."""
         sensors = list(ds.metadata.sensors) if p.sensors is None else list(p.sensors)
         unknown = [s for s in sensors if s not in ds.metadata.sensors]
         if unknown:
@@ -165,7 +164,7 @@ class ThermalLag(ThermalErrorModel):
         operating = [c for c in operating if c not in sensors]
         if not sensors and not operating:
             raise ModelError(f"the dataset {_name(ds)} has no temperature sensor and no operating input: "
-                             "nothing to lag")  # fmt: skip
+                             "nothing to regress on")  # fmt: skip
         self.sensor_names_ = sensors
         self.scale_of_ = {}
         for c in operating:  # each operating signal over its largest training value
@@ -177,6 +176,13 @@ class ThermalLag(ThermalErrorModel):
                                      f"columns: {list(pr.columns)}")  # fmt: skip
                 top = max(top, float(np.nanmax(np.abs(np.asarray(pr[c], dtype=float)), initial=0.0)))
             self.scale_of_[c] = top if top > 0 else 1.0
+        return sensors, operating
+
+    def _fit(self, ds: Dataset, runs: list[str]) -> None:
+        from ..splits import row_folds
+
+        p = check_params(self, self.params_model)
+        sensors, operating = self._set_inputs(ds, runs, p)
         candidates = sensors + operating
         self.all_taus_ = sorted({float(t) for s in p.taus_s for t in s})
         rd = readings(ds, runs)
