@@ -56,7 +56,7 @@ def test_a_family_that_cannot_fit_is_one_line_and_a_row_and_the_benchmark_finish
 
 def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp_path):
     """One choice, used twice (issue 54): the model exported and marked chosen is what the nested rule
-    (smallest median inner RMSE over whole held-out runs) picks on the inner folds of every run, and those
+    (the simplest within one standard error of the lowest mean inner RMSE over whole held-out runs) picks on the inner folds of every run, and those
     folds hold each run out once; recomputed here from the inner scores with pandas."""
     import yaml
 
@@ -67,14 +67,20 @@ def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp
                        if t["family"] != "baseline_ridge"])  # fmt: skip
     deploy = inner[inner["fold"] == bm.DEPLOY_FOLD]
     assert sorted(deploy.groupby("family")["run_id"].apply(sorted).iloc[0]) == ["r0", "r1", "r2", "r3"]
-    by_hand = deploy.groupby("family")["rmse_um"].median().idxmin()
+    # the rule by hand: the lowest mean inner RMSE sets the bar (its mean + standard error over the held-out
+    # runs); of those under it, the simplest (thermal_lag is linear: 1; lssvm a kernel machine: 3)
+    stats = deploy.groupby("family")["rmse_um"].agg(["mean", "std", "count", "max"])
+    best = stats.sort_values(["mean", "max"]).index[0]
+    bar = stats.loc[best, "mean"] + stats.loc[best, "std"] / np.sqrt(stats.loc[best, "count"])
+    under = stats[stats["mean"] <= bar]
+    by_hand = min(under.index, key=lambda f: ({"thermal_lag": 1, "lssvm": 3}[f], under.loc[f, "mean"]))
     # each outer fold's inner folds never see the fold's own run
     for fold, g in inner[inner["fold"] != bm.DEPLOY_FOLD].groupby("fold"):
         assert fold not in set(g["run_id"])
     bm.benchmark(cfg)
     manifest = yaml.safe_load((tmp_path / "models" / "manifest.yaml").read_text())
     chosen = [k for k, v in manifest.items() if v["chosen"]]
-    assert chosen == [f"synthetic__{by_hand}__global"], (chosen, deploy.groupby("family")["rmse_um"].median())
+    assert chosen == [f"synthetic__{by_hand}__global"], (chosen, stats)
     report = (tmp_path / "reports" / "report.md").read_text()
     line = next(ln for ln in report.splitlines() if ln.startswith("| chosen models "))
     assert f"synthetic: {by_hand} (global) (deployed; chosen by the inner cross-validation over every run" in line

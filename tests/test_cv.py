@@ -78,7 +78,7 @@ def _inner(rows):
                           "inner_fold": ifo, "run_id": r, "rmse_um": v} for fo, f, a, ifo, r, v in rows])  # fmt: skip
 
 
-def test_the_nested_choice_takes_the_smallest_median_inner_rmse_of_complete_finite_candidates():
+def test_the_nested_choice_takes_the_lowest_mean_inner_rmse_of_complete_finite_candidates():
     rows = []
     for fold in ("A", "B"):
         runs = [r for r in ("A", "B", "C") if r != fold]
@@ -87,11 +87,29 @@ def test_the_nested_choice_takes_the_smallest_median_inner_rmse_of_complete_fini
             rows += [(fold, "gru", "global", r, r, 0.1)] if k == 0 else []  # incomplete: not a candidate
             rows += [(fold, "mlr", "bank", r, r, float("nan") if k else 0.01)]  # non-finite: not a candidate
     choice = bm.nested_choice(_inner(rows))
-    # medians: lssvm (1, 2) -> 1.5, mlp (0.5, 3.5) -> 2.0
+    # means: lssvm (1, 2) -> 1.5 (standard error 0.5: the bar 2.0), mlp (0.5, 3.5) -> 2.0, at the bar;
+    # equally simple (both 3), the lower mean wins
     assert list(zip(choice["fold"], choice["family"], choice["approach"])) == [("A", "lssvm", "global"), ("B", "lssvm", "global")]
-    assert list(choice["inner_median_rmse_um"]) == [1.5, 1.5]
+    assert list(choice["inner_median_rmse_um"]) == [1.5, 1.5] and list(choice["bar_um"]) == [2.0, 2.0]
     blocked = bm.nested_choice(_inner(rows), blocked=[("d", "lssvm", "global")])
     assert set(blocked["family"]) == {"mlp"}
+
+
+def test_the_nested_choice_prefers_the_simpler_within_one_standard_error_of_the_lowest():
+    """By hand, four inner held-out runs: lssvm 1.0, 1.2, 0.8, 1.0 (mean 1.0, standard error
+    sqrt(0.08 / 3) / 2 = 0.0816); linear_history 1.05 everywhere (mean 1.05 <= the bar 1.0816:
+    the simpler one is chosen); in a second fold linear_history 1.10 (above the bar: lssvm stays)."""
+    rows = []
+    for k, (a, b) in enumerate(zip((1.0, 1.2, 0.8, 1.0), (1.05, 1.05, 1.05, 1.05))):
+        rows += [("F1", "lssvm", "global", f"i{k}", f"r{k}", a), ("F1", "linear_history", "global", f"i{k}", f"r{k}", b)]
+        rows += [("F2", "lssvm", "global", f"i{k}", f"r{k}", a), ("F2", "linear_history", "global", f"i{k}", f"r{k}", 1.10)]
+    choice = bm.nested_choice(_inner(rows)).set_index("fold")
+    se = np.sqrt(0.08 / 3) / 2
+    assert choice.loc["F1", "bar_um"] == pytest.approx(1.0 + se, abs=1e-12)
+    assert (choice.loc["F1", "family"], choice.loc["F1", "best_family"]) == ("linear_history", "lssvm")
+    assert choice.loc["F2", "family"] == "lssvm"
+    assert bm.model_complexity("linear_history", "global") == 1 < bm.model_complexity("physics_spindle", "global") == 2
+    assert bm.model_complexity("lssvm", "global") == 3 < bm.model_complexity("lssvm", "bank") == 4
 
 
 def test_inner_folds_never_hold_or_train_on_the_outer_held_out_run(lathe):  # noqa: F811

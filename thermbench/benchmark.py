@@ -770,15 +770,41 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
     return agg.groupby("case").head(1).reset_index(drop=True)
 
 
+def model_complexity(family: str, approach: str) -> int:
+    """How flexible a (family, approach) is, for :func:`nested_choice`: the family's
+    :attr:`~thermbench.models.base.ThermalErrorModel.complexity` (1 linear, 2 a physical model with a
+    few nonlinear parameters, 3 a kernel machine or network; 3 when unknown), one more for a bank (a
+    model per condition and a classifier)."""
+    from .extras import MissingExtra
+
+    try:
+        base = int(getattr(family_class(family), "complexity", 3))
+    except (MissingExtra, ExperimentError, KeyError):
+        base = 3
+    return base + (1 if str(approach).startswith("bank") else 0)
+
+
 def nested_choice(inner: pd.DataFrame, blocked: Iterable[tuple[str, str, str]] = ()) -> pd.DataFrame:
     """Per dataset, channel and outer fold, the (family, approach) thermbench would deploy, chosen
-    without seeing the fold's held-out runs: the smallest median RMSE over the inner folds' held-out
-    runs (:func:`thermbench.splits.inner_folds`, on the fold's training runs only; ties: the smaller
-    worst). Candidates: the non-baseline families (only they have inner scores) with a score on
-    every inner held-out run of the fold and none non-finite, and not in ``blocked`` (the C runtime
-    cannot run it). Columns: ``dataset``, ``channel``, ``case``, ``fold``, ``family``, ``approach``,
-    ``inner_median_rmse_um``."""
-    cols = ["dataset", "channel", "case", "fold", "family", "approach", "inner_median_rmse_um"]
+    without seeing the fold's held-out runs, on the RMSE of each inner held-out run
+    (:func:`thermbench.splits.inner_folds`, on the fold's training runs only).
+
+    The rule resists its own noise (issue 54): with a few runs, the lowest of ten noisy inner scores
+    is often a flexible family that fitted those runs. So the candidate of lowest mean inner RMSE
+    (ties: the smaller worst) sets a bar, its mean plus the standard error of that mean over the inner
+    held-out runs; of the candidates at or under the bar, the simplest (:func:`model_complexity`) is
+    chosen, and of equally simple ones the lowest mean. This is the one-standard-error rule of Hastie,
+    Tibshirani and Friedman (*The Elements of Statistical Learning*, §7.10) applied across families:
+    a more flexible candidate is chosen only when it is better by more than the scatter of the score
+    that ranks it.
+
+    Candidates: the non-baseline families (only they have inner scores) with a score on every inner
+    held-out run of the fold and none non-finite, and not in ``blocked`` (the C runtime cannot run
+    it). Columns: ``dataset``, ``channel``, ``case``, ``fold``, ``family``, ``approach``,
+    ``inner_median_rmse_um``, ``inner_mean_rmse_um``, ``inner_se_um`` (the chosen one's), ``bar_um``
+    (the bar), ``best_family``, ``best_approach`` (the lowest mean's)."""
+    cols = ["dataset", "channel", "case", "fold", "family", "approach", "inner_median_rmse_um", "inner_mean_rmse_um",
+            "inner_se_um", "bar_um", "best_family", "best_approach"]  # fmt: skip
     if inner.empty:
         return pd.DataFrame(columns=cols)
     inner = _with_case(inner)
@@ -787,15 +813,23 @@ def nested_choice(inner: pd.DataFrame, blocked: Iterable[tuple[str, str, str]] =
     out = []
     for key, g in inner.groupby(keys, sort=False):
         need = g[["inner_fold", "run_id"]].drop_duplicates().shape[0]  # every inner held-out run of the fold
-        best = None
+        cands = []
         for (fam, app), c in g.groupby(["family", "approach"], sort=False):
-            if (key[2], fam, app) in blocked or len(c) < need or not np.isfinite(c["rmse_um"]).all():
+            r = c["rmse_um"].to_numpy(dtype=float)
+            if (key[2], fam, app) in blocked or len(r) < need or not np.isfinite(r).all():
                 continue
-            score = (float(c["rmse_um"].median()), float(c["rmse_um"].max()))
-            if best is None or score < best[0]:
-                best = (score, fam, app)
-        if best is not None:
-            out.append(dict(zip(keys, key)) | {"family": best[1], "approach": best[2], "inner_median_rmse_um": best[0][0]})
+            se = float(np.std(r, ddof=1) / np.sqrt(r.size)) if r.size > 1 else 0.0
+            cands.append({"family": fam, "approach": app, "inner_median_rmse_um": float(np.median(r)),
+                          "inner_mean_rmse_um": float(r.mean()), "inner_se_um": se, "worst": float(r.max()),
+                          "complexity": model_complexity(fam, app)})  # fmt: skip
+        if not cands:
+            continue
+        best = min(cands, key=lambda c: (c["inner_mean_rmse_um"], c["worst"]))
+        bar = best["inner_mean_rmse_um"] + best["inner_se_um"]
+        pick = min((c for c in cands if c["inner_mean_rmse_um"] <= bar),
+                   key=lambda c: (c["complexity"], c["inner_mean_rmse_um"], c["worst"]))  # fmt: skip
+        out.append(dict(zip(keys, key)) | {k: pick[k] for k in cols if k in pick}
+                   | {"bar_um": bar, "best_family": best["family"], "best_approach": best["approach"]})  # fmt: skip
     return pd.DataFrame(out, columns=cols)
 
 
@@ -1083,7 +1117,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         "dataset hashes": ", ".join(data_hashes),
         "wall time": f"{wall_s:.0f} s",
         "chosen models": "; ".join(f"{r.case}: {r.family} ({r.approach})" for r in chosen.itertuples())
-        + " (deployed; chosen by " + ("the inner cross-validation over every run, the rule the held-out figures score"
+        + " (deployed; chosen by " + ("the inner cross-validation over every run: the simplest within one standard error of the "
+                                      "lowest mean inner RMSE, the rule the held-out figures score"
                                       if (chosen["rule"] == "nested").all() else "; ".join(sorted(set(chosen["rule"]))))
         + (f"; baselines {', '.join(baselines)} are for comparison, never chosen)" if baselines else ")"),
     }

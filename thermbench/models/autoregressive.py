@@ -271,6 +271,8 @@ class AutoRegressiveSeed003(ThermalErrorModel):
     diverge.
     """
 
+    complexity = 1  # ThermalErrorModel.complexity
+
     params_model = AutoRegressiveSeed003Params
     needs = ("operating",)  # its only inputs: the operating columns (its own parameter or the dataset's)
 

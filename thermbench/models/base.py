@@ -381,6 +381,10 @@ class ThermalErrorModel(BaseEstimator, ABC):
     ``needs``: what a dataset must have for the family (keys of :data:`NEEDS`); fitting
     on one that lacks it is one line naming what is missing (:func:`check_needs`).
 
+    ``complexity``: 1 (linear in fixed features), 2 (a physical model with a few nonlinear
+    parameters) or 3 (a kernel machine or neural network): the benchmark's choice prefers the
+    simpler of candidates it cannot tell apart.
+
     ``params_model``: the family's hyper-parameters as a pydantic model
     (:mod:`thermbench.models.params`), one field per constructor parameter; each family's
     ``_fit`` validates ``get_params()`` with it (:func:`~thermbench.models.params.check_params`)
@@ -392,6 +396,11 @@ class ThermalErrorModel(BaseEstimator, ABC):
 
     needs: tuple[str, ...] = ()
     params_model = None
+    #: how flexible the family is, for the benchmark's choice (which prefers the simpler of candidates
+    #: within one standard error, :func:`thermbench.benchmark.nested_choice`): 1 linear in fixed features
+    #: (the regressions, thermal lags, delays, ARX), 2 a physical model whose few parameters enter
+    #: nonlinearly (time constants, a heat exponent), 3 a kernel machine or neural network (the default)
+    complexity: int = 3
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
         runs = check_runs(dataset, runs)

@@ -88,6 +88,8 @@ class SensorRegressor(ThermalErrorModel):
     ``reference_only``: the benchmark reports it beside the families and never chooses it.
     """
 
+    complexity = 1  # ThermalErrorModel.complexity
+
     reference_only = True
     params_model = SensorRegressorParams
 

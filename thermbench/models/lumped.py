@@ -292,6 +292,8 @@ class LumpedThermalNetwork(ThermalErrorModel):
     ``geometric_``, ``n_evaluations_``, ``fit_s_``, ``optimizer_message_``.
     """
 
+    complexity = 2  # ThermalErrorModel.complexity
+
     needs = ("operating",)  # the heat comes from an operating signal (its own parameter or the dataset's)
     params_model = LumpedThermalNetworkParams
 

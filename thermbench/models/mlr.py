@@ -165,6 +165,8 @@ class MLRSeed001(ThermalErrorModel):
     µm/mm), ``nut_sensor_``, ``bed_sensor_``, ``sensors_``, ``geometric_``.
     """
 
+    complexity = 1  # ThermalErrorModel.complexity
+
     needs = ("along_axis",)  # eq. 12: the thermal error is a slope times (Px - origin)
     params_model = MLRSeed001Params
 
@@ -222,6 +224,7 @@ class _CurveRegression(ThermalErrorModel):
     cycle's mean time, and the geometric error is the mean residual per measuring
     point (optionally a polynomial of ``geometric_degree``)."""
 
+    complexity = 1  # ThermalErrorModel.complexity
 
     @abstractmethod
     def _curve_degree(self, ds: Dataset) -> int:

@@ -274,6 +274,8 @@ class PhysicsModel(ThermalErrorModel):
         interferometer's resolution.
     """
 
+    complexity = 2  # ThermalErrorModel.complexity
+
     needs = ("screw", "along_axis")  # the seed 000 finite-difference screw
     params_model = PhysicsModelParams
 

@@ -104,6 +104,8 @@ class ThermalLag(ThermalErrorModel):
         An input enters only when it lowers the cross-validated RMSE by this fraction.
     """
 
+    complexity = 1  # ThermalErrorModel.complexity
+
     params_model = ThermalLagParams
 
     def __init__(self, sensors=None, operating=None, taus_s=DEFAULT_TAUS_S, alphas=tuple(np.logspace(-3, 3, 13)),
