@@ -840,17 +840,20 @@ def deployed_choice(nested: pd.DataFrame, results: pd.DataFrame, baselines: Sequ
     (fold :data:`DEPLOY_FOLD`); so the held-out figures of the nested choice are the figures of the
     procedure that picked what is exported. Only a case with no inner folds (fewer than two training
     runs: nothing to cross-validate on) falls back to :func:`choose`, and its ``rule`` says so.
-    Returns (``chosen``: ``dataset``, ``channel``, ``case``, ``family``, ``approach``, ``rule``;
+    Returns (``chosen``: ``dataset``, ``channel``, ``case``, ``family``, ``approach``, ``rule``, ``best_family``,
+    ``best_approach`` (the lowest mean inner RMSE; None for the fallback);
     ``nested`` without the deploy rows)."""
     deploy = nested["fold"] == DEPLOY_FOLD
     cols = ["dataset", "channel", "case", "family", "approach"]
-    chosen = nested.loc[deploy, cols].assign(rule="nested")
+    chosen = nested.loc[deploy, cols + [c for c in ("best_family", "best_approach") if c in nested]].assign(rule="nested")
     r = _with_case(results)
     missing = sorted(set(r["case"]) - set(chosen["case"]))
     if missing:
         fb = choose(r[r["case"].isin(missing)], exclude=baselines, blocked=blocked)
         chosen = pd.concat([chosen, fb[cols].assign(rule="the best worst-case rate on the validation runs (fewer "
                                                           "than two training runs: no inner folds)")])  # fmt: skip
+    for c in ("best_family", "best_approach"):  # the lowest mean inner RMSE (the pick unless a simpler one was as good)
+        chosen[c] = chosen[c] if c in chosen else None
     return chosen.reset_index(drop=True), nested[~deploy].reset_index(drop=True)
 
 
@@ -1092,7 +1095,10 @@ def benchmark(cfg: DictConfig) -> JobResult:
     never = set(blockers) | {k[:3] for k in flagged(results)}
     nested = nested_choice(pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(), blocked=never)
     chosen, nested = deployed_choice(nested, results, baselines, blockers)
-    deployed = {r.case: f"{r.family} ({r.approach})" for r in chosen.itertuples()}
+    deployed = {r.case: f"{r.family} ({r.approach})" + (
+        f", the simplest within one standard error of {r.best_family} ({r.best_approach})"
+        if isinstance(r.best_family, str) and (r.best_family, r.best_approach) != (r.family, r.approach) else "")
+        for r in chosen.itertuples()}  # fmt: skip
     key = _with_case(results)
     mark = set(zip(nested["case"], nested["fold"], nested["family"], nested["approach"]))
     results["chosen"] = [(c, fo, f, a) in mark and k == "validation" for c, fo, f, a, k in
