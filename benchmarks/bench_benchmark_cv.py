@@ -149,9 +149,11 @@ def main() -> int:
                 return proc.returncode
             lines = proc.stdout.splitlines()
             print(f"{name}: thermbench benchmark cv=loro, {wall:.0f} s wall")
-            start = next((i for i, ln in enumerate(lines) if ln.startswith("held-out RMSE")), None)
+            start = next((i for i, ln in enumerate(lines) if "held-out RMSE over the folds" in ln), None)
+            if start is None:  # the summary's header changed: say so rather than print nothing
+                print("  (no held-out summary found in the benchmark's output)")
             for ln in lines[start:] if start is not None else []:
-                if ln.startswith(("held-out", "flagged on held-out")) or " folds; choice " in ln:
+                if "held-out RMSE over the folds" in ln or ln.startswith("flagged on held-out") or " folds; choice " in ln:
                     print("  " + ln)
     finally:
         if not args.keep:
