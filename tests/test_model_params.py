@@ -26,6 +26,8 @@ from thermbench.models.lumped import LumpedThermalNetwork
 from thermbench.models.mlr import MLRSeed001, MLRSeed002, MLRSeed004
 from thermbench.models.neural import GRUModel, MLPModel
 from thermbench.models.params import Expect, Int, Number, Params, check_params, expected, validate
+from thermbench.models.ensemble import StackedEnsemble
+from thermbench.models.linear_history import LinearHistory
 from thermbench.models.physics import PhysicsModel
 
 #: every family, with what its constructor needs beyond the defaults to be valid
@@ -41,6 +43,8 @@ FAMILIES = {
     LumpedThermalNetwork: {},
     AutoRegressiveSeed003: {},
     PhysicsModel: {},
+    LinearHistory: {},
+    StackedEnsemble: {"members": [LinearHistory()]},
 }
 
 
@@ -119,6 +123,10 @@ BAD = [
     (PhysicsModel, "geometric_degree", 1.5), (PhysicsModel, "initial", {"k2_W_m2K": "x"}),
     (PhysicsModel, "bounds", {"k2_W_m2K": 5.0}), (PhysicsModel, "identify", 3), (PhysicsModel, "effects", ["motor"]),
     (PhysicsModel, "polish_steps", -1), (PhysicsModel, "coarse_dt_s", 0.0), (PhysicsModel, "coarse_macro_dt_s", INF),
+    (LinearHistory, "delays_s", [[-60.0]]), (LinearHistory, "delays_s", []), (LinearHistory, "delay_step_s", 0.0),
+    (LinearHistory, "alphas", []), (LinearHistory, "sensors", "T1"),
+    (StackedEnsemble, "members", []), (StackedEnsemble, "members", ["linear_history"]),
+    (StackedEnsemble, "stacking", "median"),
 ]  # fmt: skip
 
 

@@ -81,6 +81,7 @@ typedef TB_REAL tb_real;
 #define TB_MAX_LUMPED_NODES 8u   /* nodes of a lumped network's chain (thermbench fits 1..6) */
 #define TB_MAX_LAG_TAUS 8u       /* time constants of a thermal-lag model, delays of a linear-history one */
 #define TB_MAX_DELAY_LINE 4096u  /* values in one input's delay line (linear_history) */
+#define TB_MAX_MEMBERS 8u        /* models in an ensemble */
 #define TB_MIN_LUMPED_STEP_S ((tb_real)1.0) /* shortest grid step of a lumped network (its state ring is 60 s / step) */
 #define TB_MAX_LEVELS 64u
 #define TB_MAX_CONDITIONS 64u
@@ -111,7 +112,8 @@ enum {
     TB_KIND_THERMAL_LAG = 10, /* first-order lags of the rises and an operating input (thermal_lag) */
     /* 11: TB_KIND_ENVELOPE (a model's training envelope, not a model) */
     TB_KIND_LINEAR_HISTORY = 12, /* the rises now and delayed, from delay lines (linear_history) */
-    TB_KIND_MAX = 12
+    TB_KIND_ENSEMBLE = 13,  /* a weighted sum of models of the other kinds, carried in the file (ensemble) */
+    TB_KIND_MAX = 13
 };
 /* not a model: a model's training envelope, read by tb_guard_open (src/tb_guard.c) */
 #define TB_KIND_ENVELOPE 11u

@@ -154,6 +154,10 @@ typedef struct {
 int tbi_check_file(const uint8_t *file, size_t len, uint16_t *version, uint16_t *kind, uint32_t *n_payload);
 int tbi_check_dims(const uint8_t *file, uint32_t dims[TB_MAX_DIMS]); /* n_dims, flags, unused dims 0 */
 int tbi_payload_finite(const uint8_t *payload, uint32_t n);          /* TB_E_NAN for a non-finite value */
+/* tb_model_open after the file's header: a model of kind, layout version and dims whose payload is the n float32
+ * values at payload (4-byte aligned); the ENSEMBLE kind opens its members with it */
+int tbi_open_parts(tb_model *m, uint16_t kind, uint16_t version, const uint32_t dims[TB_MAX_DIMS], const uint8_t *payload,
+                   uint32_t n_payload);
 uint32_t tbi_take(tbi_cur *c, uint32_t n);
 uint32_t tbi_take_int(tbi_cur *c, uint32_t lo, uint32_t hi); /* an integer-valued entry in [lo, hi] */
 tb_real tbi_take_val(tbi_cur *c, tb_real lo, tb_real hi, int strict_lo);

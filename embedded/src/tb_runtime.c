@@ -513,7 +513,6 @@ int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
     uint32_t n_payload;
     uint16_t version, kind;
     const tbi_kind *ops;
-    tbi_cur c;
     int rc;
     if (!m) return TB_E_ARG;
     memset(m, 0, sizeof *m);
@@ -523,7 +522,23 @@ int tb_model_open(tb_model *m, const uint8_t *file, size_t len)
     if (!ops || ops->kind != kind) return TB_E_KIND;
     if (version > ops->max_version) return TB_E_VERSION; /* a payload version this kind does not have */
     if ((rc = tbi_check_dims(file, m->dims)) != TB_OK) return rc;
-    m->payload = file + TB_HEADER_BYTES;
+    return tbi_open_parts(m, kind, version, m->dims, file + TB_HEADER_BYTES, n_payload);
+}
+
+int tbi_open_parts(tb_model *m, uint16_t kind, uint16_t version, const uint32_t dims[TB_MAX_DIMS], const uint8_t *payload,
+                   uint32_t n_payload)
+{
+    const tbi_kind *ops;
+    tbi_cur c;
+    int rc;
+    uint32_t d[TB_MAX_DIMS];
+    memcpy(d, dims, sizeof d); /* dims may be m->dims itself */
+    memset(m, 0, sizeof *m);
+    ops = tbi_kind_of(kind);
+    if (!ops || ops->kind != kind) return TB_E_KIND;
+    if (version < TB_FORMAT_VERSION || version > ops->max_version) return TB_E_VERSION; /* a layout this kind does not have */
+    memcpy(m->dims, d, sizeof d);
+    m->payload = payload;
     m->n_payload = n_payload;
     m->kind = kind;
     if ((rc = tbi_payload_finite(m->payload, n_payload)) != TB_OK) {

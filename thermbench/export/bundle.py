@@ -371,6 +371,9 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["operating"] = ops
         man["inputs"] = _inputs_json(ds, temps, man["needs_load"], man["kind"] == "bank", ops)
         per_file = {f: {s: _filters_json(e, s) for s in e.sensors} for f, e in encs.items()}
+        for f, e in list(encs.items()):  # an ensemble's members each read their sensors through their own filters
+            for i, me in enumerate(e.notes.get("members", [])):
+                per_file[f"{f} member {i}"] = {s: _filters_json(me, s) for s in me.sensors}
         man["preprocessing"] = {}
         for s in temps:
             chains = [pf[s] for pf in per_file.values() if s in pf]

@@ -43,7 +43,8 @@ SENSOR_VALS = 1 + FSTEP_VALS * MAX_FILTER_STEPS
 #: the C runtime's limits (tb_runtime.h); a model beyond them is refused at export, not by the loader
 LIMITS = {"sensors": 32, "poly": 16, "table": 4096, "support": 65536, "layers": 8, "width": 256, "gru_hidden": 128,
           "lags": 4096, "nodes": 4096, "ar_order": 64, "ar_terms": 8, "levels": 64, "conditions": 64,
-          "window_samples": 20000, "lumped_nodes": 8, "effects": 8, "lag_taus": 8, "delay_line": 4096}  # fmt: skip
+          "window_samples": 20000, "lumped_nodes": 8, "effects": 8, "lag_taus": 8, "delay_line": 4096,
+          "members": 8}  # fmt: skip
 ACTIVATION_CODES = {"tanh": 1, "relu": 2, "gelu": 3, "silu": 4, "sigmoid": 5}
 
 
@@ -87,6 +88,7 @@ KIND_LIMITS: dict[Kind, Callable[[list[int]], list[tuple[str, int]]]] = {
     Kind.LUMPED: lambda d: [("lumped_nodes", d[0]), ("sensors", d[1])],
     Kind.THERMAL_LAG: lambda d: [("sensors", d[0]), ("lag_taus", d[2])],
     Kind.LINEAR_HISTORY: lambda d: [("sensors", d[0]), ("lag_taus", d[2]), ("delay_line", d[5])],
+    Kind.ENSEMBLE: lambda d: [("members", d[0])],
 }
 
 
@@ -448,6 +450,51 @@ def encode(model: ThermalErrorModel, channels: dict[str, int] | None = None, per
     except ModelError as exc:
         raise ExportError(f"{where}: {exc}") from None
     return check_limits(enc, where)
+
+
+#: tb_kind_ensemble.c: a member's record before its payload: kind, layout version, n_dims, dims[8], n_payload
+MAX_DIMS = 8
+
+
+def encode_ensemble(model, channels: dict[str, int] | None = None, period_s: float = 1.0,
+                    where: str = "model") -> Encoded:  # fmt: skip
+    """The ``ENSEMBLE`` model file of a fitted stacked ensemble
+    (:class:`thermbench.models.ensemble.StackedEnsemble`; ``embedded/src/tb_kind_ensemble.c``): the
+    period (0), no sensors, a zero geometric block, the weights as (hi, lo) pairs, then each member's
+    record (kind, layout version, n_dims, dims padded to 8, n_payload) and its payload as in its own
+    file, every member encoded on the same input channels (``channels``; None: the ensemble's sensors
+    then its operating inputs, in order). dims ``[N, K]``, K the set of the members' kinds (bit k for
+    kind k: what a firmware image must carry, read from the header). A member the runtime cannot run is refused
+    with its reason."""
+    from ..models.ensemble import StackedEnsemble
+    from .fileformat import kind_version
+
+    if not isinstance(model, StackedEnsemble) or not hasattr(model, "weights_"):
+        raise ExportError(f"{where}: the ensemble is not fitted")
+    ins = model.required_inputs()
+    if channels is None:
+        channels = {s: i for i, s in enumerate([*ins.sensors, *ins.operating])}
+    body, members = [], []
+    for w in model.weights_:  # (hi, lo) pairs
+        hi = float(np.float32(w))
+        body += [hi, float(w) - hi]
+    for name, m in zip(model.member_names_, model.members_):
+        e = encode(m, channels, period_s, f"{where}: member {name}")
+        if e.kind == Kind.ENSEMBLE:
+            raise ExportError(f"{where}: member {name} is an ensemble itself; the C runtime does not nest them")
+        if len(e.dims) > MAX_DIMS:
+            raise ExportError(f"{where}: member {name} has {len(e.dims)} dims, beyond the file's {MAX_DIMS}")
+        body += [float(int(e.kind)), float(kind_version(e.kind)), float(len(e.dims)),
+                 *[float(d) for d in [*e.dims, *[0] * (MAX_DIMS - len(e.dims))]], float(len(e.payload)), *e.payload]
+        members.append(e)
+    payload = [0.0, *sensor_block([], None, {}, where), *geometric_block(Polynomial([0.0]), where), *body]
+    notes = {"operating_inputs": [c for e in members for c in e.notes.get("operating_inputs", [])],
+             "operating_channels": {k: v for e in members for k, v in e.notes.get("operating_channels", {}).items()},
+             "members": members, "limits": [n for e in members for n in e.notes.get("limits", [])]}  # fmt: skip
+    notes["operating_inputs"] = list(dict.fromkeys(notes["operating_inputs"]))
+    kinds = sum(1 << int(k) for k in {e.kind for e in members})  # the kinds inside, for a firmware image's table
+    return Encoded(Kind.ENSEMBLE, [len(members), kinds], payload, [], needs_load=any(e.needs_load for e in members),
+                   notes=notes)
 
 
 def export_blocker(model) -> str | None:

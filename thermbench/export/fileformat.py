@@ -56,6 +56,7 @@ class Kind(enum.IntEnum):
     LUMPED = 9  # lumped thermal network of a spindle (docs/concepts.md; :mod:`.lumped_encoding`)
     THERMAL_LAG = 10  # first-order lags of the rises and an operating input (:mod:`.lag_encoding`)
     LINEAR_HISTORY = 12  # the rises now and delayed, from delay lines (:mod:`.lag_encoding`); 11 is ENVELOPE_KIND
+    ENSEMBLE = 13  # a weighted sum of models of the other kinds, carried in the file (:func:`.encoding.encode_ensemble`)
 
 
 #: not a model: a model's training envelope (``TB_KIND_ENVELOPE`` of tb_runtime.h, read by

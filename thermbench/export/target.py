@@ -194,11 +194,17 @@ def image(file: Path, precision: str = "float", arena_bytes: int = 16384) -> Fir
     cc, _ = toolchain()
     d, t = embedded_dir(), _target_dir()
     file = Path(file)
-    kind = KIND_CODES.get(int.from_bytes(file.read_bytes()[6:8], "little"))
+    head = file.read_bytes()[:48]
+    code = int.from_bytes(head[6:8], "little")
+    kind = KIND_CODES.get(code)
     if kind is None:
         raise ValueError(f"{file}: not a model file of a known kind")
+    kinds = {kind}
+    if code == int(Kind.ENSEMBLE):  # and its members' kinds: dims[1] is their set (tb_kind_ensemble.c)
+        mask = int.from_bytes(head[16:20], "little")
+        kinds |= {KIND_CODES[k] for k in KIND_CODES if mask >> k & 1}
     reg = [ln for ln in (d / "src" / "tb_registry.def").read_text().splitlines()
-           if ln.startswith("TB_EFFECT(") or ln.startswith("TB_KIND(") and ln.rstrip(")").endswith(f", {kind}")]  # fmt: skip
+           if ln.startswith("TB_EFFECT(") or ln.startswith("TB_KIND(") and ln.rstrip(")").split(", ")[-1] in kinds]  # fmt: skip
     defs = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}"]
     objs = [o for o in _objects(precision) if o.stem not in ("tb_registry",)]
     key = _hash([t / "tb_target_min.c", d / "src" / "tb_registry.c", t / "stm32f407.ld", *objs, file], cc, *defs, *reg)
