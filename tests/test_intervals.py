@@ -75,7 +75,8 @@ def test_the_envelope_of_a_dataset_is_its_rises_and_rates(lathe):  # noqa: F811
     assert env.distance(Envelope.features(ds, run, t, [sensor])).max() == 0.0  # its own readings are inside
 
 
-@pytest.mark.parametrize("family,kappa", [("thermal_lag", 0.0), ("thermal_lag", 5.0), ("baseline_ridge", 5.0)])
+@pytest.mark.parametrize("family,kappa", [("thermal_lag", 0.0), ("thermal_lag", 5.0), ("baseline_ridge", 5.0),
+                                          ("ensemble", 5.0)])  # fmt: skip
 def test_benchmark_intervals_equal_the_conformal_interval_made_by_hand(lathe, family, kappa):  # noqa: F811
     """thermal_lag (and a baseline: every family has its interval, though a baseline is never a
     candidate of the choice), global, leave-one-run-out on the three days: for the fold holding out day 1, the
@@ -125,8 +126,9 @@ def test_interval_mistakes_are_one_line():
         assert str(exc.value).startswith(msg)
 
 
-def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_hand(lathe):  # noqa: F811
-    """approaches global + adaptive, a probe every 600 s on each held-out day (120 s readings):
+@pytest.mark.parametrize("family", ["thermal_lag", "ensemble"])
+def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_hand(lathe, family):  # noqa: F811
+    """thermal_lag and the stacked ensemble (probe updates work for it as for any family): approaches global + adaptive, a probe every 600 s on each held-out day (120 s readings):
     the naive peer's RMSE is the one of the fold's fit made by hand, with the last probe's residual
     added from the reading after it, over the readings that were not probes; the adaptive rows
     replay the filter (fixed noise) by hand the same way. Every probe approach is left out of the
@@ -134,9 +136,9 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
     from thermbench.adapt import ProbeFilter, ProbeParams
 
     _, dcfg = dataset_option(str(lathe), "datasets")
-    cfg = group_option("model", "thermal_lag")
+    cfg = group_option("model", family)
     noise = {"q_bias_um2_per_h": 2.0, "q_gain_per_h": 1e-3, "r_um2": 0.05, "bias0_um": 1.0, "gain0": 0.1}
-    out = bm.run_task(dcfg, "thermal_lag", cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
+    out = bm.run_task(dcfg, family, cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
                       probe={"every_s": [600], "trigger": "uncertainty", "threshold_um": 0.6, "noise": noise})  # fmt: skip
     res = out["results"]
     assert {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty", "global"} == set(res["approach"])
