@@ -70,30 +70,28 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     lh_t *r = (lh_t *)ks;
     uint32_t S = m->dims[0], NI = m->dims[1], ND = m->dims[2], C = m->dims[5], i, k;
     tb_real u_scale = PR(m, m->off[O_BODY] + 2u), h = PR(m, m->off[O_F]);
-    tb_real A = PR(m, m->off[O_C]), B = PR(m, m->off[O_C] + 2u), t = mo->t_s, g;
+    tb_real A = PR(m, m->off[O_C]), B = PR(m, m->off[O_C] + 2u), t = mo->t_s, g, u[TB_MAX_SENSORS + 1u];
+    for (i = 0; i < NI; i++) { /* each input at this sample, once */
+        uint32_t code = (uint32_t)PV(m, m->off[O_B] + i);
+        u[i] = code < S ? dT[code] : mo->op_u / u_scale;
+    }
     if (!r->started) {
         r->t0 = t;
         r->n_grid = 1u;
     } else { /* the grid times this sample passed: v_m between the previous sample and this one */
         while ((g = r->t0 + (tb_real)r->n_grid * h) <= t) {
-            for (i = 0; i < NI; i++) {
-                uint32_t code = (uint32_t)PV(m, m->off[O_B] + i);
-                tb_real u = code < S ? dT[code] : mo->op_u / u_scale;
-                r->line[i * C + r->n_grid % C] = tbi_interp1(g, r->t_prev, t, r->u_prev[i], u);
-            }
+            for (i = 0; i < NI; i++) r->line[i * C + r->n_grid % C] = tbi_interp1(g, r->t_prev, t, r->u_prev[i], u[i]);
             r->n_grid++;
         }
     }
     for (i = 0; i < NI; i++) {
-        uint32_t code = (uint32_t)PV(m, m->off[O_B] + i);
-        tb_real u = code < S ? dT[code] : mo->op_u / u_scale;
         if (!r->started) {
-            r->u_first[i] = u;
-            r->line[i * C] = u; /* v_0 */
+            r->u_first[i] = u[i];
+            r->line[i * C] = u[i]; /* v_0 */
         }
-        r->u_prev[i] = u;
+        r->u_prev[i] = u[i];
         for (k = 0; k < ND; k++) {
-            tb_real dl = PR(m, m->off[O_A] + 2u * k), y = u, q = t - dl;
+            tb_real dl = PR(m, m->off[O_A] + 2u * k), y = u[i], q = t - dl;
             if (dl > 0) {
                 if (q <= r->t0) {
                     y = r->u_first[i];

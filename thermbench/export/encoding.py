@@ -488,10 +488,9 @@ def encode_ensemble(model, channels: dict[str, int] | None = None, period_s: flo
                  *[float(d) for d in [*e.dims, *[0] * (MAX_DIMS - len(e.dims))]], float(len(e.payload)), *e.payload]
         members.append(e)
     payload = [0.0, *sensor_block([], None, {}, where), *geometric_block(Polynomial([0.0]), where), *body]
-    notes = {"operating_inputs": [c for e in members for c in e.notes.get("operating_inputs", [])],
+    notes = {"operating_inputs": list(dict.fromkeys(c for e in members for c in e.notes.get("operating_inputs", []))),
              "operating_channels": {k: v for e in members for k, v in e.notes.get("operating_channels", {}).items()},
              "members": members, "limits": [n for e in members for n in e.notes.get("limits", [])]}  # fmt: skip
-    notes["operating_inputs"] = list(dict.fromkeys(notes["operating_inputs"]))
     kinds = sum(1 << int(k) for k in {e.kind for e in members})  # the kinds inside, for a firmware image's table
     return Encoded(Kind.ENSEMBLE, [len(members), kinds], payload, [], needs_load=any(e.needs_load for e in members),
                    notes=notes)

@@ -46,7 +46,7 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from ..data.dataset import Dataset
-from .base import Inputs, ModelError, derived, readings
+from .base import ModelError, derived, readings
 from .params import Expect, Params, check_params
 from .thermal_lag import ThermalLag, _ridge
 
@@ -179,7 +179,3 @@ class LinearHistory(ThermalLag):
         from ..export.lag_encoding import encode_linear_history
 
         return encode_linear_history(self, channels, period_s, where)
-
-    def _model_inputs(self) -> Inputs:
-        return Inputs(sensors=tuple(i for i in self.inputs_ if i in self.sensor_names_),
-                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_))  # fmt: skip
