@@ -164,3 +164,37 @@ def test_the_loader_refuses_a_header_that_misnames_the_kinds_inside_or_a_nested_
     nested = payload.copy()
     nested[first] = float(Kind.ENSEMBLE)
     assert rc_of([3, 2**10 + 2**12 + 2**13], nested) == native.TB_E_PAYLOAD
+
+
+def test_the_default_ensemble_of_conf_fits_the_cortex_m4f_arena_with_sixteen_sensors(tmp_path):
+    """conf/model/ensemble.yaml's four linear-with-history members, each with its own delay line or lags,
+    on 16 sensors (fl_thermal's count) with an hour of history: the single-precision state arena stays
+    within the Cortex-M4F budget of 16 KB (seed 002's compensator), so the export for that target is not
+    refused."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from thermbench.export import ExportOptions, export_model
+    from thermbench.export.bundle import BUDGET
+    from tests.test_linear_history import _runs as lh_runs
+
+    rng = np.random.default_rng(3)
+    runs = lh_runs(SPECS[:3])
+    names = {f"T{k:02d}": "structure" for k in range(16)}
+    for r in runs.values():
+        base = [r["T_a_C"], r["T_b_C"], r["T_c_C"]]
+        for k in range(16):
+            r[f"T{k:02d}_C"] = base[k % 3] + 0.1 * k + 0.01 * rng.standard_normal(r["t_s"].size)
+        for s in ("T_a_C", "T_b_C", "T_c_C"):
+            del r[s]
+    ds = spindle_dataset(runs, sensors=names, operating=[])
+    m = instantiate(OmegaConf.load("conf/model/ensemble.yaml"))
+    for member in m.members:  # the worst case the config allows: each member's longest history chosen
+        if isinstance(member, LinearHistory):
+            member.set_params(delays_s=[max(member.delays_s, key=max)])
+    m.fit(ds, ["r0", "r1", "r2"])
+    longest = [max(mm.delays_s_) for mm in m.members_ if hasattr(mm, "delays_s_")]
+    assert len(m.members_) == 4 and longest == [1800.0, 3600.0, 3600.0]
+    man = export_model(m, tmp_path / "m4", "en", ds=ds,
+                       options=ExportOptions(target="cortex-m4f", verify=False, onnx=False))  # fmt: skip
+    assert man["temperatures"] == list(names) and man["target"]["footprint"]["arena_bytes"] <= BUDGET["ram_bytes"]

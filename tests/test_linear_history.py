@@ -84,12 +84,73 @@ def test_it_finds_the_planted_delay_and_reaches_the_noise_floor_where_the_rises_
 def test_it_is_a_scikit_learn_estimator_and_refuses_a_step_longer_than_a_delay(planted):
     m = LinearHistory(delays_s=[[0.0, 600.0]], delay_step_s=30.0)
     c = clone(m)
-    assert c.get_params() == m.get_params() and set(c.get_params()) == {"sensors", "operating", "delays_s",
-                                                                        "delay_step_s", "alphas"}  # fmt: skip
+    assert c.get_params() == m.get_params() and set(c.get_params()) == {
+        "sensors", "operating", "delays_s", "delay_step_s", "alphas", "estimator", "components", "cv"}  # fmt: skip
     with pytest.raises(ModelError, match=r"LinearHistory.delay_step_s: 900 s is longer than the shortest delay 600 s"):
         LinearHistory(delays_s=[[0.0, 600.0]], delay_step_s=900.0).fit(planted, ["r0", "r1"])
     with pytest.raises(ModelError, match=r"LinearHistory.delays_s"):
         LinearHistory(delays_s=[[0.0, -60.0]]).fit(planted, ["r0", "r1"])
+    with pytest.raises(ModelError, match=r"LinearHistory.cv: gcv is ridge's leave-one-reading-out error"):
+        LinearHistory(estimator="pls", cv="gcv").fit(planted, ["r0", "r1"])
+    with pytest.raises(ModelError, match=r"LinearHistory.estimator"):
+        LinearHistory(estimator="lasso").fit(planted, ["r0", "r1"])
+
+
+def _design(m, ds, runs):
+    from thermbench.models.base import readings
+
+    rd = readings(ds, runs)
+    X = np.vstack([m._features(ds, r, m.inputs_, m.delays_s_, g["t_s"].to_numpy(), g["target_mm"].to_numpy())
+                   for r, g in rd.groupby("run_id", sort=False)])  # fmt: skip
+    return X, rd["error_um"].to_numpy(dtype=float), rd["run_id"].to_numpy()
+
+
+def test_pls_predicts_as_scikit_learns_own_pipeline_and_its_components_are_chosen_over_whole_runs(planted):
+    """The PLS fit is read back as weights on standardised features (so it exports as any linear map):
+    its predictions are those of scikit-learn's StandardScaler + PLSRegression, and the number of
+    components is the one of lowest RMSE over leave-one-run-out folds, computed here by hand."""
+    from sklearn.cross_decomposition import PLSRegression
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    train = ["r0", "r1", "r2", "r3"]
+    m = LinearHistory(estimator="pls", delays_s=[[0.0, 1800.0]], components=[1, 2, 3, 6, 50]).fit(planted, train)
+    X, y, run_of = _design(m, planted, train)
+    by_hand = {}
+    for k in (1, 2, 3, 6):  # 50 is more than the 6 features: dropped
+        sse = 0.0
+        for r in train:
+            pipe = make_pipeline(StandardScaler(), PLSRegression(k, scale=False)).fit(X[run_of != r], y[run_of != r])
+            sse_r = np.sum((np.ravel(pipe.predict(X[run_of == r])) - y[run_of == r]) ** 2)
+            by_hand[k] = by_hand.get(k, []) + [sse_r / np.sum(run_of == r)]
+    rmse = {k: float(np.sqrt(np.mean(v))) for k, v in by_hand.items()}
+    assert m.n_components_ == min(rmse, key=rmse.get) and m.cv_rmse_um_ == pytest.approx(min(rmse.values()), rel=1e-9)
+    assert sorted(r["n_components"] for r in m.cv_results_) == [1, 2, 3, 6] and m.alpha_ is None
+    pipe = make_pipeline(StandardScaler(), PLSRegression(m.n_components_, scale=False)).fit(X, y)
+    Xh, yh, _ = _design(m, planted, ["r4"])
+    np.testing.assert_allclose(m.predict(planted, "r4"), np.ravel(pipe.predict(Xh)), atol=1e-9)
+    assert evaluate(m, planted, ["r4"])["rmse_um"].iloc[0] < 3 * NOISE_UM  # the planted delay: within the noise
+    assert "PLS with" in m.fit_summary()
+
+
+def test_gcv_chooses_the_penalty_of_lowest_leave_one_reading_out_error_computed_by_the_hat_matrix(planted):
+    """cv="gcv" (baseline_ridge's choice, made deployable): the penalty of lowest leave-one-reading-out
+    error, that error computed here from the hat matrix of the ridge with an unpenalised intercept
+    (r_i / (1 - h_ii)), not by scikit-learn."""
+    train = ["r0", "r1", "r2"]
+    alphas = [0.01, 1.0, 100.0]
+    m = LinearHistory(cv="gcv", delays_s=[[0.0, 1800.0]], alphas=alphas).fit(planted, train)
+    X, y, _ = _design(m, planted, train)
+    Z = (X - X.mean(axis=0)) / X.std(axis=0)
+    A = np.hstack([np.ones((y.size, 1)), Z])
+    loo = {}
+    for a in alphas:
+        P = np.diag([0.0] + [a] * Z.shape[1])
+        H = A @ np.linalg.solve(A.T @ A + P, A.T)
+        r = y - H @ y
+        loo[a] = float(np.sqrt(np.mean((r / (1.0 - np.diag(H))) ** 2)))
+    assert m.alpha_ == min(loo, key=loo.get) and m.cv_rmse_um_ == pytest.approx(min(loo.values()), rel=1e-6)
+    assert "leave-one-reading-out (GCV) RMSE" in m.fit_summary()
 
 
 @pytest.mark.parametrize("operating", [[], ["spindle_rpm"]])

@@ -29,6 +29,7 @@ from thermbench.models.params import Expect, Int, Number, Params, check_params, 
 from thermbench.models.ensemble import StackedEnsemble
 from thermbench.models.linear_history import LinearHistory
 from thermbench.models.physics import PhysicsModel
+from thermbench.models.thermal_lag import ThermalLag
 
 #: every family, with what its constructor needs beyond the defaults to be valid
 FAMILIES = {
@@ -44,6 +45,7 @@ FAMILIES = {
     AutoRegressiveSeed003: {},
     PhysicsModel: {},
     LinearHistory: {},
+    ThermalLag: {},
     StackedEnsemble: {"members": [LinearHistory()]},
 }
 
@@ -124,7 +126,9 @@ BAD = [
     (PhysicsModel, "bounds", {"k2_W_m2K": 5.0}), (PhysicsModel, "identify", 3), (PhysicsModel, "effects", ["motor"]),
     (PhysicsModel, "polish_steps", -1), (PhysicsModel, "coarse_dt_s", 0.0), (PhysicsModel, "coarse_macro_dt_s", INF),
     (LinearHistory, "delays_s", [[-60.0]]), (LinearHistory, "delays_s", []), (LinearHistory, "delay_step_s", 0.0),
-    (LinearHistory, "alphas", []), (LinearHistory, "sensors", "T1"),
+    (LinearHistory, "alphas", []), (LinearHistory, "sensors", "T1"), (LinearHistory, "estimator", "lasso"),
+    (LinearHistory, "components", [0]), (LinearHistory, "components", [2.5]), (LinearHistory, "cv", "loo"),
+    (ThermalLag, "select", "no"),
     (StackedEnsemble, "members", []), (StackedEnsemble, "members", ["linear_history"]),
     (StackedEnsemble, "stacking", "median"),
 ]  # fmt: skip

@@ -161,16 +161,16 @@ def with_speed():
     return spindle_dataset(_runs(SPECS), sensors=SENSORS, operating=["spindle_rpm"])
 
 
-@pytest.mark.parametrize("operating", [[], ["spindle_rpm"]])
-def test_the_c_runtime_kind_reproduces_python_in_both_precisions(planted, with_speed, operating, tmp_path):
+@pytest.mark.parametrize("operating,select", [([], True), (["spindle_rpm"], True), (["spindle_rpm"], False)])
+def test_the_c_runtime_kind_reproduces_python_in_both_precisions(planted, with_speed, operating, select, tmp_path):
     """THERMAL_LAG (embedded/src/tb_kind_thermal_lag.c, a second implementation of the lags and the
     weights): the export's parity check replays the held-out run through the C runtime; double to
     1e-9 µm, float within the 0.01 µm tolerance, as Python scores it."""
     from thermbench.export import export_model
 
     ds = with_speed if operating else planted
-    m = ThermalLag(operating=operating, max_inputs=4, min_gain=0.0).fit(ds, ["r0", "r1", "r2", "r3"])
-    assert ("spindle_rpm" in m.inputs_) == bool(operating)  # min_gain 0: every input up to 4 enters
+    m = ThermalLag(operating=operating, max_inputs=4, min_gain=0.0, select=select).fit(ds, ["r0", "r1", "r2", "r3"])
+    assert ("spindle_rpm" in m.inputs_) == bool(operating)  # min_gain 0 or no selection: every input up to 4 enters
     man = export_model(m, tmp_path / "tl", "tl", ds=ds, heldout=["r4"])
     p = man["parity"]["model"]
     assert man["kind"] == "THERMAL_LAG" and p["n_readings"] > 300
@@ -234,3 +234,49 @@ def test_the_stepwise_selection_ends_when_a_group_changes_nothing_and_min_gain_i
     chosen, (rmse, _), steps, _ = _forward_groups(blocks, np.zeros((400, 0)), y, folds, [1e-3], 3, 0.0)
     assert chosen == ["A"] and rmse < 0.06
     assert len(steps) <= 2 ** len(blocks) + 1  # each set once, plus every input at once
+
+
+def test_without_selection_every_input_enters_and_the_fit_is_scikit_learns_ridge_over_whole_runs(planted):
+    """select=False: every sensor enters with every lag of the chosen set; the time constants and the
+    penalty are those of lowest RMSE over leave-one-run-out folds computed here by scikit-learn's
+    cross_val_score, and the predictions are those of its StandardScaler + Ridge, on lags laid out here
+    from the raw logs (first_order_lag itself is checked against the exponential above)."""
+    from sklearn.linear_model import Ridge
+    from sklearn.model_selection import LeaveOneGroupOut, cross_val_score
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    train = ["r0", "r1", "r2", "r3"]
+    sets, alphas = [[0.0], [0.0, 3600.0]], [0.01, 1.0]
+    m = ThermalLag(taus_s=sets, alphas=alphas, select=False).fit(planted, train)
+    assert m.inputs_ == ["T_a", "T_b", "T_c"] and m.selection_ == [("(every input)", m.cv_rmse_um_)]
+
+    def design(runs, taus):
+        blocks, ys, groups = [], [], []
+        for r in runs:
+            spec = _runs(SPECS)[r]
+            t = spec["t_s"]
+            cols = []
+            for s in ("T_a", "T_b", "T_c"):
+                u = spec[f"{s}_C"] - spec[f"{s}_C"][0]
+                for tau in taus:
+                    cols.append(first_order_lag(t, u, tau))
+            blocks.append(np.column_stack(cols))
+            ys.append(spec["error_um"] - spec["error_um"][0])  # readings are relative to the run's first
+            groups += [r] * t.size
+        return np.vstack(blocks), np.concatenate(ys), np.array(groups)
+
+    scores = {}
+    for taus in sets:
+        X, y, g = design(train, taus)
+        for a in alphas:
+            mse = -cross_val_score(make_pipeline(StandardScaler(), Ridge(alpha=a)), X, y, groups=g,
+                                   cv=LeaveOneGroupOut(), scoring="neg_mean_squared_error")  # fmt: skip
+            scores[(tuple(taus), a)] = float(np.sqrt(mse.mean()))
+    taus, alpha = min(scores, key=scores.get)
+    assert (m.taus_s_, m.alpha_) == (taus, alpha) and m.cv_rmse_um_ == pytest.approx(scores[(taus, alpha)], rel=1e-9)
+    X, y, _ = design(train, taus)
+    Xh, yh, _ = design(["r4"], taus)
+    pipe = make_pipeline(StandardScaler(), Ridge(alpha=alpha)).fit(X, y)
+    np.testing.assert_allclose(m.predict(planted, "r4"), pipe.predict(Xh), atol=1e-9)
+    assert m.required_inputs().sensors == ("T_a", "T_b", "T_c")

@@ -24,31 +24,35 @@ that a deployable candidate::
   :class:`~sklearn.model_selection.GridSearchCV` on a :class:`~sklearn.preprocessing.StandardScaler`
   + :class:`~sklearn.linear_model.Ridge` pipeline, its folds those of
   :func:`thermbench.splits.row_folds` (scikit-learn's ``LeaveOneGroupOut`` up to 6 runs, else
-  ``GroupKFold``; one run: 5 contiguous blocks), never rows of a run the fold trains on.
+  ``GroupKFold``; one run: 5 contiguous blocks), never rows of a run the fold trains on;
+* ``estimator="pls"``: partial least squares (:class:`~sklearn.cross_decomposition.PLSRegression` on the
+  standardised features) instead of the ridge, its number of components (from ``components``) chosen
+  the same way; its answer is read back as weights on the same features
+  (:func:`~thermbench.models.thermal_lag.linear_fit`), so it exports as the same kind;
+* ``cv="gcv"`` (ridge): the penalty by :class:`~sklearn.linear_model.RidgeCV`'s efficient
+  leave-one-reading-out error, as ``baseline_ridge`` chooses it (that baseline made deployable, one of
+  the stacked ensemble's members); it holds no run out, so it is not the default.
 
 The features are computed at the samples of the run's log and interpolated linearly to a reading's
 time, as the runtime interpolates its prediction between samples. Fitted: ``inputs_`` (every
 input), ``delays_s_``, ``alpha_``, ``cv_rmse_um_``, ``cv_results_`` (per delay set and penalty,
 the held-out RMSE), ``mean_``/``scale_``/``coef_``/``intercept_`` (the ridge on standardised
-features: per input its delays, input-major; along an axis ``[x, those, x * those]``).
+features: per input its delays, input-major; along an axis ``[x, those, x * those]``), ``alpha_`` or
+``n_components_`` (the other None).
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Optional, Sequence
+from typing import Annotated, Literal, Optional, Sequence
 
 import numpy as np
 from annotated_types import Ge, Gt, Len
 from numpy.polynomial import Polynomial
-from sklearn.linear_model import Ridge
-from sklearn.model_selection import GridSearchCV
-from sklearn.pipeline import make_pipeline
-from sklearn.preprocessing import StandardScaler
 
 from ..data.dataset import Dataset
 from .base import ModelError, derived, readings
-from .params import Expect, Params, check_params
-from .thermal_lag import ThermalLag, _ridge
+from .params import Expect, Int, Params, check_params
+from .thermal_lag import ThermalLag, grid_choice, linear_fit
 
 __all__ = ["LinearHistory", "delay_line"]
 
@@ -83,6 +87,10 @@ class LinearHistoryParams(Params):
                         Len(min_length=1), Expect("a non-empty list of sets of 1 to 8 delays in seconds, each >= 0")]  # fmt: skip
     delay_step_s: Annotated[float, Gt(0), Expect("a step in seconds > 0, at most the shortest delay above 0")]
     alphas: Annotated[Sequence[Annotated[float, Gt(0)]], Len(min_length=1), Expect("a non-empty list of penalties > 0")]
+    estimator: Annotated[Literal["ridge", "pls"], Expect("ridge or pls")]
+    components: Annotated[Sequence[Annotated[Int, Ge(1)]], Len(min_length=1),
+                          Expect("a non-empty list of numbers of PLS components, each >= 1")]  # fmt: skip
+    cv: Annotated[Literal["runs", "gcv"], Expect("runs (GridSearchCV over whole runs) or gcv (ridge only)")]
 
 
 class LinearHistory(ThermalLag):
@@ -101,17 +109,30 @@ class LinearHistory(ThermalLag):
         The delay line's step (s); every delay above 0 is at least this.
     alphas : list of float
         Candidate ridge penalties (on standardised features).
+    estimator : "ridge" or "pls"
+        The linear fit: ridge regression, or partial least squares (:class:`~sklearn.cross_decomposition.PLSRegression`
+        on the standardised features, a few latent directions instead of a penalty).
+    components : list of int
+        Candidate numbers of PLS components (those above the number of features are dropped).
+    cv : "runs" or "gcv"
+        How the set of delays and the penalty (or components) are chosen: ``runs``, GridSearchCV over whole
+        runs; ``gcv`` (ridge only), RidgeCV's efficient leave-one-reading-out error, what ``baseline_ridge``
+        uses, which does not hold runs out (the delay set of lowest such error).
     """
 
     params_model = LinearHistoryParams
 
     def __init__(self, sensors=None, operating=(), delays_s=DEFAULT_DELAYS_S, delay_step_s=60.0,
-                 alphas=tuple(np.logspace(-3, 3, 13))):  # fmt: skip
+                 alphas=tuple(np.logspace(-3, 3, 13)), estimator="ridge", components=(1, 2, 3, 4, 6, 8),
+                 cv="runs"):  # fmt: skip
         self.sensors = sensors
         self.operating = operating
         self.delays_s = delays_s
         self.delay_step_s = delay_step_s
         self.alphas = alphas
+        self.estimator = estimator
+        self.components = components
+        self.cv = cv
 
     def _lags(self, ds: Dataset, run: str, name: str, delays: Sequence[float], t_s: np.ndarray) -> np.ndarray:
         """The delayed values of input ``name`` at times ``t_s`` of ``run``, one column per delay
@@ -146,22 +167,17 @@ class LinearHistory(ThermalLag):
             return np.vstack([self._features(ds, r, self.inputs_, delays, rd.loc[run_of == r, "t_s"].to_numpy(),
                                              rd.loc[run_of == r, "target_mm"].to_numpy()) for r in runs])  # fmt: skip
 
-        alphas = [float(a) for a in p.alphas]
-        folds = row_folds(run_of)
-        results, best = [], None
-        for delays in p.delays_s:
-            delays = tuple(float(d) for d in delays)
-            search = GridSearchCV(make_pipeline(StandardScaler(), Ridge()), {"ridge__alpha": alphas}, cv=folds,
-                                  scoring="neg_mean_squared_error", n_jobs=1, refit=False)  # fmt: skip
-            search.fit(features(delays), y)
-            rmse = np.sqrt(-np.asarray(search.cv_results_["mean_test_score"], dtype=float))
-            results += [{"delays_s": delays, "alpha": a, "cv_rmse_um": float(r)} for a, r in zip(alphas, rmse)]
-            k = int(np.argmin(rmse))
-            if best is None or rmse[k] < best[0]:
-                best = (float(rmse[k]), delays, alphas[k])
-        self.cv_rmse_um_, self.delays_s_, self.alpha_ = best
-        self.cv_results_ = results
-        self.mean_, self.scale_, self.coef_, self.intercept_ = _ridge(features(self.delays_s_), y, self.alpha_)
+        if p.estimator == "pls" and p.cv == "gcv":
+            raise ModelError("LinearHistory.cv: gcv is ridge's leave-one-reading-out error; expected runs with "
+                             "estimator pls")  # fmt: skip
+        grid = p.components if p.estimator == "pls" else p.alphas
+        (self.cv_rmse_um_, self.delays_s_, value), results = grid_choice(features, p.delays_s, y, row_folds(run_of),
+                                                                         p.estimator, grid, p.cv)  # fmt: skip
+        self.cv_results_ = [{"delays_s": r.pop("history"), **r} for r in results]
+        self.alpha_ = float(value) if p.estimator == "ridge" else None
+        self.n_components_ = int(value) if p.estimator == "pls" else None
+        fitted = linear_fit(features(self.delays_s_), y, p.estimator, value)
+        self.mean_, self.scale_, self.coef_, self.intercept_ = fitted
         self.geometric_ = Polynomial([0.0])
 
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
@@ -170,9 +186,11 @@ class LinearHistory(ThermalLag):
 
     def fit_summary(self) -> str:
         self._check_fitted()
+        fit = (f"ridge alpha {self.alpha_:g}" if self.n_components_ is None
+               else f"PLS with {self.n_components_} components")  # fmt: skip
+        cv = "leave-one-reading-out (GCV) RMSE" if self.cv == "gcv" else "cross-validated RMSE over whole runs"
         return (f"every input ({len(self.inputs_)}) now and {[round(d) for d in self.delays_s_ if d > 0]} s earlier "
-                f"(a delay line of {self.step_s_:g} s), ridge alpha {self.alpha_:g}; cross-validated RMSE over "
-                f"whole runs {self.cv_rmse_um_:.3f} µm")
+                f"(a delay line of {self.step_s_:g} s), {fit}; {cv} {self.cv_rmse_um_:.3f} µm")
 
     def export_encoding(self, channels, period_s, where):
         """The C runtime's ``LINEAR_HISTORY`` kind (:func:`thermbench.export.lag_encoding.encode_linear_history`)."""

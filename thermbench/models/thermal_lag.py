@@ -22,6 +22,12 @@ to measured temperatures and operating signals). Here::
   out once up to 6 runs, else 3 folds of runs; one run: 5 contiguous blocks), never on rows of
   a run the fold trains on.
 
+With ``select=False`` there is no selection: every candidate input enters with every lag of the
+chosen set, the ridge penalty keeping the weights of inputs that do not help small (issue 54: "a
+ridge on first-order lags" of every sensor, one of the linear-with-history models that held up on
+real tests); the penalty and the time constants are chosen together by scikit-learn's
+:class:`~sklearn.model_selection.GridSearchCV` over the same folds of whole runs (:func:`grid_choice`).
+
 Along an axis with several measuring targets, the position P and P x each lag join the features
 (the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
 inputs, in the order they entered), ``taus_s_``, ``alpha_``, ``selection_`` (each step: the
@@ -38,12 +44,17 @@ import numpy as np
 from annotated_types import Ge, Gt, Len
 from numpy.polynomial import Polynomial
 from scipy.signal import lfilter
+from sklearn.cross_decomposition import PLSRegression
+from sklearn.linear_model import RidgeCV
+from sklearn.model_selection import GridSearchCV
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import StandardScaler
 
 from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, _name, derived, readings, sensor_series
-from .params import Expect, Int, Params, check_params
+from .params import Bool, Expect, Int, Params, check_params
 
-__all__ = ["ThermalLag", "first_order_lag"]
+__all__ = ["ThermalLag", "first_order_lag", "grid_choice", "linear_fit"]
 
 #: the default candidate sets of time constants (s): the rise alone, then 30 min, then 15 min /
 #: 1 h, then 15 min / 1 h / 4 h beside it (a spindle test's drift moves over minutes to hours)
@@ -82,6 +93,7 @@ class ThermalLagParams(Params):
     alphas: Annotated[Sequence[Annotated[float, Gt(0)]], Len(min_length=1), Expect("a non-empty list of penalties > 0")]
     max_inputs: Annotated[Int, Ge(1)]
     min_gain: Annotated[float, Ge(0), Expect("a fraction >= 0 (0.02: a 2 % lower cross-validated RMSE)")]
+    select: Bool
 
 
 class ThermalLag(ThermalErrorModel):
@@ -102,6 +114,8 @@ class ThermalLag(ThermalErrorModel):
         At most this many inputs enter.
     min_gain : float
         An input enters only when it lowers the cross-validated RMSE by this fraction.
+    select : bool
+        False: no selection, every candidate input enters (``max_inputs`` and ``min_gain`` unused).
     """
 
     complexity = 1  # ThermalErrorModel.complexity
@@ -109,13 +123,14 @@ class ThermalLag(ThermalErrorModel):
     params_model = ThermalLagParams
 
     def __init__(self, sensors=None, operating=None, taus_s=DEFAULT_TAUS_S, alphas=tuple(np.logspace(-3, 3, 13)),
-                 max_inputs=6, min_gain=0.02):  # fmt: skip
+                 max_inputs=6, min_gain=0.02, select=True):  # fmt: skip
         self.sensors = sensors
         self.operating = operating
         self.taus_s = taus_s
         self.alphas = alphas
         self.max_inputs = max_inputs
         self.min_gain = min_gain
+        self.select = select
 
     # ------------------------------------------------------------ features ---
     def _input_series(self, ds: Dataset, run: str, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -196,6 +211,21 @@ class ThermalLag(ThermalErrorModel):
                                  for r in runs]) for name in candidates}  # fmt: skip
         pos = rd["target_mm"].to_numpy(dtype=float)[:, None]
         folds = row_folds(run_of)
+        if not p.select:  # every candidate, the penalty and the time constants by GridSearchCV over whole runs
+
+            def features(taus) -> np.ndarray:  # as _features lays them out, from the lags computed above
+                idx = [self.all_taus_.index(float(t)) for t in taus]
+                z = np.hstack([full[name][:, idx] for name in candidates])
+                return np.hstack([pos, z, pos * z]) if self.uses_position_ else z
+
+            self.inputs_ = candidates
+            (self.cv_rmse_um_, self.taus_s_, self.alpha_), self.cv_results_ = grid_choice(
+                features, p.taus_s, y, folds, "ridge", p.alphas)  # fmt: skip
+            self.selection_ = [("(every input)", self.cv_rmse_um_)]
+            self.mean_, self.scale_, self.coef_, self.intercept_ = linear_fit(features(self.taus_s_), y, "ridge",
+                                                                              self.alpha_)  # fmt: skip
+            self.geometric_ = Polynomial([0.0])
+            return
         best = None
         for taus in p.taus_s:
             idx = [self.all_taus_.index(float(t)) for t in taus]
@@ -232,11 +262,69 @@ class ThermalLag(ThermalErrorModel):
                       operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_))  # fmt: skip
 
 
-def _ridge(X: np.ndarray, y: np.ndarray, alpha: float):
-    """Ridge on standardised columns (a constant column keeps scale 1): (mean, scale, coef, intercept)."""
+def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequence, cv: str = "runs"):
+    """The set of history terms (delays or time constants, one of ``sets``) and the hyper-parameter
+    (a ridge penalty, or a number of PLS components) of lowest cross-validated RMSE, searched
+    together: ((rmse, set, value), every candidate's rmse as dicts). ``features(set)`` gives the
+    feature matrix; ``cv="runs"``: the mean held-out mean square over ``folds`` (whole runs), as
+    scikit-learn's GridSearchCV scores it (the ridge's penalties from one decomposition per fold);
+    ``cv="gcv"`` (ridge only): :class:`~sklearn.linear_model.RidgeCV`'s efficient leave-one-reading-out
+    error (generalised cross-validation, as ``baseline_ridge``), which does not hold whole runs out."""
+    name = "n_components" if estimator == "pls" else "alpha"
+    results, best = [], None
+    for hist in sets:
+        hist = tuple(float(v) for v in hist)
+        X = features(hist)
+        if estimator == "pls":
+            values = sorted({int(k) for k in grid if int(k) <= X.shape[1]}) or [1]
+        else:
+            values = [float(a) for a in grid]
+        if cv == "gcv":
+            ridge = make_pipeline(StandardScaler(), RidgeCV(alphas=values)).fit(X, y)[-1]
+            rmse = np.full(len(values), np.inf)
+            rmse[values.index(float(ridge.alpha_))] = np.sqrt(max(-float(ridge.best_score_), 0.0))
+        elif estimator == "ridge":  # what GridSearchCV over StandardScaler + Ridge gives, every penalty from one
+            # decomposition per fold (_FoldGram; tests/test_thermal_lag.py checks it against scikit-learn)
+            cols = np.arange(X.shape[1])
+            mse = [_FoldGram(X, y, tr, te).sse(cols, values) / len(te) for tr, te in folds]
+            rmse = np.sqrt(np.mean(mse, axis=0))
+        else:
+            est = PLSRegression(scale=False)
+            key = f"{type(est).__name__.lower()}__{name}"
+            search = GridSearchCV(make_pipeline(StandardScaler(), est), {key: values}, cv=folds,
+                                  scoring="neg_mean_squared_error", n_jobs=1, refit=False)  # fmt: skip
+            search.fit(X, y)
+            rmse = np.sqrt(-np.asarray(search.cv_results_["mean_test_score"], dtype=float))
+        results += [{"history": hist, name: v, "cv_rmse_um": float(r)} for v, r in zip(values, rmse) if np.isfinite(r)]
+        k = int(np.argmin(rmse))
+        if best is None or rmse[k] < best[0]:
+            best = (float(rmse[k]), hist, values[k])
+    return best, results
+
+
+def linear_fit(X: np.ndarray, y: np.ndarray, estimator: str, value):
+    """A linear map on standardised columns, (mean, scale, coef, intercept), from a ridge of penalty
+    ``value`` or a PLS regression of ``value`` components; PLS's own coefficients are read back as
+    its answers at the origin and at each unit vector, so both are exported alike."""
+    if estimator != "pls":
+        return _ridge(X, y, float(value))
+    mean, scale = _standardise(X)
+    pls = PLSRegression(n_components=int(value), scale=False).fit((X - mean) / scale, y)
+    intercept = float(np.ravel(pls.predict(np.zeros((1, X.shape[1]))))[0])
+    coef = np.ravel(pls.predict(np.eye(X.shape[1]))) - intercept
+    return mean, scale, coef, intercept
+
+
+def _standardise(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each column's mean and standard deviation (a constant column keeps scale 1, as StandardScaler)."""
     mean = X.mean(axis=0) if X.size else np.zeros(X.shape[1])
     scale = X.std(axis=0) if X.size else np.ones(X.shape[1])
-    scale = np.where(scale > 0, scale, 1.0)
+    return mean, np.where(scale > 0, scale, 1.0)
+
+
+def _ridge(X: np.ndarray, y: np.ndarray, alpha: float):
+    """Ridge on standardised columns (a constant column keeps scale 1): (mean, scale, coef, intercept)."""
+    mean, scale = _standardise(X)
     Z = (X - mean) / scale
     ym = float(y.mean())
     coef = np.linalg.solve(Z.T @ Z + alpha * np.eye(Z.shape[1]), Z.T @ (y - ym)) if Z.shape[1] else np.zeros(0)
