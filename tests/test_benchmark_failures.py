@@ -87,6 +87,12 @@ def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp
     held = next(ln for ln in report.splitlines() if ln.startswith("| held out, synthetic "))
     simpler = f", the simplest within one standard error of {best} (global)" if by_hand != best else ""
     assert f"deployed {by_hand} (global){simpler}; 4 folds; choice " in held
+    # what the deployed model is made of: the fit summary of the very model saved as chosen
+    import joblib
+
+    summary = joblib.load(tmp_path / "models" / f"synthetic__{by_hand}__global.joblib").fit_summary()
+    rows = [ln for ln in report.splitlines() if ln.startswith("| deployed model, synthetic ")]
+    assert (rows and f"{by_hand} (global): {summary}" in rows[0]) if summary else not rows
 
 
 def test_a_case_without_inner_folds_falls_back_and_says_so():

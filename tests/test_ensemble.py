@@ -56,14 +56,16 @@ def test_the_weights_are_non_negative_least_squares_on_out_of_run_predictions(pl
             P[rows, i] = fitted.predict_at(planted, run, rd.loc[rows, "t_s"].to_numpy(), rd.loc[rows, "target_mm"].to_numpy())
     w, _ = nnls(P, rd["error_um"].to_numpy())
     np.testing.assert_allclose(m.weights_, w, rtol=1e-6, atol=1e-9)
-    assert m.stacking_ == "nnls" and m.member_names_ == ["LinearHistory", "ThermalLag", "LinearHistory#2"]
+    assert m.stacking_ == "nnls" and m.member_names_ == [  # each named by what it sets away from its defaults
+        "LinearHistory(delays_s=[[0]], operating=['spindle_rpm'])", "ThermalLag(max_inputs=2)",
+        "LinearHistory(delays_s=[[0, 900, 1800, 3600]])"]  # fmt: skip
     # the planted error needs the rise 30 min earlier: the member that has it carries the weight, and the
     # ensemble holds up on the held-out run as that member does, far better than the rises now alone
     assert m.weights_[2] > 0.9
     rmse = {k: evaluate(x, planted, ["r4"])["rmse_um"].iloc[0] for k, x in
             (("ensemble", m), ("now", m.members_[0]), ("delays", m.members_[2]))}  # fmt: skip
     assert rmse["ensemble"] < 1.1 * rmse["delays"] < rmse["now"] / 5, rmse
-    assert m.fit_summary().startswith("weights LinearHistory 0.000, ThermalLag ")
+    assert m.fit_summary().startswith("weights LinearHistory(delays_s=[[0]], operating=['spindle_rpm']) 0.000, ThermalLag(")
 
 
 def test_the_plain_mean_on_one_run_or_when_asked(planted):
@@ -127,12 +129,19 @@ def test_an_ensemble_export_for_the_cortex_m4f_is_within_its_budget(planted, ens
     assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= 0.01
 
 
+def test_two_members_alike_are_told_apart_by_number(planted):
+    m = StackedEnsemble(members=[LinearHistory(delays_s=[[0.0]]), LinearHistory(delays_s=[[0.0]]), LinearHistory()])
+    m.fit(planted, TRAIN[:2])
+    assert m.member_names_ == ["LinearHistory(delays_s=[[0]])", "LinearHistory(delays_s=[[0]])#2", "LinearHistory"]
+    assert m.fit_summary().startswith("weights LinearHistory(delays_s=[[0]]) ")
+
+
 def test_a_member_the_runtime_cannot_run_is_refused_with_its_reason(planted):
     from thermbench.export.encoding import ExportError, encode
     from thermbench.models.gp import GaussianProcessLag
 
     m = StackedEnsemble(members=[LinearHistory(delays_s=[[0.0]]), GaussianProcessLag(max_samples=100)]).fit(planted, TRAIN)
-    with pytest.raises(ExportError, match=r"^model: member GaussianProcessLag: the C runtime has no Gaussian-process kind"):
+    with pytest.raises(ExportError, match=r"^model: member GaussianProcessLag\(max_samples=100\): the C runtime has no Gaussian-process kind"):
         encode(m)
 
 

@@ -1137,6 +1137,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta[f"held out, {row['case']}"] = _summary_text(row, deployed.get(row["case"]))
     for row in limits.to_dict("records"):
         meta[f"target, {row['case']}"] = row["verdict"]
+    fitted = {(case_label(o["dataset"], o.get("channel", "all")), o["family"], a): m
+              for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
+    for r in chosen.itertuples():  # what the deployed model is made of (an ensemble: its members' weights)
+        m = fitted.get((r.case, r.family, r.approach))
+        line = m.fit_summary() if m is not None else None
+        if line:
+            meta[f"deployed model, {r.case}"] = f"{r.family} ({r.approach}): {line}"
     held_flags = held_out_flags(results, baselines)
     if held_flags:
         meta["flagged on held-out runs"] = held_flags

@@ -42,7 +42,7 @@ from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel
 from .params import Expect, Params, check_params
 
-__all__ = ["StackedEnsemble", "stack_weights"]
+__all__ = ["StackedEnsemble", "member_label", "stack_weights"]
 
 
 def _models(v):
@@ -65,6 +65,26 @@ def stack_weights(P: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, str]:
     if not np.isfinite(w).all() or w.sum() <= 0:
         return np.full(P.shape[1], 1.0 / P.shape[1]), "mean (the least squares gave every member zero weight)"
     return w, "nnls"
+
+
+def _plain(v):
+    """A parameter value as plain lists and short numbers, to compare and to print."""
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        v = float(f"{float(v):.6g}")
+        return int(v) if v.is_integer() else v
+    return v
+
+
+def member_label(m) -> str:
+    """A member named by its family and the parameters it sets away from the family's defaults, e.g.
+    ``LinearHistory(estimator='pls', delays_s=[[0, 900, 1800, 3600]])``: what tells two members of one
+    family apart in the weights a report prints."""
+    defaults = type(m)().get_params(deep=False)
+    diff = {k: _plain(v) for k, v in m.get_params(deep=False).items() if _plain(v) != _plain(defaults.get(k))}
+    text = ", ".join(f"{k}={v!r}" for k, v in diff.items())
+    return f"{type(m).__name__}({text})" if diff else type(m).__name__
 
 
 class StackedEnsemble(ThermalErrorModel):
@@ -97,7 +117,7 @@ class StackedEnsemble(ThermalErrorModel):
         p = check_params(self, self.params_model)
         names = []
         for m in p.members:
-            base = type(m).__name__
+            base = member_label(m)
             names.append(base if base not in names else f"{base}#{sum(n.split('#')[0] == base for n in names) + 1}")
         self.member_names_ = names
         X, y, groups = run_rows(ds, runs)
