@@ -1137,10 +1137,10 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta[f"held out, {row['case']}"] = _summary_text(row, deployed.get(row["case"]))
     for row in limits.to_dict("records"):
         meta[f"target, {row['case']}"] = row["verdict"]
-    fitted = {(case_label(o["dataset"], o.get("channel", "all")), o["family"], a): m
+    models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     for r in chosen.itertuples():  # what the deployed model is made of (an ensemble: its members' weights)
-        m = fitted.get((r.case, r.family, r.approach))
+        m = models.get(f"{r.case}__{r.family}__{r.approach}")
         line = m.fit_summary() if m is not None else None
         if line:
             meta[f"deployed model, {r.case}"] = f"{r.family} ({r.approach}): {line}"
@@ -1160,8 +1160,6 @@ def benchmark(cfg: DictConfig) -> JobResult:
     report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
                           n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines), limits=limits,
                           failed=pd.DataFrame([f for o in done_tasks for f in o.get("failed", [])]))  # with results.csv
-    models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
-              for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
     extra = {}
     cased = _with_case(results)

@@ -20,9 +20,10 @@ that a deployable candidate::
   a selection on few runs keeps whatever fitted them (issue 54: with four training runs a stepwise
   choice is itself noise);
 * the penalty ``alpha`` (from ``alphas``) and the set of delays (from ``delays_s``) are chosen
-  together by cross-validation over **whole runs** with scikit-learn's own
-  :class:`~sklearn.model_selection.GridSearchCV` on a :class:`~sklearn.preprocessing.StandardScaler`
-  + :class:`~sklearn.linear_model.Ridge` pipeline, its folds those of
+  together by cross-validation over **whole runs**, scored as scikit-learn's
+  :class:`~sklearn.model_selection.GridSearchCV` scores a :class:`~sklearn.preprocessing.StandardScaler`
+  + :class:`~sklearn.linear_model.Ridge` pipeline (every penalty from one decomposition per fold,
+  :func:`~thermbench.models.thermal_lag.grid_choice`), its folds those of
   :func:`thermbench.splits.row_folds` (scikit-learn's ``LeaveOneGroupOut`` up to 6 runs, else
   ``GroupKFold``; one run: 5 contiguous blocks), never rows of a run the fold trains on;
 * ``estimator="pls"``: partial least squares (:class:`~sklearn.cross_decomposition.PLSRegression` on the
@@ -115,7 +116,7 @@ class LinearHistory(ThermalLag):
     components : list of int
         Candidate numbers of PLS components (those above the number of features are dropped).
     cv : "runs" or "gcv"
-        How the set of delays and the penalty (or components) are chosen: ``runs``, GridSearchCV over whole
+        How the set of delays and the penalty (or components) are chosen: ``runs``, cross-validation over whole
         runs; ``gcv`` (ridge only), RidgeCV's efficient leave-one-reading-out error, what ``baseline_ridge``
         uses, which does not hold runs out (the delay set of lowest such error).
     """

@@ -25,8 +25,8 @@ to measured temperatures and operating signals). Here::
 With ``select=False`` there is no selection: every candidate input enters with every lag of the
 chosen set, the ridge penalty keeping the weights of inputs that do not help small (issue 54: "a
 ridge on first-order lags" of every sensor, one of the linear-with-history models that held up on
-real tests); the penalty and the time constants are chosen together by scikit-learn's
-:class:`~sklearn.model_selection.GridSearchCV` over the same folds of whole runs (:func:`grid_choice`).
+real tests); the penalty and the time constants are chosen together over the same folds of whole
+runs, scored as scikit-learn's GridSearchCV scores them (:func:`grid_choice`).
 
 Along an axis with several measuring targets, the position P and P x each lag join the features
 (the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
@@ -211,7 +211,7 @@ class ThermalLag(ThermalErrorModel):
                                  for r in runs]) for name in candidates}  # fmt: skip
         pos = rd["target_mm"].to_numpy(dtype=float)[:, None]
         folds = row_folds(run_of)
-        if not p.select:  # every candidate, the penalty and the time constants by GridSearchCV over whole runs
+        if not p.select:  # every candidate, the penalty and the time constants over whole runs (grid_choice)
 
             def features(taus) -> np.ndarray:  # as _features lays them out, from the lags computed above
                 idx = [self.all_taus_.index(float(t)) for t in taus]
@@ -289,9 +289,8 @@ def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequ
             mse = [_FoldGram(X, y, tr, te).sse(cols, values) / len(te) for tr, te in folds]
             rmse = np.sqrt(np.mean(mse, axis=0))
         else:
-            est = PLSRegression(scale=False)
-            key = f"{type(est).__name__.lower()}__{name}"
-            search = GridSearchCV(make_pipeline(StandardScaler(), est), {key: values}, cv=folds,
+            search = GridSearchCV(make_pipeline(StandardScaler(), PLSRegression(scale=False)),
+                                  {"plsregression__n_components": values}, cv=folds,
                                   scoring="neg_mean_squared_error", n_jobs=1, refit=False)  # fmt: skip
             search.fit(X, y)
             rmse = np.sqrt(-np.asarray(search.cv_results_["mean_test_score"], dtype=float))
