@@ -153,6 +153,37 @@ def test_gcv_chooses_the_penalty_of_lowest_leave_one_reading_out_error_computed_
     assert "leave-one-reading-out (GCV) RMSE" in m.fit_summary()
 
 
+def test_ridge_history_is_the_ridge_baseline_made_deployable_on_a_log_at_the_delay_lines_step():
+    """conf/model/ridge_history.yaml against conf/model/baseline_ridge.yaml (a scikit-learn StandardScaler +
+    RidgeCV pipeline on the rises now and 30 min earlier, a second implementation): on a log sampled at
+    the delay line's 60 s the line holds every sample, so the two are one model, penalty and predictions;
+    it is the reference of the choice (complexity 0) and the C runtime's LINEAR_HISTORY kind."""
+    from thermbench.config import group_option
+    from thermbench.experiment import build_model
+    from thermbench.export.encoding import family_encoder
+    from thermbench.models.linear_history import RidgeHistory
+
+    runs = _runs(SPECS)
+    for r in runs.values():  # the same runs, logged every 60 s
+        t = np.arange(0.0, 6 * 3600.0, 60.0)
+        for k in [k for k in r if k != "t_s" and k != "read_t_s"]:
+            r[k] = np.interp(t, r["t_s"], r[k])
+        r["t_s"] = r["read_t_s"] = t
+    ds = spindle_dataset(runs, sensors=SENSORS, operating=["spindle_rpm"])
+    train = ["r0", "r1", "r2", "r3"]
+    opt = group_option("model", "ridge_history")
+    # the baseline's 13 penalties np.logspace(-3, 3, 13), written to 3 digits in the yaml; exact here
+    np.testing.assert_allclose(opt["alphas"], np.logspace(-3, 3, 13), rtol=2e-3)
+    twin = build_model(opt | {"alphas": list(np.logspace(-3, 3, 13))}, seed=0).fit(ds, train)
+    ref = build_model(group_option("model", "baseline_ridge"), seed=0).fit(ds, train)
+    assert isinstance(twin, RidgeHistory) and list(twin.delays_s_) == [0.0, 1800.0] and twin.inputs_ == ["T_a", "T_b", "T_c"]
+    assert twin.alpha_ == pytest.approx(ref.estimator_[-1].alpha_, rel=1e-12)
+    np.testing.assert_allclose(twin.predict(ds, "r4"), ref.predict(ds, "r4"), atol=1e-6)
+    assert RidgeHistory.complexity == 0 < LinearHistory.complexity and not getattr(twin, "reference_only", False)
+    assert family_encoder(RidgeHistory) is family_encoder(LinearHistory) and twin.export_encoding.__func__ is \
+        LinearHistory.export_encoding
+
+
 @pytest.mark.parametrize("operating", [[], ["spindle_rpm"]])
 def test_the_c_runtime_kind_reproduces_python_in_both_precisions(planted, operating, tmp_path):
     """LINEAR_HISTORY (embedded/src/tb_kind_linear_history.c): the export's parity check replays the

@@ -772,7 +772,8 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
 
 def model_complexity(family: str, approach: str) -> int:
     """How flexible a (family, approach) is, for :func:`nested_choice`: the family's
-    :attr:`~thermbench.models.base.ThermalErrorModel.complexity` (1 linear, 2 a physical model with a
+    :attr:`~thermbench.models.base.ThermalErrorModel.complexity` (0 the stacked ensemble and the ridge
+    baseline made deployable, ``ridge_history``; 1 linear, 2 a physical model with a
     few nonlinear parameters, 3 a kernel machine or network; 3 when unknown), one more for a bank (a
     model per condition and a classifier)."""
     from .extras import MissingExtra

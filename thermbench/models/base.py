@@ -400,7 +400,8 @@ class ThermalErrorModel(BaseEstimator, ABC):
     #: within one standard error, :func:`thermbench.benchmark.nested_choice`): 1 linear in fixed features
     #: (the regressions, thermal lags, delays, ARX), 2 a physical model whose few parameters enter
     #: nonlinearly (time constants, a heat exponent), 3 a kernel machine or neural network (the default);
-    #: 0 the stacked ensemble (:mod:`thermbench.models.ensemble`), preferred to any single family within it
+    #: 0 the stacked ensemble (:mod:`thermbench.models.ensemble`) and the ridge baseline made deployable
+    #: (:class:`~thermbench.models.linear_history.RidgeHistory`), preferred to any other family within it
     complexity: int = 3
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":

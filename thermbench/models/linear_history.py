@@ -55,7 +55,7 @@ from .base import ModelError, derived, readings
 from .params import Expect, Int, Params, check_params
 from .thermal_lag import ThermalLag, grid_choice, linear_fit
 
-__all__ = ["LinearHistory", "delay_line"]
+__all__ = ["LinearHistory", "RidgeHistory", "delay_line"]
 
 #: candidate sets of delays (s): the rise alone; with 30 min; with 15 min, 30 min and 1 h
 DEFAULT_DELAYS_S = ((0.0,), (0.0, 1800.0), (0.0, 900.0, 1800.0, 3600.0))
@@ -198,3 +198,21 @@ class LinearHistory(ThermalLag):
         from ..export.lag_encoding import encode_linear_history
 
         return encode_linear_history(self, channels, period_s, where)
+
+
+class RidgeHistory(LinearHistory):
+    """``baseline_ridge`` made deployable: the benchmark's reference candidate (issue 54, item 2).
+
+    The same model as :class:`LinearHistory` (its parameters, fit, C kind ``LINEAR_HISTORY``);
+    ``conf/model/ridge_history.yaml`` sets it up as the ridge baseline is set up: every sensor's rise
+    now and 30 min earlier, the penalty by GCV (``cv="gcv"``), one set of delays. It differs in one
+    piece of metadata: :attr:`complexity` 0, so the benchmark's choice
+    (:func:`thermbench.benchmark.nested_choice`) takes it, or the stacked ensemble, whenever it is
+    within one standard error of the best inner score. A candidate that replaces it must be better
+    than the reference by more than the scatter of the score that ranks them; with a few runs the
+    choice then falls back to what a careful user would have fitted, not to the luckiest family.
+    """
+
+    #: the reference a more flexible candidate must beat by more than one standard error (the ensemble's 0;
+    #: ThermalErrorModel.complexity): fixed features, one penalty, nothing chosen across runs
+    complexity = 0
