@@ -156,6 +156,17 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert any(k.endswith("validation_worst_compensation_rate") for k in run.data.metrics)
     arts = [a.path for a in MlflowClient().list_artifacts(res.mlflow_run_id, "report")]
     assert "report/report.md" in arts
+    # the answer: the report's first table, the terminal's last lines and the parent run's metrics say the same
+    lines = report.splitlines()
+    assert lines[2].startswith("| dataset, channel ") and "| deploy " in lines[2]
+    cells = [c.strip() for c in lines[4].strip("|").split("|")]  # the first case: case, deploy, median, worst, ...
+    tail = out.rstrip().splitlines()
+    head = max(k for k, ln in enumerate(tail) if ln == "the model to deploy, and its RMSE on runs it never saw")
+    row = tail[head + 3]  # the title, the header, the rule, then the first case
+    assert row.split()[0] == cells[0] and all(f" {c} " in f"{row} " for c in cells[1:])
+    assert all(ln.startswith("- ") for ln in tail[-4:])
+    assert f"{run.data.metrics[f'{cells[0]}/held_out_median_rmse_um']:.2f}" == cells[2]
+    assert f"{run.data.metrics[f'{cells[0]}/uncompensated_median_rmse_um']:.2f}" == cells[6]
     # one nested run per (dataset, family, approach) under the benchmark run
     children = MlflowClient().search_runs(
         [run.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{res.mlflow_run_id}'")

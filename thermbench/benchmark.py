@@ -48,6 +48,7 @@ from .evidence import held_out_limits
 from .experiment import JobResult, _finish, build_model, fit_evaluate, headline_metrics, model_flags, plain, save_models
 from .parallel import hydra_runtime, run_workers
 from .splits import dataset_option, load_source, load_split, outer_folds
+from .summary import answer_metrics, answer_table, answer_text
 from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError
@@ -864,11 +865,15 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     median held-out RMSE over the folds) and no compensation; median and worst over the folds, and
     on how many folds the choice beat the best baseline and beat no compensation (a fold's RMSE:
     the root of the mean square over its held-out runs' readings, approximated by the mean of the
-    runs' RMSE when a fold holds out several runs)."""
+    runs' RMSE when a fold holds out several runs); with intervals (a ``coverage_<level>`` column),
+    the choice's coverage and half-width, means over its folds of each fold's mean over its runs
+    (``chosen_coverage``, ``chosen_half_width_um``; NaN where the chosen approach has no interval)."""
     r = _with_case(results)
     v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
+    cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
+    extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
-        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean")).reset_index()  # fmt: skip
+        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean"), **extra).reset_index()  # fmt: skip
     out = []
     for case, g in per_fold.groupby("case", sort=False):
         ch = choice[choice["case"] == case]
@@ -882,6 +887,9 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
             row |= {"chosen_median_rmse_um": float(c.median()), "chosen_worst_rmse_um": float(c.max()),
                     "chosen": "; ".join(f"{f}: {a} {b}" for f, a, b in chosen[["fold", "family", "approach"]].itertuples(index=False)),
                     "beat_no_compensation": f"{int((c < none.reindex(c.index)).sum())}/{len(c)}"}  # fmt: skip
+            if extra:  # the choice's interval over its held-out runs: the mean of each fold's coverage and half-width
+                row |= {"chosen_coverage": float(chosen["coverage"].mean()),
+                        "chosen_half_width_um": float(chosen["half_width_um"].mean())}  # fmt: skip
         if not base.empty:
             med = base.groupby(["family", "approach"])["rmse_um"].median().sort_values()
             fam, app = med.index[0]
@@ -1105,6 +1113,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     results["chosen"] = [(c, fo, f, a) in mark and k == "validation" for c, fo, f, a, k in
                          zip(key["case"], results["fold"], results["family"], results["approach"], results["kind"])]  # fmt: skip
     summary = held_out_summary(results, nested, baselines)
+    answer = answer_table(summary, chosen)  # the first screen: the report's, the terminal's last lines, MLflow's
+    level = interval_settings(plain_value(cfg.get("interval")))[0]
     case_data, case_folds = {}, {}  # case (as the results name it) -> its dataset, each loaded once; its folds
     for dcfg, channel in case_cfg.values():
         sp = load_split(dcfg)
@@ -1160,7 +1170,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta["no model chosen"] = ", ".join(unchosen) + " (every candidate is flagged)"
     report = write_report(results, curves, report_dir, meta=meta, force=force, reference=baselines,
                           n_jobs=int(cfg.n_jobs), held_out=held_out_table(results, nested, baselines), limits=limits,
-                          failed=pd.DataFrame([f for o in done_tasks for f in o.get("failed", [])]))  # with results.csv
+                          failed=pd.DataFrame([f for o in done_tasks for f in o.get("failed", [])]),
+                          answer=answer, level=level)  # with results.csv
     chosen_keys = [f"{r.case}__{r.family}__{r.approach}" for r in chosen.itertuples()]
     extra = {}
     cased = _with_case(results)
@@ -1193,7 +1204,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
                 mlflow.log_input(inputs[c], context="training")
                 mlflow.log_metrics(cell)
                 mlflow.log_text(g.to_csv(index=False), "results.csv")
-        mlflow.log_metrics(metrics | {"wall_s": wall_s})
+        mlflow.log_metrics(metrics | answer_metrics(answer, level) | {"wall_s": wall_s})
         mlflow.log_artifacts(str(report_dir), "report")
         mlflow.log_artifacts(str(model_dir), "models")  # every fitted global/bank model + manifest.yaml
         mlflow.log_text(results.to_csv(index=False), "results.csv")
@@ -1227,6 +1238,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")
     for d, uri in registered.items():
         print(f"registered: {uri}")
+    if len(answer):
+        print("\n" + answer_text(answer, level))
     table = chosen.rename(columns={"worst_rate": "validation_worst_compensation_rate"})
     return _finish(JobResult("benchmark", table, metrics, mlflow_run_id=run.info.run_id,
                              outputs={"report": str(report), "models": str(model_dir), **registered}))

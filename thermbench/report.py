@@ -1438,7 +1438,7 @@ PROBES_MD = (
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
                  held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None,
-                 failed: pd.DataFrame | None = None) -> Path:
+                 failed: pd.DataFrame | None = None, answer: pd.DataFrame | None = None, level: float = 0.9) -> Path:
     """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
     ``out_dir/results.csv`` (:func:`results_table`); return the report path.
 
@@ -1451,7 +1451,11 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     could not fit or predict (dataset, channel, family, approach, fold, inner_fold, failure), appended to
     results.csv as rows of kind ``failed`` with their one-line reason in ``failure``.
 
-    Layout: header (``meta``), how to read, the terminal summary, the headline
+    ``answer``: the benchmark's answer (:func:`thermbench.summary.answer_table`), the report's first
+    screen: its table, its figure (``figures/summary.png``) and what the columns mean (``level``: the
+    intervals' level), before everything else.
+
+    Layout: the answer, header (``meta``), how to read, the terminal summary, the headline
     tables (:func:`headline`, one per dataset), then per dataset: single vs
     global vs bank on the validation runs (:func:`approach_comparison`, table +
     heatmap), the train × test heatmap per family (:func:`train_test_matrix` of
@@ -1499,7 +1503,15 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         used.add(name)
         return name
 
-    md: list[str] = ["# Thermal-error robustness report", "", _meta_md(meta), "", HOW_TO_READ, ""]
+    md: list[str] = ["# Thermal-error robustness report", ""]
+    answer_fig = None
+    if answer is not None and len(answer):
+        from .summary import answer_figure, answer_markdown
+
+        answer_fig = fig_name("summary")
+        md += answer_markdown(answer, level, f"{FIGURES_DIR}/{answer_fig}")
+        md += ["## The run, and every figure behind the table", ""]
+    md += [_meta_md(meta), "", HOW_TO_READ, ""]
     if multi:
         md += [HOW_TO_READ_CHANNELS, ""]
     if ref:
@@ -1535,6 +1547,8 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         fig_dir = stage / FIGURES_DIR
         fig_dir.mkdir()
         draw = _Drawing()
+        if answer_fig:
+            draw(answer_figure, answer, fig_dir / answer_fig)
         table.to_csv(stage / CSV_NAME, index=False, lineterminator="\n")
         for ds in datasets:
             if ds in multi:
