@@ -74,7 +74,7 @@ def _summary(choice, base):
     return pd.DataFrame([{"case": "d", "chosen_median_rmse_um": choice, "baseline_median_rmse_um": base}])
 
 
-def test_the_verdict_names_the_target_and_the_evidence():
+def test_the_verdict_names_the_ratio_to_the_baseline_and_the_evidence():
     rng = np.random.default_rng(1)
     t = np.arange(300) * 15.0
     errors = pd.DataFrame({"run_id": "new", "t_s": t, "target_mm": 0.0, "cycle": np.arange(t.size),
@@ -82,23 +82,26 @@ def test_the_verdict_names_the_target_and_the_evidence():
     ds = _Data({"a": _log([20, 22], [30, 31], [0, 0]), "new": _log([20, 25, 24], [30, 30, 30], [0, 0, 0])}, errors)
     folds = [Fold("new", ("a",), ("new",))]
     nested = pd.DataFrame({"case": ["d"], "inner_median_rmse_um": [0.5]})
-    # met: 1.5 <= 0.8 x 2.0
+    # better than the baseline: the ratio, and still the evidence the data hold
     (met,) = held_out_limits(_summary(1.5, 2.0), {"d": (ds, folds)}, nested).to_dict("records")
-    assert met["met"] and met["target_um"] == pytest.approx(1.6) and met["verdict"].startswith("target met")
+    assert met["ratio"] == pytest.approx(0.75) and met["verdict"].startswith("choice 1.50 µm, 0.75× the best baseline's 2.00 µm; ")
     # missed: every piece of evidence is there (the baseline 1.1 within 1.25 x the planted σ of 1 µm; two
     # of three readings above t1's training range, by 3 °C; held out 3 x the inner CV)
     (row,) = held_out_limits(_summary(1.5, 1.1), {"d": (ds, folds)}, nested).to_dict("records")
-    assert not row["met"] and row["outside_range_worst"] == pytest.approx(2 / 3) and row["worst_fold"] == "new"
+    assert row["ratio"] == pytest.approx(1.5 / 1.1) and row["outside_range_worst"] == pytest.approx(2 / 3) and row["worst_fold"] == "new"
     assert row["furthest_input"] == "t1_C rise" and row["excursion"] == 3.0
     v = row["verdict"]
-    assert v.startswith("target not met: choice 1.50 µm against the target 0.88 µm (0.8 × the best baseline's 1.10)")
-    assert "below the measurement noise" in v
+    assert v.startswith("choice 1.50 µm, 1.36× the best baseline's 1.10 µm; ")
+    assert "what is left is mostly measurement noise" in v
     assert "67% of the readings of held-out fold new lie outside the training runs' range (furthest: t1_C rise, 3 °C above it)" in v
     assert "inner cross-validation median 0.50 µm, held out 1.50 µm" in v
     # missed with no limit in the data: said so, not left blank
     quiet = _Data({"a": _log([20, 25], [30, 31], [0, 0]), "new": _log([20, 21], [30, 30.5], [0, 0])}, errors)
-    (row,) = held_out_limits(_summary(3.0, 3.0), {"d": (quiet, folds)}, nested.assign(inner_median_rmse_um=2.5)).to_dict("records")
+    (row,) = held_out_limits(_summary(3.3, 3.0), {"d": (quiet, folds)}, nested.assign(inner_median_rmse_um=2.5)).to_dict("records")
     assert "no limit found in the data" in row["verdict"] and row["verdict"].endswith("the families fall short")
+    # better than the baseline with nothing found: the ratio alone
+    (row,) = held_out_limits(_summary(2.7, 3.0), {"d": (quiet, folds)}, nested.assign(inner_median_rmse_um=2.5)).to_dict("records")
+    assert row["verdict"] == "choice 2.70 µm, 0.90× the best baseline's 3.00 µm"
 
 
 def test_only_the_span_a_run_is_scored_on_counts():
@@ -124,12 +127,13 @@ def test_the_report_gives_the_verdict_and_the_evidence_table(tmp_path):
              "run_id": f, "train": "all", "own": False, "rmse_um": v, "rms_error_um": 5.0, "compensation_rate": 0.5,
              "max_abs_residual_um": 2 * v}
             for f in ("r1", "r2") for fam, v in (("lssvm", 1.0), ("baseline_ridge", 1.1))]  # fmt: skip
-    limits = pd.DataFrame([{"case": "d", "target_um": 0.88, "choice_median_um": 1.0, "met": False,
+    limits = pd.DataFrame([{"case": "d", "choice_median_um": 1.0, "baseline_median_um": 1.1, "ratio": 1.0 / 1.1,
                             "outside_range_median": 0.25, "outside_range_worst": 0.5, "worst_fold": "r2",
                             "furthest_input": "t1_C rise", "excursion": 1.5, "scatter_um": 0.9,
-                            "inner_cv_median_um": 0.6, "verdict": "target not met: because"}])  # fmt: skip
+                            "inner_cv_median_um": 0.6, "verdict": "choice 1.00 µm: because"}])  # fmt: skip
     md = write_report(pd.DataFrame(rows), None, tmp_path / "rep", reference=["baseline_ridge"], limits=limits).read_text()
-    section = md[md.index("### The target, and what limits the held-out score"):md.index("## Headline")]
-    assert "- **d**: target not met: because" in section
+    section = md[md.index("### What limits the held-out error"):md.index("## Headline")]
+    assert "- **d**: choice 1.00 µm: because" in section and "target" not in section
     lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
-    assert lines[0][:3] == ["case", "target µm", "choice median µm"] and lines[2][:4] == ["d", "0.88", "1.00", "False"]
+    assert lines[0][:4] == ["case", "choice median µm", "best baseline µm", "ratio"]
+    assert lines[2][:4] == ["d", "1.00", "1.10", "0.91×"]

@@ -1147,7 +1147,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     for row in summary.to_dict("records"):  # the nested choice against the best baseline and no compensation
         meta[f"held out, {row['case']}"] = _summary_text(row, deployed.get(row["case"]))
     for row in limits.to_dict("records"):
-        meta[f"target, {row['case']}"] = row["verdict"]
+        meta[f"what limits it, {row['case']}"] = row["verdict"]
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     for r in chosen.itertuples():  # what the deployed model is made of (an ensemble: its members' weights)
