@@ -84,3 +84,21 @@ def test_the_report_opens_with_the_answer_in_one_screen(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     first = ["# Thermal-error robustness report", ""] + answer_markdown(answer, 0.9, "figures/summary.png")
     assert "\n".join(screen) == "\n".join(first)
+
+
+def test_the_held_out_table_gives_every_model_its_interval(tmp_path):
+    """Coverage and half-width per model: the means over the folds (here lssvm 0.8, 1.0, 0.9 and
+    2, 4, 3 µm on its three folds: 0.9 and 3.0), none for no compensation; in the report's section."""
+    results, choice = _results()
+    results.loc[results["family"] == "baseline_ols", ["coverage_90", "half_width_um"]] = [0.5, 1.0]
+    t = bm.held_out_table(results, choice, BASELINES).set_index("model")
+    assert t.loc["lssvm (global)", "coverage"] == pytest.approx(0.9) and t.loc["lssvm (global)", "half_width_um"] == 3.0
+    assert (t.loc["baseline_ols (global) (baseline)", "coverage"], t.loc["baseline_ols (global) (baseline)", "half_width_um"]) == (0.5, 1.0)
+    assert np.isnan(t.loc["no compensation", "coverage"]) and np.isnan(t.loc["no compensation", "half_width_um"])
+    md = write_report(results, None, tmp_path / "rep", reference=BASELINES,
+                      held_out=bm.held_out_table(results, choice, BASELINES)).read_text(encoding="utf-8")
+    section = md[md.index("## Held out"):md.index("## Headline")]
+    lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
+    assert lines[0][-2:] == ["interval covers", "± µm"]
+    assert next(ln for ln in lines if ln[0] == "baseline_ols (global) (baseline)")[-2:] == ["50 %", "1.00"]
+    assert next(ln for ln in lines if ln[0] == "no compensation")[-2:] == ["—", "—"]

@@ -908,13 +908,17 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
     choice, one per family and approach (not ``single``) and one for no compensation; columns the
     folds scored, the median and worst held-out RMSE over them (a fold's RMSE as in
     :func:`held_out_summary`), and on how many folds it beat no compensation and the best
-    baseline (the best baseline's own row: '-')."""
+    baseline (the best baseline's own row: '-'); with intervals, ``coverage`` and ``half_width_um``:
+    the means over the folds of each fold's mean over its held-out runs (NaN for an approach without
+    an interval and for no compensation)."""
     r = _with_case(results)
     v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
     if v.empty:
         return pd.DataFrame()
+    cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
+    extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
-        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean")).reset_index()  # fmt: skip
+        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean"), **extra).reset_index()  # fmt: skip
     out = []
     for case, g in per_fold.groupby("case", sort=False):
         none = g.groupby("fold", sort=False)["rms_error_um"].first()
@@ -926,20 +930,21 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
         ch = choice[choice["case"] == case] if not choice.empty else choice
         chosen = g.merge(ch[["fold", "family", "approach"]], on=["fold", "family", "approach"]) if len(ch) else g.iloc[:0]
 
-        def row(label: str, scores: pd.Series, is_best: bool = False) -> dict:
+        def row(label: str, scores: pd.Series, is_best: bool = False, cells: pd.DataFrame | None = None) -> dict:
             common = scores.index.intersection(best[2].index) if best is not None else []
+            interval = {k: float(cells[k].mean()) if cells is not None else np.nan for k in extra}
             return {"case": case, "model": label, "folds": len(scores), "median_rmse_um": float(scores.median()),
                     "worst_rmse_um": float(scores.max()),
                     "beat_no_compensation": f"{int((scores < none.reindex(scores.index)).sum())}/{len(scores)}",
                     "beat_best_baseline": "-" if best is None or is_best else
-                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"}  # fmt: skip
+                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"} | interval  # fmt: skip
 
         if not chosen.empty:
-            out.append(row("thermbench's choice (nested)", chosen.set_index("fold")["rmse_um"]))
+            out.append(row("thermbench's choice (nested)", chosen.set_index("fold")["rmse_um"], cells=chosen))
         for (fam, app), m in g.groupby(["family", "approach"], sort=False):
             label = f"{fam} ({app})" + (" (baseline)" if fam in baselines else "")
             is_best = best is not None and (fam, app) == best[:2]
-            out.append(row(label + (", the best baseline" if is_best else ""), m.set_index("fold")["rmse_um"], is_best))
+            out.append(row(label + (", the best baseline" if is_best else ""), m.set_index("fold")["rmse_um"], is_best, m))
         out.append({**row("no compensation", none), "beat_no_compensation": "-"})
     return pd.DataFrame(out)
 

@@ -505,6 +505,11 @@ def fmt_rate(x) -> str:
     return "—" if _is_missing(x) else f"{100.0 * float(x):.1f}%"
 
 
+def _percent(x) -> str:
+    """A fraction as a whole percentage; an em dash when missing (as fmt_um)."""
+    return "—" if _is_missing(x) else f"{100 * float(x):.0f} %"
+
+
 def fmt_um(x) -> str:
     """A length in µm with two decimals; '—' if missing."""
     return "—" if _is_missing(x) else f"{float(x):.2f}"
@@ -1334,11 +1339,14 @@ HELD_OUT_MD = (
     "and approach fitted without the fold's runs, and of *thermbench's choice*, the family and approach picked in "
     "each fold by an inner cross-validation on that fold's training runs only (nested: the choice never sees the "
     "runs it is scored on; `chosen` in results.csv). *Beat*: on how many folds its RMSE was below no compensation's "
-    "(the RMS of the error itself) and below the best baseline's (the baseline of smallest median)."
+    "(the RMS of the error itself) and below the best baseline's (the baseline of smallest median). *Interval "
+    "covers* / *±*: the share of held-out readings inside the model's prediction interval and its mean half-width "
+    "(one model on every training run, `global`: the approaches with an interval)."
 )
 HELD_OUT_COLUMNS = {"model": "model", "folds": "folds", "median_rmse_um": "median RMSE µm",
                     "worst_rmse_um": "worst RMSE µm", "beat_no_compensation": "beat no compensation",
-                    "beat_best_baseline": "beat the best baseline"}  # fmt: skip
+                    "beat_best_baseline": "beat the best baseline", "coverage": "interval covers",
+                    "half_width_um": "± µm"}  # fmt: skip
 
 LIMITS_MD = (
     "### What limits the held-out error\n\n"
@@ -1522,7 +1530,8 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     if held_out is not None and not held_out.empty:
         md += [HELD_OUT_MD, ""]
         for case, g in held_out.groupby("case", sort=False):
-            md += [f"### {case}", "", markdown_table(g.drop(columns="case"), index=False, headers=HELD_OUT_COLUMNS), ""]
+            md += [f"### {case}", "", markdown_table(g.drop(columns="case"), index=False, headers=HELD_OUT_COLUMNS,
+                                                           formats={"coverage": _percent}), ""]
     if limits is not None and not limits.empty:
         md += [LIMITS_MD, ""]
         md += [f"- **{r['case']}**: {r['verdict']}" for r in limits.to_dict("records")] + [""]
