@@ -859,6 +859,20 @@ def deployed_choice(nested: pd.DataFrame, results: pd.DataFrame, baselines: Sequ
     return chosen.reset_index(drop=True), nested[~deploy].reset_index(drop=True)
 
 
+def _held_out_per_fold(results: pd.DataFrame) -> tuple[pd.DataFrame, bool]:
+    """The held-out scores per (case, family, approach, fold): the mean over the fold's held-out runs of
+    ``rmse_um`` and ``rms_error_um``, and with intervals (a ``coverage_<level>`` column) of ``coverage`` and
+    ``half_width_um``; and whether there are intervals. The rows :func:`held_out_summary` and
+    :func:`held_out_table` are made of (validation rows, not ``single``, not the probe approaches)."""
+    r = _with_case(results)
+    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
+    cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
+    extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
+    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
+        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean"), **extra).reset_index()  # fmt: skip
+    return per_fold, bool(extra)
+
+
 def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Sequence[str]) -> pd.DataFrame:
     """Per dataset and channel, over the folds: thermbench's nested choice (the held-out RMSE of the
     model chosen in each fold), the best baseline (the baseline family and approach of smallest
@@ -868,12 +882,7 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     runs' RMSE when a fold holds out several runs); with intervals (a ``coverage_<level>`` column),
     the choice's coverage and half-width, means over its folds of each fold's mean over its runs
     (``chosen_coverage``, ``chosen_half_width_um``; NaN where the chosen approach has no interval)."""
-    r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
-    cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
-    extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
-    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
-        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean"), **extra).reset_index()  # fmt: skip
+    per_fold, interval = _held_out_per_fold(results)
     out = []
     for case, g in per_fold.groupby("case", sort=False):
         ch = choice[choice["case"] == case]
@@ -887,7 +896,7 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
             row |= {"chosen_median_rmse_um": float(c.median()), "chosen_worst_rmse_um": float(c.max()),
                     "chosen": "; ".join(f"{f}: {a} {b}" for f, a, b in chosen[["fold", "family", "approach"]].itertuples(index=False)),
                     "beat_no_compensation": f"{int((c < none.reindex(c.index)).sum())}/{len(c)}"}  # fmt: skip
-            if extra:  # the choice's interval over its held-out runs: the mean of each fold's coverage and half-width
+            if interval:  # the choice's interval over its held-out runs: the mean of each fold's coverage and half-width
                 row |= {"chosen_coverage": float(chosen["coverage"].mean()),
                         "chosen_half_width_um": float(chosen["half_width_um"].mean())}  # fmt: skip
         if not base.empty:
@@ -911,14 +920,9 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
     baseline (the best baseline's own row: '-'); with intervals, ``coverage`` and ``half_width_um``:
     the means over the folds of each fold's mean over its held-out runs (NaN for an approach without
     an interval and for no compensation)."""
-    r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
-    if v.empty:
+    per_fold, interval = _held_out_per_fold(results)
+    if per_fold.empty:
         return pd.DataFrame()
-    cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
-    extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
-    per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
-        rmse_um=("rmse_um", "mean"), rms_error_um=("rms_error_um", "mean"), **extra).reset_index()  # fmt: skip
     out = []
     for case, g in per_fold.groupby("case", sort=False):
         none = g.groupby("fold", sort=False)["rms_error_um"].first()
@@ -932,12 +936,13 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
 
         def row(label: str, scores: pd.Series, is_best: bool = False, cells: pd.DataFrame | None = None) -> dict:
             common = scores.index.intersection(best[2].index) if best is not None else []
-            interval = {k: float(cells[k].mean()) if cells is not None else np.nan for k in extra}
+            means = {k: float(cells[k].mean()) if cells is not None else np.nan
+                     for k in ("coverage", "half_width_um")} if interval else {}  # fmt: skip
             return {"case": case, "model": label, "folds": len(scores), "median_rmse_um": float(scores.median()),
                     "worst_rmse_um": float(scores.max()),
                     "beat_no_compensation": f"{int((scores < none.reindex(scores.index)).sum())}/{len(scores)}",
                     "beat_best_baseline": "-" if best is None or is_best else
-                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"} | interval  # fmt: skip
+                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"} | means  # fmt: skip
 
         if not chosen.empty:
             out.append(row("thermbench's choice (nested)", chosen.set_index("fold")["rmse_um"], cells=chosen))
