@@ -133,7 +133,7 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     report = (tmp_path / "reports" / "report.md").read_text()
     assert "seed001_vmc_x" in report and "figures/" in report
     # the frame of every score, per dataset (format 1: the error as read, cold cycle = geometric error)
-    row = next(ln for ln in report.splitlines() if ln.startswith("| scored on "))
+    row = next(ln for ln in report.splitlines() if ln.startswith(("| scored on ", "- **scored on**: ")))
     assert "seed001_vmc_x: the error as read (each run's cold measuring cycle is the geometric error" in row
     # the seed 001 finding: MLR of seed 001 fails across moving states; its matrix has a negative cell
     results = pd.read_csv(MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db").download_artifacts(
@@ -164,7 +164,10 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     head = max(k for k, ln in enumerate(tail) if ln == "the model to deploy, and its RMSE on runs it never saw")
     row = tail[head + 3]  # the title, the header, the rule, then the first case
     assert row.split()[0] == cells[0] and all(f" {c} " in f"{row} " for c in cells[1:])
-    assert all(ln.startswith("- ") for ln in tail[-4:])
+    assert all(ln.startswith("- ") for ln in tail[-4:])  # its notes end the output: the answer is the last screen
+    paths = [k for k, ln in enumerate(tail) if ln.startswith(("report: ", "models: ", "mlflow run: ", "registered: "))]
+    assert len(paths) == 4 and max(paths) < head
+    assert f"mlflow run: {res.mlflow_run_id}" in tail
     assert f"{run.data.metrics[f'{cells[0]}/held_out_median_rmse_um']:.2f}" == cells[2]
     assert f"{run.data.metrics[f'{cells[0]}/uncompensated_median_rmse_um']:.2f}" == cells[6]
     # one nested run per (dataset, family, approach) under the benchmark run

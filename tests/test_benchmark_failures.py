@@ -47,7 +47,9 @@ def test_a_family_that_cannot_fit_is_one_line_and_a_row_and_the_benchmark_finish
     lines = [ln for ln in out.splitlines() if ln.startswith("could not fit (never a candidate there): ")]
     assert len(lines) == len(failed) and all("\n" not in ln for ln in lines)
     report = (tmp_path / "reports" / "report.md").read_text()
-    assert "**could not fit (never a candidate there)**" in report and report.count("- synthetic/gp/global") == len(failed)
+    findings = (tmp_path / "reports" / "findings.md").read_text()  # the run's lists, linked from report.md
+    assert "| could not fit (never a candidate there) | " in report and "[findings.md](findings.md)" in report
+    assert "## could not fit (never a candidate there)" in findings and findings.count("- synthetic/gp/global") == len(failed)
     # the families that did fit are scored and one of them is chosen; the GP is never a candidate
     scored = table[(table["kind"] == "validation") & (table["approach"] == "global")]
     assert {"thermal_lag", "baseline_ridge"} <= set(scored["family"]) and "gp" not in set(scored["family"])
@@ -82,17 +84,22 @@ def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp
     chosen = [k for k, v in manifest.items() if v["chosen"]]
     assert chosen == [f"synthetic__{by_hand}__global"], (chosen, stats)
     report = (tmp_path / "reports" / "report.md").read_text()
-    line = next(ln for ln in report.splitlines() if ln.startswith("| chosen models "))
+    line = _run_entry(report, "chosen models")
     assert f"synthetic: {by_hand} (global) (deployed; chosen by the inner cross-validation over every run" in line
-    held = next(ln for ln in report.splitlines() if ln.startswith("| held out, synthetic "))
+    held = _run_entry(report, "held out, synthetic")
     simpler = f", the simplest within one standard error of {best} (global)" if by_hand != best else ""
     assert f"deployed {by_hand} (global){simpler}; 4 folds; choice " in held
     # what the deployed model is made of: the fit summary of the very model saved as chosen
     import joblib
 
     summary = joblib.load(tmp_path / "models" / f"synthetic__{by_hand}__global.joblib").fit_summary()
-    rows = [ln for ln in report.splitlines() if ln.startswith("| deployed model, synthetic ")]
+    rows = [_run_entry(report, "deployed model, synthetic")] if "deployed model, synthetic" in report else []
     assert (rows and f"{by_hand} (global): {summary}" in rows[0]) if summary else not rows
+
+
+def _run_entry(report: str, key: str) -> str:
+    """The entry ``key`` of the report's run: a table row, or the bullet below the table of a longer value."""
+    return next(ln for ln in report.splitlines() if ln.startswith((f"| {key} ", f"- **{key}**: ")))
 
 
 def test_a_case_without_inner_folds_falls_back_and_says_so():

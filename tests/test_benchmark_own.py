@@ -112,7 +112,7 @@ def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa
     assert glob["coverage_90"].between(0, 1).all() and (glob["half_width_um"] > 0).all()
     assert (tmp_path / "reports" / "report.md").is_file() and res is not None
     # the report's RMSE against probes per hour: the table is the mean over the held-out runs of results.csv
-    text = (tmp_path / "reports" / "report.md").read_text()
+    text = (tmp_path / "reports" / "details.md").read_text()  # report.md links it
     assert "## Probe readings: RMSE against probes per hour" in text
     figs = list((tmp_path / "reports" / "figures").glob("probes__*.png"))
     assert len(figs) == 1 and f"figures/{figs[0].name}" in text

@@ -193,7 +193,7 @@ def test_the_held_out_table_against_a_hand_count(tmp_path):
     assert (n["median_rmse_um"], n["worst_rmse_um"], n["beat_no_compensation"]) == (10.0, 12.0, "-")
     md = write_report(pd.DataFrame(rows), None, tmp_path / "rep", reference=["baseline_ridge", "baseline_ols"],
                       held_out=bm.held_out_table(pd.DataFrame(rows), choice, ["baseline_ridge", "baseline_ols"])).read_text()
-    section = md[md.index("## Held out"):md.index("## Headline")]
+    section = md[md.index("## Held out"):md.index("## The run")]
     lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
     assert lines[0] == ["model", "folds", "median RMSE µm", "worst RMSE µm", "beat no compensation",
                         "beat the best baseline"]  # fmt: skip

@@ -132,7 +132,7 @@ def test_the_report_gives_the_verdict_and_the_evidence_table(tmp_path):
                             "furthest_input": "t1_C rise", "excursion": 1.5, "scatter_um": 0.9,
                             "inner_cv_median_um": 0.6, "verdict": "choice 1.00 µm: because"}])  # fmt: skip
     md = write_report(pd.DataFrame(rows), None, tmp_path / "rep", reference=["baseline_ridge"], limits=limits).read_text()
-    section = md[md.index("### What limits the held-out error"):md.index("## Headline")]
+    section = md[md.index("### What limits the held-out error"):md.index("## The run")]
     assert "- **d**: choice 1.00 µm: because" in section and "target" not in section
     lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
     assert lines[0][:4] == ["case", "choice median µm", "best baseline µm", "ratio"]

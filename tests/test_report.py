@@ -308,9 +308,12 @@ def test_write_report_layout_values_and_figures(results, tmp_path):
     meta = {"command": "thermbench robustness --all", "git_commit": "abc1234", "wall_time_s": "12.3"}
     path = write_report(results, _curves(), tmp_path / "out", meta=meta)
     assert path == tmp_path / "out" / "report.md"
-    text = compact(path.read_text(encoding="utf-8"))
-    assert "`thermbench robustness --all`" in text and "abc1234" in text
-    assert "How to read this report" in text
+    head = compact(path.read_text(encoding="utf-8"))
+    assert "`thermbench robustness --all`" in head and "abc1234" in head
+    assert "[details.md](details.md)" in head and "[results.csv](results.csv)" in head
+    assert "How to read this report" not in head and "figures/" not in head  # the details are linked
+    text = compact((path.parent / "details.md").read_text(encoding="utf-8"))
+    assert "How to read this report" in text and "[report.md](report.md)" in text
     # dsA mlr single headline row, hand-computed above, formatted % (1 decimal) and µm (2 decimals)
     row = next(line for line in text.splitlines() if line.startswith("| mlr | single | 3 |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
@@ -336,7 +339,8 @@ def test_figures_drawn_in_two_processes_equal_those_drawn_in_one(results, tmp_pa
     """n_jobs=2 draws the figures in other processes: the same report and the same PNGs, byte for byte."""
     one = write_report(results, _curves(), tmp_path / "one", meta={"command": "x"})
     two = write_report(results, _curves(), tmp_path / "two", meta={"command": "x"}, n_jobs=2)
-    assert two.read_text(encoding="utf-8") == one.read_text(encoding="utf-8")
+    for name in ("report.md", "details.md"):
+        assert (two.parent / name).read_text(encoding="utf-8") == (one.parent / name).read_text(encoding="utf-8")
     pngs = figure_paths(tmp_path / "one")
     assert len(pngs) == 8 and [p.name for p in figure_paths(tmp_path / "two")] == [p.name for p in pngs]
     for p in pngs:
@@ -346,12 +350,12 @@ def test_figures_drawn_in_two_processes_equal_those_drawn_in_one(results, tmp_pa
 def test_report_without_curves_says_so(results, tmp_path):
     results = results[results["dataset"] == "dsA"]
     path = write_report(results, None, tmp_path)
-    text = path.read_text(encoding="utf-8")
+    text = (path.parent / "details.md").read_text(encoding="utf-8")
     assert text.count("_No before/after curves for this dataset's validation runs._") == 1
     assert [p.name for p in figure_paths(tmp_path)] == ["compare__dsA.png", "matrix__dsA__mlr.png",
                                                          "matrix__dsA__physics.png"]
-    empty = write_report(results, pd.DataFrame(), tmp_path / "empty").read_text(encoding="utf-8")
-    assert empty == text
+    write_report(results, pd.DataFrame(), tmp_path / "empty")
+    assert (tmp_path / "empty" / "details.md").read_text(encoding="utf-8") == text
 
 
 def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypatch):
@@ -371,7 +375,7 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
     assert (out / "report.md").read_bytes() == before_text
     assert {p.name: p.read_bytes() for p in figure_paths(out)} == before_figs
     assert (out / "results.csv").read_bytes() == before_csv
-    assert sorted(p.name for p in out.iterdir()) == [RECORD, "figures", "report.md", "results.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [RECORD, "details.md", "figures", "report.md", "results.csv"]
 
     fresh = tmp_path / "fresh"
     with pytest.raises(RuntimeError, match="injected"):
@@ -396,7 +400,7 @@ def test_failed_text_write_leaves_previous_report_intact(results, tmp_path, monk
         write_report(results, None, tmp_path, meta={"command": "second"})
     monkeypatch.undo()
     assert (tmp_path / "report.md").read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == [RECORD, "figures", "report.md", "results.csv"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [RECORD, "details.md", "figures", "report.md", "results.csv"]
 
 
 # ----------------------------------------------------------------------------- several error channels
@@ -549,7 +553,7 @@ def test_results_csv_columns_and_values(spin_report):
 
 def test_channel_table_best_and_baseline_lines(spin_report):
     out, _, _ = spin_report
-    text = compact((out / "report.md").read_text(encoding="utf-8"))
+    text = compact((out / "details.md").read_text(encoding="utf-8"))
     assert "### spin (2 error channels: ch1, ch2)" in text
     assert "| family | approach | ch1 | ch2 |" in text
     assert "| base (baseline) | single (mean) | 6.00 | **3.00** |" in text
@@ -571,7 +575,7 @@ def test_channel_table_best_and_baseline_lines(spin_report):
 
 def test_channel_figures_exist_are_listed_and_hold_the_right_cells(spin_report):
     out, _, captured = spin_report
-    text = compact((out / "report.md").read_text(encoding="utf-8"))
+    text = compact((out / "details.md").read_text(encoding="utf-8"))
     refs = _referenced_pngs(text)
     spin_figs = ["figures/rmse_bars__spin.png", "figures/rmse_matrix__spin__base.png",
                  "figures/rmse_matrix__spin__fam.png", "figures/best_curves__spin.png"]
@@ -594,7 +598,7 @@ def test_channel_figures_exist_are_listed_and_hold_the_right_cells(spin_report):
 
 def test_baselines_are_marked(spin_report):
     out, mixed, _ = spin_report
-    text = compact((out / "report.md").read_text(encoding="utf-8"))
+    text = compact((out / "details.md").read_text(encoding="utf-8"))
     assert "#### base (baseline)" in text and "#### fam\n" in text
     assert "**Baselines**" in text
     summary = terminal_summary(mixed, reference=["base"])
@@ -608,9 +612,10 @@ def test_format1_without_channel_column_is_unchanged(results, tmp_path):
     """The same results with channel "all" (as the benchmark now writes them) or without the
     column (older callers) give the same report and the same results.csv."""
     dsa = results[results["dataset"] == "dsA"]
-    a = write_report(dsa, None, tmp_path / "a")
-    b = write_report(dsa.assign(channel="all"), None, tmp_path / "b")
+    a = write_report(dsa, None, tmp_path / "a").parent / "details.md"
+    b = write_report(dsa.assign(channel="all"), None, tmp_path / "b").parent / "details.md"
     assert a.read_text(encoding="utf-8") == b.read_text(encoding="utf-8")
+    assert (tmp_path / "a" / "report.md").read_text(encoding="utf-8") == (tmp_path / "b" / "report.md").read_text(encoding="utf-8")
     assert (tmp_path / "a" / "results.csv").read_bytes() == (tmp_path / "b" / "results.csv").read_bytes()
     h = headline(dsa.assign(channel="all"))
     assert h.index.names == ["dataset", "family", "approach"]
@@ -677,3 +682,25 @@ def test_a_list_in_the_header_becomes_bullets_below_its_table():
     bullets = [ln[2:] for ln in lines if ln.startswith("- ")]
     assert bullets == flags
     assert lines.index("**flagged (never chosen)**") > lines.index(table[-1])
+
+
+def test_the_run_keeps_short_cells_long_values_as_bullets_and_lists_in_findings_md(results, tmp_path):
+    """report.md's run table holds short values only: a long value is a bullet below it, a list of
+    findings (a benchmark flags dozens of models) goes to findings.md, linked from its row; a later
+    report without findings takes away the findings.md the earlier one wrote."""
+    flags = [f"seed00{i}_x/mlr_seed001/bank_soft: worse than no compensation on run(s) ['r{i}']" for i in range(60)]
+    chosen = "; ".join(f"case{i}: family{i} (global)" for i in range(8))  # 207 characters
+    meta = {"command": "thermbench benchmark", "chosen models": chosen, "flagged (never chosen)": flags}
+    out = tmp_path / "out"
+    md = write_report(results[results["dataset"] == "dsA"], None, out, meta=meta).read_text(encoding="utf-8")
+    run = md[md.index("## The run"):].splitlines()
+    table = [ln for ln in run if ln.startswith("|")]
+    assert len(table) == 4 and max(map(len, table)) <= 100  # header, rule, command, flagged
+    assert any("flagged (never chosen)" in ln and "60, in [findings.md](findings.md)" in ln for ln in table)
+    assert f"- **chosen models**: {chosen}" in run and run.index(f"- **chosen models**: {chosen}") > run.index(table[-1])
+    assert not any(f in md for f in flags)
+    findings = (out / "findings.md").read_text(encoding="utf-8").splitlines()
+    assert "[the report](report.md)" in findings[2] and "## flagged (never chosen) (60)" in findings
+    assert [ln[2:] for ln in findings if ln.startswith("- ")] == flags
+    write_report(results[results["dataset"] == "dsA"], None, out, meta={"command": "thermbench benchmark"})
+    assert not (out / "findings.md").exists() and "findings.md" not in (out / "report.md").read_text(encoding="utf-8")

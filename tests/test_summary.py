@@ -72,7 +72,7 @@ def test_the_report_opens_with_the_answer_in_one_screen(tmp_path):
     answer = answer_table(held, choices.drop_duplicates("case").assign(approach="global"))
     path = write_report(many, None, tmp_path / "rep", reference=BASELINES, answer=answer, level=0.9)
     md = path.read_text(encoding="utf-8").splitlines()
-    screen = md[: md.index("## The run, and every figure behind the table")]
+    screen = md[: md.index("## The run")]
     assert len(screen) < 40 and screen[0] == "# Thermal-error robustness report"
     header = [c.strip() for c in screen[2].strip("|").split("|")]
     assert header == list(ANSWER_HEADERS.values()) and max(map(len, header)) <= 20
@@ -97,7 +97,7 @@ def test_the_held_out_table_gives_every_model_its_interval(tmp_path):
     assert np.isnan(t.loc["no compensation", "coverage"]) and np.isnan(t.loc["no compensation", "half_width_um"])
     md = write_report(results, None, tmp_path / "rep", reference=BASELINES,
                       held_out=bm.held_out_table(results, choice, BASELINES)).read_text(encoding="utf-8")
-    section = md[md.index("## Held out"):md.index("## Headline")]
+    section = md[md.index("## Held out"):md.index("## The run")]
     lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in section.splitlines() if ln.startswith("|")]
     assert lines[0][-2:] == ["interval covers", "± µm"]
     assert next(ln for ln in lines if ln[0] == "baseline_ols (global) (baseline)")[-2:] == ["50 %", "1.00"]

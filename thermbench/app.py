@@ -58,9 +58,10 @@ def print_result(res) -> None:
 
     from .experiment import HEADLINE
 
+    if res.job == "benchmark":  # it prints its own summary, paths included, and the answer last
+        return
     with pd.option_context("display.width", 120, "display.max_columns", 20, "display.float_format", "{:.3f}".format):
-        if res.job != "benchmark":  # the benchmark prints its own one-screen summary
-            print(res.table.to_string(index=False))
+        print(res.table.to_string(index=False))
     for k in HEADLINE:
         if k in res.metrics:
             print(f"  {k}: {res.metrics[k]:.3f}")

@@ -1055,7 +1055,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
     on-disk cache (``cache_dir``), so it costs seconds and still rewrites the report."""
     import mlflow
 
-    from .report import terminal_summary, write_report
+    from .report import DETAILS_NAME, FINDINGS_NAME, terminal_summary, write_report
 
     from .outputs import check_library_dir, check_output_dir
 
@@ -1156,8 +1156,6 @@ def benchmark(cfg: DictConfig) -> JobResult:
         meta["scored on"] = "; ".join(frames)
     for row in summary.to_dict("records"):  # the nested choice against the best baseline and no compensation
         meta[f"held out, {row['case']}"] = _summary_text(row, deployed.get(row["case"]))
-    for row in limits.to_dict("records"):
-        meta[f"what limits it, {row['case']}"] = row["verdict"]
     models = {f"{case_label(o['dataset'], o.get('channel', 'all'))}__{o['family']}__{a}": m
               for o in done_tasks for a, m in o["models"].items()}  # fmt: skip
     for r in chosen.itertuples():  # what the deployed model is made of (an ensemble: its members' weights)
@@ -1228,6 +1226,7 @@ def benchmark(cfg: DictConfig) -> JobResult:
             version = tracking.register(info.model_uri, name)
             tracking.set_alias(name, alias, version)  # 'champion' only for the shipped settings
             registered[d] = f"models:/{name}@{alias}"
+    # the terminal: the details first, then the files and runs, and last the answer (the report's first screen)
     print(terminal_summary(results, reference=baselines))
     if not summary.empty:
         print("\nthe model deployed, and held-out RMSE over the folds, median / worst (µm): thermbench's choice made "
@@ -1237,15 +1236,16 @@ def benchmark(cfg: DictConfig) -> JobResult:
             print(f"  {row['case']}: {_summary_text(row, deployed.get(row['case']))}")
     for row in limits.to_dict("records"):
         print(f"  {row['case']}: {row['verdict']}")
-    for line in held_flags:
-        print(f"flagged on held-out runs: {line}")
-    for line in flag_lines:
-        print(f"flagged (never chosen): {line}")
+    findings = report.parent / FINDINGS_NAME
+    for what, lines in (("flagged on held-out runs", held_flags), ("flagged (never chosen)", flag_lines)):
+        if lines:  # often dozens of models: counted here, listed in findings.md
+            print(f"{what}: {len(lines)} models, listed in {findings.resolve()}")
     for line in errors:
         print(f"could not fit (never a candidate there): {line}")
     for d in unchosen:
         print(f"no model chosen for {d}: every candidate is flagged")
-    print(f"\nreport: {report.resolve()}\nmodels: {model_dir.resolve()} (manifest.yaml marks the chosen ones)")
+    print(f"\nreport: {report.resolve()} (details: {(report.parent / DETAILS_NAME).resolve()})\n"
+          f"models: {model_dir.resolve()} (manifest.yaml marks the chosen ones)\nmlflow run: {run.info.run_id}")
     for d, uri in registered.items():
         print(f"registered: {uri}")
     if len(answer):

@@ -37,7 +37,9 @@ naming it and the frame):
 approach and, for single-state models, the other modelling states (the
 off-diagonal cells of the train × test matrix).
 
-Report directory (:func:`write_report`): ``report.md``, ``figures/*.png`` and
+Report directory (:func:`write_report`): ``report.md`` (the answer: the model to deploy per
+dataset and channel and its held-out error), ``details.md`` (the tables and figures behind it),
+``findings.md`` (the run's lists of findings, e.g. the flagged models), ``figures/*.png`` and
 ``results.csv``, one row per (fitted model, test run), columns in this order:
 
 ``dataset, family, approach, train, test, channel, rmse_um, max_abs_residual_um,
@@ -101,6 +103,9 @@ CSV_COLUMNS = ("dataset", "family", "approach", "train", "test", "channel", RMSE
 RATE_CLIP = 1.0  # heatmap colours span [-100 %, 100 %]; the printed numbers are the true values
 FIGURES_DIR = "figures"
 REPORT_NAME = "report.md"
+#: the report's linked files: everything behind its tables, and the run's lists of findings
+DETAILS_NAME = "details.md"
+FINDINGS_NAME = "findings.md"
 
 _KEYS = ("dataset", "channel", "family", "approach", "train", "run_id")
 _STR_COLUMNS = ("dataset", "family", "approach", "train", "run_id", "kind")
@@ -1081,21 +1086,47 @@ def _headline_md(h: pd.DataFrame, runs: list[str], ref: frozenset[str] = frozens
     return markdown_table(show, index=False, headers=_HEADLINE_HEADERS, formats={"n_models": str})
 
 
-def _meta_md(meta: Mapping | None) -> str:
+#: a run-metadata value longer than this is a bullet below the table, not a cell that widens every row
+META_CELL_CHARS = 100
+
+
+def _meta_md(meta: Mapping | None, lists_file: str | None = None) -> str:
+    """The run's metadata (``meta``: name -> value) as a table of short values. A longer value is a
+    bullet below the table (``- **name**: value``), so one long entry does not widen every row. A list of
+    findings is one bullet each: below the table, or with ``lists_file`` (a file name, see
+    :func:`_lists_md`) in that file, and its row links there."""
     if not meta:
         return "_No run metadata was given._"
-    rows, lists = [], []
+    rows, long, lists = [], [], []
     for k, v in meta.items():
         if isinstance(v, Mapping):
             v = ", ".join(f"{a}={b}" for a, b in v.items())
-        elif isinstance(v, (list, tuple)):  # a list of findings: one bullet each below the table, so
-            lists.append((str(k), v))       # one long entry does not widen every row of it
-            v = f"{len(v)}, listed below"
+        if isinstance(v, (list, tuple)):
+            lists.append((str(k), v))
+            v = f"{len(v)}, in [{lists_file}]({lists_file})" if lists_file else f"{len(v)}, listed below"
+        elif len(str(v)) > META_CELL_CHARS:
+            long.append(f"- **{k}**: " + (f"`{v}`" if k == "command" else str(v)))
+            continue
         rows.append({"": str(k), "value": f"`{v}`" if k == "command" else str(v)})
-    parts = [markdown_table(pd.DataFrame(rows), index=False)]
-    for k, items in lists:
-        parts += ["", f"**{k}**", "", *(f"- {x}" for x in items)]
+    parts = [markdown_table(pd.DataFrame(rows), index=False)] if rows else []
+    if long:
+        parts += ["", *long]
+    if not lists_file:
+        for k, items in lists:
+            parts += ["", f"**{k}**", "", *(f"- {x}" for x in items)]
     return "\n".join(parts)
+
+
+def _lists_md(meta: Mapping | None) -> str | None:
+    """The list-valued entries of the run's metadata (findings such as the flagged models), a section
+    each with one bullet per finding; None when there are none."""
+    lists = [(str(k), v) for k, v in (meta or {}).items() if isinstance(v, (list, tuple))]
+    if not lists:
+        return None
+    md = ["# Findings of the run", "", f"Back to [the report]({REPORT_NAME}).", ""]
+    for k, items in lists:
+        md += [f"## {k} ({len(items)})", "", *(f"- {x}" for x in items), ""]
+    return "\n".join(md).rstrip() + "\n"
 
 
 def _matrix_summary(rate: pd.DataFrame, resid: pd.DataFrame) -> str:
@@ -1447,29 +1478,29 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
                  held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None,
                  failed: pd.DataFrame | None = None, answer: pd.DataFrame | None = None, level: float = 0.9) -> Path:
-    """Write ``out_dir/report.md``, its figures ``out_dir/figures/*.png`` and
-    ``out_dir/results.csv`` (:func:`results_table`); return the report path.
+    """Write ``out_dir/report.md`` (the answer), ``out_dir/details.md`` (everything behind it), their
+    figures ``out_dir/figures/*.png``, ``out_dir/results.csv`` (:func:`results_table`) and, when ``meta``
+    holds lists of findings, ``out_dir/findings.md``; return the path of report.md.
 
     ``reference``: the baseline families (compared, never chosen): marked in the tables
     and figures, ``reference`` true in results.csv. ``n_jobs``: processes that draw the
-    figures (:class:`_Drawing`). ``held_out``: the benchmark's held-out table
-    (:func:`thermbench.benchmark.held_out_table`), a section of its own after the summary;
-    ``limits``: per case the choice against the best baseline and what limits it
-    (:func:`thermbench.evidence.held_out_limits`), after the held-out tables. ``failed``: the cells that
-    could not fit or predict (dataset, channel, family, approach, fold, inner_fold, failure), appended to
-    results.csv as rows of kind ``failed`` with their one-line reason in ``failure``.
+    figures (:class:`_Drawing`). ``answer``: the benchmark's answer
+    (:func:`thermbench.summary.answer_table`), report.md's first screen: its table, its figure
+    (``figures/summary.png``) and what the columns mean (``level``: the intervals' level).
+    ``held_out``: the benchmark's held-out table (:func:`thermbench.benchmark.held_out_table`), one
+    table per case; ``limits``: per case the choice against the best baseline and what limits it
+    (:func:`thermbench.evidence.held_out_limits`). ``failed``: the cells that could not fit or predict
+    (dataset, channel, family, approach, fold, inner_fold, failure), appended to results.csv as rows of
+    kind ``failed`` with their one-line reason in ``failure``.
 
-    ``answer``: the benchmark's answer (:func:`thermbench.summary.answer_table`), the report's first
-    screen: its table, its figure (``figures/summary.png``) and what the columns mean (``level``: the
-    intervals' level), before everything else.
-
-    Layout: the answer, header (``meta``), how to read, the terminal summary, the headline
-    tables (:func:`headline`, one per dataset), then per dataset: single vs
-    global vs bank on the validation runs (:func:`approach_comparison`, table +
-    heatmap), the train × test heatmap per family (:func:`train_test_matrix` of
-    the compensation rate, max residual annotated) and the before/after
-    compensation curves of the validation runs (``curves``; None or an empty
-    frame means no curves, the report says so).
+    report.md: the answer, the held-out tables, what limits the held-out error, then the run
+    (``meta``, :func:`_meta_md`: short values in a table, longer ones as bullets, lists of findings in
+    findings.md, linked) and the links to details.md and results.csv. details.md: how to read, the
+    terminal summary, the headline tables (:func:`headline`, one per dataset), then per dataset: single
+    vs global vs bank on the validation runs (:func:`approach_comparison`, table + heatmap), the
+    train × test heatmap per family (:func:`train_test_matrix` of the compensation rate, max residual
+    annotated) and the before/after compensation curves of the validation runs (``curves``; None or an
+    empty frame means no curves, the report says so), then the probe readings.
 
     A dataset scored on several error channels is laid out by channel instead: its
     headline is the validation RMSE per channel (:func:`validation_by_channel`; rows =
@@ -1511,22 +1542,13 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         used.add(name)
         return name
 
-    md: list[str] = ["# Thermal-error robustness report", ""]
+    md: list[str] = ["# Thermal-error robustness report", ""]  # report.md: the answer and the held-out evidence
     answer_fig = None
     if answer is not None and len(answer):
         from .summary import answer_figure, answer_markdown
 
         answer_fig = fig_name("summary")
         md += answer_markdown(answer, level, f"{FIGURES_DIR}/{answer_fig}")
-        md += ["## The run, and every figure behind the table", ""]
-    md += [_meta_md(meta), "", HOW_TO_READ, ""]
-    if multi:
-        md += [HOW_TO_READ_CHANNELS, ""]
-    if ref:
-        md += [HOW_TO_READ_BASELINES, ""]
-    md += [f"The scores behind every table, one row per (fitted model, test run), are in [{CSV_NAME}]({CSV_NAME}).",
-           ""]  # fmt: skip
-    md += ["## At a glance", "", "```text", terminal_summary(r, reference=ref), "```", ""]
     if held_out is not None and not held_out.empty:
         md += [HELD_OUT_MD, ""]
         for case, g in held_out.groupby("case", sort=False):
@@ -1537,8 +1559,22 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         md += [f"- **{r['case']}**: {r['verdict']}" for r in limits.to_dict("records")] + [""]
         md += [markdown_table(limits.drop(columns="verdict"), index=False, headers=LIMITS_COLUMNS,
                                  formats={"ratio": lambda v: f"{v:.2f}×"}), ""]
-    md += ["## Headline: unseen cycles", ""]
-    md += [
+    findings = _lists_md(meta)
+    md += ["## The run", "", _meta_md(meta, FINDINGS_NAME if findings else None), ""]
+    md += [f"Everything behind these tables is in [{DETAILS_NAME}]({DETAILS_NAME}): how to read it, the terminal summary, "
+           "the headline tables on unseen cycles and, per dataset, the comparison of approaches, the train × test "
+           f"matrices and the before / after curves. The scores, one row per (fitted model, test run), are in "
+           f"[{CSV_NAME}]({CSV_NAME}).", ""]  # fmt: skip
+    details: list[str] = ["# Thermal-error robustness report: the details", "",
+                          f"What the models were chosen on and scored by; the answer is in [{REPORT_NAME}]({REPORT_NAME}).",
+                          "", HOW_TO_READ, ""]  # fmt: skip
+    if multi:
+        details += [HOW_TO_READ_CHANNELS, ""]
+    if ref:
+        details += [HOW_TO_READ_BASELINES, ""]
+    details += ["## At a glance", "", "```text", terminal_summary(r, reference=ref), "```", ""]
+    details += ["## Headline: unseen cycles", ""]
+    details += [
         "Per dataset, family and approach: mean rate on the training runs (reference), worst and mean rate and worst "
         "max residual over the validation runs, the same over the other modelling states for single-state models, "
         "then rate / max residual per validation run (single: mean over the training states).",
@@ -1546,12 +1582,12 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     ]
     for ds in datasets:
         if ds in multi:
-            md += _channels_headline_md(r, ds, ref)
+            details += _channels_headline_md(r, ds, ref)
             continue
         ch = _channels(r, ds)[0]
         rows = h.xs((ds, ch), level=("dataset", CHANNEL), drop_level=False) if CHANNEL in h.index.names else \
             h.xs(ds, level="dataset", drop_level=False)  # fmt: skip
-        md += [f"### {_case_label(ds, ch)}", "", _headline_md(rows, _runs(r, ds, "validation"), ref), ""]
+        details += [f"### {_case_label(ds, ch)}", "", _headline_md(rows, _runs(r, ds, "validation"), ref), ""]
 
     with output_dir(out_dir, "report", force=force) as stage:
         fig_dir = stage / FIGURES_DIR
@@ -1562,14 +1598,14 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         table.to_csv(stage / CSV_NAME, index=False, lineterminator="\n")
         for ds in datasets:
             if ds in multi:
-                md += _channels_section(r, c, ds, ref, fig_dir, fig_name, draw)
+                details += _channels_section(r, c, ds, ref, fig_dir, fig_name, draw)
                 continue
             ch = _channels(r, ds)[0]
             label = _case_label(ds, ch)
             parts = (ds,) if ch == ALL_CHANNELS else (ds, ch)
-            md += [f"## {label}", ""]
+            details += [f"## {label}", ""]
             runs = _runs(r, ds, "validation")
-            md += ["### Single vs global vs bank on the validation runs", ""]
+            details += ["### Single vs global vs bank on the validation runs", ""]
             if runs:
                 comp = approach_comparison(r, ds, channel=ch)
                 if ref:
@@ -1577,7 +1613,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                                                            names=comp.index.names)  # fmt: skip
                 name = fig_name("compare", *parts)
                 draw(_comparison_figure, comp, runs, label, fig_dir / name)
-                md += [
+                details += [
                     "Compensation rate per validation run; single best / worst = the training state with the highest "
                     "/ lowest mean rate over these runs.",
                     "",
@@ -1591,44 +1627,46 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
                     "",
                 ]
             else:
-                md += ["_No validation runs for this dataset._", ""]
+                details += ["_No validation runs for this dataset._", ""]
 
-            md += ["### Train × test matrices (single-state models)", ""]
+            details += ["### Train × test matrices (single-state models)", ""]
             single = r[(r["dataset"] == ds) & (r["approach"] == "single") & (r["kind"] == "state")]
             fams = _unique(single["family"])
             if not fams:
-                md += ["_No single-state models for this dataset._", ""]
+                details += ["_No single-state models for this dataset._", ""]
             for fam in fams:
                 rate = train_test_matrix(r, ds, fam, RATE, channel=ch)
                 resid = train_test_matrix(r, ds, fam, RESIDUAL, channel=ch)
                 name = fig_name("matrix", *parts, fam)
                 draw(_matrix_figure, rate, resid, label, _family_label(fam, ref), fig_dir / name)
-                md += [f"#### {_family_label(fam, ref)}", "", _matrix_summary(rate, resid), ""]
-                md += [f"![{label} {fam} matrix]({FIGURES_DIR}/{name})", ""]
+                details += [f"#### {_family_label(fam, ref)}", "", _matrix_summary(rate, resid), ""]
+                details += [f"![{label} {fam} matrix]({FIGURES_DIR}/{name})", ""]
 
-            md += ["### Before / after compensation (validation runs)", ""]
+            details += ["### Before / after compensation (validation runs)", ""]
             cd = None if c is None else \
                 c[(c["dataset"] == ds) & c[CHANNEL].isin([ch, ALL_CHANNELS]) & c["run_id"].isin(runs)]
             plotted = [run for run in runs if cd is not None and (cd["run_id"] == run).any()]
             if plotted:
                 name = fig_name("curves", *parts)
                 draw(curves_figure, cd, plotted, f"{label}, validation runs", fig_dir / name)
-                md += [f"![{label} before/after]({FIGURES_DIR}/{name})", ""]
+                details += [f"![{label} before/after]({FIGURES_DIR}/{name})", ""]
                 missing = [run for run in runs if run not in plotted]
                 if missing:
-                    md += [f"_No curves for validation run(s) {', '.join(missing)}._", ""]
+                    details += [f"_No curves for validation run(s) {', '.join(missing)}._", ""]
             else:
-                md += ["_No before/after curves for this dataset's validation runs._", ""]
+                details += ["_No before/after curves for this dataset's validation runs._", ""]
         curve = probe_curve(r)
         if len(curve):
-            md += [PROBES_MD, ""]
+            details += [PROBES_MD, ""]
             for ds in _unique(curve["dataset"]):
                 cd = curve[curve["dataset"] == ds]
                 name = fig_name("probes", ds)
                 draw(probe_figure, cd, str(ds), fig_dir / name, 4, ref)
-                md += [f"### {ds}", "", f"![{ds} probes]({FIGURES_DIR}/{name})", "",
-                       markdown_table(cd.drop(columns="dataset").round(3), index=False), ""]  # fmt: skip
+                details += [f"### {ds}", "", f"![{ds} probes]({FIGURES_DIR}/{name})", "",
+                            markdown_table(cd.drop(columns="dataset").round(3), index=False), ""]  # fmt: skip
         draw.run(n_jobs)
-        text = "\n".join(md).rstrip() + "\n"
-        (stage / REPORT_NAME).write_text(text, encoding="utf-8")
+        for name, lines in ((REPORT_NAME, md), (DETAILS_NAME, details)):
+            (stage / name).write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")
+        if findings:
+            (stage / FINDINGS_NAME).write_text(findings, encoding="utf-8")
     return out_dir / REPORT_NAME
