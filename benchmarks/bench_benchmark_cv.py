@@ -7,8 +7,9 @@ of each of the two common lab shapes, at their real sizes, on this machine's cor
 
 The files are written (seeded) into a temporary directory, imported with the mappings of
 docs/import.md (examples 3 and 4), then benchmarked in a child process each; prints the wall time
-of each benchmark and its held-out summary (the nested choice vs the best baseline vs no
-compensation). Target: at most 10 min each on 2 cores.
+of each benchmark, its held-out summary (the nested choice vs the best baseline vs no
+compensation) and its answer table (with the deployed model's interval: the share of held-out readings
+it covered and its mean half-width). Target: at most 10 min each on 2 cores.
 
     .venv/bin/python benchmarks/bench_benchmark_cv.py [--families "[baseline_ols,lssvm]" --bank-families "[lssvm]"] [--keep DIR]
 """
@@ -154,6 +155,12 @@ def main() -> int:
                 print("  (no held-out summary found in the benchmark's output)")
             for ln in lines[start:] if start is not None else []:
                 if "held-out RMSE over the folds" in ln or ln.startswith("flagged on held-out") or " folds; choice " in ln:
+                    print("  " + ln)
+            # the answer, the benchmark's last lines: the deployed model, its held-out RMSE and its interval's
+            # coverage and mean half-width over the held-out runs
+            answer = next((i for i, ln in enumerate(lines) if ln == "the model to deploy, and its RMSE on runs it never saw"), None)
+            for ln in lines[answer:] if answer is not None else ["  (no answer table found in the benchmark's output)"]:
+                if not ln.startswith("- "):
                     print("  " + ln)
     finally:
         if not args.keep:
