@@ -256,8 +256,8 @@ def test_iso230_outputs_name_the_frame(tmp_path, monkeypatch, mode):
     from thermbench.data.reference import frame_text
     from thermbench.iso230_report import iso230_report
 
-    titles, save = [], report._save
-    monkeypatch.setattr(report, "_save", lambda fig, path: (titles.append(fig.axes[0].get_title()), save(fig, path))[1])
+    titles, save = [], report.figures._save
+    monkeypatch.setattr(report.figures, "_save", lambda fig, path: (titles.append(fig.axes[0].get_title()), save(fig, path))[1])
     p, e = spindle_tables()
     ds = load_dataset(write(tmp_path / "d", {**SPINDLE_META, "reference": {"mode": mode}}, p, e))
     iso230_report(ds.path, tmp_path / "iso")

@@ -16,6 +16,7 @@ from thermbench.outputs import RECORD
 from matplotlib.figure import Figure
 
 from thermbench import report
+from thermbench.report import figures, markdown, tables
 from thermbench.report import (
     approach_comparison,
     figure_paths,
@@ -276,7 +277,7 @@ def test_negative_rate_is_red_and_printed_true():
     fig = Figure()
     ax = fig.add_subplot()
     rate = np.array([[-1.5, 0.0, 0.9]])
-    im = report._rate_heatmap(fig, ax, rate, [["-150.0%", "0.0%", "90.0%"]], ["t"], ["a", "b", "c"])
+    im = figures._rate_heatmap(fig, ax, rate, [["-150.0%", "0.0%", "90.0%"]], ["t"], ["a", "b", "c"])
     rgba = [im.cmap(im.norm(v)) for v in im.get_array()[0]]
     assert rgba[0][0] > 3 * max(rgba[0][1], rgba[0][2])  # (dark) red
     assert abs(rgba[1][0] - rgba[1][2]) < 0.05 and min(rgba[1][:3]) > 0.9  # white-ish centre
@@ -369,7 +370,7 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
     def boom(*args, **kwargs):
         raise RuntimeError("injected plotting failure")
 
-    monkeypatch.setattr(report, "curves_figure", boom)
+    monkeypatch.setattr(markdown, "curves_figure", boom)  # where write_report looks it up
     with pytest.raises(RuntimeError, match="injected"):
         write_report(results.assign(compensation_rate=0.0), _curves(), out, meta={"command": "second"})
     assert (out / "report.md").read_bytes() == before_text
@@ -468,14 +469,14 @@ def spin_report(tmp_path_factory):
     mixed = pd.concat([_results().query("dataset == 'dsA'"), _spin_results()], ignore_index=True)
     curves = pd.concat([_curves().query("dataset == 'dsA'"), _spin_curves()], ignore_index=True)
     captured = {}
-    real = report._rmse_heatmap_figure
+    real = figures._rmse_heatmap_figure
 
     def spy(panels, n_states, norm, title, path):
         captured[path.name] = panels
         return real(panels, n_states, norm, title, path)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(report, "_rmse_heatmap_figure", spy)
+    mp.setattr(markdown, "_rmse_heatmap_figure", spy)
     try:
         write_report(mixed, curves, out, reference=["base"])
     finally:
@@ -524,7 +525,7 @@ def test_validation_by_channel_and_best_match_hand_computation():
     t = report.validation_by_channel(spin[~gone], "spin")
     assert t.at[("fam", "single"), "ch2"] == pytest.approx(9.0)
     assert t.attrs["n_models"].at[("fam", "single"), "ch2"] == 1
-    md = compact(report._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True))
+    md = compact(markdown._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True))
     assert "| fam | single (mean) | 4.00 | 9.00 (1/2) |" in md
 
 
@@ -657,12 +658,12 @@ def test_rmse_matrix_rows_are_the_same_in_every_channel():
     """A family whose single-state fits all failed on ch2 still gets rows a, b there (n/a)."""
     spin = _spin_results()
     spin = spin[~((spin["channel"] == "ch2") & (spin["family"] == "fam") & (spin["approach"] == "single"))]
-    r = report._check_results(spin)
+    r = tables._check_results(spin)
     fam = r[(r["dataset"] == "spin") & (r["family"] == "fam")]
-    models = report._matrix_models(fam, ["a", "b"])
+    models = tables._matrix_models(fam, ["a", "b"])
     assert models == [("a", "single", "a"), ("b", "single", "b"), ("global", "global", "all")]
-    v1, _ = report._test_matrix(fam[fam["channel"] == "ch1"], "rmse_um", models, ["a", "b", "tail"])
-    v2, o2 = report._test_matrix(fam[fam["channel"] == "ch2"], "rmse_um", models, ["a", "b", "tail"])
+    v1, _ = tables._test_matrix(fam[fam["channel"] == "ch1"], "rmse_um", models, ["a", "b", "tail"])
+    v2, o2 = tables._test_matrix(fam[fam["channel"] == "ch2"], "rmse_um", models, ["a", "b", "tail"])
     assert list(v1.index) == list(v2.index) == ["a", "b", "global"]
     assert v1.loc["b", "tail"] == pytest.approx(5.0)
     assert np.isnan(v2.loc["a"]).all() and not o2.loc["a"].any()
@@ -673,7 +674,7 @@ def test_a_list_in_the_header_becomes_bullets_below_its_table():
     # a benchmark can flag hundreds of models: as one table cell, that list widened every row of
     # the header table to its length (14 000 characters in make demo's report.md)
     flags = [f"seed00{i}_x/mlr_seed001/bank_soft: worse than no compensation on run(s) ['r{i}']" for i in range(60)]
-    md = report._meta_md({"command": "thermbench benchmark", "datasets": "a, b", "flagged (never chosen)": flags})
+    md = markdown._meta_md({"command": "thermbench benchmark", "datasets": "a, b", "flagged (never chosen)": flags})
     lines = md.splitlines()
     table = [ln for ln in lines if ln.startswith("|")]
     assert len(table) == 5  # header, rule, three rows

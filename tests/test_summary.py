@@ -1,4 +1,4 @@
-"""The benchmark's answer in one screen (thermbench/summary.py): the figures against a hand count on a
+"""The benchmark's answer in one screen (thermbench/report/answer.py): the figures against a hand count on a
 results table made here, the same figures in the report's first screen, the terminal text and the
 MLflow metric names."""
 
@@ -10,7 +10,7 @@ import pytest
 
 from thermbench import benchmark as bm
 from thermbench.report import write_report
-from thermbench.summary import ANSWER_HEADERS, answer_markdown, answer_metrics, answer_table, answer_text
+from thermbench.report.answer import ANSWER_HEADERS, answer_markdown, answer_metrics, answer_table, answer_text
 
 BASELINES = ["baseline_ridge", "baseline_ols"]
 

@@ -48,7 +48,7 @@ from .evidence import held_out_limits
 from .experiment import JobResult, _finish, build_model, fit_evaluate, headline_metrics, model_flags, plain, save_models
 from .parallel import hydra_runtime, run_workers
 from .splits import dataset_option, load_source, load_split, outer_folds
-from .summary import answer_metrics, answer_table, answer_text
+from .report.answer import answer_metrics, answer_table, answer_text
 from .data.reference import frame_text
 from .metrics import evaluate as evaluate_runs
 from .models.base import ModelError

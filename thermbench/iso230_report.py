@@ -220,7 +220,7 @@ def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
 
 
 def _figures(ds: Dataset, te: pd.DataFrame, figs: dict, out: Path) -> list[str]:
-    from .report import _new_figure, _save
+    from .report.figures import _new_figure, _save
 
     if te.empty:
         return []
