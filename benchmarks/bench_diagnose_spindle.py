@@ -19,7 +19,7 @@ from thermbench.discrepancy import hidden_spindle as hs
 from thermbench.discrepancy.search import Settings
 from thermbench.discrepancy.spindle import spindle_family
 from thermbench.discrepancy.workflow import run_diagnosis
-from thermbench.splits import dataset_view
+from thermbench.bench.splits import dataset_view
 
 TERMS = ("second_heat_path", "structure_growth", "sensor_expansion", "stop_drift")
 

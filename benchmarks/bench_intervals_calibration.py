@@ -1,7 +1,7 @@
 """Can an open-loop interval calibrated on the inner folds hold on the held-out run? fl_thermal's tail.
 
 For each channel and the family given for it (default: the families `make demo` deploys), the
-benchmark's own cell (:func:`thermbench.benchmark.run_task`, fold ``tail``) is run and the
+benchmark's own cell (:func:`thermbench.bench.run.run_task`, fold ``tail``) is run and the
 calibration it builds is captured: per inner held-out block and for the tail, the residuals of a fit
 without that run and their distance to the envelope of the runs that fit saw. Printed per run: its
 readings, RMSE, mean residual (bias), the 90th percentile of |residual|, the share of readings outside
@@ -38,21 +38,21 @@ def main() -> int:
     args = ap.parse_args()
     from sklearn.linear_model import QuantileRegressor
 
-    from thermbench import benchmark as bm
+    from thermbench import bench as bm
     from thermbench.config import load_config
-    from thermbench.intervals import conformal_quantile, half_widths, interval_scores
+    from thermbench.bench.intervals import conformal_quantile, half_widths, interval_scores
 
     want = dict(kv.split("=", 1) for kv in args.families.split(","))
     cfg = load_config("benchmark", ["datasets=[fl_thermal]", "bank_families=[]", "n_jobs=1", "progress=false",
                                     "approaches=[global]", "cache_dir=null"])  # fmt: skip
     captured = {}
-    real = bm.fold_intervals
+    real = bm.run.fold_intervals  # where run_task looks it up
 
     def spy(cal, fold_name, level, kappa):
         captured[fold_name] = cal
         return real(cal, fold_name, level, kappa)
 
-    bm.fold_intervals = spy
+    bm.run.fold_intervals = spy
     for task in bm.tasks(cfg):
         if want.get(task["channel"]) != task["family"]:
             continue

@@ -31,7 +31,7 @@ def main() -> None:
     a = ap.parse_args()
 
     from tests.test_import_shapes import shape1, shape2
-    from thermbench import benchmark as bm
+    from thermbench import bench as bm
     from thermbench.config import load_config
     from thermbench.data.importer import import_dataset
 

@@ -41,7 +41,7 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep the runs' directories (printed)")
     ap.add_argument("--noise", choices=["default", "estimated"], default="default",
                     help="the filter's noise: conf/linuxcnc_component.yaml's (measured on fl_thermal), or estimated "
-                         "(thermbench.adapt.estimate_noise) from the model's residuals on the dataset's other runs")
+                         "(thermbench.bench.adapt.estimate_noise) from the model's residuals on the dataset's other runs")
     ap.add_argument("--gain0", type=float, default=0.1, help="with --noise estimated: the gain's std before the first probe")
     a = ap.parse_args()
 
@@ -63,7 +63,7 @@ def main() -> None:
                      options=ExportOptions(onnx=False, verify=False))  # fmt: skip
         comp = {}
         if a.noise == "estimated":  # the model's residuals on runs it was not fitted on (none is the program run here)
-            from thermbench.adapt import estimate_noise
+            from thermbench.bench.adapt import estimate_noise
 
             m = MLRSeed002().fit(ds, [a.state])
             runs = []

@@ -17,7 +17,7 @@ probes being the tail's own readings at those times, and **scored on the other r
 * ``oracle_gain``: the best bias and gain per probe interval, with hindsight (least squares on the
   tail's readings in it): the bound of the filter's own correction, ``(1 + gain)·predicted + bias``;
 * ``gp_refit`` (family ``gp`` only): the GP refitted on its training readings plus the probes so
-  far (:func:`thermbench.adapt.gp_refit`, the issue's second peer).
+  far (:func:`thermbench.bench.adapt.gp_refit`, the issue's second peer).
 
     python benchmarks/bench_probes.py [--families physics_spindle_hybrid,baseline_ridge] [--every 7200,3600,1800]
 
@@ -58,7 +58,7 @@ def channel_runs(family: str, ch: str, seed: int):
 
     from thermbench.config import group_option
     from thermbench.experiment import build_model
-    from thermbench.splits import load_split
+    from thermbench.bench.splits import load_split
 
     split = load_split({**group_option("dataset", "fl_thermal"), "channel": ch})
     ds = split.dataset
@@ -74,7 +74,7 @@ def channel_runs(family: str, ch: str, seed: int):
     out = tail["t_s"].to_numpy(float), tail["error_um"].to_numpy(float), pred, loro
     if not hasattr(fitted, "train_Z_"):  # not a GP: no refit peer
         return (*out, None)
-    from thermbench.adapt import gp_refit
+    from thermbench.bench.adapt import gp_refit
 
     def refit(sched):
         return gp_refit(fitted, ds, split.validation[0], out[0], tail["target_mm"].to_numpy(float), out[1], sched)
@@ -91,7 +91,7 @@ def smooth(t_s: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
 
 def channel_rows(fam, ch, t, y, p, loro, refit, every_list: str) -> list[dict]:
     """The table's rows of one family and channel (module docstring), ``loro`` the training blocks' residuals."""
-    from thermbench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
+    from thermbench.bench.adapt import apply_probes, estimate_noise, naive_probes, probe_schedule, trigger_level
 
     rows = []
     rows.append(dict(family=fam, channel=ch, method="open", every_s=np.nan, probes=0, rmse_um=rmse(p, y)))
@@ -172,8 +172,8 @@ def figure(family: str, ch: str, every: float, seed: int, path: str) -> None:
     """The tail of ``ch``: measured, open loop and probed (module docstring)."""
     from matplotlib.figure import Figure
 
-    from thermbench.adapt import apply_probes, estimate_noise, probe_schedule
-    from thermbench.intervals import conformal_quantile
+    from thermbench.bench.adapt import apply_probes, estimate_noise, probe_schedule
+    from thermbench.bench.intervals import conformal_quantile
 
     t, y, p, loro, _ = channel_runs(family, ch, seed)
     loro = [(tr, yr - pr) for tr, yr, pr in loro]

@@ -82,14 +82,14 @@ def narrow_envelope(ds, model_dir: Path, state: str, out: Path) -> Path:
     input (tests/test_target_probe.py's): valid1 leaves it and comes back."""
     from thermbench.export import read_manifest
     from thermbench.export.guard import write_envelope
-    from thermbench.intervals import Envelope
+    from thermbench.bench.intervals import Envelope
 
     write_envelope(out, Envelope.fit(ds, [state], read_manifest(model_dir)["temperatures"], ["feed_mm_min"]), 600.0)
     return out
 
 
 def one(model_dir: Path, ds, precision: str, every_s: float, n_runs: int, guard: Path, operating=(), label="") -> dict:
-    from thermbench.adapt import ProbeParams
+    from thermbench.bench.adapt import ProbeParams
 
     params = ProbeParams()  # the compensator's defaults (conf/compensator.yaml's probe block)
     files, samples, temps, bank = replay_inputs(model_dir, ds, RUN)

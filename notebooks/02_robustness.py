@@ -24,7 +24,7 @@
 # * **bank**: the single-state models behind a condition classifier (seed 002 eq. 15-19).
 #
 # It is `thermbench benchmark datasets=[seed001_vmc_x]` in miniature, through the same function
-# (`thermbench.benchmark.run_task`) the benchmark calls for each dataset × family.
+# (`thermbench.bench.run.run_task`) the benchmark calls for each dataset × family.
 
 # %% tags=["parameters"]
 QUICK = False  # True: the two MLR families only (the physics family takes minutes)
@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 from thermbench import report
-from thermbench.benchmark import run_task
+from thermbench.bench import run_task
 from thermbench.experiment import group_option
 
 Path(OUT_DIR).mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from thermbench.adapt import ProbeFilter, ProbeParams, ProbeParamsError, apply_probes
+from thermbench.bench.adapt import ProbeFilter, ProbeParams, ProbeParamsError, apply_probes
 
 
 def joint_map(t_s, predicted, measured, p: ProbeParams, t0_s: float):
@@ -118,7 +118,7 @@ def test_bad_settings_and_readings_are_named():
 def test_the_noise_estimate_recovers_a_random_walk_and_its_scatter():
     """Residuals made as a random-walk offset (q = 2 µm²/h) plus white scatter (r = 0.09 µm²),
     15 s readings, twenty 8 h runs: the semivariogram gives both back within their sampling error."""
-    from thermbench.adapt import estimate_noise
+    from thermbench.bench.adapt import estimate_noise
 
     rng = np.random.default_rng(7)
     runs = []
@@ -133,7 +133,7 @@ def test_the_noise_estimate_recovers_a_random_walk_and_its_scatter():
 
 
 def test_the_schedule_and_the_uncertainty_trigger_by_hand():
-    from thermbench.adapt import probe_schedule
+    from thermbench.bench.adapt import probe_schedule
 
     t = np.arange(0.0, 4 * 3600.0 + 1, 60.0)
     sched = probe_schedule(t + 30.0, 3600.0)
@@ -157,7 +157,7 @@ def test_the_trigger_reads_the_half_width_widened_outside_the_envelope():
     test above (var = 1 + 0.5·Δt_h + r, r = 0.5) and a widening of 1.2 from 30 min on, the trigger at
     1.5 µm fires at 30 min (1.2²·(1.5 + 0.5·Δt_h) > 2.25 from Δt_h > 0.125, by hand), not at 1.5 h;
     and trigger_level with kappa is the widened std just before the schedule's probes."""
-    from thermbench.adapt import trigger_level
+    from thermbench.bench.adapt import trigger_level
 
     p = ProbeParams(q_bias_um2_per_h=0.5, q_gain_per_h=0.0, r_um2=0.5, bias0_um=1.0, gain0=0.0)
     t = np.arange(0.0, 6 * 3600.0 + 1, 60.0)

@@ -1,4 +1,4 @@
-"""The robustness benchmark (thermbench.benchmark): train-state x test-state matrices,
+"""The robustness benchmark (thermbench.bench): train-state x test-state matrices,
 global and bank models, the chosen model, report/MLflow/export outputs, resume from cache."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from thermbench import benchmark as bm
+from thermbench import bench as bm
 from thermbench.config import ConfigError, load_config
 from thermbench.outputs import RECORD, OutputRefused
 from thermbench.experiment import fit_evaluate, group_option, load_split, model_from_config
@@ -187,7 +187,7 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     # run again (e.g. after an interruption): every (dataset, family) task comes from the
     # cache, nothing is refitted, and the report and the MLflow run are made again
     (tmp_path / "reports" / "report.md").unlink()
-    monkeypatch.setattr(bm, "fit_evaluate", lambda *a, **k: (_ for _ in ()).throw(AssertionError("refitted")))
+    monkeypatch.setattr(bm.run, "fit_evaluate", lambda *a, **k: (_ for _ in ()).throw(AssertionError("refitted")))
     again = bm.benchmark(_cfg(tmp_path))
     assert again.mlflow_run_id != res.mlflow_run_id
     assert (tmp_path / "reports" / "report.md").exists()

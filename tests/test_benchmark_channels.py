@@ -8,7 +8,8 @@ import pandas as pd
 import pytest
 
 from tests.test_benchmark import _cfg
-from thermbench import benchmark as bm
+from thermbench import bench as bm
+from thermbench.config import group_option
 from thermbench.experiment import ExperimentError
 
 
@@ -48,7 +49,7 @@ def test_choose_per_channel_and_never_a_baseline():
 def test_a_dataset_option_gives_a_family_its_settings():
     dcfg = {"benchmark_models": {"lssvm": {"max_samples": 300}}}
     assert bm.model_config("lssvm", dcfg, "d")["max_samples"] == 300
-    assert bm.model_config("gru", dcfg, "d") == bm.group_option("model", "gru")
+    assert bm.model_config("gru", dcfg, "d") == group_option("model", "gru")
     with pytest.raises(ExperimentError, match=r"key 'benchmark_models.lsvm': no model option 'lsvm'; did you mean 'lssvm'"):
         bm.model_config("gru", {"benchmark_models": {"lsvm": {}}}, "d")
     with pytest.raises(ExperimentError, match=r"key 'benchmark_models.lssvm.max_sample': conf/model/lssvm.yaml has no"):

@@ -11,7 +11,7 @@ import pandas as pd
 
 from tests.synth import analytic_dataset, rise
 from tests.test_benchmark import _cfg
-from thermbench import benchmark as bm
+from thermbench import bench as bm
 from thermbench.data.io import save_dataset
 
 

@@ -11,7 +11,8 @@ import pytest
 
 from tests.test_benchmark import _cfg
 from tests.test_import_shapes import shape1
-from thermbench import benchmark as bm
+from thermbench import bench as bm
+from thermbench.config import group_option
 from thermbench.data.importer import import_dataset
 from thermbench.experiment import ExperimentError, dataset_option
 
@@ -73,7 +74,7 @@ def test_a_directory_gets_the_benchmarks_budget_for_costly_families(lathe, tmp_p
     by = {t["family"]: t["model_cfg"] for t in bm.tasks(cfg)}
     assert (by["lssvm"]["max_samples"], by["lssvm"]["iters"]) == (600, 20)
     assert (by["gru"]["max_samples"], by["gru"]["max_epochs"]) == (600, 300)
-    assert by["mlp"] == bm.group_option("model", "mlp")  # no budget given: the option as it is
+    assert by["mlp"] == group_option("model", "mlp")  # no budget given: the option as it is
     # a dataset option keeps its own (fl_thermal's lssvm subsample is 300)
     cfg = _cfg(tmp_path, "datasets=[fl_thermal]", "families=[lssvm]", "bank_families=[]")
     assert bm.tasks(cfg)[0]["model_cfg"]["max_samples"] == 300

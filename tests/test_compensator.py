@@ -604,7 +604,7 @@ def test_probe_node_corrects_the_loop_as_replay_with_the_same_probes(machine, se
     from thermbench.data.io import load_dataset
     from thermbench.export.bundle import process_samples, replay_dir
     from thermbench.export.replay import read_probes
-    from thermbench.adapt import ProbeParams
+    from thermbench.bench.adapt import ProbeParams
     from thermbench.config import with_defaults
 
     nodes = tmp_path / "nodes.yaml"

@@ -336,10 +336,10 @@ def test_the_status_line_says_cycles_times_machine_time_compensation_and_flags()
 
 def test_probe_readings_correct_the_compensation_as_the_python_filter_does_once_per_timestamp():
     """A probe input (measured error, source timestamp) updates the C runtime's filter in the cycle
-    logic: every cycle's written value is minus the total corrected as thermbench.adapt's filter
+    logic: every cycle's written value is minus the total corrected as thermbench.bench.adapt's filter
     corrects it (a second implementation), a probe is taken once per new timestamp, and a warm
     restart goes on with the correction."""
-    from thermbench.adapt import ProbeFilter, ProbeParams
+    from thermbench.bench.adapt import ProbeFilter, ProbeParams
 
     noise = {"q_bias_um2_per_h": 40.0, "q_gain_per_h": 1e-2, "r_um2": 0.05, "bias0_um": 3.0, "gain0": 0.1}
     lg = _logic(probe=noise)

@@ -9,8 +9,8 @@ from sklearn.linear_model import LinearRegression
 
 from tests.test_benchmark_own import lathe  # noqa: F401  (the fixture: shape 1 imported)
 from tests.test_import_shapes import DAYS, _day
-from thermbench import benchmark as bm
-from thermbench.splits import folds, resolve_cv
+from thermbench import bench as bm
+from thermbench.bench.splits import folds, resolve_cv
 from thermbench.experiment import ExperimentError, dataset_option, group_option
 
 RUNS = ["a", "b", "c", "d", "e"]
@@ -223,7 +223,7 @@ def test_runs_regressor_is_a_scikit_learn_estimator_over_whole_runs(lathe):  # n
 
     from thermbench.experiment import build_model, load_split
     from thermbench.metrics import evaluate
-    from thermbench.splits import DatasetRef, RunsRegressor, run_rows
+    from thermbench.bench.splits import DatasetRef, RunsRegressor, run_rows
 
     ds = load_split(dataset_option(str(lathe), "datasets")[1]).dataset
     model = build_model(group_option("model", "baseline_ols"), seed=0)

@@ -69,14 +69,14 @@ def _thermbench_imports(path: Path) -> set[str]:
 
 
 def test_splits_and_views_are_shared_from_one_module_below_the_jobs():
-    """issue 38: the runs and views the jobs fit on (thermbench.splits), the workers
-    (thermbench.parallel): the benchmark, the export and the replay take them from there; none of
+    """issue 38: the runs and views the jobs fit on (thermbench.bench.splits), the workers
+    (thermbench.bench.parallel): the benchmark, the export and the replay take them from there; none of
     those, nor splits, imports the Hydra-job module thermbench.experiment back (no import circle)."""
     root = DATA.parent
-    for mod in ("splits.py", "parallel.py", "config.py", "export/job.py", "export/replay.py"):
+    for mod in ("bench/splits.py", "bench/parallel.py", "config.py", "export/job.py", "export/replay.py"):
         assert "thermbench.experiment" not in _thermbench_imports(root / mod), mod
-    assert "thermbench.splits" in _thermbench_imports(root / "export/job.py")
-    assert "thermbench.splits" in _thermbench_imports(root / "export/replay.py")
-    assert "thermbench.splits" in _thermbench_imports(root / "benchmark.py")
-    for m in ("splits", "parallel", "export.job", "export.replay"):
+    assert "thermbench.bench.splits" in _thermbench_imports(root / "export/job.py")
+    assert "thermbench.bench.splits" in _thermbench_imports(root / "export/replay.py")
+    assert "thermbench.bench.splits" in _thermbench_imports(root / "bench/run.py")
+    for m in ("bench.splits", "bench.parallel", "export.job", "export.replay"):
         subprocess.run([sys.executable, "-c", f"import thermbench.{m}"], check=True)

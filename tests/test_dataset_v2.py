@@ -214,7 +214,7 @@ def test_own_datasets_never_share_a_registered_name(tmp_path):
 
 
 def test_benchmark_skips_families_a_dataset_cannot_serve(tmp_path):
-    from thermbench.benchmark import family_lacks
+    from thermbench.bench import family_lacks
 
     p, e = spindle_tables()
     view = channel_view(load_dataset(write(tmp_path / "d", SPINDLE_META, p, e)), "Z")

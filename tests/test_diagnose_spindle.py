@@ -21,7 +21,7 @@ from thermbench.discrepancy.spindle import spindle_family
 from thermbench.discrepancy.workflow import run_diagnosis
 from thermbench.models.base import ModelError, readings
 from thermbench.models.lumped import LumpedThermalNetwork
-from thermbench.splits import dataset_view
+from thermbench.bench.splits import dataset_view
 
 WORLD = hs.SpindleWorld()
 SEEDS = {"second_heat_path": 2, "structure_growth": 3, "sensor_expansion": 2, "stop_drift": 3}

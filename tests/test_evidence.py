@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.evidence import error_scatter_um, held_out_limits, outside_training_range
-from thermbench.splits import Fold
+from thermbench.bench.evidence import error_scatter_um, held_out_limits, outside_training_range
+from thermbench.bench.splits import Fold
 
 
 class _Data:

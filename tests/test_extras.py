@@ -80,7 +80,7 @@ def test_a_neural_family_without_torch_is_one_line_naming_the_neural_extra(tmp_p
 
 def test_the_benchmark_without_torch_skips_the_neural_families_in_one_line(tmp_path):
     code = HIDE.split("from thermbench.cli")[0].format(hidden=["torch"], argv=[]) + (
-        "from thermbench.benchmark import family_lacks, reference_only\n"
+        "from thermbench.bench import family_lacks, reference_only\n"
         "print(family_lacks('gru', None)); print(family_lacks('bank_mlr_seed002', None)); print(reference_only('mlp'))\n")
     p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr[-3000:]

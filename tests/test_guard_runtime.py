@@ -16,7 +16,7 @@ from thermbench.export import read_manifest, runtime
 from thermbench.export.bundle import process_samples, readings_queries, replay_dir, replay_inputs
 from thermbench.export.fileformat import ModelFileError
 from thermbench.export.guard import read_envelope, write_envelope
-from thermbench.intervals import Envelope, EnvelopeGuard
+from thermbench.bench.intervals import Envelope, EnvelopeGuard
 
 
 def _python_distances(env: Envelope, tau_s: float, samples: pd.DataFrame, sensors, operating, t_query) -> np.ndarray:

@@ -11,10 +11,10 @@ import pytest
 from sklearn.base import clone
 
 from tests.test_benchmark_own import lathe  # noqa: F401  (the fixture: shape 1 imported)
-from thermbench import benchmark as bm
+from thermbench import bench as bm
 from thermbench.experiment import ExperimentError, build_model, dataset_option, group_option
-from thermbench.intervals import Envelope, conformal_quantile, half_widths, interval_scores
-from thermbench.splits import load_split
+from thermbench.bench.intervals import Envelope, conformal_quantile, half_widths, interval_scores
+from thermbench.bench.splits import load_split
 
 
 def test_the_conformal_quantile_is_the_ceil_n_plus_one_level_th_smallest():
@@ -43,7 +43,7 @@ def test_the_rate_of_a_steady_ramp_and_the_rise_by_hand():
     """A ramp of 6 K/h from 20 °C, sampled every 10 s: the rise is T - 20; the high-pass rate
     (T - e)/tau of an exponential average e obeys e' = (T - e)/tau, whose solution for a ramp
     r·t is T - e = r·tau·(1 - exp(-t/tau)) (to the step's discretisation): 6 K/h after a few tau."""
-    from thermbench.intervals import rise_and_rate
+    from thermbench.bench.intervals import rise_and_rate
 
     t = np.arange(0.0, 6000.0, 10.0)
     T = 20.0 + 6.0 * t / 3600.0
@@ -58,7 +58,7 @@ def test_the_rate_of_a_steady_ramp_and_the_rise_by_hand():
 def test_the_envelope_of_a_dataset_is_its_rises_and_rates(lathe):  # noqa: F811
     """Fitted on one day of shape 1, the envelope's ranges are that day's rises and rates at its
     readings (each sensor's log as written: rise above the first sample, the high-pass rate)."""
-    from thermbench.intervals import rise_and_rate
+    from thermbench.bench.intervals import rise_and_rate
 
     _, dcfg = dataset_option(str(lathe), "datasets")
     ds = load_split({**dcfg, "channel": "dia"}).dataset
@@ -133,7 +133,7 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
     added from the reading after it, over the readings that were not probes; the adaptive rows
     replay the filter (fixed noise) by hand the same way. Every probe approach is left out of the
     choice of the model to deploy."""
-    from thermbench.adapt import ProbeFilter, ProbeParams
+    from thermbench.bench.adapt import ProbeFilter, ProbeParams
 
     _, dcfg = dataset_option(str(lathe), "datasets")
     cfg = group_option("model", family)
@@ -171,7 +171,7 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
 def test_the_streaming_guard_is_the_envelope_of_the_log_sample_by_sample(lathe):  # noqa: F811
     """EnvelopeGuard fed a day's log sample by sample gives, at every sample, the distance the batch
     features of that log give (the same rise and high-pass rate, computed two ways)."""
-    from thermbench.intervals import EnvelopeGuard
+    from thermbench.bench.intervals import EnvelopeGuard
 
     _, dcfg = dataset_option(str(lathe), "datasets")
     ds = load_split({**dcfg, "channel": "dia"}).dataset

@@ -110,12 +110,12 @@ def test_benchmark_workers_get_the_cores_divided_by_n_jobs(monkeypatch):
 def test_the_benchmark_dispatches_its_tasks_through_run_workers(monkeypatch):
     from omegaconf import OmegaConf
 
-    from thermbench import benchmark as bm
+    from thermbench import bench as bm
 
     seen = []
-    monkeypatch.setattr(bm, "run_workers", lambda fn, calls, n_jobs, ordered=True: seen.append((fn, calls, n_jobs)))
+    monkeypatch.setattr(bm.run, "run_workers", lambda fn, calls, n_jobs, ordered=True: seen.append((fn, calls, n_jobs)))
     todo = [{"family": "a"}, {"family": "b"}]
-    bm._iterate(OmegaConf.create({"n_jobs": 2, "cache_dir": None}), todo)
+    bm.run._iterate(OmegaConf.create({"n_jobs": 2, "cache_dir": None}), todo)
     assert seen == [(bm.run_task, [((), t) for t in todo], 2)]
 
 

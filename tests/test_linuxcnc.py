@@ -133,7 +133,7 @@ def test_probe_pins_take_a_reading_on_each_rising_edge_of_probe_valid(seed001_ex
     """probe-valid rising takes probe-um once (flag PROBE on that cycle only, however long it stays
     high); the compensation is then minus the total corrected as the Python filter corrects it,
     with the component's probe noise (its config key ``probe``; the defaults without)."""
-    from thermbench.adapt import ProbeFilter, ProbeParams
+    from thermbench.bench.adapt import ProbeFilter, ProbeParams
 
     comp = HalCompensator(seed001_exports / "mlr", {"log": str(tmp_path / "a.csv"), "time_source": "pin",
                                                      "rate_limit_um_s": 1000.0, **({"probe": noise} if noise else {})})  # fmt: skip

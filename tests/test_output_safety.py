@@ -202,11 +202,12 @@ def test_notebook_runner_refuses_a_users_notebook_before_running(campaign, tmp_p
 
 
 def test_benchmark_refuses_a_dataset_as_its_report_or_model_directory_before_any_fit(campaign, tmp_path, monkeypatch):
-    from thermbench import benchmark as bm
+    from thermbench import bench as bm
     from thermbench.config import load_config
 
     before = _digest(tmp_path / "campaign")
-    monkeypatch.setattr(bm, "tasks", lambda *a, **k: pytest.fail("worked before refusing"))
+    monkeypatch.setattr(bm.job, "tasks",  # where the job looks it up
+                         lambda *a, **k: pytest.fail("worked before refusing"))
     for key in ("report_dir", "export_dir"):
         for d in (campaign, campaign.parent, campaign / "sub"):
             cfg = load_config("benchmark", [f"{key}={d}", "force=true", f"tracking.uri=sqlite:///{tmp_path}/m.db"])

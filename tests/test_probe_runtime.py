@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from thermbench import datasets
-from thermbench.adapt import ProbeFilter, ProbeParams
+from thermbench.bench.adapt import ProbeFilter, ProbeParams
 from thermbench.export import runtime
 from thermbench.export.bundle import readings_queries, replay_dir
 
@@ -57,7 +57,7 @@ def test_replay_with_probes_is_the_python_filter_on_the_open_loop_replay(seed001
     corrected by the Python filter fed the probe readings in time order (each reading's correction
     the one before a probe at its own time); the readings that were probes are not scored; the
     probes bring the error down."""
-    from thermbench.adapt import ProbeFilter
+    from thermbench.bench.adapt import ProbeFilter
     from thermbench.export.replay import read_probes, replay_run
 
     data = seed001_data_root / "seed001_vmc_x"

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench import benchmark as bm
+from thermbench import bench as bm
 from thermbench.report import write_report
 from thermbench.report.answer import ANSWER_HEADERS, answer_markdown, answer_metrics, answer_table, answer_text
 

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from tests.test_target import ds, queries  # noqa: F401  (the fixtures: seed001_vmc_x and valid1's readings)
-from thermbench.adapt import ProbeParams
+from thermbench.bench.adapt import ProbeParams
 from thermbench.export import bundle, read_manifest, runtime, target
 from thermbench.export.bundle import TARGETS
 
@@ -75,7 +75,7 @@ def test_the_guard_and_the_probes_live_on_the_target_are_the_host_s(seed001_expo
     (relative), inside and outside alike, and the corrected predictions within 0.01 µm. One
     tb_guard_step per sample; the model, its arena, the filter and the guard fit the 16 KB RAM budget."""
     from thermbench.export.guard import write_envelope
-    from thermbench.intervals import Envelope
+    from thermbench.bench.intervals import Envelope
 
     model_dir = seed001_exports / "mlr"
     sensors = read_manifest(model_dir)["temperatures"]

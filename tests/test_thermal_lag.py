@@ -80,7 +80,7 @@ def test_it_recovers_the_planted_inputs_and_time_constant_and_reaches_the_noise_
 def test_its_validation_folds_hold_whole_runs_out():
     """splits.row_folds, what thermal_lag (and the lumped network's selection) tunes on: each fold
     holds out whole runs and trains on the others only; a single run: contiguous blocks."""
-    from thermbench.splits import row_folds
+    from thermbench.bench.splits import row_folds
 
     runs = np.repeat(["a", "b", "c"], 4)
     folds = row_folds(runs)

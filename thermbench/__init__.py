@@ -7,3 +7,7 @@ in :mod:`thermbench.sim`.
 """
 
 __version__ = "0.1.0"
+
+from . import _moved
+
+_moved.install()  # old module names (thermbench.benchmark, ...) keep working for one release

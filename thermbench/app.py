@@ -1,5 +1,5 @@
 """Hydra entry points of ``thermbench train|evaluate|benchmark|export``: thin layers over
-:mod:`thermbench.experiment` and :mod:`thermbench.benchmark`.
+:mod:`thermbench.experiment` and :mod:`thermbench.bench`.
 
 Each job composes ``conf/<job>.yaml`` with the command-line overrides, so ``-m`` multirun,
 ``hydra/launcher=joblib`` (local parallelism), ``hydra/launcher=cluster`` (SLURM through
@@ -46,9 +46,10 @@ _CRASHED_JOBS: list[str] = []
 
 
 def _jobs() -> dict[str, Callable]:
-    from . import benchmark, experiment
+    from . import experiment
+    from .bench.job import benchmark
 
-    return {"train": experiment.train, "evaluate": experiment.evaluate, "benchmark": benchmark.benchmark,
+    return {"train": experiment.train, "evaluate": experiment.evaluate, "benchmark": benchmark,
             "export": experiment.export}
 
 

@@ -3,7 +3,7 @@
 * :func:`train` — fit one model (``conf/model``) on some loading states of a dataset
   (``conf/dataset``), score it on every run, track everything in MLflow, register the model.
 * :func:`evaluate` — score a registered/logged model on a dataset.
-* the robustness comparison is :func:`thermbench.benchmark.benchmark`.
+* the robustness comparison is :func:`thermbench.bench.job.benchmark`.
 * :func:`export` — a registered model (``models:/<name>@<alias>``) to a model file.
 
 Each takes the composed config (a ``DictConfig``) and returns a :class:`JobResult`.
@@ -34,8 +34,8 @@ from . import tracking
 from ._atomic import write_text_atomic
 from .config import check_targets, config_dir, group_option  # noqa: F401  (group_option: the jobs' API)
 from .errors import ExperimentError  # noqa: F401  (raised by the jobs; thermbench.errors holds it)
-from .parallel import hydra_runtime, job_threads, run_workers, worker_threads  # noqa: F401
-from .splits import (  # noqa: F401  (the runs and views the jobs fit and score on: thermbench.splits)
+from .bench.parallel import hydra_runtime, job_threads, run_workers, worker_threads  # noqa: F401
+from .bench.splits import (  # noqa: F401  (the runs and views the jobs fit and score on: thermbench.bench.splits)
     Split,
     dataset_config_for,
     dataset_option,

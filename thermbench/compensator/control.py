@@ -179,7 +179,7 @@ class Settings:
     line_points: int = 21
     line_ref_mm: float | None = None
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
-    probe: Any = None  # thermbench.adapt.ProbeParams of the probe filter (config key probe)
+    probe: Any = None  # thermbench.bench.adapt.ProbeParams of the probe filter (config key probe)
     extrapolation: str = "report"  # outside the training envelope: report (flag only) | hold the last value inside
     # | limit: the interval's inner edge (manifest 'interval': the prediction moved toward 0 by its half-width)
 
@@ -249,8 +249,8 @@ class Cycle:
 
 
 def _probe_params(cfg):
-    """:class:`thermbench.adapt.ProbeParams` of config key ``probe`` (null: the defaults)."""
-    from ..adapt import ProbeParams, ProbeParamsError
+    """:class:`thermbench.bench.adapt.ProbeParams` of config key ``probe`` (null: the defaults)."""
+    from ..bench.adapt import ProbeParams, ProbeParamsError
 
     try:
         return ProbeParams.from_config(cfg)
@@ -311,7 +311,7 @@ class CycleLogic:
         self.t_start: float | None = 0.0  # machine time of the model's (re)start: the filter's start
         env = (getattr(model, "manifest", None) or {}).get("envelope")
         if env is not None:
-            from ..intervals import Envelope, EnvelopeGuard
+            from ..bench.intervals import Envelope, EnvelopeGuard
 
             self.guard = EnvelopeGuard(Envelope.from_dict(env), float(env.get("rate_tau_s", 600.0)))
         else:

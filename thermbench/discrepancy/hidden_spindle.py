@@ -230,7 +230,7 @@ def calibrate(world: SpindleWorld, hidden: Hidden, x_noise: float = 4.0, rounds:
     blocks without the term, leaves an RMSE of ``x_noise`` times the gauge noise (the strength a
     search sees: what the base cannot absorb; as :func:`thermbench.discrepancy.hidden.calibrate`)."""
     from ..models.lumped import LumpedThermalNetwork
-    from ..splits import dataset_view
+    from ..bench.splits import dataset_view
 
     if hidden.term is None:
         return hidden

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..report import _new_figure, _save, markdown_table
+from ..report.figures import _new_figure, _save
+from ..report.text import markdown_table
 from .localise import POSITION_WORDS
 from .search import display as _name  # a step's or candidate's name with its signal
 

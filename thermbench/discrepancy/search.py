@@ -185,9 +185,9 @@ class Fitted:
 
 
 def folds_for(runs: Sequence[str], cv) -> list[tuple[list[str], list[str]]]:
-    """Leave-one-run-out folds (:func:`thermbench.splits.folds`, the benchmark's), or the declared
+    """Leave-one-run-out folds (:func:`thermbench.bench.splits.folds`, the benchmark's), or the declared
     split ``{train: [...], test: [...]}``, as (train runs, held-out runs) pairs."""
-    from ..splits import folds
+    from ..bench.splits import folds
 
     runs = list(runs)
     if cv in (None, "loro"):

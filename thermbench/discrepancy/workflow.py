@@ -504,7 +504,7 @@ def load_for_diagnosis(conf: dict):
     network (:mod:`.spindle`), through its segments (each with the test's log from its start,
     ``history``) and with the option's validation runs held out (``holdout`` overrides)."""
     from ..errors import ExperimentError
-    from ..splits import dataset_option, dataset_view, load_source
+    from ..bench.splits import dataset_option, dataset_view, load_source
     from .spindle import NETWORK_KEYS, spindle_family
 
     entry, channel = str(conf["data_dir"]), conf.get("channel")

@@ -390,7 +390,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                            if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
                            **source.pop("training", {})}  # fmt: skip
         if ds is not None:  # what the model was fitted on: the guard's envelope (thermbench/intervals.py)
-            from ..intervals import RATE_WINDOW_S, Envelope
+            from ..bench.intervals import RATE_WINDOW_S, Envelope
 
             from .guard import ENVELOPE_FILE, write_envelope
 
@@ -421,13 +421,13 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
 
 def interval_calibration(model: ThermalErrorModel, ds, runs: Sequence[str], sensors: Sequence[str],
                          operating: Sequence[str], level: float, kappa: float, name: str = "model") -> dict:
-    """The split-conformal interval of a model (:mod:`thermbench.intervals`) from its training runs,
+    """The split-conformal interval of a model (:mod:`thermbench.bench.intervals`) from its training runs,
     each left out once: a clone fitted on the others predicts it, and its residuals, normalised
     by their distance to the others' envelope, are the calibration scores. ``q_um``: the interval's
     half-width inside the envelope (``q * (1 + kappa * distance)`` outside)."""
     from sklearn.base import clone
 
-    from ..intervals import Envelope, conformal_quantile, interval_scores
+    from ..bench.intervals import Envelope, conformal_quantile, interval_scores
 
     runs = list(runs)
     if len(runs) < 2:

@@ -466,10 +466,11 @@ def encode_ensemble(model, channels: dict[str, int] | None = None, period_s: flo
     then its operating inputs, in order). dims ``[N, K]``, K the set of the members' kinds (bit k for
     kind k: what a firmware image must carry, read from the header). A member the runtime cannot run is refused
     with its reason."""
-    from ..models.ensemble import StackedEnsemble
     from .fileformat import kind_version
 
-    if not isinstance(model, StackedEnsemble) or not hasattr(model, "weights_"):
+    # the fitted ensemble's weights and members, read without importing its class (the model calls this
+    # encoder through its export_encoding hook: models -> export, one way)
+    if not all(hasattr(model, a) for a in ("weights_", "members_", "member_names_")):
         raise ExportError(f"{where}: the ensemble is not fitted")
     ins = model.required_inputs()
     if channels is None:

@@ -1,6 +1,6 @@
 """The envelope file (``envelope.tbm``): a model's training envelope for the C runtime's
 extrapolation guard (``embedded/src/tb_guard.c``, ``tb_guard_open``), as
-:class:`thermbench.intervals.EnvelopeGuard` follows it in Python.
+:class:`thermbench.bench.intervals.EnvelopeGuard` follows it in Python.
 
 The model file's header and CRC (:mod:`.fileformat`), kind ``ENVELOPE_KIND``; dims
 ``[n_sensors, n_operating]``; payload ``[tau_s, lo[n], hi[n], width[n]]``, ``n = 2 n_sensors +
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..intervals import RATE_WINDOW_S, Envelope
+from ..bench.intervals import RATE_WINDOW_S, Envelope
 from . import fileformat
 
 ENVELOPE_FILE = "envelope.tbm"

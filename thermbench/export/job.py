@@ -162,7 +162,7 @@ _SPLITS: dict = {}  # per process: dataset config (JSON) -> Split, loaded once f
 
 
 def _load_split_cached(cfg: dict):
-    from ..splits import load_split
+    from ..bench.splits import load_split
 
     k = json.dumps(cfg, sort_keys=True, default=str)
     if k not in _SPLITS:
@@ -176,7 +176,7 @@ def _dataset_config(e: dict, info: dict, key: str, model=None) -> tuple[str | No
     None: the loaded split names it), else the MLflow run's logged dataset config, else the
     benchmark dataset the key names. Checked here, loaded by :func:`_load_split_cached`."""
     from ..config import group_option
-    from ..splits import dataset_config_for, dataset_option
+    from ..bench.splits import dataset_config_for, dataset_option
 
     given = e.get("dataset")
     logged = info.pop("dataset_config", None)
@@ -215,7 +215,7 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
     """Export every item into ``stage/<key>``: what each needs is checked here first (so a
     bad key fails before any work), then the models are exported in ``export.n_jobs``
     processes (joblib; each model's directory is its own; each process on its share of the
-    cores: :func:`thermbench.parallel.run_workers`), rows in the items' order."""
+    cores: :func:`thermbench.bench.parallel.run_workers`), rows in the items' order."""
     every = e.get("select", "all") == "all" and len(items) > 1
     todo = []
     for key, model, info in items:
@@ -238,7 +238,7 @@ def _export_all(items, e: dict, opts: ExportOptions, stage: Path, out_root: Path
     n_jobs = e.get("n_jobs", 1)
     if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0 or n_jobs < -1:
         raise ConfigError(f"config key 'export.n_jobs': expected an integer >= 1 (or -1: every core), got {n_jobs!r}")
-    from ..parallel import run_workers  # each worker on its share of the cores (thread limits)
+    from ..bench.parallel import run_workers  # each worker on its share of the cores (thread limits)
 
     calls = [((*t, opts, stage, out_root, every), {}) for t in todo]
     rows = list(run_workers(_export_one, calls, 1 if len(todo) == 1 else n_jobs))

@@ -75,8 +75,6 @@ def history_samples(step_s: float, period_s: float) -> int:
 def encode_lumped(model, channels: dict[str, int] | None = None, period_s: float = 0.0, where: str = "model") -> Encoded:
     """The ``LUMPED`` model file of a fitted :class:`~thermbench.models.lumped.LumpedThermalNetwork`
     (module docstring); an :class:`ExportError` of one line for what the runtime cannot run."""
-    from ..models.lumped import chain_matrices
-
     if not hasattr(model, "_z_"):
         raise ExportError(f"{where}: the lumped network is not fitted")
     tau, p, tau_a, _ = model._unpack(model._z_)  # what simulate() runs (no terms: refused above)
@@ -121,7 +119,7 @@ def encode_lumped(model, channels: dict[str, int] | None = None, period_s: float
         if any(ch[s] == channel for s in block):
             raise ExportError(f"{where}: operating input {op!r} and a temperature share input channel {channel}")
 
-    ad, bd = chain_matrices(tau, h)
+    ad, bd = model.chain_matrices(tau, h)  # the network's own discretisation (models -> export, one way)
     coef = np.asarray(model._coef_, dtype=float)
     na = int(model._n_states_)
     if na != n + A or coef.size != na + K + 1:

@@ -236,8 +236,8 @@ class LiveModel:
 
 class LiveProbe:
     """The C runtime's probe filter (``tb_probe_*``, embedded/src/tb_probe.c) in-process: corrects a
-    model's total error from probe readings (:mod:`thermbench.adapt` for the model of it). ``params``:
-    a :class:`thermbench.adapt.ProbeParams`; the filter starts at ``t0_s``. Codes are returned, never
+    model's total error from probe readings (:mod:`thermbench.bench.adapt` for the model of it). ``params``:
+    a :class:`thermbench.bench.adapt.ProbeParams`; the filter starts at ``t0_s``. Codes are returned, never
     raised (a probe older than the state: ``TB_E_LATE``)."""
 
     STATE_FIELDS = ("bias_um", "gain", "P00", "P01", "P11", "t_s", "n_probes")

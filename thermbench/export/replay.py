@@ -99,7 +99,7 @@ def replay_view(ds, man: dict, run: str, channel: str | None, data_dir: Path):
     else the one in its manifest, else the only one) and, when ``run`` names a derived
     segment, the run split into its segments (with the log before each, when the model was
     trained that way: ``training.history`` in its manifest)."""
-    from ..splits import model_view
+    from ..bench.splits import model_view
 
     channels = sorted(ds.metadata.error_channels())
     channel = channel or man.get("training", {}).get("channel")
@@ -161,7 +161,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     ``live=False``: every query answered once its value is final (the values the export's parity
     check compares with the Python model). ``probes`` (:func:`read_probes`): probe readings correct
     the model as the compensator's probe input does (the C runtime's ``tb_probe``, ``probe_params``:
-    :class:`thermbench.adapt.ProbeParams`, default ``probe`` of ``conf/compensator.yaml``); readings
+    :class:`thermbench.bench.adapt.ProbeParams`, default ``probe`` of ``conf/compensator.yaml``); readings
     at a probe's time are left out of the figures (they were measured, not compensated)."""
     model_dir, data_dir = Path(model_dir), Path(data_dir)
     man = read_manifest(model_dir)
@@ -185,7 +185,7 @@ def replay_run(model_dir: Path, data_dir: Path, run: str, sanitize: bool = False
     # as the compensator answers (tb_replay --live): each cycle and reading with the log up to its
     # time only; before the runtime has a state nothing is written (0)
     if probes is not None:
-        from ..adapt import ProbeParams
+        from ..bench.adapt import ProbeParams
         from ..config import with_defaults
 
         probe_params = probe_params or ProbeParams.from_config(with_defaults("compensator", {})["probe"])

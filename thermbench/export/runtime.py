@@ -152,7 +152,7 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
     ``live``: each query answered with the samples up to its time only, as the compensator
     answers for the time it writes (tb_replay --live); a query before the runtime has a state
     keeps its code ``TB_E_NOTREADY`` and NaN values (the compensator holds there). ``probe_params``
-    (:class:`thermbench.adapt.ProbeParams`): the probe readings ``probes`` correct the model by
+    (:class:`thermbench.bench.adapt.ProbeParams`): the probe readings ``probes`` correct the model by
     ``tb_probe``, and each answer gets ``corrected_um`` and ``var_um2``. ``guard``: an envelope
     file (:mod:`.guard`; needs ``live``): each answer gets ``distance``, the extrapolation
     guard's at the last sample before it (``tb_guard``; 0 inside the envelope)."""
@@ -166,7 +166,7 @@ REPLAY_COLUMNS = {"t_s": float, "axis_mm": float, "thermal_um": float, "total_um
 
 
 def probe_args(params) -> list[str]:
-    """``tb_replay --probe QB QG R B0 G0`` for :class:`thermbench.adapt.ProbeParams` ``params``."""
+    """``tb_replay --probe QB QG R B0 G0`` for :class:`thermbench.bench.adapt.ProbeParams` ``params``."""
     return ["--probe", *(repr(float(v)) for v in (params.q_bias_um2_per_h, params.q_gain_per_h, params.r_um2,
                                                    params.bias0_um, params.gain0))]  # fmt: skip
 

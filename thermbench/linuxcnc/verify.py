@@ -132,7 +132,7 @@ def check_run(stage: Path, cfg: Mapping[str, Any]) -> dict:
     plant = json.loads((stage / "plant" / "closed_loop.json").read_text())
     ctrl = controller_figures(samples, float(cfg["scale_per_count"]), float(cfg["offset_av_ratio"]),
                               float(cfg["max_velocity_mm_s"]))  # fmt: skip
-    from ..adapt import ProbeParams
+    from ..bench.adapt import ProbeParams
     from ..config import with_defaults
 
     comp_cfg = with_defaults("linuxcnc_component", dict(cfg.get("component") or {}))

@@ -397,7 +397,7 @@ class ThermalErrorModel(BaseEstimator, ABC):
     needs: tuple[str, ...] = ()
     params_model = None
     #: how flexible the family is, for the benchmark's choice (which prefers the simpler of candidates
-    #: within one standard error, :func:`thermbench.benchmark.nested_choice`): 1 linear in fixed features
+    #: within one standard error, :func:`thermbench.bench.choice.nested_choice`): 1 linear in fixed features
     #: (the regressions, thermal lags, delays, ARX), 2 a physical model whose few parameters enter
     #: nonlinearly (time constants, a heat exponent), 3 a kernel machine or neural network (the default);
     #: 0 the stacked ensemble (:mod:`thermbench.models.ensemble`) and the ridge baseline made deployable

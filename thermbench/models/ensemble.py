@@ -11,7 +11,7 @@ both beat picking the best of them). So::
   run;
 * ``w``: non-negative least squares (:func:`scipy.optimize.nnls`, Lawson and Hanson) of the measured
   error on the members' **out-of-run** predictions: each training run predicted by members fitted
-  without it (:func:`thermbench.splits.row_folds` through scikit-learn's ``cross_val_predict``, the run
+  without it (:func:`thermbench.bench.splits.row_folds` through scikit-learn's ``cross_val_predict``, the run
   the group), so a member that fits its training runs well but holds up badly gets little weight;
   no intercept (a constant would be a model of its own);
 * the fallback is the plain mean (``w_i = 1/n``): with one training run (no run to hold out), or when the
@@ -112,7 +112,7 @@ class StackedEnsemble(ThermalErrorModel):
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
         from sklearn.model_selection import cross_val_predict
 
-        from ..splits import DatasetRef, RunsRegressor, row_folds, run_rows
+        from ..bench.splits import DatasetRef, RunsRegressor, row_folds, run_rows
 
         p = check_params(self, self.params_model)
         names = []

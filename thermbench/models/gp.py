@@ -113,7 +113,7 @@ class GaussianProcessLag(ThermalErrorModel):
                   + WhiteKernel(0.01, tuple(p.noise_bounds)))  # fmt: skip
         gp = GaussianProcessRegressor(kernel=kernel, normalize_y=True, n_restarts_optimizer=p.n_restarts,
                                       random_state=p.seed)  # fmt: skip
-        self.train_Z_, self.train_y_um_ = Z, y  # what the GP was fitted on (a refit adds to it: thermbench.adapt.gp_refit)
+        self.train_Z_, self.train_y_um_ = Z, y  # what the GP was fitted on (a refit adds to it: thermbench.bench.adapt.gp_refit)
         with warnings.catch_warnings(record=True) as caught:  # a hyperparameter at its bound: said once, by fit_summary
             warnings.simplefilter("always", ConvergenceWarning)
             self.gp_ = gp.fit(Z, y)

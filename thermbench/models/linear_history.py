@@ -24,7 +24,7 @@ that a deployable candidate::
   :class:`~sklearn.model_selection.GridSearchCV` scores a :class:`~sklearn.preprocessing.StandardScaler`
   + :class:`~sklearn.linear_model.Ridge` pipeline (every penalty from one decomposition per fold,
   :func:`~thermbench.models.thermal_lag.grid_choice`), its folds those of
-  :func:`thermbench.splits.row_folds` (scikit-learn's ``LeaveOneGroupOut`` up to 6 runs, else
+  :func:`thermbench.bench.splits.row_folds` (scikit-learn's ``LeaveOneGroupOut`` up to 6 runs, else
   ``GroupKFold``; one run: 5 contiguous blocks), never rows of a run the fold trains on;
 * ``estimator="pls"``: partial least squares (:class:`~sklearn.cross_decomposition.PLSRegression` on the
   standardised features) instead of the ridge, its number of components (from ``components``) chosen
@@ -148,7 +148,7 @@ class LinearHistory(ThermalLag):
         return np.column_stack([np.interp(t_s, t, lines[:, self.all_delays_.index(float(d))]) for d in delays])
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        from ..splits import row_folds
+        from ..bench.splits import row_folds
 
         p = check_params(self, self.params_model)
         shortest = min((float(d) for s in p.delays_s for d in s if d > 0), default=np.inf)
@@ -207,7 +207,7 @@ class RidgeHistory(LinearHistory):
     ``conf/model/ridge_history.yaml`` sets it up as the ridge baseline is set up: every sensor's rise
     now and 30 min earlier, the penalty by GCV (``cv="gcv"``), one set of delays. It differs in one
     piece of metadata: :attr:`complexity` 0, so the benchmark's choice
-    (:func:`thermbench.benchmark.nested_choice`) takes it, or the stacked ensemble, whenever it is
+    (:func:`thermbench.bench.choice.nested_choice`) takes it, or the stacked ensemble, whenever it is
     within one standard error of the best inner score. A candidate that replaces it must be better
     than the reference by more than the scatter of the score that ranks them; with a few runs the
     choice then falls back to what a careful user would have fitted, not to the luckiest family.

@@ -103,7 +103,7 @@ from sklearn.linear_model import LinearRegression
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
-from ..splits import row_folds
+from ..bench.splits import row_folds
 from .base import Inputs, ModelError, ThermalErrorModel, _name, fallback, readings, require, sensor_series, temperatures_at
 from .mlr import lstsq_fit
 from .params import Degree, Expect, Int, Params, PositiveNumber, check_params, pair_bounds
@@ -805,6 +805,9 @@ class LumpedThermalNetwork(ThermalErrorModel):
         if self.sensors_:
             out = out + self._rises(ds, run, t_s) @ self._coef_[na:-1]
         return out
+
+    #: the exact discretisation of the node chain (:func:`chain_matrices`), for the export's encoder
+    chain_matrices = staticmethod(chain_matrices)
 
     def export_encoding(self, channels, period_s, where):
         """The C runtime's ``LUMPED`` kind (:func:`thermbench.export.lumped_encoding.encode_lumped`)."""

@@ -18,7 +18,7 @@ to measured temperatures and operating signals). Here::
   models visited, the smallest within one standard error (over the folds) of the lowest RMSE is
   kept (:func:`_forward_groups`); the weights by ridge regression on standardised lags, the
   penalty ``alpha`` from ``alphas`` and the set of time constants from ``taus_s`` chosen by the
-  same cross-validation over **whole runs** (:func:`thermbench.splits.row_folds`: each run held
+  same cross-validation over **whole runs** (:func:`thermbench.bench.splits.row_folds`: each run held
   out once up to 6 runs, else 3 folds of runs; one run: 5 contiguous blocks), never on rows of
   a run the fold trains on.
 
@@ -196,7 +196,7 @@ class ThermalLag(ThermalErrorModel):
         return sensors, operating
 
     def _fit(self, ds: Dataset, runs: list[str]) -> None:
-        from ..splits import row_folds
+        from ..bench.splits import row_folds
 
         p = check_params(self, self.params_model)
         sensors, operating = self._set_inputs(ds, runs, p)

@@ -10,7 +10,7 @@ figure (:func:`answer_figure`, matplotlib only).
 
 The figures are those of the benchmark's nested choice: in each fold of the cross-validation over
 whole runs the model is chosen on that fold's training runs alone and scored on its held-out runs;
-the model to deploy is chosen by the same rule on every run (:func:`thermbench.benchmark.deployed_choice`).
+the model to deploy is chosen by the same rule on every run (:func:`thermbench.bench.choice.deployed_choice`).
 """
 
 from __future__ import annotations
@@ -45,10 +45,10 @@ def _model(family, approach) -> str:
 
 
 def answer_table(held: pd.DataFrame, chosen: pd.DataFrame) -> pd.DataFrame:
-    """One row per case: ``held``, :func:`thermbench.benchmark.held_out_summary` (the nested choice's
+    """One row per case: ``held``, :func:`thermbench.bench.choice.held_out_summary` (the nested choice's
     held-out RMSE median / worst over the folds, the best baseline's median, no compensation's
     median, the choice's interval coverage and mean half-width); ``chosen``, the deployed
-    (family, approach) per case (:func:`thermbench.benchmark.deployed_choice`). Columns: ``case``,
+    (family, approach) per case (:func:`thermbench.bench.choice.deployed_choice`). Columns: ``case``,
     ``deploy``, ``folds``, ``median_um``, ``worst_um``, ``baseline`` (the best baseline family),
     ``baseline_um``, ``ratio`` (the choice's median over the best baseline's), ``none_um``,
     ``coverage`` (a fraction) and ``half_width_um``; NaN where a case has no such figure."""

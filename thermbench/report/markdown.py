@@ -426,9 +426,9 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     figures (:class:`_Drawing`). ``answer``: the benchmark's answer
     (:func:`thermbench.report.answer.answer_table`), report.md's first screen: its table, its figure
     (``figures/summary.png``) and what the columns mean (``level``: the intervals' level).
-    ``held_out``: the benchmark's held-out table (:func:`thermbench.benchmark.held_out_table`), one
+    ``held_out``: the benchmark's held-out table (:func:`thermbench.bench.choice.held_out_table`), one
     table per case; ``limits``: per case the choice against the best baseline and what limits it
-    (:func:`thermbench.evidence.held_out_limits`). ``failed``: the cells that could not fit or predict
+    (:func:`thermbench.bench.evidence.held_out_limits`). ``failed``: the cells that could not fit or predict
     (dataset, channel, family, approach, fold, inner_fold, failure), appended to results.csv as rows of
     kind ``failed`` with their one-line reason in ``failure``.
 

@@ -458,7 +458,7 @@ def results_table(results: pd.DataFrame, reference: Sequence[str] = ()) -> pd.Da
     return r[lead + [col for col in r.columns if col not in lead]]
 
 
-#: the probe approaches' strategies (thermbench.adapt.probe_replays, benchmark.gp_refit_results)
+#: the probe approaches' strategies (thermbench.bench.adapt.probe_replays, benchmark.gp_refit_results)
 PROBE_STRATEGIES = {"adaptive": "adaptive (bias + gain filter)", "naive_probe": "naive (last residual added)",
                     "gp_refit": "GP refit on all data so far", "open_loop": "open loop (no probes)"}  # fmt: skip
 

@@ -9,7 +9,7 @@ from typing import Mapping, Sequence
 import joblib
 from omegaconf import OmegaConf
 
-from .models.base import n_workers, thread_budget, threads_per_worker
+from ..models.base import n_workers, thread_budget, threads_per_worker
 
 
 def hydra_runtime():

@@ -30,8 +30,8 @@ from omegaconf import OmegaConf
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.model_selection import GroupKFold, LeaveOneGroupOut
 
-from .config import check_targets, config_dir, group_option
-from .errors import ExperimentError
+from ..config import check_targets, config_dir, group_option
+from ..errors import ExperimentError
 
 
 def dataset_option(entry: str, key: str) -> tuple[str | None, dict]:
@@ -103,7 +103,7 @@ def load_source(dcfg: Mapping):
     try:
         ds = instantiate(source, _convert_="all")
     except InstantiationException as exc:  # hydra wraps the loader's own (clear) error
-        from .errors import user_errors
+        from ..errors import user_errors
 
         cause = exc.__cause__
         if not isinstance(cause, user_errors()):  # a bug in the loader: its traceback
@@ -175,7 +175,7 @@ def model_view(ds, channel: str | None, segments: bool = True, history: bool = F
     derived segments (``segments``), each keeping the log of its run from the start and the whole
     run's thermal error (``history``: the thermal error of the whole run first, then the segments
     with their past)."""
-    from .data.views import channel_view, split_segments
+    from ..data.views import channel_view, split_segments
 
     if channel is None:
         return split_segments(ds) if segments else ds
@@ -351,7 +351,7 @@ def run_rows(ds, runs: Sequence[str]):
     ``groups`` the run ids (what a group splitter holds out whole)."""
     import pandas as pd
 
-    from .data.reference import thermal_errors
+    from ..data.reference import thermal_errors
 
     te = thermal_errors(ds)
     parts = [te.loc[te["run_id"] == r, ["run_id", "error_um"]].assign(row=np.arange(int((te["run_id"] == r).sum())))

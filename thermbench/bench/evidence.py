@@ -85,7 +85,7 @@ def error_scatter_um(ds, runs: Sequence[str]) -> float:
     """The median over ``runs`` of the error's short-term scatter (µm, see the module docstring):
     at each target (and direction), the readings in time order, their second differences,
     1.4826 × their median absolute deviation / √6. NaN when no target has three readings."""
-    from .data.reference import thermal_errors
+    from ..data.reference import thermal_errors
 
     te = thermal_errors(ds)
     te = te[te["run_id"].isin(list(runs))]
@@ -103,10 +103,10 @@ def error_scatter_um(ds, runs: Sequence[str]) -> float:
 
 
 def held_out_limits(summary: pd.DataFrame, cases: Mapping[str, tuple], nested: pd.DataFrame) -> pd.DataFrame:
-    """One row per case of ``summary`` (:func:`thermbench.benchmark.held_out_summary`) that has a
+    """One row per case of ``summary`` (:func:`thermbench.bench.choice.held_out_summary`) that has a
     choice and a best baseline: the choice's median held-out RMSE, its ratio to the best baseline's,
     and the evidence of the module docstring. ``cases``: case -> (the dataset as the models saw it, its
-    outer folds, :func:`thermbench.splits.outer_folds`); ``nested``: the nested choice per fold with
+    outer folds, :func:`thermbench.bench.splits.outer_folds`); ``nested``: the nested choice per fold with
     its ``inner_median_rmse_um``. ``verdict``: one line a reader can act on."""
     rows = []
     for s in summary.to_dict("records"):

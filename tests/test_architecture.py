@@ -1,0 +1,72 @@
+"""The house's plan: no import circle across folders, and the modules that moved keep their old
+names for one release (thermbench/_moved.py, docs/architecture.md)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+from tools import importgraph
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _write(root: Path, files: dict[str, str]) -> None:
+    for rel, text in files.items():
+        p = root / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(textwrap.dedent(text), encoding="utf-8")
+
+
+def test_the_graph_of_a_hand_made_package_has_the_circles_drawn_by_hand(tmp_path):
+    # pkg.a.x -> pkg.b.y (absolute) -> pkg.a.x (relative, inside a function): across folders a and b;
+    # pkg.c.z <-> pkg.c.w (from . import w; from .z import f): inside c; pkg.b (no __init__: a namespace
+    # folder) counts; pkg.d.u -> pkg.a.x only: no circle; "import numpy" names nothing of the package
+    _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/a/__init__.py": "",
+        "pkg/a/x.py": "from pkg.b.y import g\nimport numpy\n",
+        "pkg/b/y.py": "def g():\n    from ..a import x\n",
+        "pkg/c/__init__.py": "",
+        "pkg/c/z.py": "from . import w\ndef f():\n    pass\n",
+        "pkg/c/w.py": "from .z import f\n",
+        "pkg/d/u.py": "from ..a.x import g\n",
+    })  # fmt: skip
+    files = importgraph.modules(tmp_path, "pkg")
+    edges = importgraph.graph(tmp_path, "pkg")
+    assert edges["pkg.a.x"] == {"pkg.b.y"} and edges["pkg.b.y"] == {"pkg.a.x"}
+    assert edges["pkg.c.z"] == {"pkg.c.w"} and edges["pkg.c.w"] == {"pkg.c.z"} and edges["pkg.d.u"] == {"pkg.a.x"}
+    found = importgraph.circles(edges)
+    assert found == [["pkg.a.x", "pkg.b.y"], ["pkg.c.w", "pkg.c.z"]]
+    assert [{importgraph.folder(m, files) for m in c} for c in found] == [{"pkg.a", "pkg.b"}, {"pkg.c"}]
+
+
+def test_thermbench_has_no_import_circle_across_folders():
+    files = importgraph.modules()
+    across = [c for c in importgraph.circles(importgraph.graph()) if len({importgraph.folder(m, files) for m in c}) > 1]
+    assert across == []
+
+
+def test_a_moved_module_keeps_its_old_name_with_a_warning_naming_the_new_place():
+    """In a fresh interpreter (no module imported yet): each old name gives the very module at its
+    new place, and says where that is, once."""
+    from thermbench._moved import MOVED
+
+    code = textwrap.dedent(f"""
+        import importlib, warnings
+        for old, new in {MOVED!r}.items():
+            with warnings.catch_warnings(record=True) as w:
+                warnings.simplefilter("always")
+                got = importlib.import_module(old)
+            said = [str(x.message) for x in w if issubclass(x.category, DeprecationWarning)]
+            assert got is importlib.import_module(new), old
+            assert said == [f"{{old}} has moved to {{new}}: import it from there; the old name goes in the next release"], said
+        from thermbench import benchmark
+        assert benchmark.run_task.__module__ == "thermbench.bench.run"
+        print("ok", len({MOVED!r}))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["ok", str(len(MOVED))]
