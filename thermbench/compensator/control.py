@@ -304,7 +304,7 @@ class CycleLogic:
         # inputs read from another server than the axis's (a station's separate logger): another clock, so
         # they neither set machine time nor are aged against it
         self.foreign: set[str] = set()
-        # probe readings (thermbench/adapt.py): the C runtime's filter on the model's total, from the
+        # probe readings (thermbench/bench/adapt.py): the C runtime's filter on the model's total, from the
         # timeline's start; the last probe's timestamp (a reading is taken once per new timestamp)
         self.filter = None
         self.last_probe: tuple | None = None

@@ -389,7 +389,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                                                 "frame": frame_text(ds.metadata)}
                            if ds is not None else {}), **({"channel": ds.channel} if getattr(ds, "channel", None) else {}),
                            **source.pop("training", {})}  # fmt: skip
-        if ds is not None:  # what the model was fitted on: the guard's envelope (thermbench/intervals.py)
+        if ds is not None:  # what the model was fitted on: the guard's envelope (thermbench/bench/intervals.py)
             from ..bench.intervals import RATE_WINDOW_S, Envelope
 
             from .guard import ENVELOPE_FILE, write_envelope

@@ -388,7 +388,7 @@ HELD_OUT_COLUMNS = {"model": "model", "folds": "folds", "median_rmse_um": "media
 LIMITS_MD = (
     "### What limits the held-out error\n\n"
     "Per dataset and channel: thermbench's choice against the best baseline (the ratio of their median held-out RMSE, "
-    "below 1 the choice is better), and the evidence the data hold (thermbench/evidence.py): the share of a fold's "
+    "below 1 the choice is better), and the evidence the data hold (thermbench/bench/evidence.py): the share of a fold's "
     "held-out readings with some input (a temperature rise, an operating signal) outside the range of its training "
     "runs, and the input furthest out; the error's short-term scatter (second differences at each measuring "
     "position, an upper estimate of the measurement noise); the choice's inner cross-validation RMSE (training runs "
