@@ -22,9 +22,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from thermbench.datasets import load_benchmark  # noqa: E402
+from thermbench.data.benchmarks import load_benchmark  # noqa: E402
 from thermbench.experiment import model_from_config  # noqa: E402
-from thermbench.metrics import evaluate  # noqa: E402
+from thermbench.bench.metrics import evaluate  # noqa: E402
 
 RUNS = ["cond1_3000", "cond2_6000", "cond3_9000"]
 

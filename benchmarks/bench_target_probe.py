@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     except runtime.RuntimeUnavailable as exc:
         print(exc, file=sys.stderr)
         return 2
-    from thermbench.datasets import load_benchmark
+    from thermbench.data.benchmarks import load_benchmark
 
     ds = load_benchmark("seed001_vmc_x", args.data)
     rows = []

@@ -36,7 +36,7 @@ from scipy.signal import lsim
 from thermbench.data.dataset import Dataset
 from thermbench.data.schema import Metadata
 from thermbench.data.views import channel_view
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.thermal_lag import ThermalLag
 
 

@@ -1,5 +1,5 @@
 """The seed 002 §2.4 classifier figures: Table 6 by eq. 15-19, and the learned classifier's
-accuracy on motion it was not trained on (thermbench.classifier_eval).
+accuracy on motion it was not trained on (thermbench.bench.classifier_eval).
 
     .venv/bin/python benchmarks/classifier_checks.py [--seed 0]
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from thermbench.classifier_eval import (  # noqa: E402
+from thermbench.bench.classifier_eval import (  # noqa: E402
     SEED002_TABLE6,
     duty_cycle_accuracy,
     fit_condition_classifier,
@@ -30,8 +30,8 @@ from thermbench.classifier_eval import (  # noqa: E402
     table5_label_map,
     table6_accuracy,
 )
-from thermbench.classify import classify_motion  # noqa: E402
-from thermbench.datasets import load_benchmark  # noqa: E402
+from thermbench.models.classify import classify_motion  # noqa: E402
+from thermbench.data.benchmarks import load_benchmark  # noqa: E402
 
 TABLE6 = [(int(a), int(s), int(e), int(c), paper) for a, s, e, c, paper in SEED002_TABLE6]  # seed 002 Table 6
 

@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/model_zoo.py --models physics mlr_seed001 --datasets seed001_vmc_x
 
 Each family (conf/model/<name>.yaml) is trained on one condition run and scored on
-every run of the dataset (thermbench.metrics): RMSE, max |residual|, compensation
+every run of the dataset (thermbench.bench.metrics): RMSE, max |residual|, compensation
 rate and max |residual| / P-V, on its own condition and on the others (worst case).
 """
 
@@ -18,7 +18,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from thermbench.datasets import load_benchmark  # noqa: E402
+from thermbench.data.benchmarks import load_benchmark  # noqa: E402
 from thermbench.experiment import cross_condition, model_from_config  # noqa: E402
 from thermbench.models.base import ModelError  # noqa: E402
 

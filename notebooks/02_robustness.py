@@ -124,9 +124,9 @@ rate = single.pivot(index="train", columns="run_id", values="compensation_rate")
 run = (rate.max() - rate.min()).idxmax()
 best, worst = rate[run].idxmax(), rate[run].idxmin()
 
-from thermbench.datasets import load_benchmark
+from thermbench.data.benchmarks import load_benchmark
 from thermbench.experiment import fit_evaluate, model_from_config
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 
 ds = load_benchmark("seed001_vmc_x", DATA_ROOT)
 fig, ax = plt.subplots(figsize=(7, 3.5))

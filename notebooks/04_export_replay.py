@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 
 from thermbench.data.reference import run_summary
-from thermbench.datasets import load_benchmark
+from thermbench.data.benchmarks import load_benchmark
 from thermbench.experiment import model_from_config
 from thermbench.export import export_model, read_manifest
 from thermbench.export.bundle import process_samples
@@ -186,7 +186,7 @@ plt.show()
 #
 # "Before" is the measured thermal error (reading minus the run's cold reference at the same target,
 # seed 000 §5, seed 002 §3); "after" is the reading minus the C runtime's predicted positioning error,
-# what the axis would show with this compensation applied (`thermbench.metrics`).
+# what the axis would show with this compensation applied (`thermbench.bench.metrics`).
 
 # %%
 fig = plt.figure(figsize=(11, 4))

@@ -44,9 +44,9 @@ import yaml
 from thermbench.data import DatasetError, load_dataset
 from thermbench.data.importer import MappingError, import_dataset
 from thermbench.data.reference import run_summary, thermal_errors
-from thermbench.datasets import load_benchmark
+from thermbench.data.benchmarks import load_benchmark
 from thermbench.experiment import model_from_config
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 
 out = Path(OUT_DIR)
 out.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from sklearn.base import clone
 
-from thermbench.classify import ProximityNaiveBayes
+from thermbench.models.classify import ProximityNaiveBayes
 from thermbench.config import config_dir
 from thermbench.experiment import model_from_config
 from thermbench.models.bank import ConditionBank
@@ -457,7 +457,7 @@ def test_history_segments_train_only_inside_their_readings():
 
 @pytest.fixture(scope="module")
 def fl_views():
-    from thermbench.datasets import load_benchmark
+    from thermbench.data.benchmarks import load_benchmark
     from thermbench.experiment import dataset_view
 
     raw = load_benchmark("fl_thermal")

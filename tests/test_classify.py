@@ -10,7 +10,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from sklearn.base import clone
 
-from thermbench.classify import (
+from thermbench.models.classify import (
     ClassifierError,
     ProximityNaiveBayes,
     classify_motion,
@@ -362,7 +362,7 @@ def test_bad_log_is_named():
 # --------------------------------------------- seed 002 benchmark logs ---
 @pytest.fixture(scope="module")
 def seed002_windows():
-    from thermbench.datasets import load_benchmark
+    from thermbench.data.benchmarks import load_benchmark
 
     ds = load_benchmark("seed002_vmc655h_x")
     out = {}
@@ -434,8 +434,8 @@ class NearestFeed:
 @pytest.fixture(scope="module")
 def seed002_learned():
     """GaussianNB (conf/classifier/learned.yaml) fitted as a ConditionBank fits it on c1..c9."""
-    from thermbench.classifier_eval import fit_condition_classifier, run_conditions
-    from thermbench.datasets import load_benchmark
+    from thermbench.bench.classifier_eval import fit_condition_classifier, run_conditions
+    from thermbench.data.benchmarks import load_benchmark
 
     ds = load_benchmark("seed002_vmc655h_x")
     runs = [f"c{k}" for k in range(1, 10)]
@@ -444,7 +444,7 @@ def seed002_learned():
 
 def test_eval_table6_is_the_papers_table():
     """The evaluation's Table 6 is the one transcribed above from the paper."""
-    from thermbench.classifier_eval import SEED002_TABLE6
+    from thermbench.bench.classifier_eval import SEED002_TABLE6
 
     assert [tuple(r) for r in SEED002_TABLE6] == [tuple(float(v) for v in r[:4]) + (r[4],) for r in TABLE6]
 
@@ -454,7 +454,7 @@ def test_table6_through_the_window_features_with_eq19_as_the_classifier():
     each Table 6 motion, simulated at 1 Hz, shows the printed motion (except row 2: 30 mm at
     4000 mm/min is 66.7 mm of path per sample, aliased, seen shorter but inside the true range),
     so it gets the hand-derived eq. 19 class of every row; the paper column is the paper's."""
-    from thermbench.classifier_eval import table6_accuracy
+    from thermbench.bench.classifier_eval import table6_accuracy
 
     df = table6_accuracy(instantiate(seed002_config(), _convert_="all").fit())
     assert df["paper"].tolist() == [r[4] for r in TABLE6]
@@ -477,7 +477,7 @@ def test_table6_learned_gaussian_nb(seed002_learned):
     the printed motions: rows 1, 3, 4, 5, 7 as the paper prints them (row 5: feed 300 mm/min
     puts it among #1-#3 and its 620 mm centre is nearest #3's); row 2 (4000 mm/min, centre 75
     mm) and row 6 (4300 mm/min) among #7-#9, nearest #9; eq. 19 gives #7 and #6 there."""
-    from thermbench.classifier_eval import table5_label_map, table6_accuracy
+    from thermbench.bench.classifier_eval import table5_label_map, table6_accuracy
 
     clf, cond = seed002_learned
     assert np.ptp(clf.var_) == 0.0
@@ -499,7 +499,7 @@ def test_duty_cycles_perfect_and_permuted_classifiers():
     same with permuted labels is wrong at every one (0 %). After a switch the label changes
     once the new feed has more time in the window than the old one, about window_s / 2 after
     the switch without stops (the previous segment lasts >= 300 s): a lag share near 1/2."""
-    from thermbench.classifier_eval import duty_cycle_accuracy
+    from thermbench.bench.classifier_eval import duty_cycle_accuracy
 
     right = duty_cycle_accuracy(NearestFeed(SEPARATED), SEPARATED, seed=3, n_runs=6)
     assert right.accuracy == 1.0 and right.n_steady > 300 and right.n_lag > 300
@@ -515,7 +515,7 @@ def test_duty_cycles_perfect_and_permuted_classifiers():
 
 
 def test_duty_cycles_are_reproducible_for_a_seed():
-    from thermbench.classifier_eval import duty_cycle_accuracy, random_duty_cycles
+    from thermbench.bench.classifier_eval import duty_cycle_accuracy, random_duty_cycles
 
     assert random_duty_cycles(SEPARATED, 7, n_runs=2) == random_duty_cycles(SEPARATED, 7, n_runs=2)
     assert random_duty_cycles(SEPARATED, 7, n_runs=2) != random_duty_cycles(SEPARATED, 8, n_runs=2)
@@ -529,7 +529,7 @@ def test_duty_cycle_draws_stay_near_their_condition():
     """Each move segment is its condition with stroke and feed within ±perturb, the centre within
     ±perturb x the stroke, inside the travel; consecutive segments differ in condition; the
     lengths are within move_s and stop_s (the simulator's random-run defaults)."""
-    from thermbench.classifier_eval import random_duty_cycles
+    from thermbench.bench.classifier_eval import random_duty_cycles
 
     n = 0
     for run in random_duty_cycles(SEPARATED, 11, n_runs=4, perturb=0.15):
@@ -561,7 +561,7 @@ def test_duty_cycles_learned_gaussian_nb_above_the_physics_floor(seed002_learned
     it after a switch without a stop (70 % of switches): lag share < 0.65. Into a 300 mm
     stroke (a third of the switches) the range seen once the new feed dominates, stroke plus
     the approach to it, is nearest that condition: lag share > 0.1 overall, > 0.4 for c3, c6, c9."""
-    from thermbench.classifier_eval import duty_cycle_accuracy
+    from thermbench.bench.classifier_eval import duty_cycle_accuracy
 
     clf, cond = seed002_learned
     r = duty_cycle_accuracy(clf, cond, seed=0)
@@ -591,7 +591,7 @@ def test_duty_cycles_learned_gaussian_nb_above_the_physics_floor(seed002_learned
     ],
 )  # fmt: skip
 def test_bad_duty_cycle_input_is_named(kwargs, match):
-    from thermbench.classifier_eval import random_duty_cycles
+    from thermbench.bench.classifier_eval import random_duty_cycles
 
     args = {"conditions": SEPARATED, "seed": 0, "n_runs": 1} | kwargs
     with pytest.raises(ValueError, match=match):
@@ -599,7 +599,7 @@ def test_bad_duty_cycle_input_is_named(kwargs, match):
 
 
 def test_bad_table6_input_is_named():
-    from thermbench.classifier_eval import table6_accuracy
+    from thermbench.bench.classifier_eval import table6_accuracy
 
     eq19 = instantiate(seed002_config(), _convert_="all").fit()
     with pytest.raises(ValueError, match=r"label_map has no Table 5 class for the classifier's label '#2'"):

@@ -222,7 +222,7 @@ def test_runs_regressor_is_a_scikit_learn_estimator_over_whole_runs(lathe):  # n
     from sklearn.model_selection import GridSearchCV, LeaveOneGroupOut, cross_val_predict
 
     from thermbench.experiment import build_model, load_split
-    from thermbench.metrics import evaluate
+    from thermbench.bench.metrics import evaluate
     from thermbench.bench.splits import DatasetRef, RunsRegressor, run_rows
 
     ds = load_split(dataset_option(str(lathe), "datasets")[1]).dataset

@@ -15,7 +15,7 @@ from sklearn.base import clone
 
 from tests.test_linear_history import SENSORS, SPECS, _runs
 from tests.test_lumped import spindle_dataset
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.base import ModelError, readings
 from thermbench.models.ensemble import StackedEnsemble, stack_weights
 from thermbench.models.linear_history import LinearHistory

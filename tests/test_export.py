@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.datasets import load_benchmark
+from thermbench.data.benchmarks import load_benchmark
 from thermbench.export import ExportOptions, Kind, ModelFileError, export_model, pack, read_manifest, replay_dir, unpack
 from thermbench.export import runtime
 from thermbench.export.bundle import readings_queries
@@ -287,7 +287,7 @@ def test_export_job_and_replay_command(exported, ds, seed001_data_root, tmp_path
     from thermbench.config import load_config
     from thermbench.experiment import save_models
     from thermbench.export.job import run_export
-    from thermbench.metrics import residual_metrics
+    from thermbench.bench.metrics import residual_metrics
     from thermbench.data.reference import thermal_errors
 
     monkeypatch.setenv("THERMBENCH_DATA", str(seed001_data_root))

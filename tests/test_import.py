@@ -495,7 +495,7 @@ def test_one_measuring_cycle_for_the_reference_the_models_and_the_metrics(lab):
     truth says which cycle each reading belongs to). The cycle is computed once
     (data.reference.reading_cycles, the ``cycle`` column of the thermal errors) and the models'
     readings, the channel view and the metrics' per-cycle curves all take that one."""
-    from thermbench.metrics import cycle_curves
+    from thermbench.bench.metrics import cycle_curves
     from thermbench.models.base import readings
 
     truth = labfiles.readings_truth().sort_values("t_s").reset_index(drop=True)

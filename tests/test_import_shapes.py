@@ -22,7 +22,7 @@ import pytest
 
 from thermbench.data.importer import MappingError, import_dataset
 from thermbench.data.views import channel_view
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 
 TEMPS1 = ["Ambient", "Ref Temp on Bed", "Spindle Rear", "Coolantwall", "Transfomerbed", "Spindle Front"]
 SENSORS1 = ["amb", "bed", "sp_rear", "coolant", "trafo", "sp_front"]

@@ -14,7 +14,7 @@ from sklearn.base import clone
 
 from tests.synth import rise
 from tests.test_lumped import spindle_dataset
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.base import ModelError
 from thermbench.models.linear_history import LinearHistory, delay_line
 

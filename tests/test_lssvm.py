@@ -15,7 +15,7 @@ from sklearn.exceptions import NotFittedError
 from sklearn.kernel_ridge import KernelRidge
 
 from tests.synth import analytic_dataset, rise
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.base import ModelError
 from thermbench.models import lssvm
 from thermbench.models.lssvm import DEFAULT_PSO_OPTIONS, LSSVMRegressor, PSOLSSVM, tune_lssvm

@@ -1,9 +1,9 @@
-"""thermbench.metrics on hand-computed cases."""
+"""thermbench.bench.metrics on hand-computed cases."""
 
 import numpy as np
 import pytest
 
-from thermbench.metrics import residual_metrics
+from thermbench.bench.metrics import residual_metrics
 
 
 def test_hand_computed_metrics():

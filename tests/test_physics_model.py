@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 from sklearn.base import clone
 
 from thermbench.config import config_dir, load_config
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.base import ModelError
 from thermbench.models.physics import PhysicsModel
 from thermbench.sim.parts import CoreParams

@@ -10,7 +10,7 @@ from scipy.integrate import solve_ivp
 
 from tests.synth import rise
 from tests.test_lumped import spindle_dataset
-from thermbench.metrics import evaluate
+from thermbench.bench.metrics import evaluate
 from thermbench.models.base import ModelError
 from thermbench.models.thermal_lag import ThermalLag, first_order_lag
 

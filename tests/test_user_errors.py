@@ -242,7 +242,7 @@ def test_yaml_input_error_is_a_dataset_error():
 
 
 def test_error_classes_are_user_errors():
-    import thermbench.classify as classify
+    import thermbench.models.classify as classify
 
     assert issubclass(classify.ClassifierError, UserError)
     assert all(issubclass(cls, user_errors()) for cls in (classify.ClassifierError, ConfigError))

@@ -23,6 +23,10 @@ MOVED = {
     "thermbench.intervals": "thermbench.bench.intervals",
     "thermbench.adapt": "thermbench.bench.adapt",
     "thermbench.parallel": "thermbench.bench.parallel",
+    "thermbench.classify": "thermbench.models.classify",
+    "thermbench.classifier_eval": "thermbench.bench.classifier_eval",
+    "thermbench.datasets": "thermbench.data.benchmarks",
+    "thermbench.metrics": "thermbench.bench.metrics",
 }
 
 

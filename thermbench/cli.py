@@ -47,7 +47,7 @@ def cmd_simulate(overrides: list[str]) -> int:
     from .config import ConfigError, compose_checked
 
     cfg = compose_checked("simulate", overrides)  # first: a mistake is reported before the simulator loads
-    from . import datasets
+    from .data import benchmarks as datasets
     from .data.io import load_dataset, save_dataset
     from .data.reference import run_summary
     from .sim.scenario import simulate_dataset
@@ -162,7 +162,7 @@ def cmd_iso230(data_dir: str, out: str, force: bool) -> int:
 def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: float, classifier: str) -> int:
     from hydra.utils import instantiate
 
-    from .classify import ProximityNaiveBayes, classify_motion, format_classification
+    from .models.classify import ProximityNaiveBayes, classify_motion, format_classification
     from .config import ConfigError
     from .experiment import group_option
 

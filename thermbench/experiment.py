@@ -44,7 +44,7 @@ from .bench.splits import (  # noqa: F401  (the runs and views the jobs fit and 
     load_split,
     resolve_runs,
 )
-from .metrics import evaluate as evaluate_runs
+from .bench.metrics import evaluate as evaluate_runs
 from .models.base import FallbackWarning, show_fit_progress, thread_budget
 from .outputs import output_dir
 

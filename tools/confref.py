@@ -51,8 +51,8 @@ MAX_VALUE_CHARS = 100
 #: A primary config missing here is listed as "not known to tools.confref" (a test fails).
 COMMANDS: dict[str, str] = {
     "simulate": "`thermbench simulate [overrides]` (`thermbench.cli`); also the base of every standard "
-    "benchmark dataset (`thermbench.datasets`)",
-    "benchmark_datasets": "not composed by Hydra: read as plain YAML by `thermbench.datasets` "
+    "benchmark dataset (`thermbench.data.benchmarks`)",
+    "benchmark_datasets": "not composed by Hydra: read as plain YAML by `thermbench.data.benchmarks` "
     "(`load_benchmark`, `thermbench simulate suite=benchmark`); each entry is a list of overrides "
     "of `simulate.yaml`",
     "train": "`thermbench train [overrides] [-m]` (Hydra job, `thermbench.app`)",

@@ -99,7 +99,7 @@ def probe_results(cal: Mapping[str, Any], plan, level: float, kappa: float) -> l
 
 def _probe_row(run: str, t, measured, thermal, corrected, probed) -> dict:
     """A probe approach's metrics row of one held-out run: scored on the readings that were not probes."""
-    from ..metrics import residual_metrics
+    from .metrics import residual_metrics
 
     keep = ~np.asarray(probed, dtype=bool)
     return {"run_id": run, "own": False, **residual_metrics(measured[keep], corrected[keep], thermal[keep]),

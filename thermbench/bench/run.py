@@ -17,7 +17,7 @@ from sklearn.base import clone
 from .. import __version__
 from ..data.reference import frame_text
 from ..experiment import build_model, fit_evaluate
-from ..metrics import evaluate as evaluate_runs
+from .metrics import evaluate as evaluate_runs
 from ..models.base import ModelError
 from ..models.gp import GaussianProcessLag
 from .adapt import ProbePlan

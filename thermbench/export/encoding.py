@@ -410,7 +410,7 @@ def encode_classifier(bank, period_s: float, where: str = "classifier") -> Encod
     levels A[nA] (stroke), B[nB] (start + end), C[nC] (feed), then per condition its
     three level indices (conditions in the classifier's class order). A bank classified
     on an operating input, or a soft bank, is an ExportError (:func:`_check_c_bank`)."""
-    from ..classify import FACTORS, ProximityNaiveBayes
+    from ..models.classify import FACTORS, ProximityNaiveBayes
 
     _check_c_bank(bank, where)
     clf = bank.classifier_

@@ -8,7 +8,7 @@ sample (at the axis position of that moment, what the compensator sends to the
 CNC) and at every interferometer reading. Before = the measured thermal error
 (reading minus the cold reference, as seed 000 §5 and seed 002 §3 report it);
 after = reading minus the runtime's predicted positioning error: what the axis
-would show with that compensation applied (:mod:`thermbench.metrics`).
+would show with that compensation applied (:mod:`thermbench.bench.metrics`).
 
 Outputs, written atomically to ``--out``: ``replay.json`` (figures), ``readings.csv``,
 ``compensation.csv`` and two figures: the errors at the measuring points before and
@@ -27,7 +27,7 @@ import pandas as pd
 
 from ..data.io import load_dataset
 from ..data.reference import frame_text, thermal_errors
-from ..metrics import cycle_curves, residual_metrics
+from ..bench.metrics import cycle_curves, residual_metrics
 from ..outputs import output_dir
 from .bundle import read_manifest, replay_dir
 from .encoding import ExportError

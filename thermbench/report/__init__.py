@@ -19,7 +19,7 @@ naming it and the frame):
     switched / blended), ``train`` (the training run for ``single``, ``all``
     otherwise), ``run_id``, ``kind`` (``state`` = modelling state, ``validation``
     = validation duty cycle), ``own`` (the test run was in the training set) and
-    the metrics of :func:`thermbench.metrics.residual_metrics`
+    the metrics of :func:`thermbench.bench.metrics.residual_metrics`
     (``compensation_rate`` is a fraction, 1 − max|residual| / max|thermal error|,
     seed 000 §5, seed 002 §3; ``rmse_um`` is needed for a dataset with several
     channels). Optional ``channel``: the error channel the model was fitted to

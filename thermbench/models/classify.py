@@ -53,8 +53,8 @@ import numpy as np
 import pandas as pd
 from sklearn.base import BaseEstimator, ClassifierMixin
 
-from .config import ConfigError
-from .errors import UserError
+from ..config import ConfigError
+from ..errors import UserError
 
 __all__ = [
     "FEATURES",
@@ -517,7 +517,7 @@ def _seed002_classifier() -> ProximityNaiveBayes:
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    from .config import config_dir
+    from ..config import config_dir
 
     path = config_dir() / "classifier" / "seed002.yaml"
     return instantiate(OmegaConf.load(path), _convert_="all")
@@ -599,7 +599,7 @@ def measuring_intervals(process_run: pd.DataFrame, errors_run: pd.DataFrame, mar
     the monotone move that starts after the last target's dwell (both can be at the
     work feed, e.g. seed 002 #1 works at the 800 mm/min measuring feed).
     """
-    from .data.reference import reading_cycles
+    from ..data.reference import reading_cycles
 
     er_t = errors_run["t_s"].to_numpy(dtype=float)
     if er_t.size == 0:

@@ -49,7 +49,7 @@ def residual_metrics(measured_um, predicted_um, thermal_um=None) -> dict[str, fl
 def cycle_curves(readings: pd.DataFrame, predicted_um) -> pd.DataFrame:
     """Per measuring cycle of one run: ``before_um`` = max |thermal error| (uncompensated)
     and ``after_um`` = max |measured - predicted| (compensated), at the cycle's mean time."""
-    from .data.reference import reading_cycles
+    from ..data.reference import reading_cycles
 
     cyc = readings["cycle"].to_numpy() if "cycle" in readings.columns else reading_cycles(readings)
     df = pd.DataFrame(
@@ -67,7 +67,7 @@ def evaluate(model, dataset, runs: Sequence[str] | None = None, curves: bool = F
     """One row of :func:`residual_metrics` per run for a fitted model (a run where the model
     predicts a non-finite value scores NaN, ``nonfinite_predictions`` counts them); with ``curves=True``
     also the per-cycle before/after table of :func:`cycle_curves` (``run_id`` column)."""
-    from .data.reference import thermal_errors
+    from ..data.reference import thermal_errors
 
     te = thermal_errors(dataset)
     rows, parts = [], []
