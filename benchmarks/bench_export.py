@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from thermbench._atomic import write_text_atomic
+from thermbench.outputs import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest
 from thermbench.export.bundle import process_samples

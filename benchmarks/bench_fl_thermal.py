@@ -68,7 +68,7 @@ def main() -> None:
     work = Path(args.out or tempfile.mkdtemp(prefix="bench_fl_"))
     work.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("THERMBENCH_DATA", str(Path("data/benchmark").resolve()))
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
 
     load_benchmark("fl_thermal")  # warm-up: the import (cached by the shipped files' hash)
     walls, report, models = [], work / "report0", work / "models0"

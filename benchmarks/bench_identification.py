@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from thermbench.data.benchmarks import load_benchmark  # noqa: E402
+from thermbench.bench.datasets import load_benchmark  # noqa: E402
 from thermbench.experiment import model_from_config  # noqa: E402
 from thermbench.bench.metrics import evaluate  # noqa: E402
 

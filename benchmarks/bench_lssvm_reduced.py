@@ -18,7 +18,7 @@ import joblib
 import numpy as np
 import pandas as pd
 
-from thermbench._atomic import write_text_atomic
+from thermbench.outputs import write_text_atomic
 from thermbench.experiment import group_option, load_split
 from thermbench.export.encoding import encode
 from thermbench.export.fileformat import pack

@@ -34,7 +34,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import pandas as pd  # noqa: E402
 from joblib import Parallel, delayed  # noqa: E402
 
-from thermbench._atomic import write_text_atomic  # noqa: E402
+from thermbench.outputs import write_text_atomic  # noqa: E402
 from thermbench.config import load_config  # noqa: E402
 from thermbench.data.io import load_dataset  # noqa: E402
 from thermbench.discrepancy import hidden  # noqa: E402

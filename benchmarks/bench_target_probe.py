@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from thermbench._atomic import write_text_atomic
+from thermbench.outputs import write_text_atomic
 from thermbench.export import runtime, target
 from thermbench.export.bundle import TARGETS, readings_queries, replay_inputs
 
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     except runtime.RuntimeUnavailable as exc:
         print(exc, file=sys.stderr)
         return 2
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
 
     ds = load_benchmark("seed001_vmc_x", args.data)
     rows = []

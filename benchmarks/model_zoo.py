@@ -18,7 +18,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from thermbench.data.benchmarks import load_benchmark  # noqa: E402
+from thermbench.bench.datasets import load_benchmark  # noqa: E402
 from thermbench.experiment import cross_condition, model_from_config  # noqa: E402
 from thermbench.models.base import ModelError  # noqa: E402
 

@@ -124,7 +124,7 @@ rate = single.pivot(index="train", columns="run_id", values="compensation_rate")
 run = (rate.max() - rate.min()).idxmax()
 best, worst = rate[run].idxmax(), rate[run].idxmin()
 
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.experiment import fit_evaluate, model_from_config
 from thermbench.bench.metrics import evaluate
 

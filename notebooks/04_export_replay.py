@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 
 from thermbench.data.reference import run_summary
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.experiment import model_from_config
 from thermbench.export import export_model, read_manifest
 from thermbench.export.bundle import process_samples

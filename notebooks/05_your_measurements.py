@@ -44,7 +44,7 @@ import yaml
 from thermbench.data import DatasetError, load_dataset
 from thermbench.data.importer import MappingError, import_dataset
 from thermbench.data.reference import run_summary, thermal_errors
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.experiment import model_from_config
 from thermbench.bench.metrics import evaluate
 

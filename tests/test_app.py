@@ -296,7 +296,7 @@ def test_sweep_group_noise_x_seeds_composes_with_the_simulated_dataset():
     cfg = load_config("train", ["sweep=noise_x_seeds"], return_hydra_config=True)
     assert str(cfg.hydra.mode) == "RunMode.MULTIRUN"
     assert cfg.hydra.runtime.choices.dataset == "simulated"
-    assert cfg.dataset.source._target_ == "thermbench.data.benchmarks.simulated"
+    assert cfg.dataset.source._target_ == "thermbench.bench.datasets.simulated"
     params = OmegaConf.to_container(cfg.hydra.sweeper.params)
     assert set(params) == {"dataset.source.sensor_noise_C", "dataset.source.seed"}
     assert _sweep_size(cfg) == 3 * 2

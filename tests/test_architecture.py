@@ -1,5 +1,5 @@
 """The house's plan: no import circle across folders, and the modules that moved keep their old
-names for one release (thermbench/_moved.py, docs/architecture.md)."""
+names for one release (MOVED in thermbench/__init__.py, docs/architecture.md)."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def test_thermbench_has_no_import_circle_across_folders():
 def test_a_moved_module_keeps_its_old_name_with_a_warning_naming_the_new_place():
     """In a fresh interpreter (no module imported yet): each old name gives the very module at its
     new place, and says where that is, once."""
-    from thermbench._moved import MOVED
+    from thermbench import MOVED
 
     code = textwrap.dedent(f"""
         import importlib, warnings

@@ -457,7 +457,7 @@ def test_history_segments_train_only_inside_their_readings():
 
 @pytest.fixture(scope="module")
 def fl_views():
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
     from thermbench.experiment import dataset_view
 
     raw = load_benchmark("fl_thermal")

@@ -362,7 +362,7 @@ def test_bad_log_is_named():
 # --------------------------------------------- seed 002 benchmark logs ---
 @pytest.fixture(scope="module")
 def seed002_windows():
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
 
     ds = load_benchmark("seed002_vmc655h_x")
     out = {}
@@ -435,7 +435,7 @@ class NearestFeed:
 def seed002_learned():
     """GaussianNB (conf/classifier/learned.yaml) fitted as a ConditionBank fits it on c1..c9."""
     from thermbench.bench.classifier_eval import fit_condition_classifier, run_conditions
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
 
     ds = load_benchmark("seed002_vmc655h_x")
     runs = [f"c{k}" for k in range(1, 10)]

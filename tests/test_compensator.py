@@ -26,7 +26,7 @@ from thermbench.compensator.client import Compensator
 from thermbench.compensator.errors import CompensatorError, RefusedWrite
 from thermbench.compensator.control import Flags
 from thermbench.compensator.simcnc import SimCnc, SimCncError, build_machine, nodes_yaml, serve
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export.replay import replay_run
 
 pytestmark = pytest.mark.timing  # real-time closed loops: run alone (see the Makefile)

@@ -132,7 +132,7 @@ def test_atomic_writes_get_the_usual_file_mode(tmp_path):
     """mkstemp/mkdtemp create private files (0600/0700); written files must not stay private."""
     import os
 
-    from thermbench._atomic import write_text_atomic
+    from thermbench.outputs import write_text_atomic
     from thermbench.outputs import output_dir
 
     mask = os.umask(0o022)

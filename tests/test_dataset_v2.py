@@ -228,7 +228,7 @@ def test_benchmark_skips_families_a_dataset_cannot_serve(tmp_path):
 
 
 def test_iso230_tilt_by_position_and_drift_from_a_time_reference(tmp_path):
-    from thermbench.iso230_report import compute
+    from thermbench.iso230.report import compute
 
     p, e = spindle_tables()
     # X2 declared before X1, further out: the tilt is (X2 - X1) / 100 mm whatever the order
@@ -254,7 +254,7 @@ def test_iso230_outputs_name_the_frame(tmp_path, monkeypatch, mode):
 
     from thermbench import report
     from thermbench.data.reference import frame_text
-    from thermbench.iso230_report import iso230_report
+    from thermbench.iso230.report import iso230_report
 
     titles, save = [], report.figures._save
     monkeypatch.setattr(report.figures, "_save", lambda fig, path: (titles.append(fig.axes[0].get_title()), save(fig, path))[1])
@@ -271,7 +271,7 @@ def test_iso230_outputs_name_the_frame(tmp_path, monkeypatch, mode):
 
 
 def test_iso230_unidirectional_run_gets_its_one_direction_figures(tmp_path):
-    from thermbench.iso230_report import compute
+    from thermbench.iso230.report import compute
 
     p, e = axis_tables()
     up = e[e["direction"] == 1].drop(columns="direction")
@@ -284,7 +284,7 @@ def test_iso230_unidirectional_run_gets_its_one_direction_figures(tmp_path):
 
 
 def test_iso230_environmental_figure_only_over_the_machine_at_rest(tmp_path):
-    from thermbench.iso230_report import compute
+    from thermbench.iso230.report import compute
 
     p, e = spindle_tables()
     p["T_amb_C"] = 20.0 + 0.001 * p["t_s"]

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import ExportOptions, Kind, ModelFileError, export_model, pack, read_manifest, replay_dir, unpack
 from thermbench.export import runtime
 from thermbench.export.bundle import readings_queries

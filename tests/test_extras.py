@@ -1,5 +1,5 @@
 """A family or command whose extra is missing says in one line which extra to install
-(thermbench.extras). The real core install is checked by ``make core-check`` in its own venv
+(thermbench.errors). The real core install is checked by ``make core-check`` in its own venv
 (tests/core_check.py); here the optional modules are hidden from a subprocess by an
 import hook, so the same messages are checked in the test suite."""
 
@@ -12,7 +12,7 @@ import textwrap
 import pytest
 
 from thermbench.errors import UserError
-from thermbench.extras import EXTRAS, MissingExtra, require
+from thermbench.errors import EXTRAS, MissingExtra, require
 
 HIDE = textwrap.dedent("""
     import importlib.abc, sys

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from thermbench.data.dataset import Dataset
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import export_model, replay_dir, runtime, unpack
 from thermbench.export.bundle import SINGLE_FLAGS, ExportOptions, process_samples
 from thermbench.models.bank import ConditionBank
@@ -96,7 +96,7 @@ def test_a_float_clock_with_a_tenth_of_a_second_period_is_on_its_grid_days_later
     the build (it refused them as off the grid, TB_E_SAMPLING), the GRU counts its lags back from
     the newest sample (it counted from the oldest, its rounding growing with the clock), and the
     float and double builds agree at every sample at both clocks."""
-    from thermbench.data.benchmarks import load_benchmark as load
+    from thermbench.bench.datasets import load_benchmark as load
     from thermbench.models.neural import GRUModel
 
     base = load("seed001_vmc_x")

@@ -131,7 +131,7 @@ def test_bidirectional_thermal_error_excludes_the_reversal(lab):
 
 
 def test_iso230_on_the_lab_files(lab, tmp_path):
-    from thermbench.iso230_report import iso230_report
+    from thermbench.iso230.report import iso230_report
 
     figs = iso230_report(lab.path, tmp_path / "iso")
     e = figs["runs"]["warmup_6000"]["channels"]["X"]

@@ -155,7 +155,7 @@ def test_what_thermbench_writes_the_strict_reader_reads_back_as_written():
 
 def test_a_cached_datasets_hash_is_read_strictly(tmp_path):
     from thermbench.data.safe_yaml import dump_yaml
-    from thermbench.data.benchmarks import _cached_hash, _cached_import
+    from thermbench.bench.datasets import _cached_hash, _cached_import
 
     d = tmp_path / "ds"
     d.mkdir()

@@ -18,7 +18,7 @@ import pandas as pd
 import pytest
 
 from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import export_model, replay_dir
 from thermbench.export.bundle import ExportOptions, process_samples
 from thermbench.export.native import LiveModel

@@ -267,7 +267,7 @@ def test_seed004_bad_input(ds004):
 
 def test_seed004_benchmark_parabola_beats_line():
     """On the simulated fixed-fixed benchmark the parabola fits its training run better."""
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
     from thermbench.bench.metrics import evaluate
     from thermbench.preprocess.filters import LimitFilter
 

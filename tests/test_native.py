@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import ExportError, native, replay_dir, runtime
 from thermbench.export.bundle import process_samples, readings_queries
 from thermbench.export.native import TB_E_INPUT, TB_E_LATE, TB_E_NOTREADY, LiveModel, tb_model

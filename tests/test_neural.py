@@ -302,7 +302,7 @@ def test_bad_parameters_name_the_parameter(cls, bad, param, clean_ds):
 
 def test_benchmark_selection_smoke():
     # sensors=None: the seed 002 §2.3.1 selection picks the inputs on the training run
-    from thermbench.data.benchmarks import load_benchmark
+    from thermbench.bench.datasets import load_benchmark
 
     ds = load_benchmark("seed002_vmc655h_x")
     m = MLPModel(hidden=(8,), max_epochs=20).fit(ds, "c1")

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import ExportOptions, bundle, export_model, read_manifest, target
 from thermbench.export.fileformat import Kind
 from thermbench.export.native import TB_E_ALIGN

@@ -36,7 +36,7 @@ from omegaconf import OmegaConf
 from thermbench import experiment, tracking
 from thermbench.config import load_config
 from thermbench.data.reference import thermal_errors
-from thermbench.data.benchmarks import load_benchmark
+from thermbench.bench.datasets import load_benchmark
 from thermbench.export import read_manifest, replay_dir
 from thermbench.export.bundle import readings_queries
 from thermbench.tracking import TrackingError
@@ -420,10 +420,10 @@ def test_train_against_a_real_tracking_server(mlflow_server, workdir):
 
 # ------------------------------------------------- unreachable server: fail fast ---
 def test_unreachable_server_fails_before_any_data_is_loaded(workdir, monkeypatch):
-    import thermbench.data.benchmarks
+    import thermbench.bench.datasets
 
     loaded = []
-    monkeypatch.setattr(thermbench.data.benchmarks, "load_benchmark", lambda *a, **k: loaded.append(a))
+    monkeypatch.setattr(thermbench.bench.datasets, "load_benchmark", lambda *a, **k: loaded.append(a))
     with closed_port() as port:
         uri = f"http://127.0.0.1:{port}"
         cfg = compose("train", workdir, "tracking=server", f"tracking.uri={uri}", artifacts=False)

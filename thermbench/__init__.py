@@ -4,10 +4,66 @@ Data flows one way: dataset files -> validated dataset (:mod:`thermbench.data`)
 -> (preprocess) -> model -> predictions/metrics -> tracking/report/export.
 The physics (seed 000 finite-difference ball-screw model and its effects) lives
 in :mod:`thermbench.sim`.
+
+Modules that moved to a package of their own keep their old names for one release:
+``import thermbench.benchmark`` still gives the module at its new place (the one object, not a
+copy), with a :class:`DeprecationWarning` naming it. :data:`MOVED` is the one place a move is
+recorded (docs/architecture.md).
 """
+
+from __future__ import annotations
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
+import warnings
 
 __version__ = "0.1.0"
 
-from . import _moved
+#: old dotted name -> new dotted name
+MOVED = {
+    "thermbench.summary": "thermbench.report.answer",
+    "thermbench.benchmark": "thermbench.bench",
+    "thermbench.splits": "thermbench.bench.splits",
+    "thermbench.evidence": "thermbench.bench.evidence",
+    "thermbench.intervals": "thermbench.bench.intervals",
+    "thermbench.adapt": "thermbench.bench.adapt",
+    "thermbench.parallel": "thermbench.bench.parallel",
+    "thermbench.iso230_report": "thermbench.iso230.report",
+    "thermbench._atomic": "thermbench.outputs",
+    "thermbench.extras": "thermbench.errors",
+    "thermbench.classify": "thermbench.models.classify",
+    "thermbench.classifier_eval": "thermbench.bench.classifier_eval",
+    "thermbench.datasets": "thermbench.bench.datasets",
+    "thermbench.metrics": "thermbench.bench.metrics",
+}
 
-_moved.install()  # old module names (thermbench.benchmark, ...) keep working for one release
+
+class _MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Finds an old name of :data:`MOVED` and loads the module at its new name in its place."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname not in MOVED:
+            return None
+        return importlib.util.spec_from_loader(fullname, self)
+
+    def create_module(self, spec):
+        return None  # a placeholder: exec_module puts the real module in its place
+
+    def exec_module(self, module) -> None:
+        new = MOVED[module.__name__]
+        warnings.warn(f"{module.__name__} has moved to {new}: import it from there; the old name goes in the next "
+                      "release", DeprecationWarning, stacklevel=2)  # fmt: skip
+        # the import system returns what sys.modules holds under the name after exec_module: the module itself,
+        # so the old and the new name are one object (a monkeypatch through either is seen by both)
+        sys.modules[module.__name__] = importlib.import_module(new)
+
+
+def install() -> None:
+    """Put the finder on ``sys.meta_path`` (once)."""
+    if not any(isinstance(f, _MovedFinder) for f in sys.meta_path):
+        sys.meta_path.append(_MovedFinder())
+
+
+install()  # old module names (thermbench.benchmark, ...) keep working for one release

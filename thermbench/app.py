@@ -22,7 +22,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ._atomic import write_text_atomic
+from .outputs import write_text_atomic
 from .config import ConfigError, compose_checked, config_dir
 from .errors import one_line, report, stdout_closed, user_errors  # user_errors: the CLI's and the jobs' one definition
 

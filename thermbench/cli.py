@@ -47,7 +47,7 @@ def cmd_simulate(overrides: list[str]) -> int:
     from .config import ConfigError, compose_checked
 
     cfg = compose_checked("simulate", overrides)  # first: a mistake is reported before the simulator loads
-    from .data import benchmarks as datasets
+    from .bench import datasets
     from .data.io import load_dataset, save_dataset
     from .data.reference import run_summary
     from .sim.scenario import simulate_dataset
@@ -143,7 +143,7 @@ def cmd_import(mapping: str, out: str, file_format: str, force: bool) -> int:
 
 
 def cmd_iso230(data_dir: str, out: str, force: bool) -> int:
-    from .iso230_report import iso230_report
+    from .iso230.report import iso230_report
 
     figs = iso230_report(data_dir, out, force=force)
     for run, res in figs["runs"].items():
@@ -267,7 +267,7 @@ def _compose(name: str, overrides: list[str], **paths):
 
 def _require_opcua(command: str) -> None:
     """The OPC UA commands need the ``opcua`` extra (asyncua): one line naming it if missing."""
-    from .extras import require
+    from .errors import require
 
     require("asyncua", command)
 

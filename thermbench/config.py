@@ -442,7 +442,7 @@ class _Composer:
         if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and "/" in str(exc.missing_cfg_file):
             group, _, option = str(exc.missing_cfg_file).rpartition("/")
             if group == "hydra/launcher" and option.startswith("submitit_") and not _has_submitit():
-                from .extras import install_hint
+                from .errors import install_hint
 
                 return (f"hydra/launcher={option} comes from hydra-submitit-launcher, which is not installed; "
                         f"the 'cluster' extra installs it: {install_hint('cluster')}")

@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from . import tracking
-from ._atomic import write_text_atomic
+from .outputs import write_text_atomic
 from .config import check_targets, config_dir, group_option  # noqa: F401  (group_option: the jobs' API)
 from .errors import ExperimentError  # noqa: F401  (raised by the jobs; thermbench.errors holds it)
 from .bench.parallel import hydra_runtime, job_threads, run_workers, worker_threads  # noqa: F401

@@ -521,7 +521,7 @@ def resolve_metadata(source) -> Metadata:
         try:
             if path.is_dir():
                 return load_metadata(path)
-            from .data import benchmarks as datasets
+            from .bench import datasets
 
             if str(source) in datasets.names():
                 where = datasets.default_root() / str(source)
@@ -534,7 +534,7 @@ def resolve_metadata(source) -> Metadata:
                 return load_metadata(built)
         except DatasetError as exc:
             raise PrecompError(f"dataset {source}: {exc}") from None
-        from .data import benchmarks as datasets
+        from .bench import datasets
 
         raise PrecompError(
             f"dataset {source!r}: not a dataset directory nor a benchmark dataset name; expected a directory "
@@ -980,7 +980,7 @@ def run_precompensate(
     check_output_file(out_path, "part-program")  # an existing file thermbench did not write is refused now
     model = _load_model(model_path)
     if dataset is None:
-        from .data import benchmarks as datasets
+        from .bench import datasets
 
         dataset = datasets.of_key(model_path.stem)
         if dataset is None:

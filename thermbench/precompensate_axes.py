@@ -158,7 +158,7 @@ def read_axes_file(path) -> dict[str, AxisModel]:
             raise PrecompError(f"{where}: {exc}") from None
         dataset = entry.get("dataset")
         if dataset is None:
-            from .data import benchmarks as datasets
+            from .bench import datasets
 
             dataset = datasets.of_key(model_path.stem)
             if dataset is None:

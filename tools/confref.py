@@ -51,8 +51,8 @@ MAX_VALUE_CHARS = 100
 #: A primary config missing here is listed as "not known to tools.confref" (a test fails).
 COMMANDS: dict[str, str] = {
     "simulate": "`thermbench simulate [overrides]` (`thermbench.cli`); also the base of every standard "
-    "benchmark dataset (`thermbench.data.benchmarks`)",
-    "benchmark_datasets": "not composed by Hydra: read as plain YAML by `thermbench.data.benchmarks` "
+    "benchmark dataset (`thermbench.bench.datasets`)",
+    "benchmark_datasets": "not composed by Hydra: read as plain YAML by `thermbench.bench.datasets` "
     "(`load_benchmark`, `thermbench simulate suite=benchmark`); each entry is a list of overrides "
     "of `simulate.yaml`",
     "train": "`thermbench train [overrides] [-m]` (Hydra job, `thermbench.app`)",
@@ -630,7 +630,7 @@ def reference_markdown(conf_dir: str | Path | None = None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from thermbench._atomic import write_text_atomic
+    from thermbench.outputs import write_text_atomic
     from thermbench.config import config_dir
 
     parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])

@@ -72,7 +72,7 @@ def model_complexity(family: str, approach: str) -> int:
     baseline made deployable, ``ridge_history``; 1 linear, 2 a physical model with a
     few nonlinear parameters, 3 a kernel machine or network; 3 when unknown), one more for a bank (a
     model per condition and a classifier)."""
-    from ..extras import MissingExtra
+    from ..errors import MissingExtra
 
     try:
         base = int(getattr(family_class(family), "complexity", 3))

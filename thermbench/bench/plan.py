@@ -233,10 +233,10 @@ def plain_value(value):
 def family_class(family: str):
     """The model class of option ``family`` (``conf/model/<family>.yaml``); for a bank option,
     the class of the models inside it. None when the option names no ``_target_``. A family
-    whose optional dependency is missing raises :class:`~thermbench.extras.MissingExtra`."""
+    whose optional dependency is missing raises :class:`~thermbench.errors.MissingExtra`."""
     from hydra._internal.utils import _locate
 
-    from ..extras import MissingExtra
+    from ..errors import MissingExtra
 
     opt = group_option("model", family)
     target = opt.get("_target_")
@@ -255,7 +255,7 @@ def family_class(family: str):
 def family_lacks(family: str, ds) -> str | None:
     """What dataset ``ds`` lacks that model family ``family`` needs (its class's ``needs``,
     :func:`thermbench.models.base.missing_needs`), as text; None when it has everything."""
-    from ..extras import MissingExtra
+    from ..errors import MissingExtra
     from ..models.base import missing_needs, needs_text
 
     try:
@@ -278,7 +278,7 @@ def reference_only_model(model) -> bool:
 def reference_only(family: str) -> bool:
     """True for a baseline family (``reference_only`` on its class): in the tables for
     comparison, never chosen for deployment."""
-    from ..extras import MissingExtra
+    from ..errors import MissingExtra
 
     try:
         return bool(getattr(family_class(family), "reference_only", False))

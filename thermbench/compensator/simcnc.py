@@ -113,7 +113,7 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
         if run not in ds.run_ids:
             raise SimCncError(f"config key 'run': {run!r} is not a run of {cfg['data_dir']}; its runs: {ds.run_ids}")
     else:
-        from ..data import benchmarks as datasets
+        from ..bench import datasets
         from ..sim.scenario import simulate_dataset
 
         key = str(cfg.get("benchmark") or "")

@@ -149,7 +149,7 @@ def write_onnx(model, path: Path, ds=None, runs: Sequence[str] = ()) -> dict:
     run by onnxruntime against the Python model; returns the check's figures."""
     import io
 
-    from ..extras import require
+    from ..errors import require
     from ..models.neural import GRUModel, torch
 
     nn = torch.nn

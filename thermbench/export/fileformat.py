@@ -33,7 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .._atomic import write_bytes_atomic
+from ..outputs import write_bytes_atomic
 
 MAGIC = b"TBMF"
 VERSION = 1  # the first version, every kind's (tb_runtime.h: TB_FORMAT_VERSION)

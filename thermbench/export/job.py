@@ -24,7 +24,7 @@ import pandas as pd
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from ..data import benchmarks as datasets
+from ..bench import datasets
 from ..config import ConfigError
 from ..outputs import check_output_dir, output_dir
 from .bundle import TARGETS, ExportOptions, TargetRefused, export_model

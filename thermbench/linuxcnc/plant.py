@@ -52,7 +52,7 @@ _WORKER: dict = {}
 
 def _worker_init(key: str) -> None:
     """The simulator's process (the plant's loop never waits for a re-run, nor for numba's compile)."""
-    from ..data import benchmarks as datasets
+    from ..bench import datasets
     from ..sim.scenario import _plain, build_model
 
     bcfg = _plain(datasets.benchmark_config(key))
@@ -85,7 +85,7 @@ class ThermalPlant:
     """The plant; :meth:`step` is one cycle over a pin mapping, :meth:`finish` writes the results."""
 
     def __init__(self, cfg: Mapping[str, Any] | None = None) -> None:
-        from ..data import benchmarks as datasets
+        from ..bench import datasets
         from ..config import with_defaults
         from ..sim.scenario import _plain, _targets, build_model
 

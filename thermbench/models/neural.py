@@ -68,7 +68,7 @@ import pandas as pd
 from annotated_types import Ge, Len, Lt
 
 from ..data.dataset import Dataset
-from ..extras import require as require_extra
+from ..errors import require as require_extra
 from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, fit_progress, readings, validation_mask, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
 from .separation import line_separated_geometric, shape_degree

@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from . import iso230
-from .data.io import Dataset, load_dataset
-from .data.reference import thermal_errors
-from .outputs import check_output_dir, output_dir
+from . import standards as iso230
+from ..data.io import Dataset, load_dataset
+from ..data.reference import thermal_errors
+from ..outputs import check_output_dir, output_dir
 
 
 def _segmented(ds: Dataset) -> Dataset | None:
     """The dataset split into its derived segments (format 2 runs without a condition), once."""
-    from .data.views import split_segments
+    from ..data.views import split_segments
 
     if ds.metadata.version == 1 or all(r.condition is not None for r in ds.metadata.runs.values()):
         return None
@@ -116,7 +116,7 @@ def _table_md(df: pd.DataFrame, cols: list[str]) -> str:
 def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
     """All figures of the dataset, as plain data (what ``figures.json`` holds); ``te``: its
     :func:`_readings`, when already computed."""
-    from .data.reference import frame_text
+    from ..data.reference import frame_text
 
     te = _readings(ds) if te is None else te
     meta = ds.metadata
@@ -220,7 +220,7 @@ def compute(ds: Dataset, te: pd.DataFrame | None = None) -> dict:
 
 
 def _figures(ds: Dataset, te: pd.DataFrame, figs: dict, out: Path) -> list[str]:
-    from .report.figures import _new_figure, _save
+    from ..report.figures import _new_figure, _save
 
     if te.empty:
         return []

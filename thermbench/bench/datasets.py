@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 from .. import __version__
 from ..config import ConfigError, config_dir, load_config
 from ..outputs import check_output_dir
-from .io import Dataset, load_dataset, save_dataset
+from ..data.io import Dataset, load_dataset, save_dataset
 from ..sim.scenario import simulate_dataset
 
 SIM_REVISION = 1  # bump when the simulator's numbers change for the same config
@@ -81,10 +81,10 @@ def _cached_value(path: Path, key: tuple[str, str]) -> str | None:
     """The text at ``key`` (``("simulation", "config_hash")``) of the ``metadata.yaml`` of a
     cached dataset at ``path``, read by the strict loader (no aliases, duplicate keys or
     oversize files); None when the file is missing or unreadable (the dataset is then rebuilt)."""
-    from .errors import DatasetError
-    from .files import read_capped
-    from .limits import METADATA_MAX_BYTES
-    from .safe_yaml import load_yaml
+    from ..data.errors import DatasetError
+    from ..data.files import read_capped
+    from ..data.limits import METADATA_MAX_BYTES
+    from ..data.safe_yaml import load_yaml
 
     meta = path / "metadata.yaml"
     if not os.path.lexists(meta):
@@ -165,9 +165,9 @@ def load_benchmark(name: str, root: str | Path | None = None) -> Dataset:
 def import_real(name: str, root: str | Path | None = None) -> Path:
     """Import the shipped measurement ``name`` with its mapping into ``root/name``, unless
     the dataset there was imported from the same mapping and files (their SHA-256)."""
-    from .importer import import_dataset
+    from ..data.importer import import_dataset
 
-    mapping = Path(__file__).parent / REAL[name]
+    mapping = Path(__file__).resolve().parents[1] / REAL[name]  # thermbench/realdata/..., shipped in the package
     h = hashlib.sha256()
     for f in sorted(mapping.parent.iterdir()):
         if f.is_file():
