@@ -10,7 +10,7 @@ without flattening by LinuxCNC's interpreter (issues 23 and 42).
 
 Every ``*.ngc`` of ``--programs`` (the ``ncfiles`` directory that Debian's linuxcnc-uspace
 installs: 56 programs) goes through :func:`thermbench.precompensate.run_precompensate` (one axis)
-or :func:`thermbench.precompensate_axes.run_precompensate_axes` (``--models``, ``--models-dir``)
+or :func:`thermbench.precompensate.axes.run_precompensate_axes` (``--models``, ``--models-dir``)
 twice: ``flatten=never`` (the line reader alone) and ``flatten=auto`` (LinuxCNC's ``rs274`` where
 the reader cannot follow the program). Each outcome is one of: compensated (at least one move
 revised), no move (on the axis / on any axis with a model), or refused (the one-line reason,
@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from thermbench.errors import user_errors  # noqa: E402
 from thermbench.precompensate import run_precompensate  # noqa: E402
-from thermbench.precompensate_axes import run_precompensate_axes  # noqa: E402
+from thermbench.precompensate.axes import run_precompensate_axes  # noqa: E402
 
 DEMO_AXES = {"X": "seed000_x", "Y": "seed001_vmc_x", "Z": "seed002_vmc655h_x"}
 

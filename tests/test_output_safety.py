@@ -312,7 +312,7 @@ def test_sigterm_while_writing_leaves_no_staging_directory(tmp_path, seed001_exp
 
 def test_precompensate_with_models_never_writes_over_a_program(tmp_path):
     from tests.test_precompensate import SAMPLE, oracle, seed000_metadata
-    from thermbench.precompensate_axes import run_precompensate_axes
+    from thermbench.precompensate.axes import run_precompensate_axes
 
     data = tmp_path / "data"
     data.mkdir()

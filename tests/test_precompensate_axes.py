@@ -1,5 +1,5 @@
 """Pre-compensation of a whole part program, every axis with its own model (issue 42,
-thermbench/precompensate_axes.py): one time line over all axes (timed by hand here), each axis
+thermbench/precompensate/axes.py): one time line over all axes (timed by hand here), each axis
 revised by its own model (stub models with known errors, and physics models equal to their
 simulator truths), axes without a model left as written, the axes file and the CLI's messages."""
 
@@ -18,7 +18,7 @@ from numpy.polynomial import Polynomial
 
 from tests.test_precompensate import CoreParams, Stub, oracle, seed000_metadata, stub, stub_error, truth_model
 from thermbench.precompensate import PrecompError, ProgramError, parse_program, plan_motion, precompensate, verify_in_simulator
-from thermbench.precompensate_axes import AxisModel, plan_axes, precompensate_axes, read_axes_file, run_precompensate_axes
+from thermbench.precompensate.axes import AxisModel, plan_axes, precompensate_axes, read_axes_file, run_precompensate_axes
 
 DIAGONAL = "G21 G90\nG0 X0 Y0\nG1 X30 Y40 F3000\nG4 P2\nG1 Y100\nG0 X0 Y0\nM30\n"
 

@@ -305,7 +305,7 @@ def test_a_lathe_program_in_diameter_mode_is_flattened_to_radii(tmp_path, seed00
     """G7: the X words are diameters (X20 is 10 mm from the axis). The interpreter gives radii, so
     the flattened program says G8 and X10; pre-compensating every axis flattens it first (the
     reader refuses diameters), and without flattening the refusal is one line."""
-    from thermbench.precompensate_axes import run_precompensate_axes
+    from thermbench.precompensate.axes import run_precompensate_axes
 
     prog = tmp_path / "lathe.ngc"
     prog.write_text("G18 G7 G21 G90\nG0 X20 Z5\nG1 X10 Z0 F100\nG1 X30 Z-40\nM2\n")
@@ -329,7 +329,7 @@ def test_a_lathe_program_in_diameter_mode_is_flattened_to_radii(tmp_path, seed00
 def test_a_refusal_in_the_flattened_program_names_the_users_line(tmp_path, seed000_physics):
     """A G28 on Z (line 5 of the user's file) stays a G28 in the flattened program, at another
     line: the refusal (Z has a model) and the header's note (Z has none) name line 5."""
-    from thermbench.precompensate_axes import run_precompensate_axes
+    from thermbench.precompensate.axes import run_precompensate_axes
 
     prog = tmp_path / "part.ngc"
     prog.write_text("G21 G90\n#<a> = 10\nG0 X#<a> Y0 Z5\nG1 X20 F600\nG28 Z0\nG0 X0\nM2\n")

@@ -37,6 +37,7 @@ MOVED = {
     "thermbench.classifier_eval": "thermbench.bench.classifier_eval",
     "thermbench.datasets": "thermbench.bench.datasets",
     "thermbench.metrics": "thermbench.bench.metrics",
+    "thermbench.precompensate_axes": "thermbench.precompensate.axes",
 }
 
 

@@ -224,7 +224,7 @@ def cmd_precompensate(args) -> int:
         raise PrecompError("precompensate: no model; expected one of --model MODEL.joblib (one axis) or --models "
                            "AXES.yaml (each axis its own model)")  # fmt: skip
     if args.models is not None:
-        from .precompensate_axes import format_axes_summary, run_precompensate_axes
+        from .precompensate.axes import format_axes_summary, run_precompensate_axes
 
         if args.axis is not None:
             raise PrecompError(f"precompensate: --axis with --models: the axes are the keys of {args.models} (X: ..., "

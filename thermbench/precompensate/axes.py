@@ -34,30 +34,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .data.schema import Metadata
-from .outputs import check_output_file, write_text
-from .precompensate import (
-    PrecompError,
-    PrecompResult,
-    Program,
-    ProgramError,
-    Unsupported,
-    _check_positive,
-    _edits,
-    _load_model,
-    _model_drive,
-    _sample,
-    _waypoints,
-    apply_edits,
-    check_decimals,
-    notes_and_passed_through,
-    parse_program,
-    predict_thermal_errors,
-    program_text,
-    resolve_metadata,
-    truth_from_metadata,
-    verify_in_simulator,
+from ..data.schema import Metadata
+from ..outputs import check_output_file, write_text
+from .command import _load_model, notes_and_passed_through
+from .program import PrecompError, Program, ProgramError, Unsupported, parse_program
+from .revision import (
+    PrecompResult, _edits, apply_edits, check_decimals, program_text, truth_from_metadata, verify_in_simulator,
 )
+from .timing import _check_positive, _model_drive, _sample, _waypoints, predict_thermal_errors, resolve_metadata
 
 __all__ = ["AxisModel", "AxesResult", "format_axes_summary", "plan_axes", "precompensate_axes", "read_axes_file",
            "run_precompensate_axes"]  # fmt: skip
@@ -158,7 +142,7 @@ def read_axes_file(path) -> dict[str, AxisModel]:
             raise PrecompError(f"{where}: {exc}") from None
         dataset = entry.get("dataset")
         if dataset is None:
-            from .bench import datasets
+            from ..bench import datasets
 
             dataset = datasets.of_key(model_path.stem)
             if dataset is None:
@@ -413,7 +397,7 @@ def run_precompensate_axes(
     # flattened where the reader cannot follow an axis with a model (one without is left out of the time line)
     text, flat, note = program_text(program_path, {a: (m.start_mm, m.work_offset_mm) for a, m in models.items()}, flatten,
                                     tool_table, ini)  # fmt: skip
-    from .precompensate import at_origin
+    from .command import at_origin
 
     try:
         result = precompensate_axes(text, models, rapid_mm_min, sample_s, start_s, ambient_C, decimals, str(program_path))
