@@ -65,6 +65,10 @@ def test_a_moved_module_keeps_its_old_name_with_a_warning_naming_the_new_place()
             assert said == [f"{{old}} has moved to {{new}}: import it from there; the old name goes in the next release"], said
         from thermbench import benchmark
         assert benchmark.run_task.__module__ == "thermbench.bench.run"
+        # a user's configuration naming an old place still builds its object (Hydra imports the old name)
+        from hydra.utils import instantiate
+        clf = instantiate({{"_target_": "thermbench.classify.ProximityNaiveBayes"}})
+        assert type(clf).__module__ == "thermbench.models.classify"
         print("ok", len({MOVED!r}))
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
