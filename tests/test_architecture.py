@@ -74,3 +74,65 @@ def test_a_moved_module_keeps_its_old_name_with_a_warning_naming_the_new_place()
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["ok", str(len(MOVED))]
+
+
+def test_a_name_moved_out_of_a_split_module_keeps_its_old_place_with_a_warning():
+    """In a fresh interpreter: every name of MOVED_NAMES is the very object at its new place, got
+    from the old module with one warning naming the new place; a name that never was there is still
+    an AttributeError."""
+    from thermbench import MOVED_NAMES
+
+    code = textwrap.dedent(f"""
+        import importlib, warnings
+        n = 0
+        for old, names in {MOVED_NAMES!r}.items():
+            module = importlib.import_module(old)
+            for name, new in names.items():
+                assert name not in vars(module), (old, name)  # else the old module would not warn
+                with warnings.catch_warnings(record=True) as w:
+                    warnings.simplefilter("always")
+                    got = getattr(module, name)
+                said = [str(x.message) for x in w if issubclass(x.category, DeprecationWarning)]
+                assert got is getattr(importlib.import_module(new), name), (old, name)
+                assert said == [f"{{old}}.{{name}} has moved to {{new}}: import it from there; the old name goes in "
+                                "the next release"], said
+                n += 1
+            try:
+                getattr(module, "no_such_name_here")
+            except AttributeError:
+                pass
+            else:
+                raise AssertionError(old)
+        print("ok", n)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["ok", str(sum(map(len, MOVED_NAMES.values())))]
+
+
+def test_moved_names_on_a_hand_made_split_module(tmp_path):
+    """pkg.old was split: f went to pkg.new. pkg.old.f is pkg.new.f with one warning naming pkg.new;
+    g, still in pkg.old, gives no warning; h was never anywhere and is an AttributeError."""
+    _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/new.py": "def f():\n    return 'f'\n",
+        "pkg/old.py": "import thermbench\nthermbench.MOVED_NAMES[__name__] = {'f': 'pkg.new'}\n"
+                      "__getattr__ = thermbench.moved_names(__name__)\ndef g():\n    return 'g'\n",
+    })  # fmt: skip
+    code = textwrap.dedent("""
+        import warnings, pytest
+        import pkg.new, pkg.old
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            assert pkg.old.f is pkg.new.f and pkg.old.g() == "g"
+            from pkg.old import f
+            assert f is pkg.new.f
+        said = [str(x.message) for x in w if issubclass(x.category, DeprecationWarning)]
+        assert said == ["pkg.old.f has moved to pkg.new: import it from there; the old name goes in the next release"] * 2, said
+        with pytest.raises(AttributeError, match="'pkg.old' has no attribute 'h'"):
+            pkg.old.h
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["ok"]

@@ -8,7 +8,9 @@ in :mod:`thermbench.sim`.
 Modules that moved to a package of their own keep their old names for one release:
 ``import thermbench.benchmark`` still gives the module at its new place (the one object, not a
 copy), with a :class:`DeprecationWarning` naming it. :data:`MOVED` is the one place a move is
-recorded (docs/architecture.md).
+recorded (docs/architecture.md). Names that moved out of a module that stays (a module split in
+two) keep working the same way: :data:`MOVED_NAMES` records them, and the old module's
+``__getattr__ = thermbench.moved_names(__name__)`` finds each at its new place, with the warning.
 """
 
 from __future__ import annotations
@@ -39,6 +41,27 @@ MOVED = {
     "thermbench.metrics": "thermbench.bench.metrics",
     "thermbench.precompensate_axes": "thermbench.precompensate.axes",
 }
+
+#: old module -> {name that moved out of it: the module it is in now}; the old module has
+#: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
+MOVED_NAMES: dict[str, dict[str, str]] = {}
+
+
+def moved_names(module: str):
+    """The module-level ``__getattr__`` of ``module``: a name of ``MOVED_NAMES[module]`` is looked up
+    in the module it moved to, with a :class:`DeprecationWarning` naming that place; any other name
+    is an AttributeError, as without it."""
+    names = MOVED_NAMES.get(module, {})
+
+    def __getattr__(name: str):
+        if name not in names:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        new = names[name]
+        warnings.warn(f"{module}.{name} has moved to {new}: import it from there; the old name goes in the next "
+                      "release", DeprecationWarning, stacklevel=2)  # fmt: skip
+        return getattr(importlib.import_module(new), name)
+
+    return __getattr__
 
 
 class _MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
