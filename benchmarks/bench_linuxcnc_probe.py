@@ -45,7 +45,7 @@ def main() -> None:
     ap.add_argument("--gain0", type=float, default=0.1, help="with --noise estimated: the gain's std before the first probe")
     a = ap.parse_args()
 
-    from thermbench import datasets
+    from thermbench.bench import datasets
     from thermbench.export import ExportOptions, export_model
     from thermbench.linuxcnc.sim import blocking_dirs, run_sim
     from thermbench.models.mlr import MLRSeed002

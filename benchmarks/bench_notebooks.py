@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tools/ lives in the source tree, not installed
 
-from thermbench import datasets  # noqa: E402
+from thermbench.bench import datasets  # noqa: E402
 from tools import nbrun  # noqa: E402
 
 BUDGET_S = 60.0

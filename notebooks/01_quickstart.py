@@ -39,7 +39,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from thermbench import datasets
+from thermbench.bench import datasets
 from thermbench.data.reference import run_summary, thermal_errors
 from thermbench.experiment import fit_evaluate, model_from_config
 

@@ -54,7 +54,7 @@ def seed001_data_root(tmp_path_factory):
     """A benchmark root holding ``seed001_vmc_x`` only, built once per test session (per
     xdist worker; a few seconds), so tests that load it through ``THERMBENCH_DATA`` never
     depend on a prebuilt ``data/benchmark`` nor write into the repository."""
-    from thermbench import datasets
+    from thermbench.bench import datasets
 
     root = tmp_path_factory.mktemp("benchmark")
     datasets.build("seed001_vmc_x", root)
@@ -66,7 +66,7 @@ def seed001_exports(seed001_data_root, tmp_path_factory):
     """Two exported models of ``seed001_vmc_x`` (fitted on its five loading states, parity-checked
     on valid1): ``mlr`` (seed 002 MLR) and ``bank`` (seed 002 §2.4-2.5 per-condition bank of
     seed 001 MLR), the cheapest families: for the live runtime and the compensator."""
-    from thermbench import datasets
+    from thermbench.bench import datasets
     from thermbench.export import export_model
     from thermbench.models.bank import ConditionBank
     from thermbench.models.mlr import MLRSeed001, MLRSeed002

@@ -249,3 +249,22 @@ def test_benchmark_rejects_unknown_approach_and_stray_bank_family(tmp_path):
         bm.tasks(_cfg(tmp_path, "approaches=[single,globl]"))
     with pytest.raises(ExperimentError, match="'bank_families'"):
         bm.tasks(_cfg(tmp_path, "bank_families=[lssvm]"))
+
+
+def test_results_csv_is_in_the_plans_order_whatever_order_the_tasks_finish_in(tmp_path, data_env, monkeypatch):
+    """The workers hand tasks back as they finish (run_workers(ordered=False)); two runs of one
+    configuration whose tasks finish in opposite orders write the same results.csv, byte for byte."""
+    bm.benchmark(_cfg(tmp_path))
+    first = (tmp_path / "reports" / "results.csv").read_bytes()
+    real = bm.job._iterate
+    finished = []
+
+    def backwards(cfg, todo):  # the last task of the plan finishes first (from the cache: the same numbers)
+        outs = list(real(cfg, todo))[::-1]
+        finished.extend(o["family"] for o in outs)
+        return iter(outs)
+
+    monkeypatch.setattr(bm.job, "_iterate", backwards)
+    bm.benchmark(_cfg(tmp_path))
+    assert finished == ["mlr_seed002", "mlr_seed001"]  # the plan's order reversed
+    assert (tmp_path / "reports" / "results.csv").read_bytes() == first

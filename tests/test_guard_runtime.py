@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench import datasets
+from thermbench.bench import datasets
 from thermbench.export import read_manifest, runtime
 from thermbench.export.bundle import process_samples, readings_queries, replay_dir, replay_inputs
 from thermbench.export.fileformat import ModelFileError

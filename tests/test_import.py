@@ -84,7 +84,7 @@ def test_spindle_test_segments_are_its_test_plan(fl):
 
 
 def test_shipped_dataset_loads_by_name_and_is_cached(tmp_path):
-    from thermbench import datasets
+    from thermbench.bench import datasets
 
     ds = datasets.load_benchmark("fl_thermal", root=tmp_path)
     assert ds.metadata.machine.name == "fl_thermal" and len(ds.process) == 11115

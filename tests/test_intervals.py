@@ -187,7 +187,7 @@ def test_the_streaming_guard_is_the_envelope_of_the_log_sample_by_sample(lathe):
 
 
 def test_the_export_manifest_carries_the_training_envelope(seed001_exports, seed001_data_root):
-    from thermbench import datasets
+    from thermbench.bench import datasets
     from thermbench.export.bundle import read_manifest
 
     man = read_manifest(seed001_exports / "mlr")
@@ -208,7 +208,7 @@ def test_an_export_calibrates_its_interval_over_its_training_runs(seed001_data_r
     """export.interval_level: each training run predicted by a fit on the others; with kappa = 0 the
     half-width is the ⌈(n + 1) · 0.9⌉-th smallest |residual| (computed here from fits made by hand),
     and it covers most of valid1, a run none of the fits saw."""
-    from thermbench import datasets
+    from thermbench.bench import datasets
     from thermbench.export import ExportOptions, export_model
     from thermbench.models.mlr import MLRSeed002
 

@@ -12,7 +12,7 @@ import joblib
 import pytest
 import yaml
 
-from thermbench import datasets
+from thermbench.bench import datasets
 from thermbench.cli import main
 from thermbench.outputs import RECORD, OutputRefused
 

@@ -461,7 +461,7 @@ def test_file_errors(tmp_path):
 def test_building_the_models_benchmark_dataset_is_said_first(tmp_path, monkeypatch, capsys):
     """A benchmark model's metadata comes from its training dataset; when that is not built where
     the benchmark datasets are, precompensate says it will simulate it there before it starts."""
-    from thermbench import datasets
+    from thermbench.bench import datasets
     from thermbench.precompensate import resolve_metadata
 
     monkeypatch.setenv("THERMBENCH_DATA", str(tmp_path / "bench"))

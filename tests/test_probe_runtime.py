@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench import datasets
+from thermbench.bench import datasets
 from thermbench.bench.adapt import ProbeFilter, ProbeParams
 from thermbench.export import runtime
 from thermbench.export.bundle import readings_queries, replay_dir

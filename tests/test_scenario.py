@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from thermbench import datasets
+from thermbench.bench import datasets
 from thermbench.cli import main
 from thermbench.config import ConfigError, config_dir, load_config
 from thermbench.data import load_dataset

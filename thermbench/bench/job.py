@@ -72,6 +72,10 @@ def benchmark(cfg: DictConfig) -> JobResult:
                   + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
         bar.update(1)
     bar.close()
+    # the tasks come as they finish; results.csv, the report and the choice take them in the plan's order, so
+    # the same configuration writes the same files whatever the workers' timing
+    order = {(t["dataset_cfg"]["name"], t["channel"], t["family"]): i for i, t in enumerate(todo)}
+    done_tasks.sort(key=lambda o: order[(o["dataset"], o.get("channel", "all"), o["family"])])
     errors = [e for o in done_tasks for e in o["errors"]]
     parts = [o["results"] for o in done_tasks if not o["results"].empty]
     if not parts:
