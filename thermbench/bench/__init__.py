@@ -28,7 +28,8 @@ is split into, folds over whole runs) → :mod:`.plan` (the settings checked, th
 :mod:`.calibration` (each fold's intervals and probe replays: :mod:`.intervals`, :mod:`.adapt`)
 → :mod:`.choice` (the one selection rule and the held-out figures of it) and :mod:`.evidence`
 (what limits the held-out error) → :mod:`.job` (the report, MLflow, the models).
-:mod:`.parallel` runs the workers.
+:mod:`.results` holds the schema of the frames they pass on (results.csv's columns and their
+checks); :mod:`.parallel` runs the workers.
 
 The names below are importable from the package itself (``from thermbench.bench import
 run_task``); each is loaded from its module on first use, so importing a light module of the
@@ -58,7 +59,8 @@ __all__ = sorted(_WHERE)
 
 
 #: the package's modules, loaded on first use as attributes too (``thermbench.bench.run``)
-_MODULES = ("adapt", "calibration", "choice", "evidence", "intervals", "job", "parallel", "plan", "run", "splits")
+_MODULES = ("adapt", "calibration", "choice", "evidence", "intervals", "job", "parallel", "plan", "results", "run",
+            "splits")
 
 
 def __getattr__(name: str):
