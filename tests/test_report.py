@@ -16,7 +16,7 @@ from thermbench.outputs import RECORD
 from matplotlib.figure import Figure
 
 from thermbench import report
-from thermbench.report import figures, markdown, tables
+from thermbench.report import details, figures, markdown, tables
 from thermbench.report import (
     approach_comparison,
     figure_paths,
@@ -370,7 +370,7 @@ def test_failed_figure_leaves_previous_report_intact(results, tmp_path, monkeypa
     def boom(*args, **kwargs):
         raise RuntimeError("injected plotting failure")
 
-    monkeypatch.setattr(markdown, "curves_figure", boom)  # where write_report looks it up
+    monkeypatch.setattr(details, "curves_figure", boom)  # where write_report's sections look it up
     with pytest.raises(RuntimeError, match="injected"):
         write_report(results.assign(compensation_rate=0.0), _curves(), out, meta={"command": "second"})
     assert (out / "report.md").read_bytes() == before_text
@@ -476,7 +476,7 @@ def spin_report(tmp_path_factory):
         return real(panels, n_states, norm, title, path)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(markdown, "_rmse_heatmap_figure", spy)
+    mp.setattr(details, "_rmse_heatmap_figure", spy)
     try:
         write_report(mixed, curves, out, reference=["base"])
     finally:
@@ -525,7 +525,7 @@ def test_validation_by_channel_and_best_match_hand_computation():
     t = report.validation_by_channel(spin[~gone], "spin")
     assert t.at[("fam", "single"), "ch2"] == pytest.approx(9.0)
     assert t.attrs["n_models"].at[("fam", "single"), "ch2"] == 1
-    md = compact(markdown._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True))
+    md = compact(details._channel_table_md(t, frozenset(["base"]), 2, report.fmt_um, lower_is_better=True))
     assert "| fam | single (mean) | 4.00 | 9.00 (1/2) |" in md
 
 
