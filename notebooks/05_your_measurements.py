@@ -42,7 +42,8 @@ import pandas as pd
 import yaml
 
 from thermbench.data import DatasetError, load_dataset
-from thermbench.data.importer import MappingError, import_dataset
+from thermbench.data.import_mapping import MappingError
+from thermbench.data.importer import import_dataset
 from thermbench.data.reference import run_summary, thermal_errors
 from thermbench.bench.datasets import load_benchmark
 from thermbench.experiment import model_from_config

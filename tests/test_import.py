@@ -16,7 +16,8 @@ import pytest
 from tests import labfiles
 from thermbench.cli import main
 from thermbench.data import load_dataset
-from thermbench.data.importer import MappingError, import_dataset
+from thermbench.data.import_mapping import MappingError
+from thermbench.data.importer import import_dataset
 from thermbench.data.reference import thermal_errors
 from thermbench.data.views import split_segments
 
@@ -510,11 +511,11 @@ def test_one_measuring_cycle_for_the_reference_the_models_and_the_metrics(lab):
 
 @pytest.mark.parametrize("header, retyped", [(0, 2), (None, 2), (0, 5)])  # 5 > ARROW_RETYPES: one full read
 def test_the_lean_csv_reader_reads_what_pandas_reads_when_types_change_after_its_probe(tmp_path, header, retyped):
-    """The long-log reader (importer._read_csv_arrow) takes its types from the file's first MiB;
+    """The long-log reader (import_csv._read_csv_arrow) takes its types from the file's first MiB;
     a file whose columns change after that (numbers then text, empty then numbers, integers then
     reals, a missing-value word late) must read as pandas' own Arrow engine reads it: with a few
     such columns (each retyped) and with more than the reader retypes one by one."""
-    from thermbench.data import importer
+    from thermbench.data import import_csv
 
     n = 80_000  # about 2.5 MiB: most rows after the first MiB
     rng = np.random.default_rng(3)
@@ -532,8 +533,8 @@ def test_the_lean_csv_reader_reads_what_pandas_reads_when_types_change_after_its
         df[f"text_late_{k}"] = ["1.0"] * late + [f"x{k}"] * (n - late)
     path = tmp_path / "log.csv"
     df.to_csv(path, index=False, header=header is not None)
-    assert path.stat().st_size > 2 * importer.ARROW_PROBE_BYTES
-    lean = importer._read_csv_arrow(path, ",", header, "utf-8", 0)
+    assert path.stat().st_size > 2 * import_csv.ARROW_PROBE_BYTES
+    lean = import_csv._read_csv_arrow(path, ",", header, "utf-8", 0)
     ref = pd.read_csv(path, header=header, engine="pyarrow")
     assert lean is not None  # taken by the lean reader, not handed back
     pd.testing.assert_frame_equal(lean, ref)

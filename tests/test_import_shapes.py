@@ -20,7 +20,8 @@ import openpyxl
 import pandas as pd
 import pytest
 
-from thermbench.data.importer import MappingError, import_dataset
+from thermbench.data.import_mapping import MappingError
+from thermbench.data.importer import import_dataset
 from thermbench.data.views import channel_view
 from thermbench.bench.metrics import evaluate
 

@@ -44,7 +44,14 @@ MOVED = {
 
 #: old module -> {name that moved out of it: the module it is in now}; the old module has
 #: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
-MOVED_NAMES: dict[str, dict[str, str]] = {}
+MOVED_NAMES: dict[str, dict[str, str]] = {
+    "thermbench.data.importer": {
+        **dict.fromkeys(["MAPPING_FORMAT", "MAPPING_MAX_BYTES", "MappingError", "ColumnMap", "TimeMap", "ReadOptions",
+                         "RunFrom", "FileMap", "AlignMap", "Mapping", "read_mapping"], "thermbench.data.import_mapping"),
+        **dict.fromkeys(["UNITS", "ERROR_TARGETS", "unit_of", "RANGES"], "thermbench.data.import_columns"),
+        **dict.fromkeys(["ARROW_PROBE_BYTES", "ARROW_RETYPES"], "thermbench.data.import_csv"),
+    },
+}
 
 
 def moved_names(module: str):
