@@ -33,11 +33,17 @@ def test_the_graph_of_a_hand_made_package_has_the_circles_drawn_by_hand(tmp_path
         "pkg/c/z.py": "from . import w\ndef f():\n    pass\n",
         "pkg/c/w.py": "from .z import f\n",
         "pkg/d/u.py": "from ..a.x import g\n",
+        # typing only: pkg.e.t names pkg.e.s in annotations (never imported at run time), pkg.e.s imports pkg.e.t
+        "pkg/e/__init__.py": "",
+        "pkg/e/s.py": "from . import t\n",
+        "pkg/e/t.py": "from typing import TYPE_CHECKING\nimport typing\nif TYPE_CHECKING:\n    from .s import S\n"
+                      "if typing.TYPE_CHECKING:\n    import pkg.e.s\n",
     })  # fmt: skip
     files = importgraph.modules(tmp_path, "pkg")
     edges = importgraph.graph(tmp_path, "pkg")
     assert edges["pkg.a.x"] == {"pkg.b.y"} and edges["pkg.b.y"] == {"pkg.a.x"}
     assert edges["pkg.c.z"] == {"pkg.c.w"} and edges["pkg.c.w"] == {"pkg.c.z"} and edges["pkg.d.u"] == {"pkg.a.x"}
+    assert edges["pkg.e.s"] == {"pkg.e.t"} and edges["pkg.e.t"] == set()
     found = importgraph.circles(edges)
     assert found == [["pkg.a.x", "pkg.b.y"], ["pkg.c.w", "pkg.c.z"]]
     assert [{importgraph.folder(m, files) for m in c} for c in found] == [{"pkg.a", "pkg.b"}, {"pkg.c"}]

@@ -1,7 +1,9 @@
 """thermbench's import graph: its modules, their sizes, and the import circles among them.
 
 Every ``import`` and ``from … import`` of every module under ``thermbench/`` (those inside functions
-too: a deferred import still ties two modules together), resolved to the thermbench module it names
+too: a deferred import still ties two modules together; not those under ``if TYPE_CHECKING:``, which
+never run: a class named in annotations only ties nothing at run time, as grimp's
+``exclude_type_checking_imports``), resolved to the thermbench module it names
 (``from .x import y`` names module ``x.y`` when that is a module, else ``x``). The circles are the
 strongly connected components of that graph with more than one module (scipy's
 ``connected_components``), each said to sit *inside* one folder or to go *across* folders. Folders
@@ -35,11 +37,27 @@ def modules(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
     return out
 
 
+def typing_only(tree: ast.AST) -> set[int]:
+    """The ids of the nodes under an ``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``) of ``tree``."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and (
+            (isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING")
+            or (isinstance(node.test, ast.Attribute) and node.test.attr == "TYPE_CHECKING")
+        ):
+            out |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
+    return out
+
+
 def imports(name: str, path: Path, files: dict[str, Path]) -> set[str]:
-    """The thermbench modules module ``name`` (file ``path``) imports."""
+    """The thermbench modules module ``name`` (file ``path``) imports (at run time)."""
     here = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    skip = typing_only(tree)
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):

@@ -5,10 +5,13 @@ readings in the run's first measuring cycle(s) (the cold reference)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset
+if TYPE_CHECKING:  # the dataset is read here, never made: the class is named in annotations only
+    from .dataset import Dataset
 
 
 def measuring_cycles(t_s: np.ndarray, target_mm: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:

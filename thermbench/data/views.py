@@ -23,14 +23,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
 
 from .errors import DatasetError
-from .dataset import Dataset
 from .reference import block, run_rows, thermal_errors
 from .schema import Condition, RunMeta
 from .segments import derive_segments, segment_name
+
+if TYPE_CHECKING:  # a view is a copy of the dataset (dataclasses.replace): the class is named in annotations only
+    from .dataset import Dataset
 
 __all__ = ["channel_view", "split_segments"]
 
@@ -65,7 +70,7 @@ def channel_view(ds: Dataset, channel: str) -> Dataset:
         if col not in process.columns:
             process[col] = 0.0
     meta = ds.metadata.model_copy(update={"channels": {channel: channels[channel]}})
-    return Dataset(meta, process, er, ds.path, channel=channel)
+    return dataclasses.replace(ds, metadata=meta, process=process, errors=er, channel=channel)
 
 
 def split_segments(ds: Dataset, history: bool = False) -> Dataset:
@@ -131,7 +136,7 @@ def split_segments(ds: Dataset, history: bool = False) -> Dataset:
     pr = er = None  # (the last run's rows: not held while the split table is built)
     process = _stacked(ds.process, p_parts, spans)
     errors = pd.concat(e_parts, ignore_index=True) if e_parts else ds.errors.iloc[:0]
-    return Dataset(new_meta, process, errors, ds.path, channel=ds.channel)
+    return dataclasses.replace(ds, metadata=new_meta, process=process, errors=errors)
 
 
 def _stacked(process: pd.DataFrame, parts: list[pd.DataFrame], spans: list) -> pd.DataFrame:

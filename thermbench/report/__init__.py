@@ -67,8 +67,8 @@ Public API: :func:`train_test_matrix`, :func:`headline`,
 
 The package, one duty per module, data flowing one way: :mod:`.tables` (pure pandas: what the
 report shows, computed from the results) → :mod:`.text` (number formats, markdown tables, the
-terminal summary) and :mod:`.figures` (matplotlib only) → :mod:`.details` (details.md's sections) → :mod:`.markdown` (the files:
-:func:`write_report`); :mod:`.answer` is the first screen (the model to deploy per dataset and
+terminal summary) and :mod:`.figures` (matplotlib only) → :mod:`.details` (details.md's sections)
+→ :mod:`.markdown` (the files: :func:`write_report`); :mod:`.answer` is the first screen (the model to deploy per dataset and
 channel, its held-out error and interval), shared by the report, the terminal and MLflow.
 """
 
