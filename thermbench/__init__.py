@@ -44,7 +44,12 @@ MOVED = {
 
 #: old module -> {name that moved out of it: the module it is in now}; the old module has
 #: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
-MOVED_NAMES: dict[str, dict[str, str]] = {}
+MOVED_NAMES: dict[str, dict[str, str]] = {
+    "thermbench.models.base": {
+        "curve_degree": "thermbench.models.separation",
+        "choose_sensors": "thermbench.models.sensor_choice",
+    },
+}
 
 
 def moved_names(module: str):
