@@ -49,6 +49,13 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "curve_degree": "thermbench.models.separation",
         "choose_sensors": "thermbench.models.sensor_choice",
     },
+    "thermbench.models.classify": {
+        "classify_motion": "thermbench.models.classify_one",
+        "format_classification": "thermbench.models.classify_one",
+        "measuring_intervals": "thermbench.models.motion_windows",
+        "window_features": "thermbench.models.motion_windows",
+        "operating_window_features": "thermbench.models.motion_windows",
+    },
 }
 
 
