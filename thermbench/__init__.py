@@ -56,6 +56,11 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "window_features": "thermbench.models.motion_windows",
         "operating_window_features": "thermbench.models.motion_windows",
     },
+    "thermbench.models.physics": {
+        "FieldCache": "thermbench.models.physics_runs",
+        "PREPARED_PER_RUN": "thermbench.models.physics_runs",
+        "gauss_newton": "thermbench.models.polish",
+    },
 }
 
 
