@@ -30,7 +30,7 @@ from thermbench.bench.classifier_eval import (  # noqa: E402
     table5_label_map,
     table6_accuracy,
 )
-from thermbench.models.classify import classify_motion  # noqa: E402
+from thermbench.models.classify_one import classify_motion  # noqa: E402
 from thermbench.bench.datasets import load_benchmark  # noqa: E402
 
 TABLE6 = [(int(a), int(s), int(e), int(c), paper) for a, s, e, c, paper in SEED002_TABLE6]  # seed 002 Table 6

@@ -10,16 +10,9 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from sklearn.base import clone
 
-from thermbench.models.classify import (
-    ClassifierError,
-    ProximityNaiveBayes,
-    classify_motion,
-    format_classification,
-    learned_features,
-    measuring_intervals,
-    operating_window_features,
-    window_features,
-)
+from thermbench.models.classify import ClassifierError, ProximityNaiveBayes, learned_features
+from thermbench.models.classify_one import classify_motion, format_classification
+from thermbench.models.motion_windows import measuring_intervals, operating_window_features, window_features
 from thermbench.config import config_dir
 
 # seed 002 Table 6: (stroke A, P_start, P_end, feed C, the paper's class)

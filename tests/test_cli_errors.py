@@ -174,12 +174,12 @@ def test_one_definition_of_user_errors_and_no_plain_valueerror_in_it():
 
 
 def test_a_keyerror_in_library_code_keeps_its_traceback(workdir, monkeypatch, capsys):
-    import thermbench.models.classify
+    import thermbench.models.classify_one
 
     def broken(*args, **kwargs):
         raise KeyError("a bug, not a user mistake")
 
-    monkeypatch.setattr(thermbench.models.classify, "classify_motion", broken)
+    monkeypatch.setattr(thermbench.models.classify_one, "classify_motion", broken)
     with pytest.raises(KeyError, match="a bug"):
         main(["classify", "--stroke", "100", "--start", "60", "--end", "160", "--feed", "1250"])
     assert "error:" not in capsys.readouterr().err

@@ -130,7 +130,7 @@ def test_a_cached_basis_equals_a_fresh_one_when_only_one_effects_lag_moves(clean
     that effect's column only; the columns taken from the cache are what a fresh basis computes,
     to the bit (an effect whose heat gains are all zero adds no heat)."""
     from thermbench.models.base import readings
-    from thermbench.models.physics import FieldCache
+    from thermbench.models.physics_runs import FieldCache
 
     ds, runs = clean_seed000, ["cond2_6000"]
     m = PhysicsModel(effects={"motor_heat": {}}, identify=["motor_heat.tau_s"], max_iter=1).fit(ds, runs)
@@ -166,11 +166,11 @@ def test_the_coarse_stage_keeps_whole_fine_steps_per_macro_step():
 
 
 def test_gauss_newton_steps_lower_the_residual_within_the_box():
-    """physics.gauss_newton on r(z) = (exp(z0) - 2, z1^2 - 4), minimum at (ln 2, 2): from
+    """polish.gauss_newton on r(z) = (exp(z0) - 2, z1^2 - 4), minimum at (ln 2, 2): from
     (0.6, 1.9) one step lands within 1e-2 of it, using the residual at z, two for the Jacobian
     and one at the step; with the box's upper bound at 1.95 for z1 it stops on the bound; a
     point where no step lowers the residual (the minimum) is kept, and no step is counted."""
-    from thermbench.models.physics import gauss_newton
+    from thermbench.models.polish import gauss_newton
 
     calls = []
 
@@ -198,7 +198,7 @@ def test_gauss_newton_takes_its_first_step_with_a_borrowed_jacobian():
     above at (0.6, 1.9), within 5 %, lands within 1e-2 of (ln 2, 2) as the differenced one does.
     A Jacobian pointing the wrong way gives no descent: the step is taken again with the
     differenced Jacobian. A Jacobian of the wrong shape is refused."""
-    from thermbench.models.physics import gauss_newton
+    from thermbench.models.polish import gauss_newton
 
     calls = []
 
@@ -267,7 +267,7 @@ def test_a_run_is_kept_prepared_at_its_two_last_pf_and_per_ambient_source(clean_
     the point it steps from); a third Pf drops the least recently used; a run driven by another
     ambient source (a measured ambient, other filters) is prepared apart, never shared."""
     from thermbench.models.base import readings
-    from thermbench.models.physics import _prepared_at
+    from thermbench.models.physics_runs import _prepared_at
     from thermbench.sim.model import ScrewThermalModel
 
     ds, run = clean_seed000, "cond1_3000"

@@ -51,6 +51,22 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         **dict.fromkeys(["UNITS", "ERROR_TARGETS", "unit_of", "RANGES"], "thermbench.data.import_columns"),
         **dict.fromkeys(["ARROW_PROBE_BYTES", "ARROW_RETYPES"], "thermbench.data.import_csv"),
     },
+    "thermbench.models.base": {
+        "curve_degree": "thermbench.models.separation",
+        "choose_sensors": "thermbench.models.sensor_choice",
+    },
+    "thermbench.models.classify": {
+        "classify_motion": "thermbench.models.classify_one",
+        "format_classification": "thermbench.models.classify_one",
+        "measuring_intervals": "thermbench.models.motion_windows",
+        "window_features": "thermbench.models.motion_windows",
+        "operating_window_features": "thermbench.models.motion_windows",
+    },
+    "thermbench.models.physics": {
+        "FieldCache": "thermbench.models.physics_runs",
+        "PREPARED_PER_RUN": "thermbench.models.physics_runs",
+        "gauss_newton": "thermbench.models.polish",
+    },
 }
 
 

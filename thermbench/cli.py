@@ -162,7 +162,8 @@ def cmd_iso230(data_dir: str, out: str, force: bool) -> int:
 def cmd_classify(stroke_mm: float, start_mm: float, end_mm: float, feed_mm_min: float, classifier: str) -> int:
     from hydra.utils import instantiate
 
-    from .models.classify import ProximityNaiveBayes, classify_motion, format_classification
+    from .models.classify import ProximityNaiveBayes
+    from .models.classify_one import classify_motion, format_classification
     from .config import ConfigError
     from .experiment import group_option
 

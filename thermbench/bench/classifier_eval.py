@@ -2,7 +2,7 @@
 Tables 5-6).
 
 A :class:`~thermbench.models.bank.ConditionBank` labels, every ``step_s``, the last ``window_s``
-of the motion log (:func:`~thermbench.models.classify.window_features`, measuring cycles excluded,
+of the motion log (:func:`~thermbench.models.motion_windows.window_features`, measuring cycles excluded,
 the label held through stops) and switches to that condition's model. Scoring a learned
 classifier on the second halves of its own training runs is 100 % by construction; this
 module scores it where it is used:
@@ -12,7 +12,7 @@ module scores it where it is used:
   the simulator's duty cycle (:func:`thermbench.sim.duty.build_run`, with the seed 002
   §3.1 measuring cycles) and sampled at 1 Hz as a process log; the class the classifier
   gives to it is the most frequent label of its steady windows, compared with the paper's
-  printed class and with eq. 19's (:func:`~thermbench.models.classify.classify_motion`).
+  printed class and with eq. 19's (:func:`~thermbench.models.classify_one.classify_motion`).
 * :func:`duty_cycle_accuracy` - random duty cycles (:func:`random_duty_cycles`): move
   segments whose condition is drawn from the trained conditions with stroke, centre and
   feed perturbed, random lengths, random stops between segments and the simulator's
@@ -54,7 +54,9 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from ..models.classify import classify_motion, learned_features, measuring_intervals, window_features
+from ..models.classify import learned_features
+from ..models.classify_one import classify_motion
+from ..models.motion_windows import measuring_intervals, window_features
 from ..sim.duty import Measuring, Phase, build_run
 
 __all__ = [
@@ -217,7 +219,7 @@ def fit_condition_classifier(dataset, runs: Sequence[str], classifier=None, wind
 
 def table5_label_map(conditions: Mapping[str, object]) -> dict[str, str]:
     """Each trained condition's seed 002 Table 5 class: eq. 19's class of its motion
-    (:func:`~thermbench.models.classify.classify_motion`; the Table 5 conditions lie on the levels,
+    (:func:`~thermbench.models.classify_one.classify_motion`; the Table 5 conditions lie on the levels,
     so benchmark run c_k maps to #k)."""
     out = {}
     for label, c in conditions.items():
@@ -237,7 +239,7 @@ def table6_accuracy(classifier, label_map: Mapping[str, str] | None = None, rows
     of duty with the seed 002 §3.1 measuring cycles (``measuring``; default
     :func:`seed002_measuring`), sampled at 1 Hz, and classified on the bank's grid
     (every ``step_s``, windows of ``window_s``) through the same
-    :func:`~thermbench.models.classify.window_features` as at run time. Its learned class is the most
+    :func:`~thermbench.models.motion_windows.window_features` as at run time. Its learned class is the most
     frequent label of the steady windows (ending inside the motion, >= ``window_s`` after the
     axis reached the stroke), mapped to a Table 5 class by ``label_map`` (classifier label -> "#k"; None: the
     labels are Table 5 classes already; see :func:`table5_label_map`).
@@ -457,7 +459,7 @@ def duty_cycle_accuracy(classifier, conditions: Mapping[str, object], seed: int 
     (seed 002 §2.4; :func:`random_duty_cycles` for the draws, the module docstring for what is
     scored). The labels are the bank's (``ConditionBank.condition_track``): every ``step_s``
     from the run's start, the class of the moving window of ``window_s`` ending there
-    (:func:`~thermbench.models.classify.window_features`, measuring cycles excluded), held through
+    (:func:`~thermbench.models.motion_windows.window_features`, measuring cycles excluded), held through
     stops. ``measuring``: default :func:`seed002_measuring` (seed 002 §3.1). Labels must be
     the keys of ``conditions``. The same ``seed`` gives the same figures."""
     window_s, step_s, min_moving_s = _check_window(window_s, step_s, min_moving_s)

@@ -41,7 +41,8 @@ from scipy.optimize import lsq_linear
 
 from ..data.io import Dataset
 from ..models.base import readings
-from ..models.physics import CORE_GAINS, CORE_NONLINEAR, FieldCache, PhysicsModel
+from ..models.physics import CORE_GAINS, CORE_NONLINEAR, PhysicsModel
+from ..models.physics_runs import FieldCache
 from ..sim.effects import EFFECTS, OPEN_TERMS, effect_class, make_effect
 
 #: the candidates, in the order they are tried: the canonical effect library, then the open terms

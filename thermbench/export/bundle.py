@@ -32,7 +32,7 @@ import pandas as pd
 
 from .. import __version__
 from ..outputs import output_dir
-from ..models.classify import measuring_intervals
+from ..models.motion_windows import measuring_intervals
 from ..data.reference import frame_text
 from ..models.bank import ConditionBank
 from ..models.base import ThermalErrorModel

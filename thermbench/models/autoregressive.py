@@ -108,10 +108,10 @@ from annotated_types import Ge
 from scipy.signal import lfilter
 
 from ..data.dataset import Dataset
-from .base import Inputs, ModelError, ThermalErrorModel, curve_degree, fallback, readings, require
+from .base import Inputs, ModelError, ThermalErrorModel, fallback, readings, require
 from .mlr import lstsq_fit
 from .params import Degree, Int, Number, Params, PositiveNumber, check_params
-from .separation import curve_at, cycle_curves, geometric_from_residuals
+from .separation import curve_at, curve_degree, cycle_curves, geometric_from_residuals
 
 __all__ = ["AutoRegressiveSeed003", "parse_operating"]
 

@@ -10,7 +10,7 @@ thermbench model family and any scikit-learn classifier:
 * ``fit(ds, runs)`` groups the training runs by identical declared condition
   (``metadata.runs[r].condition``), fits ``clone(model)`` per group and fits the
   classifier on the motion features of the groups' runs, one row per ``step_s``
-  window of ``window_s`` (:func:`thermbench.models.classify.window_features`, measuring
+  window of ``window_s`` (:func:`thermbench.models.motion_windows.window_features`, measuring
   cycles left out); :meth:`ConditionBank.fit_from_fitted` builds the bank from
   models already fitted and fits only the classifier.
 * At (t, x) of a run the condition at t is the class of the motion window ending at
@@ -25,7 +25,7 @@ Beyond the axis motion of seed 002:
   operating inputs (``runs.<id>.condition: {spindle_rpm: 2500}``, a spindle test split
   into constant-speed segments) instead of a stroke/position/feed, the window feature is
   the time-weighted mean of each input over the running samples (> 0) of the window
-  (:func:`thermbench.models.classify.operating_window_features`), and the default
+  (:func:`thermbench.models.motion_windows.operating_window_features`), and the default
   :class:`~thermbench.models.classify.ProximityNaiveBayes` works on those columns (one factor of
   eq. 15: a speed between known speeds goes to the nearest one).
 * **Readings span.** The classifier is trained only on the log from each training run's
@@ -47,13 +47,8 @@ from annotated_types import Ge
 from pydantic import AfterValidator, model_validator
 from sklearn.base import clone
 
-from .classify import (
-    ProximityNaiveBayes,
-    learned_features,
-    measuring_intervals,
-    operating_window_features,
-    window_features,
-)
+from .classify import ProximityNaiveBayes, learned_features
+from .motion_windows import measuring_intervals, operating_window_features, window_features
 from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, check_runs
 from .params import Expect, Number, Params, PositiveNumber, check_params
@@ -176,7 +171,7 @@ class ConditionBank(ThermalErrorModel):
         conditions ``stroke_mm``, ``centre_mm`` = (start + end) / 2 and ``feed_mm_min``
         (:func:`thermbench.models.classify.learned_features`); for operating conditions the
         operating columns (e.g. ``spindle_rpm``,
-        :func:`thermbench.models.classify.operating_window_features`). None:
+        :func:`thermbench.models.motion_windows.operating_window_features`). None:
         :class:`~thermbench.models.classify.ProximityNaiveBayes` with its levels taken from
         the training conditions (seed 002 eq. 15-19); a ProximityNaiveBayes with
         ``factors`` null is given the operating columns as its factors. Its classes

@@ -28,6 +28,8 @@ from numpy.polynomial import Polynomial
 from sklearn.base import BaseEstimator
 from threadpoolctl import threadpool_limits
 
+import thermbench
+
 from ..data.dataset import Dataset
 from ..data.reference import thermal_errors
 
@@ -362,19 +364,6 @@ def check_needs(model, ds: Dataset) -> None:
                          f"(a test of: {parts}) has none")  # fmt: skip
 
 
-def curve_degree(ds: Dataset, mounting: str | None = None) -> int:
-    """Degree of the thermal error curve over the measuring points: 0 at a fixed point
-    (the drift itself), else the shape the screw mounting implies (seed 004), a straight
-    line (seed 002) when the dataset has no screw block."""
-    from .separation import shape_degree
-
-    if is_fixed_point(ds):
-        return 0
-    if mounting is not None:
-        return shape_degree(mounting)
-    return shape_degree(ds.metadata.screw.mounting) if ds.metadata.screw is not None else 1
-
-
 class ThermalErrorModel(BaseEstimator, ABC):
     """Base class of all model families (see module docstring).
 
@@ -533,43 +522,5 @@ def validation_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
     return rd["run_id"].isin(held).to_numpy()
 
 
-def choose_sensors(
-    ds: Dataset,
-    runs: Sequence[str],
-    sensors: Sequence[str] | None,
-    selection: dict | None,
-    preprocess,
-    key: str = "sensors",
-) -> list[str]:
-    """The sensors a data-driven model uses: ``sensors`` when given (checked), else
-    the temperature-sensitive points of seed 002 §2.3.1 picked on the training runs:
-    clustering of the (filtered) non-ambient sensors, one per cluster by the score
-    of ``selection['method']`` against the slope of the measured thermal error."""
-    if isinstance(sensors, str):
-        sensors = [sensors]
-    if sensors is not None:
-        if len(sensors) == 0:
-            raise ModelError(f"{key}: an empty list; name at least one sensor or pass None to select")
-        return check_sensors(ds, list(sensors), key)
-    from ..preprocess.selection import select_sensitive_points
-    from .separation import cycle_curves
-
-    cand = [s for s, loc in ds.metadata.sensors.items() if loc != "ambient"]
-    if not cand:
-        raise ModelError(f"{key}: the dataset {_name(ds)} has no temperature sensors besides the ambient")
-    opts = dict(selection or {})
-    n_clusters = opts.pop("n_clusters", 2)
-    rd = readings(ds, runs)
-    fixed = is_fixed_point(ds)  # at a fixed point the drift itself, along an axis the slope of the error line
-    curves, _ = cycle_curves(rd, 0 if fixed else 1)
-    temps = np.vstack([temperatures_at(ds, r, cand, g["t_s"], preprocess) for r, g in curves.groupby("run_id", sort=False)])
-    require(len(curves), 3, "measuring cycles for sensor selection")
-    slope = curves["c0" if fixed else "c1"].to_numpy()
-    # the slope falls as the screw heats when the fixed end is on the positive side (Pf > 0):
-    # orient it to rise with temperature, since grey relational grades compare shapes, not |r|
-    if np.corrcoef(slope, temps.mean(axis=1))[0, 1] < 0:
-        slope = -slope
-    sel = select_sensitive_points(
-        pd.DataFrame(temps, columns=cand), slope, n_clusters=min(n_clusters, len(cand)), **opts
-    )
-    return list(sel.selected)
+# curve_degree moved to thermbench.models.separation, choose_sensors to thermbench.models.sensor_choice
+__getattr__ = thermbench.moved_names(__name__)

@@ -40,7 +40,7 @@ from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
 from ..data.dataset import Dataset
-from .base import ModelError, ThermalErrorModel, choose_sensors, fit_progress, readings, validation_mask, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, fit_progress, readings, validation_mask, require, temperatures_at
 from .params import (
     Bool,
     Degree,
@@ -56,6 +56,7 @@ from .params import (
     pair_bounds,
     validate,
 )
+from .sensor_choice import choose_sensors
 from .separation import line_separated_geometric
 
 #: Standard constriction coefficients of the PSO (Clerc & Kennedy 2002); seed 002 gives none.
@@ -387,7 +388,7 @@ class PSOLSSVM(ThermalErrorModel):
     ----------
     sensors : sensor names to use; None selects seed 002's temperature-sensitive
         points on the training runs (``selection`` is passed on, see
-        :func:`~thermbench.models.base.choose_sensors`).
+        :func:`~thermbench.models.sensor_choice.choose_sensors`).
     preprocess : temperature filters (seed 002 §2.3.1): "default" (limit + Kalman), None, or a list.
     gamma, sigma2 : the LSSVM's penalty factor and kernel width; None (default) =
         tuned by PSO (:func:`tune_lssvm`) within ``gamma_bounds`` / ``sigma2_bounds``

@@ -32,13 +32,11 @@ from annotated_types import Ge, Le
 
 from ..data.dataset import Dataset
 from .base import (
-    curve_degree,
     fallback,
     is_fixed_point,
     ModelError,
     ThermalErrorModel,
     check_sensors,
-    choose_sensors,
     readings,
     require,
     sensors_at,
@@ -46,7 +44,15 @@ from .base import (
     temperatures_at,
 )
 from .params import Degree, Int, Number, Params, Selection, SensorNames, check_params
-from .separation import cold_reference_geometric, curve_at, cycle_curves, geometric_from_residuals, shape_degree
+from .sensor_choice import choose_sensors
+from .separation import (
+    cold_reference_geometric,
+    curve_at,
+    curve_degree,
+    cycle_curves,
+    geometric_from_residuals,
+    shape_degree,
+)
 
 __all__ = ["MLRSeed001", "MLRSeed002", "MLRSeed004", "lstsq_fit"]
 
@@ -281,7 +287,7 @@ class MLRSeed002(_CurveRegression):
 
     Parameters: ``sensors`` (None: seed 002 §2.3.1 sensitive-point selection on
     the training runs, options in ``selection`` for
-    :func:`~thermbench.models.base.choose_sensors`), ``preprocess``,
+    :func:`~thermbench.models.sensor_choice.choose_sensors`), ``preprocess``,
     ``origin_mm`` (P0), ``geometric_degree`` (3, eq. 7).
 
     Fitted: ``slope_coef_``, ``intercept_coef_`` (arrays ``[const, one per

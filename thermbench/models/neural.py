@@ -69,9 +69,10 @@ from annotated_types import Ge, Len, Lt
 
 from ..data.dataset import Dataset
 from ..errors import require as require_extra
-from .base import ModelError, curve_degree, ThermalErrorModel, choose_sensors, fit_progress, readings, validation_mask, require, temperatures_at
+from .base import ModelError, ThermalErrorModel, fit_progress, readings, validation_mask, require, temperatures_at
 from .params import Degree, Expect, Int, Number, Params, PositiveNumber, Seed, Selection, check_params
-from .separation import line_separated_geometric, shape_degree
+from .sensor_choice import choose_sensors
+from .separation import curve_degree, line_separated_geometric, shape_degree
 
 torch = require_extra("torch", "the neural families MLP and GRU")
 nn = torch.nn

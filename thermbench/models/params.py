@@ -87,7 +87,7 @@ Degree = Annotated[Int, Ge(0)]  # a polynomial degree
 Seed = Annotated[Int, Ge(0), Le(2**32 - 1)]  # what numpy's and torch's generators take
 #: a sensor name or a list of them (a lone name is one sensor)
 SensorNames = Annotated[Union[str, Sequence[str]], Expect("a sensor name or a list of sensor names")]
-#: options of the sensitive-point selection (thermbench.models.base.choose_sensors)
+#: options of the sensitive-point selection (thermbench.models.sensor_choice.choose_sensors)
 Selection = Annotated[Optional[Mapping[str, Any]], Expect("None or a mapping of selection options")]
 
 

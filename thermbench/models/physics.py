@@ -35,10 +35,9 @@ the model's error at that target's cold reference reading.
 
 from __future__ import annotations
 
-import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields, replace
 from typing import Annotated, Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
@@ -47,12 +46,17 @@ from annotated_types import Ge
 from pydantic import model_validator
 from scipy.optimize import least_squares, lsq_linear, minimize
 
+import thermbench
+
 from ..data.dataset import Dataset
-from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
-from ..sim.model import Motion, ScrewThermalModel, ThermalHistory, errors_um, run_prepared_many
-from ..sim.parts import CoreParams, Material, Numerics, Screw
-from .base import Inputs, ModelError, ThermalErrorModel, derived, fallback, readings, require, sensor_series
+from ..sim.effects import FixedFixedConstraint, effect_class, make_effect
+from ..sim.model import ThermalHistory, errors_um, run_prepared_many
+from ..sim.parts import CoreParams, Numerics
+from . import physics_runs, polish
+from .base import Inputs, ModelError, ThermalErrorModel, readings, require
 from .params import Degree, Expect, Int, Limit, Number, Params, PositiveNumber, check_params
+from .physics_runs import _prepared_at, _RunData, _signals_at
+from .physics_setup import _PhysicsSetup
 from .separation import cold_reference_geometric
 
 CORE_GAINS = ("k3_W_per_mm_min", "k4_W_per_mm_min")
@@ -70,139 +74,8 @@ BOUND_MARGIN = 0.01
 _SCALE = {"k1_W_m2K_per_mm_min": 1e-3, "k2_W_m2K": 20.0, "lambda_W_mK": 300.0, "pf_m": 0.1}
 
 
-@dataclass
-class _RunData:
-    """What identification needs from one run, prepared once."""
-
-    run: str
-    motion: Motion
-    duration_s: float
-    ambient_C: np.ndarray | float
-    ambient_t_s: np.ndarray | None
-    t_s: np.ndarray  # reading times
-    x_mm: np.ndarray  # reading targets
-    ref_idx: np.ndarray  # per reading, the index of its target's cold reference reading(s)
-    thermal_um: np.ndarray  # measured thermal error
-    signals: dict  # measured signals the effects follow: {sensor: (t_s, filtered series)}
-
-
-def _signals_at(rd: _RunData, p) -> tuple[dict, dict]:
-    """The run's measured signals as rises above their first sample, at the steps of the
-    prepared run ``p``, and a dict for their lagged forms (:attr:`ThermalHistory.lagged`):
-    kept with ``p`` for these signals, read-only."""
-    kept = p.derived.get("signals_at")
-    if kept is not None and kept[0] is rd.signals:
-        return kept[1], kept[2]
-    out = {n: np.interp(p.t_b_s, st, sv - sv[0]) for n, (st, sv) in rd.signals.items()}
-    for a in out.values():
-        a.setflags(write=False)
-    p.derived["signals_at"] = (rd.signals, out, {})
-    return out, p.derived["signals_at"][2]
-
-
 #: where a fit keeps its last basis with the dataset (:meth:`PhysicsModel.gain_basis`)
 _LAST_BASIS = "physics_last_basis"
-
-#: prepared runs kept per run and numerics, at as many Pf values (:func:`_prepared_at`)
-PREPARED_PER_RUN = 2
-
-
-def _prepared_at(prepared: dict, rd: _RunData, model: ScrewThermalModel, source):
-    """The run prepared for ``model``'s Pf with the ambient ``source`` (sensor and filters; None:
-    constant): one of the last used for the run, or one made from the latest (only the nut's
-    path anew, :meth:`ScrewThermalModel.prepare`); the least recently used past
-    :data:`PREPARED_PER_RUN` is dropped, with its caches (cached histories keep it alive: their
-    housings read it)."""
-    kept = prepared.setdefault((rd.run, model.numerics, source), [])
-    key = model.prepared_key()
-    p = next((q for q in kept if q.key == key), None)
-    if p is not None:  # the most recently used first
-        kept.remove(p)
-        kept.insert(0, p)
-    else:
-        p = model.prepare(rd.motion, ambient_C=rd.ambient_C, ambient_t_s=rd.ambient_t_s, duration_s=rd.duration_s,
-                          at_other_pf=kept[0] if kept else None)  # fmt: skip
-        kept.insert(0, p)
-        for old in kept[PREPARED_PER_RUN:]:
-            old.heat.clear()
-            old.derived.clear()
-        del kept[PREPARED_PER_RUN:]
-    return p
-
-
-def gauss_newton(fun, z: np.ndarray, box: tuple[np.ndarray, np.ndarray], steps: int,
-                 jac: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """Up to ``steps`` Gauss-Newton steps on the residual ``fun`` from ``z`` within ``box``: a
-    forward-difference Jacobian (relative step 1e-5, as scipy's), the step by bounded linear
-    least squares, halved up to three times until the squared residual falls; a step that never
-    lowers it ends the search. ``jac``: a Jacobian at ``z`` to take the first step with instead
-    (the coarse stage's, of a residual that differs from ``fun`` only by its time steps: a
-    simplified Gauss-Newton step: the Jacobian of a nearby problem); if that step does not lower the residual,
-    it is taken again with the forward-difference Jacobian. Returns the point and the steps taken."""
-    lo, hi = box
-    if jac is not None and jac.shape[1] != z.size:
-        raise ValueError(f"gauss_newton: jac has {jac.shape[1]} columns, expected {z.size}")
-    r = fun(z)
-    if jac is not None and jac.shape[0] != r.size:
-        raise ValueError(f"gauss_newton: jac has {jac.shape[0]} rows, expected {r.size} (the residual's size)")
-    taken = 0
-    while taken < steps:
-        borrowed = jac is not None
-        jac = jac if borrowed else _forward_jacobian(fun, z, r, box)
-        step = lsq_linear(jac, -r, bounds=(lo - z, hi - z), method="bvls").x
-        jac = None
-        for _ in range(4):
-            zn = np.clip(z + step, lo, hi)
-            rn = fun(zn)
-            if rn @ rn < r @ r:
-                break
-            step = step / 2.0
-        else:
-            if borrowed:
-                continue  # again with the model's own Jacobian
-            return z, taken
-        z, r, taken = zn, rn, taken + 1
-    return z, taken
-
-
-def _forward_jacobian(fun, z: np.ndarray, r: np.ndarray, box) -> np.ndarray:
-    """The forward-difference Jacobian of ``fun`` at ``z`` (``r = fun(z)``), each step turned
-    back into ``box`` where it would leave it."""
-    lo, hi = box
-    jac = np.empty((r.size, z.size))
-    for j in range(z.size):
-        h = 1e-5 * max(1.0, abs(z[j])) * (1.0 if z[j] >= 0 else -1.0)
-        if not lo[j] <= z[j] + h <= hi[j]:
-            h = -h
-        zh = z.copy()
-        zh[j] += h
-        jac[:, j] = (fun(zh) - r) / h
-    return jac
-
-
-class FieldCache:
-    """The last ``size`` simulated temperature fields of an identification, by run, active
-    gain and every parameter the field depends on (:meth:`PhysicsModel._basis`). The
-    discrepancy search hands one to the fits of a step (``field_cache``), so candidates that
-    only add offsets or slopes re-read the current model's fields instead of re-simulating."""
-
-    def __init__(self, size: int = 64) -> None:
-        self.size = size
-        self._d: OrderedDict = OrderedDict()
-        self.prepared: dict = {}  # (run id, numerics, ambient source) -> the last Prepared runs (at a Pf each)
-
-    def get(self, key):
-        hit = self._d.get(key)
-        if hit is not None:
-            self._d.move_to_end(key)
-        return hit
-
-    def put(self, key, value):
-        self._d[key] = value
-        self._d.move_to_end(key)
-        while len(self._d) > self.size:
-            self._d.popitem(last=False)
-        return value
 
 
 class PhysicsModelParams(Params):
@@ -241,7 +114,7 @@ class PhysicsModelParams(Params):
         return self
 
 
-class PhysicsModel(ThermalErrorModel):
+class PhysicsModel(_PhysicsSetup, ThermalErrorModel):
     """Seed 000 finite-difference model with identified parameters (see module docstring).
 
     Parameters
@@ -312,95 +185,6 @@ class PhysicsModel(ThermalErrorModel):
         self.coarse_dt_s = coarse_dt_s
         self.coarse_macro_dt_s = coarse_macro_dt_s
         self.polish_steps = polish_steps
-
-    # ------------------------------------------------------------ set-up ---
-    def _ambient_name(self, ds: Dataset) -> str | None:
-        if self.ambient_sensor is None:
-            return None
-        if self.ambient_sensor == "auto":
-            name = next((s for s, loc in ds.metadata.sensors.items() if loc == "ambient"), None)
-            if name is None:
-                fallback("ambient_sensor auto: the dataset has no sensor at location 'ambient', so the ambient "
-                         "is taken as constant (20 °C)")  # fmt: skip
-            return name
-        if self.ambient_sensor not in ds.metadata.sensors:
-            raise ModelError(
-                f"ambient_sensor: {self.ambient_sensor!r} is not a sensor of the dataset; "
-                f"sensors: {list(ds.metadata.sensors)}"
-            )
-        return self.ambient_sensor
-
-    def _drive(self, ds: Dataset, run: str, name: str | None):
-        """(motion, duration, ambient series, its times) of a run from its process log,
-        with the ambient of sensor ``name`` (None: constant)."""
-        pr = ds.process_run(run)
-        t = pr["t_s"].to_numpy()
-        load = pr["load_N"].to_numpy() if "load_N" in pr else None
-        mot = Motion(t, pr["axis_mm"].to_numpy(), pr["feed_mm_min"].to_numpy(), load)
-        if name is None:
-            return mot, float(t[-1] - t[0]), 20.0, None
-        s = sensor_series(ds, run, [name], self.preprocess)
-        return mot, float(t[-1] - t[0]), s[ds.metadata.sensor_column(name)].to_numpy(), s["t_s"].to_numpy()
-
-    @staticmethod
-    def _signal_names(specs: dict) -> list[str]:
-        """The temperature sensors the effects follow (an effect's ``choice`` parameter)."""
-        return sorted({str(p[cls.choice]) for eid, p in specs.items()
-                       if (cls := effect_class(eid)).choice and p.get(cls.choice, "speed") != "speed"})  # fmt: skip
-
-    def _signals(self, ds: Dataset, run: str, specs: dict) -> dict:
-        """The measured temperature channels the effects follow, filtered like the ambient:
-        {sensor: (t_s, series)}."""
-        names = self._signal_names(specs)
-        if not names:
-            return {}
-        missing = [n for n in names if n not in ds.metadata.sensors]
-        if missing:
-            raise ModelError(f"effects: signal(s) {missing} are not sensors of the dataset; sensors: "
-                             f"{list(ds.metadata.sensors)} (or 'speed')")  # fmt: skip
-        s = sensor_series(ds, run, names, self.preprocess)
-        return {n: (s["t_s"].to_numpy(), s[ds.metadata.sensor_column(n)].to_numpy()) for n in names}
-
-    def _effect_specs(self) -> dict[str, dict]:
-        specs = {str(k): dict(v or {}) for k, v in dict(self.effects or {}).items()}
-        for eid, params in specs.items():
-            try:
-                make_effect(eid, **params)  # validates ids and parameter names
-            except ValueError as exc:
-                raise ModelError(f"effects: {exc}") from None
-        return specs
-
-    def _start(self, ds: Dataset) -> dict[str, float]:
-        start = CoreParams().as_dict()
-        if ds.metadata.screw.fixed_end_axis_mm is not None:
-            start["pf_m"] = ds.metadata.screw.fixed_end_axis_mm / 1000.0
-        for k, v in dict(self.initial or {}).items():
-            if k not in start:
-                raise ModelError(f"initial: unknown core parameter {k!r}; known: {sorted(start)}")
-            start[k] = float(v)
-        return start
-
-    def _build(self, ds: Dataset, core: dict, effect_specs: dict, ambient: bool,
-               numerics: Numerics | None = None) -> ScrewThermalModel:  # fmt: skip
-        sm = ds.metadata.screw
-        screw = Screw(sm.length_m, sm.diameter_m, sm.nut_length_m, sm.fixed_bearing_length_m, sm.mounting)
-        mm = ds.metadata.material
-        material = Material(mm.alpha_per_K, mm.density_kg_m3, mm.heat_capacity_J_kgK)
-        effects = [make_effect(eid, **p) for eid, p in effect_specs.items()]
-        if ambient and AmbientDrift.id not in effect_specs:
-            effects.append(AmbientDrift())  # measured series: the screw follows it (seed 000 §2.2)
-        numerics = numerics or Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
-        return ScrewThermalModel(screw, material, CoreParams(**core), effects, numerics)
-
-    def _coarse_numerics(self) -> Numerics | None:
-        """The first stage's numerics: the coarse steps where they are coarser than the
-        model's own (else no first stage)."""
-        if self.coarse_macro_dt_s is None or (self.coarse_macro_dt_s <= self.macro_dt_s and self.coarse_dt_s <= self.dt_s):
-            return None
-        dt = max(self.coarse_dt_s, self.dt_s)
-        # a whole number of fine steps per macro step (Numerics), at least the coarse macro step
-        macro = float(f"{dt * math.ceil(max(self.coarse_macro_dt_s, self.macro_dt_s) / dt - 1e-9):.12g}")
-        return Numerics(dx_m=self.dx_m, dt_s=dt, macro_dt_s=macro)
 
     # ------------------------------------------------------- parameters ---
     def _gains(self, effect_specs: dict) -> dict[str, float]:
@@ -485,7 +269,7 @@ class PhysicsModel(ThermalErrorModel):
         ``memo`` keeps each run's last fields, so a step in their nonlinear parameters (a
         lag) re-reads them instead of re-simulating."""
         prepared = {} if prepared is None else prepared
-        memo = FieldCache() if memo is None else memo
+        memo = physics_runs.FieldCache() if memo is None else memo
         free = {e for e in specs if getattr(effect_class(e), "field_free", False)}
         source = self._ambient_source() if ambient else None  # the ambient the fields were driven by
         actives = [None, *gains]
@@ -530,33 +314,6 @@ class PhysicsModel(ThermalErrorModel):
             resp = e - e[:, rd.ref_idx]
             out.append((resp[0], (resp[1:] - resp[0]).T))
         return out
-
-    def _ambient_source(self) -> tuple:
-        """What the measured ambient the fields are driven by is made from: its sensor and filters."""
-        return (self.ambient_name_, repr(self.preprocess))
-
-    def _run_data(self, ds: Dataset, runs: list[str], rd_all, specs: dict) -> list[_RunData]:
-        """Per run: its drive and readings, each reading with the index of its target's
-        cold reference reading; made once per dataset, run, ambient sensor, filters and
-        signals (:func:`~thermbench.models.base.derived`) and shared by every fit."""
-        names = tuple(self._signal_names(specs))
-        shared = self.preprocess is None or isinstance(self.preprocess, str)
-        out = []
-        for run in runs:
-            make = lambda run=run: self._one_run(ds, run, rd_all, specs)  # noqa: E731
-            key = ("physics_run", run, self.ambient_name_, self.preprocess, names)
-            out.append(derived(ds, key, make, copy=False) if shared else make())
-        return out
-
-    def _one_run(self, ds: Dataset, run: str, rd_all, specs: dict) -> _RunData:
-        g = rd_all[rd_all["run_id"] == run].reset_index(drop=True)
-        require(int((g["cycle"] > 0).sum()), 1, f"readings after the cold reference in run {run!r}")
-        ref = g[g["cycle"] == 0]
-        first = {x: i for i, x in reversed(list(zip(ref.index, ref["target_mm"])))}
-        ref_idx = np.array([first.get(x, i) for i, x in enumerate(g["target_mm"])])
-        mot, dur, amb, amb_t = self._drive(ds, run, self.ambient_name_)
-        return _RunData(run, mot, dur, amb, amb_t, g["t_s"].to_numpy(), g["target_mm"].to_numpy(), ref_idx,
-                        g["thermal_um"].to_numpy(), self._signals(ds, run, specs))  # fmt: skip
 
     def gain_basis(self, dataset: Dataset, runs: Sequence[str]) -> tuple[dict[str, float], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
         """At the identified nonlinear parameters, the affine basis of the heat gains
@@ -623,7 +380,7 @@ class PhysicsModel(ThermalErrorModel):
         gain_lb = self.gain_lower_bounds(gains)  # heat gains k > 0 (seed 000 §4.2)
         n_eval = 0
         # the last fields (see _basis): a cache handed to this fit (``field_cache``) serves it and is not kept
-        memo = self.__dict__.pop("field_cache", None) or FieldCache()
+        memo = self.__dict__.pop("field_cache", None) or physics_runs.FieldCache()
         prepared = memo.prepared  # (run id, numerics, ambient source) -> its motion, ambient and coverage at the last Pf values
         fine = Numerics(dx_m=self.dx_m, dt_s=self.dt_s, macro_dt_s=self.macro_dt_s)
         recent: OrderedDict = OrderedDict()  # the last points solved: SLSQP ends on one it has evaluated
@@ -678,7 +435,7 @@ class PhysicsModel(ThermalErrorModel):
                                 ftol=max(float(self.ftol) / max(mse0, 1e-300), COARSE_RTOL), xtol=1e-4, gtol=1e-12,
                                 max_nfev=int(self.max_iter))  # fmt: skip
             z, self.sqp_message_, self.coarse_iterations_ = res.x, str(res.message), int(res.nfev)
-            z, self.sqp_iterations_ = gauss_newton(lambda z: solve(z, fine)[3], z, box, int(self.polish_steps),
+            z, self.sqp_iterations_ = polish.gauss_newton(lambda z: solve(z, fine)[3], z, box, int(self.polish_steps),
                                                    jac=res.jac)
         elif nonlinear:
             z, self.sqp_message_, self.sqp_iterations_ = sqp(z, fine, self.max_iter)
@@ -723,3 +480,7 @@ class PhysicsModel(ThermalErrorModel):
 
     def _signals_used(self) -> list[str]:
         return self._signal_names(self.effects_)
+
+
+# FieldCache and PREPARED_PER_RUN moved to thermbench.models.physics_runs, gauss_newton to thermbench.models.polish
+__getattr__ = thermbench.moved_names(__name__)

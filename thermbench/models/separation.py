@@ -8,6 +8,8 @@
   line). The fit is the thermal part; the mean residual at each measuring point
   over all cycles is the geometric error, itself fitted by a polynomial (seed 002
   eq. 7: a cubic).
+
+And the degree of the thermal error curve a dataset implies (:func:`curve_degree`).
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ import numpy as np
 import pandas as pd
 from numpy.polynomial import Polynomial
 
-from .base import ModelError, polynomial_fit
+from ..data.dataset import Dataset
+from .base import ModelError, is_fixed_point, polynomial_fit
 
 SHAPE_DEGREE = {"fixed_free": 1, "fixed_supported": 1, "fixed_fixed": 2}
 
@@ -39,6 +42,17 @@ def shape_degree(mounting: str) -> int:
     if mounting not in SHAPE_DEGREE:
         raise ModelError(f"mounting must be one of {sorted(SHAPE_DEGREE)}, got {mounting!r}")
     return SHAPE_DEGREE[mounting]
+
+
+def curve_degree(ds: Dataset, mounting: str | None = None) -> int:
+    """Degree of the thermal error curve over the measuring points: 0 at a fixed point
+    (the drift itself), else the shape the screw mounting implies (seed 004), a straight
+    line (seed 002) when the dataset has no screw block."""
+    if is_fixed_point(ds):
+        return 0
+    if mounting is not None:
+        return shape_degree(mounting)
+    return shape_degree(ds.metadata.screw.mounting) if ds.metadata.screw is not None else 1
 
 
 def cycle_curves(rd: pd.DataFrame, degree: int, origin_mm: float = 0.0) -> tuple[pd.DataFrame, np.ndarray]:

@@ -37,7 +37,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .lumped import _Drive
+    from .lumped_drive import _Drive
 
 #: the registered terms by id, in the order the search tries them
 SPINDLE_TERMS: dict[str, type["SpindleTerm"]] = {}
