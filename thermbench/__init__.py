@@ -44,7 +44,17 @@ MOVED = {
 
 #: old module -> {name that moved out of it: the module it is in now}; the old module has
 #: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
-MOVED_NAMES: dict[str, dict[str, str]] = {}
+MOVED_NAMES: dict[str, dict[str, str]] = {
+    "thermbench.sim.model": {
+        "Drive": "thermbench.sim.prepared", "Prepared": "thermbench.sim.prepared", "Kept": "thermbench.sim.prepared",
+        "KEEP_BYTES": "thermbench.sim.prepared", "ReadPlan": "thermbench.sim.history",
+        "ThermalHistory": "thermbench.sim.history", "errors_um": "thermbench.sim.history",
+    },
+    "thermbench.sim.effects": {
+        "OPEN_TERMS": "thermbench.sim.open_terms", "effect_class": "thermbench.sim.registry",
+        "make_effect": "thermbench.sim.registry", "effects_from_config": "thermbench.sim.registry",
+    },
+}
 
 
 def moved_names(module: str):

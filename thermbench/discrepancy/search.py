@@ -42,7 +42,9 @@ from scipy.optimize import lsq_linear
 from ..data.io import Dataset
 from ..models.base import readings
 from ..models.physics import CORE_GAINS, CORE_NONLINEAR, FieldCache, PhysicsModel
-from ..sim.effects import EFFECTS, OPEN_TERMS, effect_class, make_effect
+from ..sim.effects import EFFECTS
+from ..sim.open_terms import OPEN_TERMS
+from ..sim.registry import effect_class, make_effect
 
 #: the candidates, in the order they are tried: the canonical effect library, then the open terms
 CANDIDATES = (*EFFECTS, *OPEN_TERMS)

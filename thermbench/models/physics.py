@@ -48,8 +48,10 @@ from pydantic import model_validator
 from scipy.optimize import least_squares, lsq_linear, minimize
 
 from ..data.dataset import Dataset
-from ..sim.effects import AmbientDrift, FixedFixedConstraint, effect_class, make_effect
-from ..sim.model import Motion, ScrewThermalModel, ThermalHistory, errors_um, run_prepared_many
+from ..sim.effects import AmbientDrift, FixedFixedConstraint
+from ..sim.history import ThermalHistory, errors_um
+from ..sim.model import Motion, ScrewThermalModel, run_prepared_many
+from ..sim.registry import effect_class, make_effect
 from ..sim.parts import CoreParams, Material, Numerics, Screw
 from .base import Inputs, ModelError, ThermalErrorModel, derived, fallback, readings, require, sensor_series
 from .params import Degree, Expect, Int, Limit, Number, Params, PositiveNumber, check_params
