@@ -54,6 +54,17 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "OPEN_TERMS": "thermbench.sim.open_terms", "effect_class": "thermbench.sim.registry",
         "make_effect": "thermbench.sim.registry", "effects_from_config": "thermbench.sim.registry",
     },
+    "thermbench.discrepancy.workflow": {
+        "physics_view": "thermbench.discrepancy.job", "PHYSICS_KEYS": "thermbench.discrepancy.job",
+        "settings_from_config": "thermbench.discrepancy.job", "check_out_dir": "thermbench.discrepancy.job",
+        "load_for_diagnosis": "thermbench.discrepancy.job", "diagnose": "thermbench.discrepancy.job",
+        "more_data": "thermbench.discrepancy.search",
+    },
+    "thermbench.discrepancy.search": {
+        "SignificanceTest": "thermbench.discrepancy.significance", "bic": "thermbench.discrepancy.significance",
+        "explained": "thermbench.discrepancy.significance", "decide": "thermbench.discrepancy.significance",
+        "display": "thermbench.discrepancy.significance",
+    },
 }
 
 
