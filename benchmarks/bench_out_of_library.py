@@ -38,7 +38,8 @@ from thermbench.outputs import write_text_atomic  # noqa: E402
 from thermbench.config import load_config  # noqa: E402
 from thermbench.data.io import load_dataset  # noqa: E402
 from thermbench.discrepancy import hidden  # noqa: E402
-from thermbench.discrepancy.workflow import run_diagnosis, settings_from_config  # noqa: E402
+from thermbench.discrepancy.job import settings_from_config  # noqa: E402
+from thermbench.discrepancy.workflow import run_diagnosis  # noqa: E402
 
 
 def outcome(verdict: str, within: bool, named: list[str] = (), term: str = "") -> str:

@@ -22,9 +22,10 @@ from thermbench.data.io import load_dataset
 from thermbench.discrepancy import hidden
 from thermbench.discrepancy.localise import annotate, localise
 from thermbench.discrepancy.noise import estimate_noise_floor
-from thermbench.discrepancy.search import SignificanceTest, decide, folds_for
+from thermbench.discrepancy.search import folds_for
+from thermbench.discrepancy.significance import SignificanceTest, decide
 from thermbench.sim.effects import EFFECTS
-from thermbench.discrepancy.workflow import settings_from_config
+from thermbench.discrepancy.job import settings_from_config
 
 WORLD = hidden.World(n_runs=3, run_h=2.0)
 # the identification runs on a coarser grid than conf/diagnose.yaml's (2 cm, 1 s, 60 s steps; about

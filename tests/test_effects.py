@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from thermbench.sim.effects import EFFECTS, effects_from_config, first_order_lag, make_effect
+from thermbench.sim.effects import EFFECTS, first_order_lag
+from thermbench.sim.registry import effects_from_config, make_effect
 from thermbench.sim.model import Motion, ScrewThermalModel
 
 from .conftest import SEED000_MATERIAL, SEED000_SCREW, seed000_motion

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from thermbench.sim.effects import OPEN_TERMS, make_effect
+from thermbench.sim.open_terms import OPEN_TERMS
+from thermbench.sim.registry import make_effect
 from thermbench.sim.model import ScrewThermalModel
 from thermbench.sim.parts import Numerics
 

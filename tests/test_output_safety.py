@@ -77,10 +77,10 @@ def test_replay_refuses_the_dataset_its_parent_and_a_users_folder(campaign, seed
 
 # ---------------------------------------------------------------- diagnose ---
 def test_diagnose_refuses_before_any_work(campaign, tmp_path, capsys, monkeypatch):
-    from thermbench.discrepancy import workflow
+    from thermbench.discrepancy import job
 
     before = _digest(tmp_path / "campaign")
-    monkeypatch.setattr(workflow, "run_diagnosis", lambda *a, **k: pytest.fail("worked before refusing"))
+    monkeypatch.setattr(job, "run_diagnosis", lambda *a, **k: pytest.fail("worked before refusing"))
     mine = _plant(tmp_path / "diag" / "my_notes.md")
     for out in (campaign, campaign.parent, campaign / "d", mine.parent):
         assert main(["diagnose", str(campaign), "--out", str(out), "track=false"]) == 2

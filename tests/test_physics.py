@@ -122,7 +122,7 @@ def test_fast_integrator_matches_the_explicit_seed000_scheme():
 def test_extra_nut_heat_of_an_effect_matches_the_explicit_scheme():
     """The macro path averages an effect's extra nut heat over the nut's coverage in a
     second pass; the explicit scheme adds it sample by sample (an independent route)."""
-    from thermbench.sim.effects import make_effect
+    from thermbench.sim.registry import make_effect
 
     _, motion = seed000_motion(9000.0, warm_s=2400, cool_s=1200, warm2_s=600)
     model = ScrewThermalModel(SEED000_SCREW, SEED000_MATERIAL, CoreParams(k4_W_per_mm_min=0.0),
@@ -163,10 +163,10 @@ def test_kept_inputs_stay_within_their_byte_budget(monkeypatch):
     """What a run keeps is bounded by KEEP_BYTES: the bytes held are counted as values come
     and are replaced, past the budget what was kept is dropped, and a value larger than the
     budget alone is returned but not kept."""
-    from thermbench.sim import model as sim_model
+    from thermbench.sim import prepared as sim_prepared
 
-    monkeypatch.setattr(sim_model, "KEEP_BYTES", 1000)
-    kept = sim_model.Kept()
+    monkeypatch.setattr(sim_prepared, "KEEP_BYTES", 1000)
+    kept = sim_prepared.Kept()
     a = kept.keep("a", (np.zeros(50), 3.0))  # 400 bytes
     assert a[0].flags.writeable is False and kept.nbytes == 400
     kept.keep("b", (np.zeros(50), np.zeros(25)))  # 600 more: 1000, at the budget
@@ -195,7 +195,7 @@ def test_runs_integrated_together_match_each_alone_and_superpose():
     factorisation per step, the runs' substitutions interleaved): each history equals the
     model run alone, and the field is linear in the gains (the heat equation with fixed
     conductances), so zero, bearing-only and nut-only runs add up to the full one."""
-    from thermbench.sim.effects import make_effect
+    from thermbench.sim.registry import make_effect
     from thermbench.sim.model import run_prepared_many
 
     _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
@@ -277,8 +277,9 @@ def test_fields_of_one_run_read_together_equal_each_read_alone():
     """errors_um reads a run's fields in one pass (identification's basis): each row equals the
     field read alone, whatever its effects add (a constraint on the elongation, an offset); a
     read plan made for another Pf is refused."""
-    from thermbench.sim.effects import make_effect
-    from thermbench.sim.model import errors_um, run_prepared_many
+    from thermbench.sim.registry import make_effect
+    from thermbench.sim.history import errors_um
+    from thermbench.sim.model import run_prepared_many
 
     _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
     amb = 20.0 + 0.3 * np.sin(motion.t_s / 2000.0)
@@ -320,8 +321,8 @@ def test_readings_sum_the_field_as_the_hand_formula_and_the_face_read_do(pf_m):
     from Pf, the sign flipped for Pf > 0), computed by hand; on a simulated field it equals the
     read through the elongation at every face (taken when an effect adjusts it: here a
     constraint that holds nothing, kappa = 0), at readings and over every step."""
-    from thermbench.sim.effects import make_effect
-    from thermbench.sim.model import errors_um
+    from thermbench.sim.registry import make_effect
+    from thermbench.sim.history import errors_um
 
     _, motion = seed000_motion(6000.0, warm_s=2400, cool_s=1200, warm2_s=600)
     amb = 20.0 + 0.3 * np.sin(motion.t_s / 2000.0)

@@ -67,6 +67,26 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "PREPARED_PER_RUN": "thermbench.models.physics_runs",
         "gauss_newton": "thermbench.models.polish",
     },
+    "thermbench.sim.model": {
+        "Drive": "thermbench.sim.prepared", "Prepared": "thermbench.sim.prepared", "Kept": "thermbench.sim.prepared",
+        "KEEP_BYTES": "thermbench.sim.prepared", "ReadPlan": "thermbench.sim.history",
+        "ThermalHistory": "thermbench.sim.history", "errors_um": "thermbench.sim.history",
+    },
+    "thermbench.sim.effects": {
+        "OPEN_TERMS": "thermbench.sim.open_terms", "effect_class": "thermbench.sim.registry",
+        "make_effect": "thermbench.sim.registry", "effects_from_config": "thermbench.sim.registry",
+    },
+    "thermbench.discrepancy.workflow": {
+        "physics_view": "thermbench.discrepancy.job", "PHYSICS_KEYS": "thermbench.discrepancy.job",
+        "settings_from_config": "thermbench.discrepancy.job", "check_out_dir": "thermbench.discrepancy.job",
+        "load_for_diagnosis": "thermbench.discrepancy.job", "diagnose": "thermbench.discrepancy.job",
+        "more_data": "thermbench.discrepancy.search",
+    },
+    "thermbench.discrepancy.search": {
+        "SignificanceTest": "thermbench.discrepancy.significance", "bic": "thermbench.discrepancy.significance",
+        "explained": "thermbench.discrepancy.significance", "decide": "thermbench.discrepancy.significance",
+        "display": "thermbench.discrepancy.significance",
+    },
 }
 
 

@@ -3,12 +3,15 @@ and the measurements disagree, name the missing effect, add it, show the gap shr
 
 * :mod:`.noise`: the noise floor from the data;
 * :mod:`.localise`: where the residual exceeds it;
-* :mod:`.search`: candidates, held-out scores, BIC and the test;
-* :mod:`.workflow`: the loop (:func:`run_diagnosis`) and the job (:func:`diagnose`);
+* :mod:`.search`: candidates, held-out scores, the screw family;
+* :mod:`.significance`: the test that names an effect, BIC;
+* :mod:`.workflow`: the loop (:func:`run_diagnosis`);
+* :mod:`.job`: the job behind the command (:func:`diagnose`): the config checked, files in and out;
 * :mod:`.report`: report.md, figures, the terminal verdict;
 * :mod:`.hidden`: datasets with a hidden effect (tests, benchmark).
 """
 
-from .workflow import DiagnoseError, diagnose, run_diagnosis
+from .job import diagnose
+from .workflow import DiagnoseError, run_diagnosis
 
 __all__ = ["DiagnoseError", "diagnose", "run_diagnosis"]

@@ -11,7 +11,7 @@ import pandas as pd
 from ..report.figures import _new_figure, _save
 from ..report.text import markdown_table
 from .localise import POSITION_WORDS
-from .search import display as _name  # a step's or candidate's name with its signal
+from .significance import display as _name  # a step's or candidate's name with its signal
 
 FIGURES = ("residual_maps_before.png", "residual_maps_after.png", "heldout_by_step.png")
 

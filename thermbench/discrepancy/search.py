@@ -16,16 +16,7 @@ current parameters (warm start), scored by
   autocorrelated in time, so BIC alone is lenient; the held-out criterion
   is the stricter half of the test.
 
-The test (:class:`SignificanceTest`): a candidate is *significant* when the systematic
-error it explains on held-out runs, sqrt(RMSE_before^2 - RMSE_after^2), is at
-least ``explained_x_floor`` times the noise floor and its BIC gain exceeds
-``bic_min`` (10: "very strong" evidence, Kass & Raftery 1995). The best
-significant candidate (lowest held-out RMSE) is named; another significant one
-*ties* with it when what the best explains beyond it, sqrt(RMSE_other^2 -
-RMSE_best^2), is below ``tie_x_floor`` times the floor and the best's BIC gain
-does not exceed the other's by more than ``bic_min``: the data cannot tell them
-apart, and both names are reported instead of a guess. The named effect
-is added only when its proper leave-one-run-out score passes the same test.
+The test, BIC and the names of candidates are in :mod:`.significance`.
 """
 
 from __future__ import annotations
@@ -33,17 +24,25 @@ from __future__ import annotations
 import itertools
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import lsq_linear
 
+import thermbench
+
 from ..data.io import Dataset
 from ..models.base import readings
 from ..models.physics import CORE_GAINS, CORE_NONLINEAR, PhysicsModel
 from ..models.physics_runs import FieldCache
-from ..sim.effects import EFFECTS, OPEN_TERMS, effect_class, make_effect
+from ..sim.effects import EFFECTS
+from ..sim.open_terms import OPEN_TERMS
+from ..sim.registry import effect_class, make_effect
+from . import significance
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .significance import SignificanceTest
 
 #: the candidates, in the order they are tried: the canonical effect library, then the open terms
 CANDIDATES = (*EFFECTS, *OPEN_TERMS)
@@ -71,34 +70,13 @@ def context(ds: Dataset) -> dict:
             "travel_mm": (float(targets.min()), float(targets.max()))}  # fmt: skip
 
 
-@dataclass(frozen=True)
-class SignificanceTest:
-    explained_x_floor: float = 2.0
-    bic_min: float = 10.0
-    tie_x_floor: float = 1.0
-    within_x_floor: float = 1.5
-
-    def describe(self) -> str:
-        return (
-            f"named when the held-out error it explains, sqrt(RMSE_before^2 - RMSE_after^2), is >= "
-            f"{self.explained_x_floor:g} x the noise floor and its BIC gain is > {self.bic_min:g}; "
-            f"two significant candidates tie when the better explains < {self.tie_x_floor:g} x the noise "
-            f"floor beyond the other and its BIC gain is not > {self.bic_min:g} above the other's; a model explains the data (verdict none or found) only when its held-out "
-            f"RMSE is <= {self.within_x_floor:g} x the noise floor"
-        )
-
-    def within_floor(self, heldout_um: float, floor_um: float) -> bool:
-        """Whether a held-out RMSE is within the noise floor by this test."""
-        return bool(heldout_um <= self.within_x_floor * floor_um)
-
-
 @dataclass
 class Settings:
     """What the search needs besides the data (from ``conf/diagnose.yaml``)."""
 
     physics: dict = field(default_factory=dict)  # PhysicsModel numerics/solver options
     starts: dict = field(default_factory=dict)  # {effect: {param: [start values screened]}}
-    test: SignificanceTest = field(default_factory=SignificanceTest)
+    test: SignificanceTest = field(default_factory=significance.SignificanceTest)
     candidates: Sequence[str] = CANDIDATES
     say: Callable[[str], None] = print
     refit: int = 3  # candidates re-identified with every parameter free after screening, per step
@@ -164,10 +142,6 @@ def make_model(
     return m
 
 
-def bic(sse: float, n: int, p: int) -> float:
-    return float(n * np.log(max(sse, 1e-300) / n) + p * np.log(n))
-
-
 @dataclass
 class Fitted:
     """A fitted model of the search with its scores."""
@@ -231,8 +205,8 @@ def heldout_fast(model, ds: Dataset, folds, family=None) -> float:
 
 def _scored(effects, model, ds, runs, folds, fit_s: float, family) -> Fitted:
     sse, n = family.train_sse(model, ds, runs)
-    return Fitted(tuple(effects), model, sse, n, bic(sse, n, family.n_params(effects)), heldout_fast(model, ds, folds, family),
-                  fit_s)  # fmt: skip
+    return Fitted(tuple(effects), model, sse, n, significance.bic(sse, n, family.n_params(effects)),
+                  heldout_fast(model, ds, folds, family), fit_s)  # fmt: skip
 
 
 def fit_full(effects, ds, runs, folds, settings, warm=None, start=None, cache=None) -> Fitted:
@@ -324,10 +298,6 @@ def screen_start(effect: str, current_effects, warm, ds, runs, settings, variant
     return best
 
 
-def explained(before_um: float, after_um: float) -> float:
-    return float(np.sqrt(max(0.0, before_um**2 - after_um**2)))
-
-
 def label(effect: str, model: PhysicsModel, ctx: dict) -> tuple[str, str]:
     """(label, description) of a fitted candidate: the canonical effect an open term's
     identified form is (within tolerance), else the term and its signal; its form in words."""
@@ -350,7 +320,7 @@ def _record(eid, variant, f: Fitted, current: Fitted, floor_um, settings, ctx, r
         "refit": refit,
         "n_params": settings.family.n_params(f.effects),
         "heldout_rmse_um": f.heldout_fast_um,
-        "explained_um": explained(current.heldout_fast_um, f.heldout_fast_um),
+        "explained_um": significance.explained(current.heldout_fast_um, f.heldout_fast_um),
         "bic_gain": current.bic - f.bic,
         "train_rmse_um": float(np.sqrt(f.sse / f.n)),
         "fit_s": f.fit_s,
@@ -390,7 +360,8 @@ def score_candidates(current: Fitted, ds, runs, folds, settings, floor_um: float
     # absorbed what one explains, and then its screening says nothing), the most promising open
     # terms by screening, and every speed-driven choice term: the core's own heat inputs follow
     # the speed, so the held core has absorbed most of what such a term explains
-    promising = sorted((x for x in screened if x[0] in fam.open and explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
+    promising = sorted((x for x in screened
+                        if x[0] in fam.open and significance.explained(current.heldout_fast_um, x[2].heldout_fast_um) > 0),
                        key=lambda x: x[2].heldout_fast_um)[: settings.refit]  # fmt: skip
     chosen = ({id(x) for x in promising} | {id(x) for x in screened if x[0] not in fam.open}
               | {id(x) for x in screened if x[1] and next(iter(x[1].values())) == "speed"})  # fmt: skip
@@ -426,45 +397,44 @@ def refit(rec: dict, current: Fitted, ds, runs, folds, settings, floor_um: float
 
 def say_record(rec: dict, settings) -> None:
     settings.say(
-        f"[diagnose]   {display(rec):<32s} held-out {rec['heldout_rmse_um']:7.3f} um  explains {rec['explained_um']:6.3f} um  "
+        f"[diagnose]   {significance.display(rec):<32s} held-out {rec['heldout_rmse_um']:7.3f} um  explains {rec['explained_um']:6.3f} um  "
         f"BIC gain {rec['bic_gain']:9.1f}  {'significant' if rec['significant'] else '-':11s} "
         f"({'refit' if rec['refit'] else 'screened'}, {rec['fit_s']:.1f} s)"
     )
 
 
-def decide(cands: list[dict], floor_um: float, test: SignificanceTest) -> tuple[dict | None, list[str]]:
-    """The best significant candidate and the candidates it ties with.
-
-    Another significant candidate ties with the best when the best explains less than
-    ``tie_x_floor`` x the floor beyond it on held-out runs and does not beat its BIC gain by
-    more than ``bic_min``: neither half of the test tells them apart.
-
-    Candidates whose identified forms are the same physics (the same ``label``: an open term
-    within tolerance of a canonical effect) do not tie: of the significant ones with the best's
-    label, the one with the fewest parameters is named. The same open term on other signals does not tie either: its form is named, and the
-    signals that drive it alike are listed (``alike``). Distinct physics within
-    ``tie_x_floor`` of the best tie."""
-    sig = sorted((c for c in cands if c.get("significant")), key=lambda c: c["heldout_rmse_um"])
-    if not sig:
-        return None, []
-    best = sig[0]
-    # within the tie band by held-out error, unless the best's BIC gain beats the other's by more
-    # than bic_min: then the data tell them apart by the test's other half
-    band = [c for c in sig[1:] if explained(c["heldout_rmse_um"], best["heldout_rmse_um"]) < test.tie_x_floor * floor_um
-            and not best.get("bic_gain", 0.0) - c.get("bic_gain", 0.0) > test.bic_min]  # fmt: skip
-    # the same physics (one label): the fewest parameters, wherever it scored among the significant
-    # (a canonical effect whose fit scored worse than the open term that is it is an optimiser's miss,
-    # and the constrained form extrapolates to an unseen run's feed better)
-    pick = min([c for c in sig if c["label"] == best["label"]], key=lambda c: (c["n_params"], c["heldout_rmse_um"]))
-    # the same open term on another signal: the form is found, its driver is not told apart
-    pick = {**pick, "alike": [display(c) for c in band if c["label"] != best["label"] and c["effect"] == pick["effect"]]}
-    ties = [display(c) for c in band if c["label"] != best["label"] and c["effect"] != pick["effect"]]
-    return pick, ties
-
-
-def display(c: dict) -> str:
-    """A candidate's name with its signal: ``driven_offset[T_bed]``."""
-    return c["effect"] + (f"[{next(iter(c['variant'].values()))}]" if c.get("variant") else "")
+def more_data(where: dict, ds: Dataset, noise) -> list[str]:
+    """What measurements would tell more about a residual the search could not explain,
+    from where and when it shows (:func:`.localise.localise` of the final model)."""
+    hints = []
+    targets = ds.errors["target_mm"]
+    w = where["where"]
+    if w == "far_end":
+        hints.append(f"the residual is largest near the far end of the measured travel: measure beyond "
+                     f"{targets.max():.0f} mm if the axis allows, and add a temperature sensor near the free end")  # fmt: skip
+    elif w == "fixed_end":
+        hints.append("the residual is largest near the fixed end: add a temperature sensor at the fixed bearing and "
+                     "the motor flange")  # fmt: skip
+    elif w == "middle":
+        hints.append("the residual is largest mid-travel: a heat source along the screw (a support bearing, coolant) "
+                     "would show on a temperature sensor mid-screw")  # fmt: skip
+    elif w == "everywhere":
+        hints.append("the residual is alike over the whole travel (an offset or a growth off the screw): log the "
+                     "structure's temperatures (column, saddle, bed, scale mount)")  # fmt: skip
+    if where["phase"] == "cooling":
+        hints.append("it shows mostly while cooling: longer cool-downs would separate slow sources")
+    elif where["phase"] == "heating":
+        hints.append("it shows mostly while heating: heating ramps at more feeds would show how it scales")
+    feeds = {ds.metadata.runs[r].condition.feed_mm_min for r in ds.run_ids}
+    if len(feeds) < 3:
+        hints.append(f"the runs cover {len(feeds)} feed(s): runs at three or more would show its speed dependence")
+    if "load_N" not in ds.process.columns:
+        hints.append("log the axial load (load_N): load-dependent heat cannot be tried without it")
+    if ambient_sensor(ds) is None:
+        hints.append("add an ambient temperature sensor (location 'ambient')")
+    if noise.method != "repeat":
+        hints.append("repeat readings of a target within a minute would give a model-free noise floor")
+    return hints
 
 
 class ScrewFamily:
@@ -560,6 +530,7 @@ class ScrewFamily:
         return annotate(table, ds, model.params_["pf_m"] * 1000.0, floor_um)
 
     def more_data(self, where, ds, noise):
-        from .workflow import more_data
-
         return more_data(where, ds, noise)
+
+
+__getattr__ = thermbench.moved_names(__name__)

@@ -315,7 +315,8 @@ class PhysicsGrid:
 
 def exportable_effects() -> list[str]:
     """The ids of the registered effects (canonical and open terms) the C runtime implements."""
-    from ..sim.effects import EFFECTS, OPEN_TERMS
+    from ..sim.effects import EFFECTS
+    from ..sim.open_terms import OPEN_TERMS
 
     return sorted(i for i, cls in {**OPEN_TERMS, **EFFECTS}.items() if vars(cls).get("export_code") is not None)
 

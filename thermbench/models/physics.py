@@ -49,9 +49,11 @@ from scipy.optimize import least_squares, lsq_linear, minimize
 import thermbench
 
 from ..data.dataset import Dataset
-from ..sim.effects import FixedFixedConstraint, effect_class, make_effect
-from ..sim.model import ThermalHistory, errors_um, run_prepared_many
+from ..sim.effects import FixedFixedConstraint
+from ..sim.history import ThermalHistory, errors_um
+from ..sim.model import run_prepared_many
 from ..sim.parts import CoreParams, Numerics
+from ..sim.registry import effect_class, make_effect
 from . import physics_runs, polish
 from .base import Inputs, ModelError, ThermalErrorModel, readings, require
 from .params import Degree, Expect, Int, Limit, Number, Params, PositiveNumber, check_params

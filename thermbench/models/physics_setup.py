@@ -10,9 +10,10 @@ import math
 import numpy as np
 
 from ..data.dataset import Dataset
-from ..sim.effects import AmbientDrift, effect_class, make_effect
+from ..sim.effects import AmbientDrift
 from ..sim.model import Motion, ScrewThermalModel
 from ..sim.parts import CoreParams, Material, Numerics, Screw
+from ..sim.registry import effect_class, make_effect
 from .base import ModelError, derived, fallback, require, sensor_series
 from .physics_runs import _RunData
 

@@ -186,7 +186,7 @@ def precompensate(
 def truth_from_metadata(metadata: Metadata) -> ScrewThermalModel:
     """The simulator model a simulated dataset was made with (its ``simulation``
     block: core, effects, numerics), for :func:`verify_in_simulator`."""
-    from ..sim.effects import effects_from_config
+    from ..sim.registry import effects_from_config
     from ..sim.parts import CoreParams, Material, Numerics, Screw
 
     sim = (metadata.model_extra or {}).get("simulation")

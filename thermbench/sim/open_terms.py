@@ -33,7 +33,11 @@ from typing import ClassVar, Mapping
 
 import numpy as np
 
-from .effects import OPEN_TERMS, Effect, first_order_lag
+from .effects import Effect, first_order_lag
+
+#: open-ended terms (:mod:`thermbench.sim.open_terms`): generic parametric forms that the
+#: discrepancy search fits beside the canonical effects and describes in words and numbers
+OPEN_TERMS: dict[str, type[Effect]] = {}
 
 #: the speed the heat terms' power is quoted at (mm/min)
 V_REF_MM_MIN = 6000.0

@@ -20,10 +20,12 @@ from ..config import ConfigError
 from ..data.dataset import Dataset
 from ..data.schema import FORMAT, Metadata
 from .duty import Measuring, Phase, Trajectory, build_run, random_phases
-from .effects import Effect, effects_from_config
+from .effects import Effect
+from .history import ThermalHistory
 from .instruments import FieldValueError, GeometricError, Interferometer, SensorSpec
-from .model import ScrewThermalModel, ThermalHistory
+from .model import ScrewThermalModel
 from .parts import CoreParams, Material, Numerics, Screw, housings_from_config
+from .registry import effects_from_config
 
 
 def _plain(cfg: Any) -> Any:
