@@ -44,7 +44,9 @@ MOVED = {
 
 #: old module -> {name that moved out of it: the module it is in now}; the old module has
 #: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
-MOVED_NAMES: dict[str, dict[str, str]] = {}
+MOVED_NAMES: dict[str, dict[str, str]] = {
+    "thermbench.linuxcnc.sim": {"SAMPLED": "thermbench.linuxcnc.verify"},
+}
 
 
 def moved_names(module: str):
