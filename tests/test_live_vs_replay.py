@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings
+from thermbench.compensator.control import CycleLogic, Flags, Reading
+from thermbench.compensator.settings import Settings
 from thermbench.bench.datasets import load_benchmark
 from thermbench.export import export_model, replay_dir
 from thermbench.export.bundle import ExportOptions, process_samples

@@ -45,6 +45,13 @@ MOVED = {
 #: old module -> {name that moved out of it: the module it is in now}; the old module has
 #: ``__getattr__ = moved_names(__name__)`` (a module split in two keeps its names for one release)
 MOVED_NAMES: dict[str, dict[str, str]] = {
+    "thermbench.compensator.control": {
+        "Deadlines": "thermbench.compensator.deadlines",
+        "Settings": "thermbench.compensator.settings",
+        "config_error": "thermbench.compensator.settings",
+        "Line": "thermbench.compensator.errorline",
+        "fit_line": "thermbench.compensator.errorline",
+    },
     "thermbench.linuxcnc.sim": {"SAMPLED": "thermbench.linuxcnc.verify"},
 }
 
