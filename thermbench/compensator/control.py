@@ -125,7 +125,8 @@ class CycleLogic:
         self.s = settings
         self.output = output
         if output in ("line", "both") and settings.line_travel_mm is None:
-            raise _config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] in mm")
+            raise _config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] "
+                                "in mm")
         self.operating = list(getattr(model, "operating", []))  # e.g. spindle_rpm of a spindle's lumped network
         self.names = ["axis_mm", "feed_mm_min", *(["load_N"] if has_load else []),
                       *[f"{t}_C" for t in model.temperatures], *self.operating]  # fmt: skip
