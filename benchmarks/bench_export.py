@@ -34,7 +34,7 @@ import pandas as pd
 from thermbench.outputs import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest
-from thermbench.export.bundle import process_samples
+from thermbench.export.samples import process_samples
 from thermbench.export.replay import replay_view
 from thermbench.export.runtime import build, info, stream_text
 

@@ -37,11 +37,13 @@ import pandas as pd
 from thermbench.outputs import write_text_atomic
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest, runtime, target
-from thermbench.export.bundle import TARGETS, readings_queries, replay_inputs
+from thermbench.export.budget import TARGETS
+from thermbench.export.directory import replay_inputs
+from thermbench.export.samples import readings_queries
 from thermbench.export.replay import replay_view
 
 KB = 1024
-_B = TARGETS["cortex-m4f"]["budget"]  # the export's budget for the target (thermbench.export.bundle)
+_B = TARGETS["cortex-m4f"]["budget"]  # the export's budget for the target (thermbench.export.budget)
 CYCLE_BUDGET, PRED_BUDGET, ARENA_BUDGET, SRAM = _B["cycle_insn"], _B["prediction_insn"], _B["ram_bytes"], 128 * KB
 PHYS_BUDGET, IMAGE_BUDGET = _B["physics_update_insn"], _B["image_bytes"]  # float: one physics update; one-kind firmware
 MHZ, CPI = 168, 1.25  # seed 002's STM32F407; cycles per instruction assumed (not measured: QEMU counts instructions)

@@ -18,7 +18,7 @@ other reading answered and corrected (``tb_probe_correct`` after its prediction)
   own marker calls: an upper bound for a leaf function) and each function's own frame as gcc
   ``-fstack-usage`` reports it for the target;
 * RAM: ``sizeof(tb_probe_state)`` and ``sizeof(tb_guard)`` on the target, and with the model's
-  handle and arena against the 16 KB per-model budget (thermbench.export.bundle.TARGETS); the control
+  handle and arena against the 16 KB per-model budget (thermbench.export.budget.TARGETS); the control
   cycle (step + guard) against 100 000 instructions and a prediction + correction against 200 000;
 * parity against the host's double ``tb_replay --live --probe --guard`` over the same stream:
   max |corrected|, |variance| and the guard's distance (relative beyond 0.01 of a range's width).
@@ -46,7 +46,9 @@ import pandas as pd
 
 from thermbench.outputs import write_text_atomic
 from thermbench.export import runtime, target
-from thermbench.export.bundle import TARGETS, readings_queries, replay_inputs
+from thermbench.export.budget import TARGETS
+from thermbench.export.directory import replay_inputs
+from thermbench.export.samples import readings_queries
 
 RUN = "valid1"
 STATES = ["state1", "state2", "state3", "state4", "state5"]

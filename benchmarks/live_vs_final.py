@@ -26,7 +26,8 @@ import pandas as pd
 
 from thermbench.data.io import load_dataset
 from thermbench.export import read_manifest
-from thermbench.export.bundle import process_samples, replay_dir
+from thermbench.export.directory import replay_dir
+from thermbench.export.samples import process_samples
 from thermbench.export.replay import replay_view
 
 

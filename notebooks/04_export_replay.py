@@ -47,7 +47,7 @@ from thermbench.data.reference import run_summary
 from thermbench.bench.datasets import load_benchmark
 from thermbench.experiment import model_from_config
 from thermbench.export import export_model, read_manifest
-from thermbench.export.bundle import process_samples
+from thermbench.export.samples import process_samples
 from thermbench.export.fileformat import read as read_model_file
 from thermbench.export.native import LiveModel
 from thermbench.export.replay import draw_errors, format_replay, replay_run

@@ -45,7 +45,8 @@ def double_and_float_at_every_sample(ds, run: str, shift_s: float, replay):
     import pandas as pd
 
     from thermbench.export import runtime
-    from thermbench.export.bundle import SINGLE_FLAGS, process_samples
+    from thermbench.export.budget import SINGLE_FLAGS
+    from thermbench.export.samples import process_samples
 
     data = shifted_run(ds, run, shift_s) if shift_s else ds
     s = process_samples(data, run)

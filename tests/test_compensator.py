@@ -90,7 +90,8 @@ def replay_as_stepped(model_dir, ds, log: pd.DataFrame, **kw) -> tuple[pd.DataFr
     """The loop's fresh cycles and the C runtime's answers at the same machine times, stepped with
     exactly the samples the loop read (a loaded host's loop may skip a sample: its model steps over
     it, zero-order hold, and so does this reference): thermbench replay --live of those samples."""
-    from thermbench.export.bundle import process_samples, replay_dir
+    from thermbench.export.directory import replay_dir
+    from thermbench.export.samples import process_samples
 
     samples = process_samples(ds, RUN)
     fresh = log[((log["flags"] & HELD) == 0) & log["predicted_um"].notna()]
@@ -521,7 +522,8 @@ def test_a_long_outage_is_replayed_from_the_servers_history(machine, seed001_exp
     Its predictions are then thermbench replay's, sample by sample, over the run as the machine
     played it: as if it had never stopped."""
     from thermbench.data.io import load_dataset, save_dataset
-    from thermbench.export.bundle import process_samples, replay_dir
+    from thermbench.export.directory import replay_dir
+    from thermbench.export.samples import process_samples
 
     said = asyncio.run(_restarted_compensators(machine, seed001_exports / "mlr", nodes_file, tmp_path, (0.0, 6.0), 2.0,
                                                start="on_compensator", history="changes"))  # 6 s wall = 120 s machine
@@ -602,7 +604,8 @@ def test_probe_node_corrects_the_loop_as_replay_with_the_same_probes(machine, se
     samples the loop stepped with the probes sim-cnc wrote to probes.csv (``thermbench replay
     --probes``). The probe's values are the simulator's, checked against the interferometer."""
     from thermbench.data.io import load_dataset
-    from thermbench.export.bundle import process_samples, replay_dir
+    from thermbench.export.directory import replay_dir
+    from thermbench.export.samples import process_samples
     from thermbench.export.replay import read_probes
     from thermbench.bench.adapt import ProbeParams
     from thermbench.config import with_defaults

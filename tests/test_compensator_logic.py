@@ -9,7 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings, fit_line
+from thermbench.compensator.control import CycleLogic, Flags, Reading
+from thermbench.compensator.errorline import fit_line
+from thermbench.compensator.settings import Settings
 from thermbench.compensator.nodes import NodesError, load_nodes
 
 

@@ -184,7 +184,7 @@ def test_the_default_ensemble_of_conf_fits_the_cortex_m4f_arena_with_sixteen_sen
     from omegaconf import OmegaConf
 
     from thermbench.export import ExportOptions, export_model
-    from thermbench.export.bundle import BUDGET
+    from thermbench.export.budget import BUDGET
     from tests.test_linear_history import _runs as lh_runs
 
     rng = np.random.default_rng(3)

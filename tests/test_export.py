@@ -21,7 +21,7 @@ import pytest
 from thermbench.bench.datasets import load_benchmark
 from thermbench.export import ExportOptions, Kind, ModelFileError, export_model, pack, read_manifest, replay_dir, unpack
 from thermbench.export import runtime
-from thermbench.export.bundle import readings_queries
+from thermbench.export.samples import readings_queries
 from thermbench.models.autoregressive import AutoRegressiveSeed003
 from thermbench.models.bank import ConditionBank
 from thermbench.models.mlr import MLRSeed002, MLRSeed004
@@ -384,7 +384,7 @@ def test_a_refused_sample_is_skipped_and_the_models_go_on(exported, ds, tmp_path
     with an error code; a compensator skips it, and the GRU (uniform history: the gap is filled
     as numpy.interp fills it) and a bank (all models refuse it together) then agree with the
     Python models on the log without that sample."""
-    from thermbench.export.bundle import process_samples
+    from thermbench.export.samples import process_samples
 
     run = "valid2"
     pr = process_samples(ds, run)
@@ -407,7 +407,7 @@ def test_a_refused_sample_is_skipped_and_the_models_go_on(exported, ds, tmp_path
 def test_a_log_off_the_sampling_grid_is_refused_not_mispredicted(exported, ds):
     """The GRU history assumes the log's period; a clock running 0.09 % fast (each step within
     1e-3 of the period) is refused once it leaves the grid, instead of predicting 0.1 um off."""
-    from thermbench.export.bundle import process_samples
+    from thermbench.export.samples import process_samples
 
     pr = process_samples(ds, "valid2")
     drift = pr.assign(t_s=pr["t_s"] * 1.0009)

@@ -21,8 +21,10 @@ import pytest
 from tests.test_dataset_v2 import SPINDLE_META, write
 from thermbench.data import load_dataset
 from thermbench.data.views import channel_view
-from thermbench.export import ExportError, ExportOptions, Kind, bundle, encoding, export_model, fileformat, runtime
-from thermbench.export.bundle import process_samples, read_manifest, readings_queries
+from thermbench.export import ExportError, ExportOptions, Kind, budget, bundle, directory, encoding, export_model
+from thermbench.export import fileformat, runtime
+from thermbench.export.directory import read_manifest
+from thermbench.export.samples import process_samples, readings_queries
 from thermbench.export.lumped_encoding import encode_lumped
 from thermbench.models.lumped import LumpedThermalNetwork
 from thermbench.preprocess.filters import KalmanFilter, LimitFilter
@@ -53,7 +55,7 @@ def _check_limits_with_lumped(original):
 
 def _replay_dir_with_operating(model_dir, ds, run, queries, variant="model", sanitize=False, exe=None, manifest=None,
                                samples=None, lenient=False):  # fmt: skip
-    """bundle.replay_dir with the proposed change: the manifest's ``operating`` columns are input
+    """directory.replay_dir with the proposed change: the manifest's ``operating`` columns are input
     channels after the temperatures."""
     man = manifest if manifest is not None else read_manifest(Path(model_dir))
     temps = [ds.metadata.sensor_column(s) for s in man["temperatures"]]
@@ -79,14 +81,14 @@ def lumped_hooks(model):
             mp.setattr(encoding, "check_limits", _check_limits_with_lumped(encoding.check_limits))
         if not hasattr(bundle, "operating_inputs"):
             ops = [c for c in model.required_inputs().operating if c not in SAMPLE_COLUMNS]
-            footprint = bundle.footprint
+            footprint = budget.footprint
 
             def footprint_and_operating(model_dir, man):  # called before the parity check and the manifest
                 man.setdefault("operating", ops)
                 return footprint(model_dir, man)
 
-            mp.setattr(bundle, "footprint", footprint_and_operating)
-            mp.setattr(bundle, "replay_dir", _replay_dir_with_operating)
+            mp.setattr(budget, "footprint", footprint_and_operating)
+            mp.setattr(directory, "replay_dir", _replay_dir_with_operating)
         yield
 
 
@@ -150,7 +152,7 @@ def exported(spindle, tmp_path_factory):
 def c_vs_python(model, model_dir, ds, run, sanitize=False) -> tuple[float, int]:
     q = readings_queries(ds, run)
     with lumped_hooks(model):
-        c = bundle.replay_dir(model_dir, ds, run, q, sanitize=sanitize)
+        c = directory.replay_dir(model_dir, ds, run, q, sanitize=sanitize)
     py = model.predict_at(ds, run, q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
     return float(np.max(np.abs(c["total_um"].to_numpy() - py))), len(q)
 
@@ -183,7 +185,7 @@ def test_history_run_is_simulated_from_its_first_process_sample(exported, spindl
     cut = process_samples(spindle, "h")
     cut = cut[cut["t_s"] >= HISTORY_S].reset_index(drop=True)
     with lumped_hooks(model):
-        c = bundle.replay_dir(model_dir, spindle, "h", q, samples=cut)
+        c = directory.replay_dir(model_dir, spindle, "h", q, samples=cut)
     py = model.predict_at(spindle, "h", q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
     assert np.max(np.abs(c["total_um"].to_numpy() - py)) > 1.0
 
@@ -230,9 +232,9 @@ def test_a_bad_spindle_speed_is_refused_like_a_bad_temperature(exported, spindle
         pr = process_samples(spindle, "h")
         pr.loc[500, "spindle_rpm"] = bad
         with lumped_hooks(model), pytest.raises(runtime.RuntimeFailed, match="error -11"):
-            bundle.replay_dir(model_dir, spindle, "h", q, samples=pr)
+            directory.replay_dir(model_dir, spindle, "h", q, samples=pr)
         with lumped_hooks(model):
-            assert len(bundle.replay_dir(model_dir, spindle, "h", q, samples=pr, lenient=True)) == len(q)
+            assert len(directory.replay_dir(model_dir, spindle, "h", q, samples=pr, lenient=True)) == len(q)
 
 
 # ---------------------------------------------------------------- errors ---
@@ -296,5 +298,5 @@ def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, spindle
     for shift_s in (0.0, 2.0**22):
         with lumped_hooks(model):
             double, single = double_and_float_at_every_sample(
-                spindle, "h", shift_s, lambda data, q, exe: bundle.replay_dir(model_dir, data, "h", q, exe=exe))
+                spindle, "h", shift_s, lambda data, q, exe: directory.replay_dir(model_dir, data, "h", q, exe=exe))
         assert len(double) == len(spindle.process_run("h")) and np.max(np.abs(single - double)) < 1e-3, shift_s

@@ -15,7 +15,9 @@ import pytest
 from thermbench.data.dataset import Dataset
 from thermbench.bench.datasets import load_benchmark
 from thermbench.export import export_model, replay_dir, runtime, unpack
-from thermbench.export.bundle import SINGLE_FLAGS, ExportOptions, process_samples
+from thermbench.export.budget import SINGLE_FLAGS
+from thermbench.export.bundle import ExportOptions
+from thermbench.export.samples import process_samples
 from thermbench.models.bank import ConditionBank
 from thermbench.models.mlr import MLRSeed002
 
@@ -67,8 +69,10 @@ def test_the_exports_parity_compares_float_and_double_at_every_sample(seed002_ba
 def test_a_float_build_off_at_one_sample_is_refused_for_a_float_target(seed002_bank, tmp_path, monkeypatch):
     """The check itself: the float build made 0.5 um wrong at one process sample (a grid time) between
     the readings; the parity at the readings cannot see it, the every-sample comparison names it."""
-    from thermbench.export import bundle
-    from thermbench.export.bundle import TargetRefused
+    from thermbench.export import parity
+    from thermbench.export.budget import TargetRefused
+    from thermbench.export.directory import read_manifest
+    from thermbench.export.samples import readings_queries
 
     ds, bank, out = seed002_bank
     real = runtime.replay_text
@@ -81,12 +85,12 @@ def test_a_float_build_off_at_one_sample_is_refused_for_a_float_target(seed002_b
         return c
 
     monkeypatch.setattr(runtime, "replay_text", off_at_840)
-    man = bundle.read_manifest(out)
-    assert not (bundle.readings_queries(ds, "table6_1")["t_s"] == 840.0).any()  # no reading at the grid time
+    man = read_manifest(out)
+    assert not (readings_queries(ds, "table6_1")["t_s"] == 840.0).any()  # no reading at the grid time
     with pytest.raises(TargetRefused, match=r"differs from the double build by 0\.5 um at t = 840 s of run 'table6_1' "
                                             r"\(every process sample of \['table6_1'\] compared\)"):
-        bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "float")
-    bundle._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "double")  # a double target: reported only
+        parity._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "float")
+    parity._verify(out, man, {"bank": bank}, ds, ["table6_1"], 0.01, "bank", "double")  # a double target: reported only
 
 
 def test_a_float_clock_with_a_tenth_of_a_second_period_is_on_its_grid_days_later(tmp_path):

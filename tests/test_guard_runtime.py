@@ -13,7 +13,8 @@ import pytest
 
 from thermbench.bench import datasets
 from thermbench.export import read_manifest, runtime
-from thermbench.export.bundle import process_samples, readings_queries, replay_dir, replay_inputs
+from thermbench.export.directory import replay_dir, replay_inputs
+from thermbench.export.samples import process_samples, readings_queries
 from thermbench.export.fileformat import ModelFileError
 from thermbench.export.guard import read_envelope, write_envelope
 from thermbench.bench.intervals import Envelope, EnvelopeGuard

@@ -188,7 +188,7 @@ def test_the_streaming_guard_is_the_envelope_of_the_log_sample_by_sample(lathe):
 
 def test_the_export_manifest_carries_the_training_envelope(seed001_exports, seed001_data_root):
     from thermbench.bench import datasets
-    from thermbench.export.bundle import read_manifest
+    from thermbench.export.directory import read_manifest
 
     man = read_manifest(seed001_exports / "mlr")
     ds = datasets.load_benchmark("seed001_vmc_x", seed001_data_root)

@@ -12,7 +12,7 @@ import pytest
 
 from thermbench.bench.datasets import load_benchmark
 from thermbench.export import ExportError, native, replay_dir, runtime
-from thermbench.export.bundle import process_samples, readings_queries
+from thermbench.export.samples import process_samples, readings_queries
 from thermbench.export.native import TB_E_INPUT, TB_E_LATE, TB_E_NOTREADY, LiveModel, tb_model
 
 RUN = "valid1"
@@ -210,6 +210,6 @@ def test_the_classifier_s_feed_table_gives_what_a_pass_over_the_window_gives(exp
 
 
 def bundle_inputs(model_dir, ds):
-    from thermbench.export.bundle import replay_inputs
+    from thermbench.export.directory import replay_inputs
 
     return replay_inputs(model_dir, ds, RUN)

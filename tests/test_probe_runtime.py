@@ -13,7 +13,8 @@ import pytest
 from thermbench.bench import datasets
 from thermbench.bench.adapt import ProbeFilter, ProbeParams
 from thermbench.export import runtime
-from thermbench.export.bundle import readings_queries, replay_dir
+from thermbench.export.directory import replay_dir
+from thermbench.export.samples import readings_queries
 
 
 @pytest.mark.parametrize("flags, tol_um", [((), 1e-9), (("-DTB_SINGLE",), 0.01)])

@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 
 from thermbench.bench.datasets import load_benchmark
-from thermbench.export import ExportOptions, bundle, export_model, read_manifest, target
+from thermbench.export import ExportOptions, directory, export_model, read_manifest, target
+from thermbench.export.samples import readings_queries
 from thermbench.export.fileformat import Kind
 from thermbench.export.native import TB_E_ALIGN
 from thermbench.models.mlr import MLRSeed001, MLRSeed002
@@ -32,13 +33,13 @@ def ds(seed001_data_root):
 
 @pytest.fixture(scope="module")
 def queries(ds):
-    return bundle.readings_queries(ds, RUN)
+    return readings_queries(ds, RUN)
 
 
 @pytest.fixture(scope="module")
 def host(seed001_exports, ds, queries):
     """The host runtime's answers (gcc on x86-64, double; parity-checked against Python at export)."""
-    return {name: bundle.replay_dir(seed001_exports / name, ds, RUN, queries) for name in ("mlr", "bank")}
+    return {name: directory.replay_dir(seed001_exports / name, ds, RUN, queries) for name in ("mlr", "bank")}
 
 
 @pytest.mark.parametrize("precision", ["double", "float"])
@@ -47,7 +48,7 @@ def test_the_target_reproduces_the_host(seed001_exports, ds, queries, host, name
     """Every reading of the validation run, answered on the emulated M4: in double the same
     numbers as the host (IEEE double on both; a different compiler and instruction set), in
     float within the issue's 0.01 µm; the bank picks the same condition at every reading."""
-    files, samples, temps, bank = bundle.replay_inputs(seed001_exports / name, ds, RUN)
+    files, samples, temps, bank = directory.replay_inputs(seed001_exports / name, ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, precision=precision)
     ref = host[name]
     assert rep["rc"] == 0 and len(got) == len(ref) == len(queries) and (got["rc"] == 0).all()
@@ -67,7 +68,7 @@ def test_the_single_precision_runtime_reaches_no_software_double_routine(seed001
     every kind and effect linked in): in single precision (-DTB_SINGLE) nothing the runtime can
     call, down through newlib's libm, is a software double or 64-bit routine of libgcc or a double
     <math.h> function; the same walk over the double build finds them (it can see them)."""
-    files, *_ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
+    files, *_ = directory.replay_inputs(seed001_exports / "bank", ds, RUN)
     single = target.build(files, "float")
     assert target.soft_routines(single) == {}
     reached = target.reached_routines(single)
@@ -178,7 +179,7 @@ def test_a_model_file_off_a_4_byte_boundary_is_refused_not_faulted(seed001_expor
     """Under unaligned-access trapping (CCR.UNALIGN_TRP, set around every runtime call), the file
     linked into flash at offset 0, 1, 2, 3 past an 8-byte boundary: on the boundary it runs; off it
     the loader returns TB_E_ALIGN, where the runtime without the check faulted in tb_model_open."""
-    files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "mlr", ds, RUN)
+    files, samples, temps, _ = directory.replay_inputs(seed001_exports / "mlr", ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, offset=offset, trap_unaligned=True)
     if offset == 0:
         assert rep["rc"] == 0 and len(got) == len(queries)
@@ -188,7 +189,7 @@ def test_a_model_file_off_a_4_byte_boundary_is_refused_not_faulted(seed001_expor
 
 def test_an_arena_beyond_the_image_s_is_named(seed001_exports, ds, queries):
     """The static arena is sized at build time: a model that needs more is refused on the END line."""
-    files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
+    files, samples, temps, _ = directory.replay_inputs(seed001_exports / "bank", ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, arena_bytes=1024)
     assert rep["rc"] == -9 and "TB_ARENA_BYTES" in rep["end"] and got.empty
 
@@ -197,7 +198,7 @@ def test_instruction_counts_are_exact_and_repeatable(seed001_exports, ds, querie
     """Under -icount shift=0 the SysTick counts instructions in 40s: a loop of 50 000 × (subs, bne)
     measures 100 000 instructions (± a tick and the marker calls); a second run counts every
     runtime call the same (emulated instruction counts are deterministic, unlike host timings)."""
-    files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "bank", ds, RUN)
+    files, samples, temps, _ = directory.replay_inputs(seed001_exports / "bank", ds, RUN)
     _, a = target.replay(files, samples, temps, queries)
     _, b = target.replay(files, samples, temps, queries)
     assert a["calibrate_calls"] == 1 and abs(a["calibrate_insn_max"] - 100_000) <= 80
@@ -241,8 +242,8 @@ def test_every_family_runs_on_the_target(family_exports, ds, queries, family, va
     emulated M4 over the validation run: in double the host's numbers (to 5e-10 µm: IEEE double
     on both, another compiler and libm); in float (-DTB_SINGLE) within 0.01 µm of them. In float
     a bank's state (every member's) fits the 16 KB arena; the banks pick the host's condition."""
-    files, samples, temps, bank = bundle.replay_inputs(family_exports / family, ds, RUN, variant)
-    ref = bundle.replay_dir(family_exports / family, ds, RUN, queries, variant)
+    files, samples, temps, bank = directory.replay_inputs(family_exports / family, ds, RUN, variant)
+    ref = directory.replay_dir(family_exports / family, ds, RUN, queries, variant)
     arena = 16384 if precision == "float" else 32768  # the budget is the float build's (double arrays are twice)
     got, rep = target.replay(files, samples, temps, queries, precision=precision, arena_bytes=arena)
     assert rep["rc"] == 0 and len(got) == len(ref) and (got["rc"] == 0).all()
@@ -260,7 +261,7 @@ def test_the_runtime_s_stack_depth_is_measured_per_model(family_exports, ds, que
     eval_frame = frames["tb_kind_mlp.c:eval"]
     depth = {}
     for family in ("mlp", "mlr_seed002"):
-        files, samples, temps, _ = bundle.replay_inputs(family_exports / family, ds, RUN)
+        files, samples, temps, _ = directory.replay_inputs(family_exports / family, ds, RUN)
         _, rep = target.replay(files, samples, temps, queries)
         depth[family] = rep["stack_bytes"]
     assert eval_frame < depth["mlp"] < 8192
@@ -292,9 +293,9 @@ def test_the_lumped_kind_runs_on_the_target(lumped_export, precision):
     """The LUMPED kind (a spindle's thermal network with ambient and sensor inputs) from flash on
     the emulated M4 over the held-out run: the host's numbers in double, within 0.01 µm in float."""
     ds, model_dir = lumped_export
-    q = bundle.readings_queries(ds, "h")
-    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, "h")
-    ref = bundle.replay_dir(model_dir, ds, "h", q)
+    q = readings_queries(ds, "h")
+    files, samples, temps, _ = directory.replay_inputs(model_dir, ds, "h")
+    ref = directory.replay_dir(model_dir, ds, "h", q)
     got, rep = target.replay(files, samples, temps, q, precision=precision)
     assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > 10 and (got["rc"] == 0).all()
     tol = 5e-10 if precision == "double" else FLOAT_UM
@@ -344,9 +345,9 @@ def test_the_thermal_lag_kind_runs_on_the_target(thermal_lag_export, precision):
 def _host_and_target_agree(ds, model_dir, run: str, precision: str, min_readings: int) -> None:
     """The model in model_dir replayed over run on the emulated target answers every reading, as the
     host's runtime does: to 5e-10 µm in double, within FLOAT_UM in float."""
-    q = bundle.readings_queries(ds, run)
-    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, run)
-    ref = bundle.replay_dir(model_dir, ds, run, q)
+    q = readings_queries(ds, run)
+    files, samples, temps, _ = directory.replay_inputs(model_dir, ds, run)
+    ref = directory.replay_dir(model_dir, ds, run, q)
     got, rep = target.replay(files, samples, temps, q, precision=precision)
     assert rep["rc"] == 0 and len(got) == len(ref) == len(q) > min_readings and (got["rc"] == 0).all()
     tol = 5e-10 if precision == "double" else FLOAT_UM

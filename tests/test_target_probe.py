@@ -14,8 +14,8 @@ import pytest
 
 from tests.test_target import ds, queries  # noqa: F401  (the fixtures: seed001_vmc_x and valid1's readings)
 from thermbench.bench.adapt import ProbeParams
-from thermbench.export import bundle, read_manifest, runtime, target
-from thermbench.export.bundle import TARGETS
+from thermbench.export import directory, read_manifest, runtime, target
+from thermbench.export.budget import TARGETS
 
 pytestmark = pytest.mark.target
 
@@ -42,8 +42,8 @@ def test_the_probe_filter_on_the_target_is_the_host_s(seed001_exports, ds, queri
     taken (one tb_probe_update each), every answer corrected (one tb_probe_correct each), and the
     harness counts both and reports the filter state's size on the target."""
     model_dir = seed001_exports / "mlr"
-    host = bundle.replay_dir(model_dir, ds, RUN, queries, probes=probes, probe_params=PARAMS)
-    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, RUN)
+    host = directory.replay_dir(model_dir, ds, RUN, queries, probes=probes, probe_params=PARAMS)
+    files, samples, temps, _ = directory.replay_inputs(model_dir, ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, precision=precision, probes=probes, probe_params=PARAMS)
     assert rep["rc"] == 0 and len(got) == len(host) == len(queries) and (got["rc"] == 0).all()
     np.testing.assert_array_equal(got[["t_s", "axis_mm"]].to_numpy(), host[["t_s", "axis_mm"]].to_numpy())
@@ -81,7 +81,7 @@ def test_the_guard_and_the_probes_live_on_the_target_are_the_host_s(seed001_expo
     sensors = read_manifest(model_dir)["temperatures"]
     path = tmp_path / "narrow.tbm"
     write_envelope(path, Envelope.fit(ds, ["state2"], sensors, ["feed_mm_min"]), 600.0)
-    files, samples, temps, _ = bundle.replay_inputs(model_dir, ds, RUN)
+    files, samples, temps, _ = directory.replay_inputs(model_dir, ds, RUN)
     cols = [*temps, "feed_mm_min"]
     host = runtime.replay(files, samples, cols, queries, live=True, probes=probes, probe_params=PARAMS, guard=path)
     got, rep = target.replay(files, samples, cols, queries, precision="float", live=True, probes=probes, probe_params=PARAMS,
@@ -122,7 +122,7 @@ def test_a_finer_instruction_count_agrees_with_the_default_one(seed001_exports, 
     SysTick tick. The calibration loop of 100 000 instructions counts 100 000 within 2 ticks (10
     instructions); each operation's mean count agrees with the default build's (steps of 40) to within
     a tick of the coarse count."""
-    files, samples, temps, _ = bundle.replay_inputs(seed001_exports / "mlr", ds, RUN)
+    files, samples, temps, _ = directory.replay_inputs(seed001_exports / "mlr", ds, RUN)
     kw = dict(precision="float", probes=probes, probe_params=PARAMS)
     _, coarse = target.replay(files, samples, temps, queries, **kw)
     _, fine = target.replay(files, samples, temps, queries, icount_shift=3, **kw)

@@ -38,7 +38,7 @@ from thermbench.config import load_config
 from thermbench.data.reference import thermal_errors
 from thermbench.bench.datasets import load_benchmark
 from thermbench.export import read_manifest, replay_dir
-from thermbench.export.bundle import readings_queries
+from thermbench.export.samples import readings_queries
 from thermbench.tracking import TrackingError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -183,7 +183,7 @@ def test_compensator_settings(workdir, capsys, model_and_nodes):
 
 def test_compensator_settings_error_is_the_compensator_error():
     from thermbench.compensator import CompensatorError
-    from thermbench.compensator.control import Settings
+    from thermbench.compensator.settings import Settings
 
     with pytest.raises(CompensatorError, match=r"config key 'line\.ref_mm': expected a number"):
         Settings.from_config({"line": {"ref_mm": "left"}})

@@ -11,7 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from thermbench.compensator.control import CycleLogic, Flags, Reading, Settings
+from thermbench.compensator.control import CycleLogic, Flags, Reading
+from thermbench.compensator.settings import Settings
 from thermbench.compensator.state import StateStore
 from thermbench.export.native import LiveModel
 

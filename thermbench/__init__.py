@@ -87,6 +87,31 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "explained": "thermbench.discrepancy.significance", "decide": "thermbench.discrepancy.significance",
         "display": "thermbench.discrepancy.significance",
     },
+    "thermbench.compensator.control": {
+        "Deadlines": "thermbench.compensator.deadlines",
+        "Settings": "thermbench.compensator.settings",
+        "config_error": "thermbench.compensator.settings",
+        "Line": "thermbench.compensator.errorline",
+        "fit_line": "thermbench.compensator.errorline",
+    },
+    "thermbench.export.bundle": {
+        "MANIFEST": "thermbench.export.directory",
+        "FORMAT": "thermbench.export.directory",
+        "read_manifest": "thermbench.export.directory",
+        "replay_inputs": "thermbench.export.directory",
+        "replay_dir": "thermbench.export.directory",
+        "process_samples": "thermbench.export.samples",
+        "readings_queries": "thermbench.export.samples",
+        "write_onnx": "thermbench.export.onnxfile",
+        "python_predictions": "thermbench.export.parity",
+        "TargetRefused": "thermbench.export.budget",
+        "TARGETS": "thermbench.export.budget",
+        "SINGLE_FLAGS": "thermbench.export.budget",
+        "BUDGET": "thermbench.export.budget",
+        "SMALL_KINDS": "thermbench.export.budget",
+        "footprint": "thermbench.export.budget",
+    },
+    "thermbench.linuxcnc.sim": {"SAMPLED": "thermbench.linuxcnc.verify"},
 }
 
 

@@ -2,6 +2,8 @@
 
 * :mod:`.nodes`: ``nodes.yaml``, the machine's node ids for the model's inputs and outputs;
 * :mod:`.control`: one cycle without I/O (input guard, model step, error line, rate limit);
+* :mod:`.settings`: the config keys the cycle uses, read and checked; :mod:`.errorline`: the error line's form;
+* :mod:`.deadlines`: a control loop's schedule on absolute deadlines;
 * :mod:`.client`: ``thermbench compensator``, the loop of one machine axis;
 * :mod:`.opcua`: the OPC UA session (security, node checks, guarded writes);
 * :mod:`.cyclelog`: the cycle log, run statistics and status line every front end shares;

@@ -35,12 +35,14 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..outputs import check_output_file, write_text
-from .control import TB_MAX_GAP_S, CycleLogic, Deadlines, Flags, Settings, _num
+from .control import TB_MAX_GAP_S, CycleLogic, Flags
 from .cyclelog import STATS_CYCLES, CycleLog, Ring, cycle_stats, status_line
+from .deadlines import Deadlines
 from .errors import CompensatorError
 from .nodes import load_nodes
 from .opcua import (NOT_CERTIFICATES, Security, Session, _connection_errors, _ua, explain_security_refusal, output_variants,
                     resume_from_controller)  # fmt: skip
+from .settings import Settings, _num
 from .state import StateError, StateStore
 
 

@@ -32,11 +32,7 @@ network:
 The compensation is the value added to the axis position set point, ``-predicted
 error`` (the C runtime's ``total_um``: geometric + thermal); ``convention: error`` in
 the config writes the predicted error itself, for controllers that subtract it.
-
-The error line (SINUMERIK 840D SD43900 / SD43910 / SD43920, Beckhoff TwinCAT CNC
-P-AXIS-00273 / 00274 / 00272) is the least-squares straight line through the
-compensation predicted at ``n_points`` positions over the travel:
-``comp(x) = offset + slope * (x - ref)``.
+The error line's form: :mod:`.errorline`; the config keys: :mod:`.settings`.
 """
 
 from __future__ import annotations
@@ -44,11 +40,17 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
-from .errors import CompensatorError
+import thermbench
+
+from . import errorline
+from .settings import config_error as _config_error
+
+if TYPE_CHECKING:
+    from .settings import Settings
 
 TB_E_SAMPLING = -12
 TB_MAX_GAP_S = 60.0  # embedded/include/tb_runtime.h
@@ -73,86 +75,8 @@ class Flags(enum.IntFlag):
     EXTRAPOLATING = 8192  # the inputs are outside the envelope the model was fitted on (manifest 'envelope')
 
 
-class Deadlines:
-    """A loop's schedule on absolute deadlines ``start + k * period_s`` (no drift). After an
-    overrun the missed deadlines are skipped (counted in :attr:`skipped`), not made up in a burst.
-    ``max_cycles``/``duration_s``: when :meth:`next` says the loop is over (None: never)."""
-
-    def __init__(self, period_s: float, start_s: float, max_cycles: int | None = None,
-                 duration_s: float | None = None) -> None:  # fmt: skip
-        self.period_s, self.start_s, self.k, self.skipped, self.cycles = period_s, start_s, 0, 0, 0
-        self.max_cycles, self.duration_s = max_cycles, duration_s
-
-    @property
-    def deadline(self) -> float:
-        return self.start_s + self.k * self.period_s
-
-    def wait_s(self, now_s: float) -> float:
-        return max(0.0, self.deadline - now_s)
-
-    def next(self, end_s: float) -> str | None:
-        """The cycle that began at :attr:`deadline` ended at ``end_s``: on to the next deadline;
-        returns why the loop is over (``max_cycles``, ``duration_s``) or None."""
-        late = end_s - self.deadline
-        self.k += 1
-        self.cycles += 1
-        if late > self.period_s:
-            missed = int((end_s - self.start_s) / self.period_s) - self.k + 1
-            if missed > 0:
-                self.skipped += missed
-                self.k += missed
-        if self.max_cycles is not None and self.cycles >= self.max_cycles:
-            return "max_cycles"
-        if self.duration_s is not None and end_s - self.start_s >= self.duration_s:
-            return "duration_s"
-        return None
-
-
 def flag_names(f: int) -> str:
     return "|".join(m.name for m in Flags if m.value and f & m.value) or "OK"
-
-
-def config_error(message: str) -> Exception:
-    """A mistake in ``conf/compensator.yaml`` or its overrides: a
-    :class:`~.errors.CompensatorError` (one line, exit 2)."""
-    return CompensatorError(message)
-
-
-def _num(cfg: Mapping[str, Any], key: str, default: float, positive: bool = True, name: str | None = None) -> float:
-    """``cfg[key]`` (else ``default``) as a number (> 0 when ``positive``); a mistake names
-    the config key ``name`` (default ``key``; give the full key for a sub-mapping, e.g.
-    ``_num(cfg["line"], "n_points", 21, name="line.n_points")``)."""
-    name = key if name is None else name
-    v = cfg.get(key, default)
-    try:
-        if isinstance(v, bool):
-            raise TypeError
-        v = float(v)
-    except (TypeError, ValueError):
-        raise config_error(f"config key {name!r}: expected a number, got {v!r}") from None
-    if math.isnan(v) or (not positive and math.isinf(v)):
-        raise config_error(f"config key {name!r}: expected a finite number, got {v}")
-    if positive and not v > 0:
-        raise config_error(f"config key {name!r}: must be > 0, got {v}")
-    return v
-
-
-def _pair(v: Any, key: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(x) for x in v)
-    except (TypeError, ValueError):
-        raise config_error(f"config key {key!r}: expected [low, high], got {v!r}") from None
-    if not hi > lo:
-        raise config_error(f"config key {key!r}: expected [low, high] with high > low, got [{lo}, {hi}]")
-    return lo, hi
-
-
-def _count(cfg: Mapping[str, Any], key: str, default: int, name: str) -> int:
-    """``cfg[key]`` as a whole number (``21``, ``21.0``), naming the config key ``name``."""
-    v = _num(cfg, key, default, positive=False, name=name)
-    if v != int(v):
-        raise config_error(f"config key {name!r}: expected a whole number, got {cfg.get(key, default)!r}")
-    return int(v)
 
 
 def inner_edge(total_um, interval: Mapping[str, Any], distance: float):
@@ -166,52 +90,6 @@ def inner_edge(total_um, interval: Mapping[str, Any], distance: float):
 
 
 @dataclass
-class Settings:
-    """The ``conf/compensator.yaml`` keys the cycle logic uses (see there)."""
-
-    rate_limit_um_s: float = 20.0
-    stale_after_s: float = 2.0
-    max_age_s: float | None = None
-    input_max_age_s: float = 10.0
-    clock: str = "source"
-    convention: str = "compensation"
-    line_travel_mm: tuple[float, float] | None = None
-    line_points: int = 21
-    line_ref_mm: float | None = None
-    ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
-    probe: Any = None  # thermbench.bench.adapt.ProbeParams of the probe filter (config key probe)
-    extrapolation: str = "report"  # outside the training envelope: report (flag only) | hold the last value inside
-    # | limit: the interval's inner edge (manifest 'interval': the prediction moved toward 0 by its half-width)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> "Settings":
-        line = dict(cfg.get("line") or {})
-        travel = line.get("travel_mm")
-        s = cls(rate_limit_um_s=_num(cfg, "rate_limit_um_s", 20.0), stale_after_s=_num(cfg, "stale_after_s", 2.0),
-                max_age_s=None if cfg.get("max_age_s") is None else _num(cfg, "max_age_s", 0.0),
-                input_max_age_s=_num(cfg, "input_max_age_s", 10.0), clock=str(cfg.get("clock", "source")),
-                convention=str(cfg.get("convention", "compensation")),
-                line_travel_mm=None if travel is None else _pair(travel, "line.travel_mm"),
-                line_points=_count(line, "n_points", 21, "line.n_points"),
-                line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, False, "line.ref_mm"),
-                ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()},
-                probe=_probe_params(cfg.get("probe")), extrapolation=str(cfg.get("extrapolation", "report")))  # fmt: skip
-        if s.convention not in ("compensation", "error"):
-            raise config_error(f"config key 'convention': expected compensation or error, got {s.convention!r}")
-        if s.clock not in ("source", "client"):
-            raise config_error(f"config key 'clock': expected source or client, got {s.clock!r}")
-        if s.line_points < 2:
-            raise config_error(f"config key 'line.n_points': at least 2, got {s.line_points}")
-        if s.extrapolation not in ("report", "hold", "limit"):
-            raise config_error(f"config key 'extrapolation': expected report, hold or limit, got {s.extrapolation!r}")
-        return s
-
-    def range_of(self, name: str) -> tuple[float, float]:
-        key = "temperature_C" if name.endswith("_C") else name
-        return self.ranges.get(key, (-math.inf, math.inf))
-
-
-@dataclass
 class Reading:
     """One input as read: value, its source timestamp (s, any epoch; None: unknown) and
     whether the server called it good."""
@@ -219,16 +97,6 @@ class Reading:
     value: Any
     ts_s: float | None = None
     good: bool = True
-
-
-@dataclass
-class Line:
-    offset_um: float  # compensation at ref_mm
-    slope_um_per_m: float
-    ref_mm: float
-
-    def at(self, x_mm) -> np.ndarray:
-        return self.offset_um + self.slope_um_per_m * 1e-3 * (np.asarray(x_mm, dtype=float) - self.ref_mm)
 
 
 @dataclass
@@ -240,28 +108,12 @@ class Cycle:
     held: list[str] = field(default_factory=list)
     flags: int = 0
     value_um: float | None = None  # compensation at the current position (None: nothing to write yet)
-    line: Line | None = None
+    line: errorline.Line | None = None
     predicted_um: float = math.nan  # the runtime's total predicted error at the current position
     label: int = -1
     rc: int = 0
     correction_um: float = 0.0  # the probe filter's correction of the total at the current position
     probe_um: float | None = None  # the probe reading taken this cycle
-
-
-def _probe_params(cfg):
-    """:class:`thermbench.bench.adapt.ProbeParams` of config key ``probe`` (null: the defaults)."""
-    from ..bench.adapt import ProbeParams, ProbeParamsError
-
-    try:
-        return ProbeParams.from_config(cfg)
-    except ProbeParamsError as exc:
-        raise config_error(str(exc)) from None
-
-
-def fit_line(x_mm: np.ndarray, comp_um: np.ndarray, ref_mm: float) -> Line:
-    """Least-squares line ``comp = offset + slope (x - ref)`` (numpy.polyfit, degree 1)."""
-    slope_um_per_mm, offset_um = np.polyfit(np.asarray(x_mm, dtype=float) - ref_mm, np.asarray(comp_um, dtype=float), 1)
-    return Line(float(offset_um), float(slope_um_per_mm) * 1e3, float(ref_mm))
 
 
 class CycleLogic:
@@ -273,7 +125,8 @@ class CycleLogic:
         self.s = settings
         self.output = output
         if output in ("line", "both") and settings.line_travel_mm is None:
-            raise config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] in mm")
+            raise _config_error("config key 'line.travel_mm': the error-line output needs the axis travel [start, end] "
+                                "in mm")
         self.operating = list(getattr(model, "operating", []))  # e.g. spindle_rpm of a spindle's lumped network
         self.names = ["axis_mm", "feed_mm_min", *(["load_N"] if has_load else []),
                       *[f"{t}_C" for t in model.temperatures], *self.operating]  # fmt: skip
@@ -319,7 +172,7 @@ class CycleLogic:
         self.interval = (getattr(model, "manifest", None) or {}).get("interval")
         if self.s.extrapolation == "limit" and (self.guard is None or not self.interval):
             what = "no training envelope" if self.guard is None else "no interval"
-            raise config_error(f"config key 'extrapolation': limit needs the model's interval and envelope, and its "
+            raise _config_error(f"config key 'extrapolation': limit needs the model's interval and envelope, and its "
                                f"manifest has {what} (export it with its dataset and export.interval_level=0.9)")  # fmt: skip
 
     def _restart(self) -> None:
@@ -396,7 +249,7 @@ class CycleLogic:
         self.fresh_t_s = None
 
     # ------------------------------------------------------------- controller ---
-    def resume(self, value_um: float | None = None, line: "Line | None" = None) -> None:
+    def resume(self, value_um: float | None = None, line: "errorline.Line | None" = None) -> None:
         """Start from the compensation the controller holds already (read at connection), so
         the first values written ramp from it instead of stepping from zero."""
         if value_um is not None and math.isfinite(value_um):
@@ -611,7 +464,7 @@ class CycleLogic:
                 c.rc = int(rcs[rcs < 0][0])
                 return self._held_from(c, Flags.RUNTIME)
             tot = self._corrected(t, tot)
-            want_line = fit_line(xs, self.sign * tot, self._ref())
+            want_line = errorline.fit_line(xs, self.sign * tot, self._ref())
             want = (float(want_line.at(a)), float(want_line.at(b)))
             prev = self.ends_um or (0.0, 0.0)
             got = tuple(p + float(np.clip(w - p, -step, step)) for p, w in zip(prev, want))
@@ -652,8 +505,11 @@ class CycleLogic:
     def _ref(self) -> float:
         return self.s.line_ref_mm if self.s.line_ref_mm is not None else self.s.line_travel_mm[0]
 
-    def _line_from_ends(self, ends: tuple[float, float]) -> Line:
+    def _line_from_ends(self, ends: tuple[float, float]) -> errorline.Line:
         a, b = self.s.line_travel_mm
         slope_um_per_mm = (ends[1] - ends[0]) / (b - a)
         ref = self._ref()
-        return Line(ends[0] + slope_um_per_mm * (ref - a), slope_um_per_mm * 1e3, ref)
+        return errorline.Line(ends[0] + slope_um_per_mm * (ref - a), slope_um_per_mm * 1e3, ref)
+
+
+__getattr__ = thermbench.moved_names(__name__)

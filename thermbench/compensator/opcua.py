@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from .control import Cycle, CycleLogic, Line, Reading
+from .control import Cycle, CycleLogic, Reading
+from .errorline import Line
 from .errors import CompensatorError, RefusedWrite
 from .nodes import LENGTH_UNITS, SLOPE_UNITS, Nodes
 

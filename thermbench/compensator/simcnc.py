@@ -101,7 +101,7 @@ def build_machine(cfg: Mapping[str, Any]) -> Machine:
     from ..data.io import Dataset, load_dataset
     from ..data.reference import thermal_errors
     from ..config import with_defaults
-    from ..export.bundle import process_samples
+    from ..export.samples import process_samples
 
     cfg = with_defaults("sim_cnc", cfg)
     run = str(cfg.get("run") or "")

@@ -47,11 +47,13 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..outputs import check_output_file, write_text
-from .control import Cycle, CycleLogic, Deadlines, Flags, Settings, _num, flag_names
+from .control import Cycle, CycleLogic, Flags, flag_names
 from .cyclelog import STATS_CYCLES, CycleLog, Ring, cycle_stats
+from .deadlines import Deadlines
 from .errors import CompensatorError
 from .opcua import Security, Session, _connection_errors, output_variants, resume_from_controller
 from .nodes import Nodes, NodesError, load_nodes, read_yaml_file
+from .settings import Settings, _num
 
 SEP = "::"  # "<endpoint>::<node id>": an input node on another endpoint than its channel's
 

@@ -13,7 +13,9 @@ whole or not at all)::
     out_dir/model.onnx         MLP/GRU thermal part, float32, checked with onnxruntime
 
 and, when a dataset is given, checks before writing that the C runtime loads every
-file and reproduces the Python model on the held-out runs within ``parity_tol_um``.
+file and reproduces the Python model on the held-out runs within ``parity_tol_um``
+(:mod:`.parity`), and that the files fit their target (:mod:`.budget`). Reading an export
+directory back: :mod:`.directory`; the ONNX file: :mod:`.onnxfile`.
 """
 
 from __future__ import annotations
@@ -21,42 +23,25 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import sys
-import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import pandas as pd
+
+import thermbench
 
 from .. import __version__
 from ..outputs import output_dir
-from ..models.motion_windows import measuring_intervals
 from ..data.reference import frame_text
 from ..models.bank import ConditionBank
 from ..models.base import ThermalErrorModel
-from . import fileformat, runtime
+from . import budget, directory, fileformat, onnxfile
+from .budget import _check_target, _measure_on_target
 from .encoding import Encoded, ExportError, encode, encode_classifier
+from .parity import _verify
 from .reduce import reduced_lssvm
-
-MANIFEST = "manifest.json"
-FORMAT = "thermbench-export/1"
-
-
-class TargetRefused(ExportError):
-    """The model does not meet its export target (:data:`TARGETS`): precision or budget."""
-
-
-#: the compensators an export is for: the C runtime's precision there, and the budget it is refused
-#: beyond (None: reported in the manifest's footprint only). cortex-m4f: seed 002's STM32F407
-#: (Cortex-M4F, single-precision FPU, 1 MB flash, 128 KB main SRAM), thermbench.export.target
-TARGETS = {
-    "host": {"precision": "double", "budget": None},
-    "cortex-m4f": {"precision": "float", "budget": {"ram_bytes": 16 * 1024, "file_bytes": 64 * 1024,
-                                                     "cycle_insn": 100_000, "physics_update_insn": 50_000,
-                                                     "prediction_insn": 200_000, "image_bytes": 64 * 1024}},
-}
 
 
 @dataclass
@@ -65,7 +50,7 @@ class ExportOptions:
     LSSVM with that many centres; ``verify``: run the C runtime (double and single precision) on
     the dataset's held-out runs and fail when the build ``target`` runs differs from Python by
     more than ``parity_tol_um``; ``onnx``: ONNX for the neural families; ``target``: the
-    compensator the files are for (:data:`TARGETS`); ``interval_level``: the conformal interval of
+    compensator the files are for (:data:`.budget.TARGETS`); ``interval_level``: the conformal interval of
     that level calibrated over the training runs (:func:`interval_calibration`; the compensator's
     ``extrapolation: limit`` needs it)."""
 
@@ -81,7 +66,7 @@ class ExportOptions:
     @property
     def precision(self) -> str:
         """The C runtime build of the target: "double", or "float" (``-DTB_SINGLE``)."""
-        return TARGETS[self.target]["precision"]
+        return budget.TARGETS[self.target]["precision"]
 
 
 # ----------------------------------------------------------------- inputs ---
@@ -112,18 +97,6 @@ def sample_period_s(ds) -> float:
     return float(np.median(dt)) if len(dt) else 1.0
 
 
-def process_samples(ds, run: str) -> pd.DataFrame:
-    """The run's process log with ``measuring`` (inside a measuring cycle: what the
-    compensator knows and leaves out of the motion features)."""
-    pr = ds.process_run(run).copy()
-    t = pr["t_s"].to_numpy()
-    meas = np.zeros(t.size, dtype=bool)
-    for a, b in measuring_intervals(pr, ds.errors_run(run)):
-        meas |= (t >= a) & (t <= b)
-    pr["measuring"] = meas
-    return pr
-
-
 def _filters_json(enc: Encoded, sensor: str) -> list[dict]:
     """The preprocessing chain of one sensor, from the encoded sensor block."""
     from .encoding import FSTEP_VALS, SENSOR_VALS
@@ -141,152 +114,6 @@ def _filters_json(enc: Encoded, sensor: str) -> list[dict]:
         else:
             out.append({"filter": "kalman", "R": a, "Q": b, "ref": "seed 002 §2.3.1 eq. 2-3"})
     return out
-
-
-# ------------------------------------------------------------------- onnx ---
-def write_onnx(model, path: Path, ds=None, runs: Sequence[str] = ()) -> dict:
-    """The net's thermal part as ONNX (float32, inputs in raw units, standardisation inside),
-    run by onnxruntime against the Python model; returns the check's figures."""
-    import io
-
-    from ..errors import require
-    from ..models.neural import GRUModel, torch
-
-    nn = torch.nn
-    ort = require("onnxruntime", "the ONNX export of a neural model (or set export.onnx=false)")
-    require("onnx", "the ONNX export of a neural model (or set export.onnx=false)")
-
-    gru = isinstance(model, GRUModel)
-    means = [torch.tensor(np.asarray(m, dtype=np.float32)) for m in model.input_mean_]
-    scales = [torch.tensor(np.asarray(s, dtype=np.float32)) for s in model.input_scale_]
-    net = _float32_copy(model.net_)
-    ym, ys = float(model.y_mean_um_), float(model.y_scale_um_)
-
-    class Wrap(nn.Module):
-        def forward(self, *xs):
-            z = [(x - m) / s for x, m, s in zip(xs, means, scales)]
-            return net(*z) * ys + ym
-
-    S = len(model.sensors_)
-    if gru:
-        example = (torch.zeros(2, model.n_lags_ + 1, S), torch.zeros(2, 1))
-        names = ["dT_history_C", "axis_mm"]
-        axes = {"dT_history_C": {0: "n"}, "axis_mm": {0: "n"}, "thermal_um": {0: "n"}}
-    else:
-        example = (torch.zeros(2, S + 1),)
-        names = ["dT_C_and_axis_mm"]
-        axes = {"dT_C_and_axis_mm": {0: "n"}, "thermal_um": {0: "n"}}
-    buf = io.BytesIO()
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # tracer notes on the GRU's shape checks; the result is checked below
-        torch.onnx.export(Wrap().eval(), example, buf, dynamo=False, input_names=names, output_names=["thermal_um"],
-                          dynamic_axes=axes, opset_version=17)  # fmt: skip
-    data = buf.getvalue()
-    path.write_bytes(data)
-    # check: onnxruntime against the Python model on held-out readings (or the training scale)
-    if ds is not None and runs:
-        from ..models.base import readings
-
-        rd = readings(ds, list(runs))
-        feats = [model._inputs(ds, r, g["t_s"].to_numpy(), g["target_mm"].to_numpy()) for r, g in rd.groupby("run_id", sort=False)]
-        inputs = [np.concatenate([f[i] for f in feats]) for i in range(len(feats[0]))]
-        with torch.no_grad():
-            ref = model._forward(inputs).numpy() * ys + ym
-    else:
-        rng = np.random.default_rng(0)
-        inputs = [m + s * rng.standard_normal((64, *np.shape(m))) for m, s in zip(model.input_mean_, model.input_scale_)]
-        if gru:
-            inputs[0] = np.repeat(inputs[0][:, None, :], model.n_lags_ + 1, axis=1)
-        with torch.no_grad():
-            ref = model._forward(inputs).numpy() * ys + ym
-    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
-    got = sess.run(None, {n: np.asarray(a, dtype=np.float32) for n, a in zip(names, inputs)})[0]
-    return {"file": path.name, "bytes": len(data), "inputs": names, "output": "thermal_um",
-            "onnxruntime_max_abs_diff_um": float(np.max(np.abs(got - ref))), "n_checked": int(ref.size),
-            "note": "thermal part only, float32; the geometric part is in the .tbm file"}  # fmt: skip
-
-
-def _float32_copy(net):
-    import copy
-
-    out = copy.deepcopy(net).float().eval()
-    for p in out.parameters():
-        p.requires_grad_(False)
-    return out
-
-
-# ----------------------------------------------------------------- parity ---
-def python_predictions(model, ds, run: str, q: pd.DataFrame) -> np.ndarray:
-    return model.predict_at(ds, run, q["t_s"].to_numpy(), q["axis_mm"].to_numpy())
-
-
-def readings_queries(ds, run: str) -> pd.DataFrame:
-    er = ds.errors_run(run)
-    return pd.DataFrame({"t_s": er["t_s"].to_numpy(), "axis_mm": er["target_mm"].to_numpy(), "error_um": er["error_um"].to_numpy()})
-
-
-def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
-               exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
-               lenient: bool = False, live: bool = False, probes: pd.DataFrame | None = None,
-               probe_params=None, guard: bool = False) -> pd.DataFrame:  # fmt: skip
-    """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory
-    (``live``: as the compensator answers; ``probes`` with ``probe_params``: corrected by probe
-    readings; ``guard``: with the extrapolation guard's distance from the export's envelope file,
-    :func:`.runtime.replay`)."""
-    files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
-    env = None
-    if guard:
-        man = manifest if manifest is not None else read_manifest(Path(model_dir))
-        env = Path(model_dir) / man.get("envelope", {}).get("file", "")
-        if not man.get("envelope", {}).get("file") or not env.is_file():
-            raise ExportError(f"{model_dir}: no envelope file (exported without its training data, or before thermbench "
-                              "wrote one): the guard needs it")  # fmt: skip
-    return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient,
-                          live=live, probes=probes, probe_params=probe_params, guard=env)  # fmt: skip
-
-
-def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,
-                  samples: pd.DataFrame | None = None) -> tuple[list[Path], pd.DataFrame, list[str], bool]:  # fmt: skip
-    """What a replay of an export directory over ``run`` of ``ds`` feeds the runtime: the model
-    files (a bank: the classifier, then the members in class order), the process samples, the
-    columns after the motion (temperatures, then operating inputs) and whether it is a bank."""
-    model_dir = Path(model_dir)
-    man = manifest if manifest is not None else read_manifest(model_dir)
-    temps = []
-    for s in man["temperatures"]:
-        col = ds.metadata.sensor_column(s) if s in ds.metadata.sensors else None
-        if col is None or col not in ds.process.columns:
-            raise ExportError(f"{model_dir}: the model reads sensor {s!r}, which dataset {ds.path} lacks; "
-                              f"it has {list(ds.metadata.sensors)}")  # fmt: skip
-        temps.append(col)
-    samples = process_samples(ds, run) if samples is None else samples
-    for c in man.get("operating", []):  # input channels after the temperatures
-        if c not in samples.columns:
-            raise ExportError(f"{model_dir}: the model reads the operating input {c!r}, which run {run!r} of {ds.path} "
-                              f"lacks; its process columns: {list(samples.columns)}")  # fmt: skip
-        temps.append(c)
-    if man.get("needs_load") and "load_N" not in samples:
-        raise ExportError(f"{model_dir}: the model reads load_N, which run {run!r} of {ds.path} lacks")
-    if man["kind"] == "bank":
-        files = [model_dir / man["bank"]["classifier"], *[model_dir / m["file"] for m in man["bank"]["members"]]]
-        return files, samples, temps, True
-    f = man["files"].get(variant)
-    if f is None:
-        raise ExportError(f"{model_dir}: no file variant {variant!r}; it has {sorted(man['files'])}")
-    return [model_dir / f["file"]], samples, temps, False
-
-
-def read_manifest(model_dir: Path) -> dict:
-    p = Path(model_dir) / MANIFEST
-    if not p.exists():
-        raise ExportError(f"{model_dir}: no {MANIFEST}; export a model there with `thermbench export`")
-    try:
-        man = json.loads(p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise ExportError(f"{p}: not valid JSON ({exc})") from None
-    if man.get("format") != FORMAT:
-        raise ExportError(f"{p}: format {man.get('format')!r}, expected {FORMAT!r}")
-    return man
 
 
 # ----------------------------------------------------------------- export ---
@@ -315,7 +142,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
     source = dict(source or {})
     heldout = [r for r in heldout if ds is not None and r in ds.run_ids]
     period_note = "median step of the dataset's process log" if ds is not None else "assumed (no dataset given)"
-    man: dict[str, Any] = {"format": FORMAT, "name": name, "family": f"{type(model).__module__}.{type(model).__name__}",
+    man: dict[str, Any] = {"format": directory.FORMAT, "name": name,
+                           "family": f"{type(model).__module__}.{type(model).__name__}",
                            "thermbench_version": __version__,
                            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
     with output_dir(out_dir, "model-export", force=force) as tmp:
@@ -362,9 +190,9 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                   "params": {k: float(v) for k, v in model.params_.items()},
                                   "ref": "seed 000 §3.1-3.2, §4.1; compensation table §4.3"}  # fmt: skip
             if opts.onnx and isinstance(model, neural_classes):
-                man["onnx"] = write_onnx(model, tmp / "model.onnx", ds, heldout)
+                man["onnx"] = onnxfile.write_onnx(model, tmp / "model.onnx", ds, heldout)
         man["needs_load"] = any(e.needs_load for e in encs.values())
-        man["target"] = {"name": opts.target, **TARGETS[opts.target]}  # what the export is for (checked below)
+        man["target"] = {"name": opts.target, **budget.TARGETS[opts.target]}  # what the export is for (checked below)
         man["sample_period_s"] = period
         man["sample_period_from"] = period_note
         man["temperatures"] = temps
@@ -405,8 +233,8 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
         man["metrics"] = source.pop("metrics", {})
         man["mlflow_run_id"] = source.pop("mlflow_run_id", None)
         man["source"] = source
-        man["footprint"] = footprint(tmp, man)
-        if TARGETS[opts.target]["budget"]:
+        man["footprint"] = budget.footprint(tmp, man)
+        if budget.TARGETS[opts.target]["budget"]:
             man["target"]["footprint"] = _check_target(tmp, man, opts.target, name)
         if opts.verify and ds is not None:
             # parity on held-out runs; when every run trained the model, on those (parity, not accuracy)
@@ -415,7 +243,7 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
             man["parity"]["runs_are_training_runs"] = not heldout
             if opts.target == "cortex-m4f":
                 man["target"]["measured"] = _measure_on_target(tmp, man, ds, runs, name)
-        (tmp / MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        (tmp / directory.MANIFEST).write_text(json.dumps(man, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return man
 
 
@@ -449,106 +277,6 @@ def interval_calibration(model: ThermalErrorModel, ds, runs: Sequence[str], sens
                            "(1 + kappa * distance to the others' envelope); half-width = q_um * (1 + kappa * distance)"}  # fmt: skip
 
 
-#: seed 002's compensator, an STM32F407 (1 MB flash, 192 KB RAM, 168 MHz): the issue's budget per model
-BUDGET = {"file_bytes": 64 * 1024, "ram_bytes": 16 * 1024, "small_file_bytes": 1024}
-SMALL_KINDS = ("MLR_CURVE", "MLR_SEED001", "CLASSIFIER")
-
-
-def footprint(model_dir: Path, man: dict) -> dict:
-    """File bytes and RAM (state arena + model handles) as the C runtime reports them, against
-    :data:`BUDGET` (MLR files and the classifier <= 1 KB). Instruction counts: benchmarks/bench_export.py."""
-    if man["kind"] == "bank":
-        entries = [man["bank"]["classifier_file"], *man["bank"]["members"]]
-        names = [man["bank"]["classifier"], *[m["file"] for m in man["bank"]["members"]]]
-    else:
-        entries = [man["files"]["model"]]
-        names = [man["files"]["model"]["file"]]
-    try:
-        inf = runtime.info([Path(model_dir) / n for n in names])
-    except runtime.RuntimeUnavailable as exc:  # export.verify=false works without gcc; RAM is then unknown
-        return {"file_bytes": int(sum(e["bytes"] for e in entries)), "ram_bytes": None, "budget": BUDGET,
-                "within_budget": None, "over_budget": [], "note": f"RAM not measured: {exc}"}  # fmt: skip
-    ram = int(inf["state_bytes"].sum() + inf["model_bytes"].sum())
-    over = [f"{n}: {e['bytes']} B file" for n, e in zip(names, entries)
-            if e["bytes"] > (BUDGET["small_file_bytes"] if e["kind"] in SMALL_KINDS else BUDGET["file_bytes"])]  # fmt: skip
-    if ram > BUDGET["ram_bytes"]:
-        over.append(f"{ram} B RAM")
-    return {"file_bytes": int(inf["file_bytes"].sum()), "ram_bytes": ram, "budget": BUDGET,
-            "within_budget": not over, "over_budget": over}  # fmt: skip
-
-
-def _check_target(model_dir: Path, man: dict, target: str, name: str) -> dict:
-    """The export's files and state arenas in the target's build (the host's 64-bit pointers make
-    the arenas a little larger than on a 32-bit target), refused beyond the target's budget."""
-    budget = TARGETS[target]["budget"]
-    files = ([man["bank"]["classifier"], *[m["file"] for m in man["bank"]["members"]]] if man["kind"] == "bank"
-             else [f["file"] for f in man["files"].values()])  # fmt: skip
-    inf = runtime.info([Path(model_dir) / f for f in files], SINGLE_FLAGS if TARGETS[target]["precision"] == "float" else ())
-    arena = int(inf["state_bytes"].sum()) if man["kind"] == "bank" else int(inf["state_bytes"].max())
-    over = [f"{f}: {b} B file" for f, b in zip(files, inf["file_bytes"]) if b > budget["file_bytes"]]
-    if arena > budget["ram_bytes"]:
-        why = (f"the bank's {len(files) - 1} members each keep their own state ({', '.join(map(str, inf['state_bytes'][1:]))} B)"
-               if man["kind"] == "bank" else f"its state arena")  # fmt: skip
-        over.append(f"{arena} B of state arena, above the target's {budget['ram_bytes']} B ({why})")
-    if over:
-        raise TargetRefused(f"{name}: does not fit the {target} target: {'; '.join(over)}. Export a smaller model "
-                          f"(a global model instead of a bank, a shorter window_s for a GRU) or for export.target=host")  # fmt: skip
-    return {"arena_bytes": arena, "file_bytes": [int(b) for b in inf["file_bytes"]], "budget": budget}
-
-
-def _measure_on_target(model_dir: Path, man: dict, ds, runs: Sequence[str], name: str) -> dict:
-    """Each file variant in single precision on the emulated Cortex-M4F (:mod:`.target`, QEMU) over
-    **every** parity run, answering a query at every process sample: its worst instructions per
-    control cycle and per prediction over all runs (with the run and the time of the worst cycle),
-    the end-of-stream finish call on its own, arena, stack and the one-kind image's flash, refused
-    beyond the budget (one physics update: ``physics_update_insn``); and its answers against the
-    host's double build at every sample (``parity_vs_host_double_um``)."""
-    from . import target as tgt
-
-    budget = TARGETS["cortex-m4f"]["budget"]
-    try:
-        tgt.toolchain()
-    except runtime.RuntimeUnavailable as exc:
-        raise ExportError(f"{name}: export.target=cortex-m4f measures the model on the emulated M4: {exc}") from None
-    out: dict[str, Any] = {"runs": list(runs), "queries": "every process sample"}
-    over = []
-    host = runtime.build("tb_replay")
-    for variant in (["model"] if man["kind"] == "bank" else list(man["files"])):
-        kind = man["kind"] if man["kind"] == "bank" else man["files"][variant]["kind"]
-        m: dict[str, Any] = {"cycle_insn_max": 0, "prediction_insn_max": 0, "finish_insn_max": 0, "arena_bytes": 0,
-                             "stack_bytes": 0, "parity_vs_host_double_um": 0.0, "n_samples": 0}  # fmt: skip
-        for run in runs:
-            files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, man)
-            q = pd.DataFrame({"t_s": samples["t_s"].to_numpy(), "axis_mm": samples["axis_mm"].to_numpy()})
-            got, rep = tgt.replay(files, samples, temps, q, precision="float", arena_bytes=budget["ram_bytes"])
-            if rep["rc"] != 0:
-                over.append(f"{variant}: the firmware stopped on run {run!r} ({rep['end']})")
-                break
-            ref = runtime.replay(files, samples, temps, q, bank=bank, exe=host)
-            m["parity_vs_host_double_um"] = max(m["parity_vs_host_double_um"],
-                                                float(np.max(np.abs(got["total_um"].to_numpy() - ref["total_um"].to_numpy()))))  # fmt: skip
-            if rep.get("step_insn_max", 0) > m["cycle_insn_max"]:
-                m["cycle_insn_max"], m["cycle_worst_run"] = rep["step_insn_max"], run
-            for key, what in (("prediction_insn_max", "predict_insn_max"), ("finish_insn_max", "finish_insn_max"),
-                              ("arena_bytes", "arena_bytes"), ("stack_bytes", "stack_bytes")):  # fmt: skip
-                m[key] = max(m[key], int(rep.get(what, 0)))
-            m["n_samples"] += len(samples)
-        m["image_bytes"] = None if man["kind"] == "bank" else tgt.image(files[0], "float").flash_bytes
-        out[variant] = m
-        cyc = budget["physics_update_insn"] if kind == "PHYSICS" else budget["cycle_insn"]
-        for what, v, lim in (("control cycle", m["cycle_insn_max"], cyc), ("prediction", m["prediction_insn_max"],
-                             budget["prediction_insn"]), ("one-kind image", m["image_bytes"] or 0, budget["image_bytes"])):  # fmt: skip
-            if v > lim:
-                at = f" (worst on run {m['cycle_worst_run']!r})" if what == "control cycle" else ""
-                over.append(f"{variant}: {what} {v} {'B' if what.endswith('image') else 'instructions'} > {lim}{at}")
-    if over:
-        hint = (" (a GRU's prediction runs window_s / step_s + 1 lags of 3 x hidden x (hidden + sensors) "
-                "multiply-adds: fewer lags or hidden units)" if '"GRU"' in json.dumps([man.get("files"), man.get("bank")]) else "")  # fmt: skip
-        raise TargetRefused(f"{name}: over the cortex-m4f budget, measured on the emulated M4 in float over every sample "
-                            f"of {list(runs)}: {'; '.join(over)}{hint}")  # fmt: skip
-    return out
-
-
 def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: Sequence[str] = ()) -> list[dict]:
     out = [{"name": "t_s", "unit": "s", "what": "time of the process sample (uniform period)"},
            {"name": "axis_mm", "unit": "mm", "what": "axis position"},
@@ -566,75 +294,4 @@ def _inputs_json(ds, temps: list[str], needs_load: bool, bank: bool, operating: 
     return out
 
 
-#: the C runtime in single precision (tb_runtime.h), as the Cortex-M4F target builds it
-SINGLE_FLAGS = ("-DTB_SINGLE",)
-
-
-def _float_hint(model) -> str:
-    """Why single precision may not be enough for ``model``, and what to do instead."""
-    from ..models.lssvm import PSOLSSVM
-
-    lssvms = [model] if isinstance(model, PSOLSSVM) else [m for m in getattr(model, "models_", {}).values()
-                                                           if isinstance(m, PSOLSSVM)]  # fmt: skip
-    if lssvms:
-        return (": an LSSVM's kernel weights are large and cancel, and float32 keeps 7 digits of each term; for a "
-                "float target fit it on fewer samples (max_samples: fewer support vectors) or with a smaller penalty "
-                "(gamma), or choose another family, or run the runtime in double (export.target=host)")  # fmt: skip
-    return ": run this model on a double-precision build (export.target=host)"
-
-
-def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str,
-            precision: str = "double") -> dict:  # fmt: skip
-    """C runtime vs the Python model at every reading of ``runs`` (parity), per file variant, in
-    double and in single precision (``-DTB_SINGLE``); the build of ``precision`` must be within ``tol_um``.
-    And the single-precision build vs the double one at **every process sample** of every run (grid
-    times of a bank's classifier, stream ends: where a time comparison that holds in double can fail
-    in float; readings alone never fall on a grid time): within ``tol_um`` too when the target is float."""
-    out: dict[str, Any] = {"runs": list(runs), "tolerance_um": tol_um, "precision": precision}
-    exes = {"double": runtime.build("tb_replay"), "float": runtime.build("tb_replay", SINGLE_FLAGS)}
-    for variant, model in models_py.items():
-        file_variant = "model" if variant == "bank" else variant
-        worst, n, err_c, err_py = {"double": 0.0, "float": 0.0}, 0, [], []
-        every, n_samples, where = 0.0, 0, None  # float vs double at every process sample
-        for run in runs:
-            q = readings_queries(ds, run)
-            py = python_predictions(model, ds, run, q)
-            s = process_samples(ds, run)
-            # one replay per precision answers the readings and every process sample: the two query
-            # sets merged in time order (tb_replay takes nondecreasing times), answers split back
-            qs = pd.DataFrame({"t_s": s["t_s"].to_numpy(dtype=float), "axis_mm": s["axis_mm"].to_numpy(dtype=float)})
-            merged = pd.concat([q[["t_s", "axis_mm"]].astype(float), qs], ignore_index=True)
-            order = np.argsort(merged["t_s"].to_numpy(), kind="stable")  # stable: each set keeps its own order
-            is_reading = order < len(q)
-            files, s, cols, bank = replay_inputs(tmp, ds, run, file_variant, man, s)
-            text = runtime.stream_text(s, cols, merged.iloc[order])  # one input, both builds
-            total = {}
-            for prec, exe in exes.items():
-                total[prec] = runtime.replay_text(exe, files, text, bank=bank)["total_um"].to_numpy()
-                at_readings = total[prec][is_reading]
-                worst[prec] = max(worst[prec], float(np.max(np.abs(at_readings - py))))
-                if prec == precision:
-                    err_c.append(q["error_um"].to_numpy() - at_readings)
-            n += len(q)
-            err_py.append(q["error_um"].to_numpy() - py)
-            d = np.abs(total["float"][~is_reading] - total["double"][~is_reading])
-            if d.size and float(d.max()) > every:
-                every, where = float(d.max()), (run, float(qs["t_s"].iloc[int(np.argmax(d))]))
-            n_samples += len(qs)
-        key = file_variant
-        out[key] = {"max_abs_diff_um": worst["double"], "float_max_abs_diff_um": worst["float"], "n_readings": n,
-                    "float_vs_double_every_sample_max_abs_um": every, "n_samples": n_samples,
-                    "heldout_rmse_um_c": float(np.sqrt(np.mean(np.concatenate(err_c) ** 2))),
-                    "heldout_rmse_um_python": float(np.sqrt(np.mean(np.concatenate(err_py) ** 2)))}  # fmt: skip
-        if worst[precision] > tol_um:
-            build, err = ("", ExportError) if precision == "double" else (" in single precision (-DTB_SINGLE)", TargetRefused)
-            raise err(f"{name} ({variant}): the C runtime{build} differs from the Python model by {worst[precision]:.4g} um "
-                      f"on held-out runs {list(runs)}, above parity_tol_um={tol_um}"
-                      f"{_float_hint(model) if precision == 'float' else ''}")  # fmt: skip
-        if precision == "float" and every > tol_um:
-            raise TargetRefused(f"{name} ({variant}): the C runtime in single precision (-DTB_SINGLE) differs from the "
-                                f"double build by {every:.4g} um at t = {where[1]:g} s of run {where[0]!r} (every process "
-                                f"sample of {list(runs)} compared), above parity_tol_um={tol_um}{_float_hint(model)}")  # fmt: skip
-    if "reduced" in out:
-        out["reduced_cost_um"] = out["reduced"]["heldout_rmse_um_python"] - out["model"]["heldout_rmse_um_python"]
-    return out
+__getattr__ = thermbench.moved_names(__name__)

@@ -27,7 +27,8 @@ from omegaconf import DictConfig, OmegaConf
 from ..bench import datasets
 from ..config import ConfigError
 from ..outputs import check_output_dir, output_dir
-from .bundle import TARGETS, ExportOptions, TargetRefused, export_model
+from .budget import TARGETS, TargetRefused
+from .bundle import ExportOptions, export_model
 from .encoding import ExportError
 
 KEYS = {"source", "select", "model_uri", "name", "alias", "dataset", "channel", "out_dir", "lssvm_reduced_size", "onnx",

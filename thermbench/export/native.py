@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from . import runtime
-from .bundle import read_manifest
+from .directory import read_manifest
 from .encoding import ExportError
 
 # tb_runtime.h

@@ -29,7 +29,7 @@ from ..data.io import load_dataset
 from ..data.reference import frame_text, thermal_errors
 from ..bench.metrics import cycle_curves, residual_metrics
 from ..outputs import output_dir
-from .bundle import read_manifest, replay_dir
+from .directory import read_manifest, replay_dir
 from .encoding import ExportError
 
 

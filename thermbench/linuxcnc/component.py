@@ -43,7 +43,9 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from ..compensator.cyclelog import CycleLog, Ring, cycle_stats, status_line
-from ..compensator.control import Cycle, CycleLogic, Deadlines, Flags, Reading, Settings, config_error
+from ..compensator.control import Cycle, CycleLogic, Flags, Reading
+from ..compensator.deadlines import Deadlines
+from ..compensator.settings import Settings, config_error
 from ..errors import UserError
 from ..outputs import check_output_file, write_text
 

@@ -42,7 +42,7 @@ from typing import Any, Mapping
 import numpy as np
 import pandas as pd
 
-from ..compensator.control import Deadlines
+from ..compensator.deadlines import Deadlines
 from ..outputs import check_output_dir, output_dir
 from .component import UNITS_MM, _choice, _positive, import_linuxcnc_module, temp_pin
 
@@ -94,7 +94,7 @@ class ThermalPlant:
         self.name = str(cfg["name"])
         key = str(cfg["benchmark"])
         if key not in datasets.names():
-            from ..compensator.control import config_error
+            from ..compensator.settings import config_error
 
             raise config_error(f"config key 'benchmark': {key!r} is not a benchmark dataset; known: {datasets.names()}")
         bcfg = _plain(datasets.benchmark_config(key))

@@ -33,16 +33,13 @@ import sys
 from pathlib import Path
 from typing import Any, Mapping
 
+import thermbench
+
 from ..errors import UserError
 from ..outputs import output_dir
+from . import verify
 
 FILES = Path(__file__).parent / "files"
-#: the sampler's columns: (name, cfg letter f=float s=s32, HAL signal, the pin that drives it when the
-#: signal is made here; None: a signal the other nets already made)
-SAMPLED = (("pos_cmd_mm", "f", "tb-pos-cmd", "axis.x.pos-cmd"), ("eoffset_mm", "f", "tb-eoffset", None),
-           ("eoffset_request_mm", "f", "tb-eoffset-request", "axis.x.eoffset-request"),
-           ("actual_mm", "f", "J0:pos-fb", None), ("machine_s", "f", "tb-time", None),
-           ("counts", "s", "tb-counts", None), ("machine_on", "b", "sample:enable", None))  # fmt: skip
 
 
 class LinuxCncSimError(UserError):
@@ -167,10 +164,11 @@ def hal_text(cfg: Mapping[str, Any], sensors: list[str], python: str) -> str:
               "net tb-enable tbcomp.eoffset-enable => axis.x.eoffset-enable",
               "net tb-clear tbcomp.eoffset-clear => axis.x.eoffset-clear",
               "net tb-eoffset axis.x.eoffset => tbplant.eoffset",
-              "", "# every servo period: " + ", ".join(n for n, _, _, _ in SAMPLED),
-              f"loadrt sampler depth=20000 cfg={''.join(c for _, c, _, _ in SAMPLED)}",
+              "", "# every servo period: " + ", ".join(n for n, _, _, _ in verify.SAMPLED),
+              f"loadrt sampler depth=20000 cfg={''.join(c for _, c, _, _ in verify.SAMPLED)}",
               "addf sampler.0 servo-thread"]  # fmt: skip
-    lines += [f"net {sig} {pin or ''} => sampler.0.pin.{i}".replace("  ", " ") for i, (_, _, sig, pin) in enumerate(SAMPLED)]
+    lines += [f"net {sig} {pin or ''} => sampler.0.pin.{i}".replace("  ", " ")
+              for i, (_, _, sig, pin) in enumerate(verify.SAMPLED)]
     lines += ["loadusr halsampler -t samples.txt", ""]
     return "\n".join(lines)
 
@@ -329,7 +327,6 @@ def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=Non
     its directory is kept for a look."""
     from ..config import with_defaults
     from ..export.native import LiveModel
-    from . import verify
 
     cfg = dict(cfg or {})
     extra = cfg.pop("component", None) or {}  # the component's own keys: checked against its config
@@ -380,3 +377,6 @@ def run_sim(model_dir: str | Path, cfg: Mapping[str, Any] | None = None, say=Non
 def _tail(text: str, n: int = 6) -> str:
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith("task: main loop took")]
     return " | ".join(lines[-n:])
+
+
+__getattr__ = thermbench.moved_names(__name__)  # SAMPLED: in .verify, the records the checks read

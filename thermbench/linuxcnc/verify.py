@@ -30,11 +30,16 @@ SERVO_S = 0.001  # [EMCMOT]SERVO_PERIOD of the sim configuration
 #: (a loaded host writes less often, in bigger steps), the time to follow it does not
 FOLLOW_PERIODS = 50
 
+#: the sampler's columns: (name, cfg letter f=float s=s32, HAL signal, the pin that drives it when the
+#: signal is made here; None: a signal the other nets already made)
+SAMPLED = (("pos_cmd_mm", "f", "tb-pos-cmd", "axis.x.pos-cmd"), ("eoffset_mm", "f", "tb-eoffset", None),
+           ("eoffset_request_mm", "f", "tb-eoffset-request", "axis.x.eoffset-request"),
+           ("actual_mm", "f", "J0:pos-fb", None), ("machine_s", "f", "tb-time", None),
+           ("counts", "s", "tb-counts", None), ("machine_on", "b", "sample:enable", None))  # fmt: skip
+
 
 def read_samples(path: Path) -> pd.DataFrame:
     """halsampler's output (``-t``: the sample number first), one column per sampled pin."""
-    from .sim import SAMPLED
-
     names = ["sample", *(n for n, _, _, _ in SAMPLED)]
     df = pd.read_csv(path, sep=r"\s+", header=None, names=names, engine="python", on_bad_lines="skip")
     df = df.apply(pd.to_numeric, errors="coerce").dropna()  # the last line may be cut when halsampler is stopped
