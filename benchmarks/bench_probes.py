@@ -2,7 +2,7 @@
 
 For each channel of ``fl_thermal`` and each family given: the family fitted on the five
 constant-speed blocks predicts the stepped tail (never trained on); the probe filter's noise
-(thermbench/adapt.py :func:`estimate_noise`) is estimated from the family's residuals on the
+(thermbench/bench/adapt.py :func:`estimate_noise`) is estimated from the family's residuals on the
 training blocks, each predicted by a fit without it (leave one block out: nothing of the tail);
 then the tail is replayed with a probe every ``every_s`` (the first at the tail's start), the
 probes being the tail's own readings at those times, and **scored on the other readings only**:

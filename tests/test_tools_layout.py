@@ -16,8 +16,8 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "thermbench"
 
 # Imports thermbench and every module file below it (pkgutil.walk_packages would skip
-# thermbench/models/, a namespace package without __init__.py; thermbench.__main__ runs the command
-# line when imported and only imports thermbench.cli), then reports the tools modules loaded. A
+# thermbench/models/, a namespace package without __init__.py; a __main__ (thermbench's, thermbench.cli's)
+# runs the command line when imported and only imports thermbench.cli), then reports the tools modules loaded. A
 # positive control follows: importing the tools must show up the same way.
 PROBE = """
 import importlib, json, sys
@@ -25,7 +25,7 @@ from pathlib import Path
 import thermbench
 root = Path(thermbench.__file__).parent
 names = sorted({".".join(("thermbench", *p.relative_to(root).with_suffix("").parts)).removesuffix(".__init__")
-                for p in root.rglob("*.py")} - {"thermbench", "thermbench.__main__"})
+                for p in root.rglob("*.py") if p.name != "__main__.py"} - {"thermbench"})
 for name in names:
     importlib.import_module(name)
 def loaded():

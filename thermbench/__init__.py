@@ -87,6 +87,13 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "explained": "thermbench.discrepancy.significance", "decide": "thermbench.discrepancy.significance",
         "display": "thermbench.discrepancy.significance",
     },
+    "thermbench.cli": {
+        **dict.fromkeys(["cmd_certs", "cmd_classify", "cmd_compensator", "cmd_diagnose", "cmd_import", "cmd_iso230",
+                         "cmd_linuxcnc", "cmd_precompensate", "cmd_replay", "cmd_sim_cnc", "cmd_simulate", "cmd_station",
+                         "cmd_validate"], "thermbench.cli.commands"),
+        "HYDRA_JOBS": "thermbench.cli.parser",
+    },
+    "thermbench.report.markdown": {"PROBES_MD": "thermbench.report.details"},
     "thermbench.compensator.control": {
         "Deadlines": "thermbench.compensator.deadlines",
         "Settings": "thermbench.compensator.settings",

@@ -200,7 +200,7 @@ tb_real tb_bank_ready_s(const tb_bank *b);
 int tb_bank_predict(const tb_bank *b, tb_real t_s, tb_real axis_mm, tb_real *thermal_um, tb_real *total_um,
                     int32_t *label);
 
-/* online updates from probe readings (src/tb_probe.c; thermbench/adapt.py): a Kalman filter on a
+/* online updates from probe readings (src/tb_probe.c; thermbench/bench/adapt.py): a Kalman filter on a
  * bias and a gain correction of the model's total error,
  *   measured = (1 + gain) * predicted + bias + v,  v ~ N(0, r_um2),
  * the bias and gain walking at random between probes (q_* per hour). The caller keeps the state
@@ -231,7 +231,7 @@ int tb_probe_correct(const tb_probe_state *f, tb_real t_s, tb_real predicted_um,
 int tb_probe_update(tb_probe_state *f, tb_real t_s, tb_real predicted_um, tb_real measured_um, tb_real *innovation_um);
 int tb_probe(const tb_model *m, tb_probe_state *f, tb_real t_s, tb_real axis_mm, tb_real measured_um);
 
-/* the extrapolation guard (src/tb_guard.c; thermbench/intervals.py EnvelopeGuard): a model's
+/* the extrapolation guard (src/tb_guard.c; thermbench/bench/intervals.py EnvelopeGuard): a model's
  * training envelope (the export's envelope.tbm, read in place) followed sample by sample. Per
  * control cycle, after tb_model_step with the same sample:
  *   tb_guard_step(&g, &sample, &distance);   distance > 0: EXTRAPOLATING (in widths of the range)

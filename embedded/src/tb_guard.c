@@ -1,6 +1,6 @@
 /*
  * tb_guard.c - the extrapolation guard: the training envelope of a model's inputs followed
- * sample by sample, as thermbench/intervals.py (EnvelopeGuard) follows it. Allocation-free.
+ * sample by sample, as thermbench/bench/intervals.py (EnvelopeGuard) follows it. Allocation-free.
  *
  * Inputs, per sample: each sensor's rise above its first sample (K), its high-pass rate
  * (T - e) * 3600 / tau, e the exponential average e += (1 - exp(-dt / tau)) (T - e) (K/h), then

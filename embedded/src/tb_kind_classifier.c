@@ -204,7 +204,7 @@ static uint32_t clf_first_after(const clf_t *k, tb_real T)
     return lo;
 }
 
-/* features of the window (T - window, T] (thermbench.classify.window_features, with the feed
+/* features of the window (T - window, T] (thermbench.models.motion_windows.window_features, with the feed
  * levels clustered over the window and its two neighbour samples); returns the raw label or -1 */
 static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
 {
@@ -249,7 +249,7 @@ static int32_t clf_window(const tb_model *m, clf_t *k, tb_real T)
         nu++;
     }
     if (nu == 0) return -1;
-    /* chain clustering within 1 % (thermbench.classify._cluster_feeds): lev[j] = level of u[j] */
+    /* chain clustering within 1 % (thermbench.models.motion_windows._cluster_feeds): lev[j] = level of u[j] */
     {
         uint32_t j;
         lev[0] = 0;

@@ -1,6 +1,6 @@
 /*
  * tb_probe.c - online updates from probe readings: the bias + gain Kalman filter of
- * thermbench/adapt.py (ProbeFilter), in the runtime's precision, allocation-free.
+ * thermbench/bench/adapt.py (ProbeFilter), in the runtime's precision, allocation-free.
  *
  *   measured = (1 + gain) * predicted + bias + v,   v ~ N(0, r_um2)
  *   between probes bias and gain walk at random: q_bias_um2_per_h, q_gain_per_h per hour

@@ -19,15 +19,23 @@
                                                OPC UA compensator: the exported model against a live machine
     thermbench sim-cnc [--endpoint URL] [overrides...]
                                                a simulated CNC axis behind an OPC UA server (closed loop)
+    thermbench station STATION.yaml [overrides...]
+                                               one compensator for several axes and spindle channels
     thermbench certs OUT_DIR                   self-signed certificates for Basic256Sha256 sign-and-encrypt
+    thermbench linuxcnc component|plant|sim [MODEL_DIR] [overrides...]
+                                               LinuxCNC: the HAL component, a simulated plant, a closed loop
     thermbench train|evaluate|benchmark|export [hydra overrides...] [-m]
                                                Hydra jobs (thermbench.app): conf/<job>.yaml
 
-The package: :mod:`.parser` (the commands and their options) → :mod:`.main` (:func:`main`: the exit
+The package: :mod:`.parser` (the commands and their options) → :mod:`.entry` (:func:`main`: the exit
 code, a user's mistake in one line) → :mod:`.commands` (each command, a thin call into the function
 that does the work).
 """
 
-from .main import main
+import thermbench
+
+from .entry import main
 
 __all__ = ["main"]
+
+__getattr__ = thermbench.moved_names(__name__)  # the commands were in thermbench/cli.py (MOVED_NAMES)

@@ -37,7 +37,7 @@ def _number(lowest: float | None = None, integer: bool = False):
 
 def build_parser() -> tuple[_Parser, argparse._SubParsersAction]:
     """The ``thermbench`` parser and its sub-parsers, one per command (the Hydra jobs are not among them:
-    :func:`thermbench.cli.main.main` hands those to Hydra before parsing)."""
+    :func:`thermbench.cli.main` hands those to Hydra before parsing)."""
     parser = _Parser(
         prog="thermbench",
         description="Thermal error modelling and compensation for CNC machine tools: ball-screw feed axes and spindles.",

@@ -66,7 +66,7 @@ _UNDECLARED = "undeclared-runs"
 
 def build_tables(mapping_path: str | Path, progress=None) -> tuple[Metadata, pd.DataFrame, pd.DataFrame, list[str]]:
     """Read the mapping and its files; return the dataset's metadata and tables (not yet
-    written), and notes on what was left out (fully empty rows, per file). :class:`MappingError`
+    written), and notes on what was left out (fully empty rows, per file). :class:`.import_mapping.MappingError`
     names the mapping key of any mistake."""
     path = Path(mapping_path)
     m, lines = import_mapping.read_mapping(path)

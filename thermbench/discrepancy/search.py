@@ -1,4 +1,4 @@
-"""Name the missing effect: candidates, held-out scores, information criterion, the test.
+"""Name the missing effect: the candidates and their scores, and the screw family they are fitted in.
 
 Issue "Discrepancy workflow", steps 1, 3-5. The current model is the seed 000
 core (:class:`~thermbench.models.physics.PhysicsModel`: fixed-bearing heat, nut
@@ -16,7 +16,9 @@ current parameters (warm start), scored by
   autocorrelated in time, so BIC alone is lenient; the held-out criterion
   is the stricter half of the test.
 
-The test, BIC and the names of candidates are in :mod:`.significance`.
+The test and BIC are computed in :mod:`.significance`. :class:`ScrewFamily` is the screw's
+physics model as the search grows it, with :func:`more_data`, what to measure next when the
+runs cannot tell candidates apart.
 """
 
 from __future__ import annotations

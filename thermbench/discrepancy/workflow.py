@@ -11,7 +11,7 @@ command (:mod:`.job`).
    against the noise floor estimated from the data (:mod:`.noise`, :mod:`.localise`).
 3. Add each canonical effect not yet in the model, re-identify warm-started,
    score held-out error and BIC (:mod:`.search`).
-4. Name the missing effect by the stated test, or report a tie, or none.
+4. Name the missing effect by the stated test (:mod:`.significance`), or report a tie, or none.
 5. Add it, re-identify, report the held-out gap shrink; repeat up to ``max_effects``.
 """
 

@@ -3,7 +3,8 @@
 * :mod:`.fileformat` - the ``.tbm`` binary format (header, float32 payload, CRC-32);
 * :mod:`.encoding` - fitted models of every family and the condition classifier -> payloads;
 * :mod:`.reduce` - reduced-set LSSVM;
-* :mod:`.bundle` - an export directory (files, manifest.json, ONNX, parity check);
+* :mod:`.bundle` - an export directory written (files, manifest.json; the ONNX file and the parity check
+  through the modules below);
   :mod:`.directory` reads one back, :mod:`.samples` (a run as the runtime is fed it), :mod:`.onnxfile`,
   :mod:`.parity` (the C runtime against Python), :mod:`.budget` (the targets and whether an export fits);
 * :mod:`.runtime` - build and drive the C runtime in ``embedded/``;

@@ -12,6 +12,8 @@ made by three different programs:
 plus the offset, and does the offset follow the request (counts x scale) within LinuxCNC's
 own rate limit (``OFFSET_AV_RATIO`` x ``MAX_VELOCITY``)? :func:`replay_figures`: is the
 compensation written what ``thermbench replay`` computes from the plant's logged motion?
+:data:`SAMPLED` names the sampler's columns of ``samples.txt`` (the configuration :mod:`.sim` writes
+wires them in this order).
 """
 
 from __future__ import annotations

@@ -31,6 +31,10 @@ reference readings (cycle 0) fitted by a polynomial in position are the
 geometric error; the identification fits the measured thermal error
 (reading minus cold reference) with the model's error at the reading minus
 the model's error at that target's cold reference reading.
+
+The estimator (:class:`PhysicsModel`: parameters, the gains, the fit, predict) is here; its set-up
+(ambient, drive, effects, start values, coarse numerics) in :mod:`.physics_setup`, each run's
+prepared data and the field cache in :mod:`.physics_runs`, the Gauss-Newton polish in :mod:`.polish`.
 """
 
 from __future__ import annotations
@@ -261,9 +265,9 @@ class PhysicsModel(_PhysicsSetup, ThermalErrorModel):
         unit value (the others zero).
 
         The runs of one basis differ in the gains only, so each run's motion, ambient and
-        nut coverage are prepared once (:meth:`ScrewThermalModel.prepare`) and kept in
-        ``prepared`` ((run id, numerics, ambient source) -> the last :data:`PREPARED_PER_RUN` made, at as many Pf) for
-        the next basis at the same Pf: identification's finite-difference steps in k1, k2 and lambda
+        nut coverage are prepared once (:meth:`~thermbench.sim.model.ScrewThermalModel.prepare`) and
+        kept in ``prepared`` ((run id, numerics, ambient source) -> the last
+        :data:`.physics_runs.PREPARED_PER_RUN` made, at as many Pf) for the next basis at the same Pf: identification's finite-difference steps in k1, k2 and lambda
         reuse it, and a Jacobian's step in Pf does not drop the run at the point it steps from.
 
         Effects that do not touch the temperature field (``field_free``: offsets, slopes)

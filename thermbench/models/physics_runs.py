@@ -33,7 +33,7 @@ class _RunData:
 
 def _signals_at(rd: _RunData, p) -> tuple[dict, dict]:
     """The run's measured signals as rises above their first sample, at the steps of the
-    prepared run ``p``, and a dict for their lagged forms (:attr:`ThermalHistory.lagged`):
+    prepared run ``p``, and a dict for their lagged forms (:attr:`thermbench.sim.history.ThermalHistory.lagged`):
     kept with ``p`` for these signals, read-only."""
     kept = p.derived.get("signals_at")
     if kept is not None and kept[0] is rd.signals:
@@ -74,7 +74,7 @@ def _prepared_at(prepared: dict, rd: _RunData, model: ScrewThermalModel, source)
 
 class FieldCache:
     """The last ``size`` simulated temperature fields of an identification, by run, active
-    gain and every parameter the field depends on (:meth:`PhysicsModel._basis`). The
+    gain and every parameter the field depends on (:meth:`.physics.PhysicsModel._basis`). The
     discrepancy search hands one to the fits of a step (``field_cache``), so candidates that
     only add offsets or slopes re-read the current model's fields instead of re-simulating."""
 

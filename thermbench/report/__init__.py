@@ -9,7 +9,7 @@ same weakness with a bank of per-condition models and a condition classifier
 benchmark's long results table into those numbers, per dataset, error channel,
 family and approach, on the runs each model has *not* seen.
 
-Inputs (built by the benchmark; checked here, a missing column is a ValueError
+Inputs (built by the benchmark; checked by :mod:`thermbench.bench.results`, a missing column is a ValueError
 naming it and the frame):
 
 ``results``

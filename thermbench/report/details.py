@@ -190,7 +190,8 @@ def _channels_headline_md(r: pd.DataFrame, ds: str, ref: frozenset[str]) -> list
 
 def _channels_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: frozenset[str], fig_dir: Path,
                       fig_name: Callable[..., str], draw: "_Drawing") -> list[str]:
-    """The section of a dataset scored on several error channels (see :func:`write_report`)."""
+    """The section of a dataset scored on several error channels (see
+    :func:`thermbench.report.markdown.write_report`)."""
     chans, runs, states = _channels(r, ds), _runs(r, ds, "validation"), _runs(r, ds, "state")
     d = r[r["dataset"] == ds]
     md = [f"## {ds}", ""]

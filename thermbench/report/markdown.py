@@ -10,6 +10,8 @@ from typing import Mapping, Sequence
 
 import pandas as pd
 
+import thermbench
+
 from ..outputs import output_dir
 from .details import (
     FIGURES_DIR, HOW_TO_READ, HOW_TO_READ_BASELINES, HOW_TO_READ_CHANNELS, _channels_headline_md, _channels_section,
@@ -142,16 +144,16 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     report.md: the answer, the held-out tables, what limits the held-out error, then the run
     (``meta``, :func:`_meta_md`: short values in a table, longer ones as bullets, lists of findings in
     findings.md, linked) and the links to details.md and results.csv. details.md: how to read, the
-    terminal summary, the headline tables (:func:`headline`, one per dataset), then per dataset: single
-    vs global vs bank on the validation runs (:func:`approach_comparison`, table + heatmap), the
-    train × test heatmap per family (:func:`train_test_matrix` of the compensation rate, max residual
+    terminal summary, the headline tables (:func:`.tables.headline`, one per dataset), then per dataset: single
+    vs global vs bank on the validation runs (:func:`.tables.approach_comparison`, table + heatmap), the
+    train × test heatmap per family (:func:`.tables.train_test_matrix` of the compensation rate, max residual
     annotated) and the before/after compensation curves of the validation runs (``curves``; None or an
     empty frame means no curves, the report says so), then the probe readings.
 
     A dataset scored on several error channels is laid out by channel instead: its
-    headline is the validation RMSE per channel (:func:`validation_by_channel`; rows =
+    headline is the validation RMSE per channel (:func:`.tables.validation_by_channel`; rows =
     family × approach, best per channel in bold, then per channel the best thermbench
-    family vs the best baseline, :func:`best_by_channel`); its section has the bar chart
+    family vs the best baseline, :func:`.tables.best_by_channel`); its section has the bar chart
     of that RMSE (a panel per channel, baselines hatched grey), the validation
     compensation rate per channel, one train × test RMSE heatmap per family (a panel per
     channel; rows = training state, then global / bank / bank_soft; columns = the states,
@@ -252,3 +254,6 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         if findings:
             (stage / FINDINGS_NAME).write_text(findings, encoding="utf-8")
     return out_dir / REPORT_NAME
+
+
+__getattr__ = thermbench.moved_names(__name__)  # details.md's sections moved to report/details.py

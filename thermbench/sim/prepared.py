@@ -26,12 +26,12 @@ class Drive:
 @dataclass
 class Prepared:
     """What a run takes from the motion, the ambient series and the nut's path alone
-    (:meth:`ScrewThermalModel.prepare`): the drive, the ambient on the fine and macro
+    (:meth:`.model.ScrewThermalModel.prepare`): the drive, the ambient on the fine and macro
     grids, and the step-averaged nut coverage of every node, plain and speed-weighted.
 
     Models that differ only in k1..k4, lambda, the housings or the effects' gains give
     the same ``Prepared``, so one serves them all (identification re-runs the model
-    many times per run; :meth:`ScrewThermalModel.run_prepared`). ``key``: the screw,
+    many times per run; :meth:`.model.ScrewThermalModel.run_prepared`). ``key``: the screw,
     numerics and Pf it was made for; a model with others refuses it.
     """
 
