@@ -16,6 +16,7 @@ from thermbench.outputs import RECORD
 from matplotlib.figure import Figure
 
 from thermbench import report
+from thermbench.bench import results as bench_results
 from thermbench.report import details, figures, markdown, tables
 from thermbench.report import (
     approach_comparison,
@@ -658,7 +659,7 @@ def test_rmse_matrix_rows_are_the_same_in_every_channel():
     """A family whose single-state fits all failed on ch2 still gets rows a, b there (n/a)."""
     spin = _spin_results()
     spin = spin[~((spin["channel"] == "ch2") & (spin["family"] == "fam") & (spin["approach"] == "single"))]
-    r = tables._check_results(spin)
+    r = bench_results._check_results(spin)
     fam = r[(r["dataset"] == "spin") & (r["family"] == "fam")]
     models = tables._matrix_models(fam, ["a", "b"])
     assert models == [("a", "single", "a"), ("b", "single", "b"), ("global", "global", "all")]

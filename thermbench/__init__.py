@@ -93,7 +93,9 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
                          "cmd_validate"], "thermbench.cli.commands"),
         "HYDRA_JOBS": "thermbench.cli.parser",
     },
-    "thermbench.report.markdown": {"PROBES_MD": "thermbench.report.details"},
+    "thermbench.report.markdown": dict.fromkeys(["PROBES_MD", "HOW_TO_READ", "HOW_TO_READ_BASELINES",
+                                                 "HOW_TO_READ_CHANNELS"], "thermbench.report.details"),
+    "thermbench.report.tables": dict.fromkeys(["CURVE_COLUMNS", "KINDS", "RESULT_COLUMNS"], "thermbench.bench.results"),
     "thermbench.compensator.control": {
         "Deadlines": "thermbench.compensator.deadlines",
         "Settings": "thermbench.compensator.settings",
@@ -122,6 +124,11 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
 }
 
 
+def _say_moved(old: str, new: str) -> None:
+    warnings.warn(f"{old} has moved to {new}: import it from there; the old name goes in the next release",
+                  DeprecationWarning, stacklevel=3)
+
+
 def moved_names(module: str):
     """The module-level ``__getattr__`` of ``module``: a name of ``MOVED_NAMES[module]`` is looked up
     in the module it moved to, with a :class:`DeprecationWarning` naming that place; any other name
@@ -131,10 +138,8 @@ def moved_names(module: str):
     def __getattr__(name: str):
         if name not in names:
             raise AttributeError(f"module {module!r} has no attribute {name!r}")
-        new = names[name]
-        warnings.warn(f"{module}.{name} has moved to {new}: import it from there; the old name goes in the next "
-                      "release", DeprecationWarning, stacklevel=2)  # fmt: skip
-        return getattr(importlib.import_module(new), name)
+        _say_moved(f"{module}.{name}", names[name])
+        return getattr(importlib.import_module(names[name]), name)
 
     return __getattr__
 
@@ -152,8 +157,7 @@ class _MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def exec_module(self, module) -> None:
         new = MOVED[module.__name__]
-        warnings.warn(f"{module.__name__} has moved to {new}: import it from there; the old name goes in the next "
-                      "release", DeprecationWarning, stacklevel=2)  # fmt: skip
+        _say_moved(module.__name__, new)
         # the import system returns what sys.modules holds under the name after exec_module: the module itself,
         # so the old and the new name are one object (a monkeypatch through either is seen by both)
         sys.modules[module.__name__] = importlib.import_module(new)

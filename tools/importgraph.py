@@ -102,6 +102,16 @@ def folder(name: str, files: dict[str, Path]) -> str:
     return name if files[name].name == "__init__.py" else name.rpartition(".")[0]
 
 
+def top_level(files: dict[str, Path]) -> list[str]:
+    """The modules of the package's flat top level (not its sub-packages)."""
+    return [m for m in files if m.count(".") == 1 and files[m].name != "__init__.py"]
+
+
+def lines(files: dict[str, Path]) -> dict[str, int]:
+    """Each module's number of lines."""
+    return {m: len(p.read_text(encoding="utf-8").splitlines()) for m, p in files.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--edges", action="store_true", help="print every import too")
@@ -115,9 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     for c in found:
         where = "across folders" if c in across else f"inside {folder(c[0], files)}"
         print(f"  circle {where}: {' <-> '.join(c)}")
-    top = [m for m in files if m.count(".") == 1 and files[m].name != "__init__.py"]
+    top = top_level(files)
     print(f"top level: {len(top)} modules: {', '.join(m.split('.', 1)[1] for m in top)}")
-    big = sorted(((len(p.read_text(encoding='utf-8').splitlines()), m) for m, p in files.items()), reverse=True)
+    big = sorted(((n, m) for m, n in lines(files).items()), reverse=True)
     print("over 600 lines: " + (", ".join(f"{m} ({n})" for n, m in big if n > 600) or "none"))
     if args.edges:
         for a in sorted(edges):

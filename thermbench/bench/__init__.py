@@ -39,6 +39,8 @@ package (e.g. :mod:`.splits`) does not import the job.
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import pkgutil
 
 #: public name -> the module of the package that defines it
 _WHERE = {
@@ -58,13 +60,8 @@ _WHERE = {
 __all__ = sorted(_WHERE)
 
 
-#: the package's modules, loaded on first use as attributes too (``thermbench.bench.run``)
-_MODULES = ("adapt", "calibration", "choice", "evidence", "intervals", "job", "parallel", "plan", "results", "run",
-            "splits")
-
-
 def __getattr__(name: str):
-    if name in _MODULES:
+    if importlib.util.find_spec(f"{__name__}.{name}") is not None:  # a module of the package, loaded on first use
         return importlib.import_module(f".{name}", __name__)
     if name in _WHERE:
         value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
@@ -74,4 +71,4 @@ def __getattr__(name: str):
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE) | set(_MODULES))
+    return sorted(set(globals()) | set(_WHERE) | {m.name for m in pkgutil.iter_modules(__path__)})

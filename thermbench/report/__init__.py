@@ -76,9 +76,10 @@ from .figures import curves_figure, probe_figure
 from .markdown import (
     CSV_NAME, DETAILS_NAME, FIGURES_DIR, FINDINGS_NAME, REPORT_NAME, figure_paths, write_report,
 )
+from ..bench.results import ALL_CHANNELS, CHANNEL, CSV_COLUMNS, CURVE_COLUMNS, RATE, RESIDUAL, RESULT_COLUMNS, RMSE
 from .tables import (
-    ALL_CHANNELS, CHANNEL, CSV_COLUMNS, CURVE_COLUMNS, RATE, RESIDUAL, RESULT_COLUMNS, RMSE, approach_comparison,
-    best_by_channel, headline, probe_curve, results_table, train_test_matrix, validation_by_channel,
+    approach_comparison, best_by_channel, headline, probe_curve, results_table, train_test_matrix,
+    validation_by_channel,
 )
 from .text import fmt_rate, fmt_um, markdown_table, terminal_summary
 

@@ -18,12 +18,13 @@ from .figures import (
     _Drawing, _bars_figure, _best_curves_figure, _comparison_figure, _matrix_figure, _rmse_heatmap_figure,
     _rmse_norm, curves_figure, probe_figure,
 )
+from ..bench.results import ALL_CHANNELS, CHANNEL, RATE, RESIDUAL, RMSE
 from .tables import (
-    ALL_CHANNELS, CHANNEL, RATE, RESIDUAL, RMSE, _case_label, _channels, _family_label, _matrix_models, _model_label,
-    _runs, _test_matrix, _unique, approach_comparison, best_by_channel, probe_curve, train_test_matrix,
+    _case_label, _channels, _family_label, _matrix_models, _model_label,
+    _runs, _test_matrix, _unique, approach_comparison, headline, best_by_channel, probe_curve, train_test_matrix,
     validation_by_channel,
 )
-from .text import _is_missing, fmt_rate, fmt_um, markdown_table
+from .text import _is_missing, fmt_rate, fmt_um, markdown_table, terminal_summary
 
 #: the report's figures, a folder beside report.md and details.md
 FIGURES_DIR = "figures"
@@ -317,6 +318,38 @@ PROBES_MD = (
     "uncertainty exceeds its level), scored on the readings that were not probes, beside the same runs open "
     "loop. These rows never take part in choosing the model to deploy: they use the scored run's own readings."
 )
+
+
+def details_opening(r: pd.DataFrame, datasets: list[str], multi: list[str], ref: frozenset[str],
+                    report_name: str) -> list[str]:
+    """details.md's first sections: how to read it (the answer is in ``report_name``), the terminal
+    summary at a glance, and the headline on unseen cycles of each dataset (by channel for those in
+    ``multi``, scored on several)."""
+    h = headline(r)
+    details: list[str] = ["# Thermal-error robustness report: the details", "",
+                          f"What the models were chosen on and scored by; the answer is in [{report_name}]({report_name}).",
+                          "", HOW_TO_READ, ""]  # fmt: skip
+    if multi:
+        details += [HOW_TO_READ_CHANNELS, ""]
+    if ref:
+        details += [HOW_TO_READ_BASELINES, ""]
+    details += ["## At a glance", "", "```text", terminal_summary(r, reference=ref), "```", ""]
+    details += ["## Headline: unseen cycles", ""]
+    details += [
+        "Per dataset, family and approach: mean rate on the training runs (reference), worst and mean rate and worst "
+        "max residual over the validation runs, the same over the other modelling states for single-state models, "
+        "then rate / max residual per validation run (single: mean over the training states).",
+        "",
+    ]
+    for ds in datasets:
+        if ds in multi:
+            details += _channels_headline_md(r, ds, ref)
+            continue
+        ch = _channels(r, ds)[0]
+        rows = h.xs((ds, ch), level=("dataset", CHANNEL), drop_level=False) if CHANNEL in h.index.names else \
+            h.xs(ds, level="dataset", drop_level=False)  # fmt: skip
+        details += [f"### {_case_label(ds, ch)}", "", _headline_md(rows, _runs(r, ds, "validation"), ref), ""]
+    return details
 
 
 def _dataset_section(r: pd.DataFrame, c: pd.DataFrame | None, ds: str, ref: frozenset[str], fig_dir: Path,

@@ -14,7 +14,8 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from .tables import ALL_CHANNELS, CHANNEL, _family_label, _unique
+from ..bench.results import ALL_CHANNELS, CHANNEL
+from .tables import _family_label, _unique
 from .text import fmt_rate, fmt_um
 
 

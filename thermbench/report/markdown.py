@@ -13,16 +13,11 @@ import pandas as pd
 import thermbench
 
 from ..outputs import output_dir
-from .details import (
-    FIGURES_DIR, HOW_TO_READ, HOW_TO_READ_BASELINES, HOW_TO_READ_CHANNELS, _channels_headline_md, _channels_section,
-    _dataset_section, _headline_md, _probe_section,
-)
+from .details import FIGURES_DIR, _channels_section, _dataset_section, _probe_section, details_opening
 from .figures import _Drawing, _slug
-from .tables import (
-    CHANNEL, RMSE, _case_label, _channels, _check_curves, _check_results, _reference_set, _runs, _unique, headline,
-    results_table,
-)
-from .text import _percent, markdown_table, terminal_summary
+from ..bench.results import RMSE, _check_curves, _check_results
+from .tables import _channels, _reference_set, _unique, results_table
+from .text import _percent, markdown_table
 
 
 CSV_NAME = "results.csv"
@@ -178,7 +173,6 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
     if failed is not None and len(failed):
         table = pd.concat([table, failed.assign(reference=failed["family"].isin(ref))], ignore_index=True)
     out_dir = Path(out_dir)
-    h = headline(r)
     used: set[str] = set()
 
     def fig_name(*parts: str) -> str:
@@ -213,29 +207,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
            "the headline tables on unseen cycles and, per dataset, the comparison of approaches, the train × test "
            f"matrices and the before / after curves. The scores, one row per (fitted model, test run), are in "
            f"[{CSV_NAME}]({CSV_NAME}).", ""]  # fmt: skip
-    details: list[str] = ["# Thermal-error robustness report: the details", "",
-                          f"What the models were chosen on and scored by; the answer is in [{REPORT_NAME}]({REPORT_NAME}).",
-                          "", HOW_TO_READ, ""]  # fmt: skip
-    if multi:
-        details += [HOW_TO_READ_CHANNELS, ""]
-    if ref:
-        details += [HOW_TO_READ_BASELINES, ""]
-    details += ["## At a glance", "", "```text", terminal_summary(r, reference=ref), "```", ""]
-    details += ["## Headline: unseen cycles", ""]
-    details += [
-        "Per dataset, family and approach: mean rate on the training runs (reference), worst and mean rate and worst "
-        "max residual over the validation runs, the same over the other modelling states for single-state models, "
-        "then rate / max residual per validation run (single: mean over the training states).",
-        "",
-    ]
-    for ds in datasets:
-        if ds in multi:
-            details += _channels_headline_md(r, ds, ref)
-            continue
-        ch = _channels(r, ds)[0]
-        rows = h.xs((ds, ch), level=("dataset", CHANNEL), drop_level=False) if CHANNEL in h.index.names else \
-            h.xs(ds, level="dataset", drop_level=False)  # fmt: skip
-        details += [f"### {_case_label(ds, ch)}", "", _headline_md(rows, _runs(r, ds, "validation"), ref), ""]
+    details = details_opening(r, datasets, multi, ref, REPORT_NAME)
 
     with output_dir(out_dir, "report", force=force) as stage:
         fig_dir = stage / FIGURES_DIR

@@ -12,10 +12,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from ..bench.results import (  # noqa: F401 (the results' schema, in bench/results.py; named here as the report uses it)
-    ALL_CHANNELS, APPROACH_ORDER, CHANNEL, CSV_COLUMNS, CURVE_COLUMNS, KINDS, RATE, RESIDUAL, RESULT_COLUMNS, RMSE, _KEYS,
-    _STR_COLUMNS, _check_curves, _check_results, _require_columns,
-)
+import thermbench
+
+from ..bench.results import ALL_CHANNELS, APPROACH_ORDER, CHANNEL, CSV_COLUMNS, RATE, RESIDUAL, RMSE, _check_results
 
 
 def _unique(values) -> list:
@@ -368,3 +367,6 @@ def probe_curve(r: pd.DataFrame) -> pd.DataFrame:
         agg.update(coverage=(cov, "mean"), half_width_um=("half_width_um", "mean"))
     out = both.groupby(["dataset", *([ch] if ch else []), "family", "strategy", "schedule"], sort=False).agg(**agg)
     return out.reset_index().sort_values(["dataset", *([ch] if ch else []), "family", "strategy", "probes_per_h"])
+
+
+__getattr__ = thermbench.moved_names(__name__)  # the results' schema moved to bench/results.py

@@ -10,10 +10,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .tables import (
-    ALL_CHANNELS, CHANNEL, _approach_rank, _case_label, _check_results, _has_channels, _reference_set, _unique,
-    headline,
-)
+from ..bench.results import ALL_CHANNELS, CHANNEL, _check_results
+from .tables import _approach_rank, _case_label, _has_channels, _reference_set, _unique, headline
 
 
 def _is_missing(x) -> bool:
