@@ -205,6 +205,16 @@ def check_runs(ds: Dataset, runs: Sequence[str] | str | None) -> list[str]:
     return runs
 
 
+def training_runs(ds: Dataset, runs: Sequence[str] | str | None) -> list[str]:
+    """The runs a family fits on (:func:`check_runs`), each once, in the dataset's order (``metadata.runs``:
+    the order the lab's files give them, never the order of their names as text): what a family learns
+    depends on the set of its training runs, not on the order a caller lists them in (a validation hold-out
+    of the last runs, folds of whole runs, a seeded shuffle of the rows all see the same runs in the same
+    order)."""
+    asked = set(check_runs(ds, runs))
+    return [r for r in ds.run_ids if r in asked]
+
+
 def check_sensors(ds: Dataset, sensors: Sequence[str], key: str = "sensors") -> list[str]:
     """Sensor names that the dataset has; a missing one is an error naming it."""
     have = list(ds.metadata.sensors)
@@ -262,14 +272,18 @@ def derived(ds: Dataset, key: tuple, make, copy: bool = True):
 
 def readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
     """The interferometer readings of ``runs`` with ``thermal_um`` (reading minus
-    the run's cold reference at the same target) and the measuring ``cycle``
-    (computed once per dataset and runs: :func:`derived`)."""
+    the run's cold reference at the same target) and the measuring ``cycle``, **run by run in the
+    order of** ``runs`` (each run's readings in the errors table's order): a family that stacks its
+    features run by run (``for r in runs``) pairs them with these rows, whatever order the dataset's
+    tables hold the runs in (computed once per dataset and runs: :func:`derived`)."""
     return derived(ds, ("readings", tuple(runs)), lambda: _readings(ds, runs))
 
 
 def _readings(ds: Dataset, runs: Sequence[str]) -> pd.DataFrame:
     te = thermal_errors(ds)  # with each reading's measuring cycle (data.reference.reading_cycles)
-    return te[te["run_id"].isin(list(runs))].reset_index(drop=True)
+    rows = te.groupby("run_id", sort=False).indices
+    at = [rows[r] for r in dict.fromkeys(runs) if r in rows]
+    return te.iloc[np.concatenate(at) if at else np.zeros(0, dtype=int)].reset_index(drop=True)
 
 
 def sensor_series(ds: Dataset, run: str, sensors: Sequence[str], preprocess) -> pd.DataFrame:
@@ -394,7 +408,7 @@ class ThermalErrorModel(BaseEstimator, ABC):
     complexity: int = 3
 
     def fit(self, dataset: Dataset, runs: Sequence[str] | str | None = None) -> "ThermalErrorModel":
-        runs = check_runs(dataset, runs)
+        runs = training_runs(dataset, runs)
         check_needs(self, dataset)
         # a refit starts from nothing: a fit that fails half-way leaves an unfitted model
         for attr in [a for a in vars(self) if a.endswith("_") and not a.startswith("__")]:

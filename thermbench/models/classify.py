@@ -264,7 +264,7 @@ class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
     conditional probability of that level given the condition is 1, of the others
     0); two conditions on the same levels cannot be told apart and are an error
     naming them. Fitted attributes: ``classes_`` (the labels, in the order of
-    ``conditions``, or sorted when fitted on data), ``factors_`` (the factor names:
+    ``conditions``, or in the order first met in ``y`` when fitted on data), ``factors_`` (the factor names:
     stroke, position, feed, or the operating columns), ``operating_`` (the operating
     columns, None for the motion factors), ``conditions_`` (DataFrame
     per label: stroke_mm, position_mm, feed_mm_min, or the operating columns),
@@ -414,7 +414,7 @@ class ProximityNaiveBayes(ClassifierMixin, BaseEstimator):
                 raise ValueError(f"fit: X has {F.shape[0]} rows but y has {y.size} labels")
             if y.size == 0:
                 raise ValueError("fit: no rows to fit on")
-            labels = np.unique(y)
+            labels = pd.unique(y)  # in the order first met: a tie of eq. 19 goes to the same class whatever the names
             cond = pd.DataFrame([np.median(F[y == lab], axis=0) for lab in labels], index=labels, columns=keys)
         levels, idx = {}, np.empty((len(cond), len(spec)), dtype=int)
         for j, (f, key, _) in enumerate(spec):

@@ -43,6 +43,13 @@ def choose_sensors(
     curves, _ = cycle_curves(rd, 0 if fixed else 1)
     temps = np.vstack([temperatures_at(ds, r, cand, g["t_s"], preprocess) for r, g in curves.groupby("run_id", sort=False)])
     require(len(curves), 3, "measuring cycles for sensor selection")
+    # a sensor that never moves over the training runs (a drive temperature read in whole degrees that
+    # stayed put) carries nothing to cluster or rank: it is not a candidate
+    moving = np.ptp(temps, axis=0) > 0
+    if not moving.any():
+        raise ModelError(f"{key}: no temperature sensor of the dataset {_name(ds)} besides the ambient changes over "
+                         f"the training runs {list(runs)}; nothing to select from")  # fmt: skip
+    cand, temps = [c for c, m in zip(cand, moving) if m], temps[:, moving]
     slope = curves["c0" if fixed else "c1"].to_numpy()
     # the slope falls as the screw heats when the fixed end is on the positive side (Pf > 0):
     # orient it to rise with temperature, since grey relational grades compare shapes, not |r|
