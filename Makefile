@@ -76,7 +76,7 @@ core-check:
 # the real-time closed-loop tests (marker timing) run alone after the rest: on 2 cores a
 # neighbouring test would steal the cycles they measure
 test: sysdeps-test $(VENV)/.installed-dev $(NODE_OPCUA)
-	$(BIN)/python -m pytest -n 2 -q -m "not timing and not target"
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q -m "not timing and not target"
 	$(BIN)/python -m pytest -q -m timing
 
 # the real-time tests (markers timing, realtime) STRESS_N times while STRESS_K busy loops take the cores:

@@ -73,7 +73,8 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
             seen[col] = n
     parts = []
     b = frames[base]
-    runs = pd.unique(b["run"])
+    present = set(pd.unique(b["run"]))
+    runs = [r for r in meta.runs if r in present]  # the dataset's order (import_columns._run_order), not the rows'
     for run in runs:
         # (a one-run file in time order, a long log: its columns are taken as they are, not copied)
         sel = slice(None) if len(runs) == 1 else b["run"] == run
@@ -165,5 +166,6 @@ def _errors(frames: dict, channels: dict) -> pd.DataFrame:
     if not parts:
         return pd.DataFrame()
     errors = pd.concat(parts, ignore_index=True)
-    errors = errors.sort_values(["run_id", "channel", "t_s"], kind="stable").reset_index(drop=True)
+    keys = ["run_id", "channel", "t_s"] + [c for c in ("target_mm", "direction") if c in errors.columns]
+    errors = errors.sort_values(keys, kind="stable").reset_index(drop=True)  # whatever order the files' rows came in
     return errors

@@ -344,6 +344,21 @@ def _filled(n: int, value) -> np.ndarray:
     return out
 
 
+def _run_order(pieces: list) -> list[str]:
+    """The runs of one file entry in the order a person reads its tables: table by table (sheets in the
+    workbook's order, the files of a glob in natural order), and within one table (a run column) by each
+    run's first time, then by the natural order of the run ids (:func:`~thermbench.data.limits.natural_key`),
+    never by the order its rows happen to come in."""
+    order: dict[str, None] = {}
+    for _src, _label, t, fr in pieces:
+        runs = pd.unique(fr["run"])
+        if len(runs) > 1:
+            first = pd.Series(np.asarray(t, dtype=float)).groupby(pd.Series(fr["run"]), sort=False).min()
+            runs = sorted(runs, key=lambda r: (float(first[r]), limits.natural_key(r)))
+        order.update(dict.fromkeys(runs))
+    return list(order)
+
+
 def _merge_pieces(pieces: list, f: FileMap, where: str) -> dict:
     """The tables of one file entry (its files, its sheets), ``(path, label, t, columns)`` each, as
     one frame. Rows of one run from two tables counted from ``time.start_s`` each would be two
@@ -359,7 +374,8 @@ def _merge_pieces(pieces: list, f: FileMap, where: str) -> dict:
     def cat(xs):  # (one table, a long log: its arrays as they are)
         return xs[0] if len(xs) == 1 else np.concatenate(xs) if xs else np.zeros(0)
 
-    out = {"t": cat([p[2] for p in pieces]), "run": cat([p[3]["run"] for p in pieces]).astype(object, copy=False)}
+    out = {"t": cat([p[2] for p in pieces]), "run": cat([p[3]["run"] for p in pieces]).astype(object, copy=False),
+           "runs": _run_order(pieces)}
     for part in ("proc", "wide", "long"):
         cols = pieces[0][3][part].keys()
         out[part] = {c: cat([p[3][part][c] for p in pieces]) for c in cols}

@@ -22,13 +22,14 @@ from .import_mapping import FileMap, MappingError
 
 # ------------------------------------------------------------------ files ---
 def _source_paths(f: FileMap, base_dir: Path, where: str) -> list[Path]:
-    """The file ``path`` names, or every file its glob matches (in name order)."""
+    """The file ``path`` names, or every file its glob matches (in the natural order of their names:
+    ``exp2`` before ``exp10``, :func:`~thermbench.data.limits.natural_key`)."""
     raw = os.path.expanduser(f.path)
     if not any(c in raw for c in "*?["):
         p = Path(raw)
         return [p if p.is_absolute() else base_dir / p]
     pattern = raw if os.path.isabs(raw) else str(base_dir / raw)
-    found = sorted(Path(p) for p in globmod.glob(pattern) if os.path.isfile(p))
+    found = sorted((Path(p) for p in globmod.glob(pattern) if os.path.isfile(p)), key=lambda p: limits.natural_key(p.name))
     if not found:
         raise MappingError(f"{where}.path: no file matches {f.path!r} (in {Path(pattern).parent})")
     return found

@@ -101,8 +101,8 @@ def build_tables(mapping_path: str | Path, progress=None) -> tuple[Metadata, pd.
             del read, df  # the tables read: only the mapped columns go on (a large log is not held twice)
         frames[name] = _merge_pieces(pieces, f, where)
         del pieces
-    if not declared:  # the runs are those the files name, in the order met
-        order = list(dict.fromkeys(r for fr in frames.values() for r in fr["run"]))
+    if not declared:  # the runs are those the files name, file entry by file entry (import_columns._run_order)
+        order = list(dict.fromkeys(r for fr in frames.values() for r in fr["runs"]))
         meta = meta.model_copy(update={"runs": {r: RunMeta() for r in order}})
     mapped = {c for fr in frames.values() for c in fr["proc"]}
     if "operating" not in m.dataset and meta.operating_inputs() and not mapped & set(meta.operating_inputs()):

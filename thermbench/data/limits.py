@@ -105,6 +105,14 @@ def run_id_problem(run_id: object) -> str | None:
     return "ends with '.'"  # the only case left
 
 
+def natural_key(name: str) -> tuple:
+    """The key that sorts names as a person reads them: the runs of digits as numbers, the rest as text
+    without regard to case (``run2`` before ``run10``, ``Sheet 9`` before ``sheet 10``; ISO dates in date
+    order). Names equal under it are ordered by the name itself."""
+    parts = re.split(r"(\d+)", str(name))
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.casefold()) for p in parts if p), str(name)
+
+
 def run_id_key(run_id: str) -> str:
     """Run ids equal under this key name the same run for a person, a case-insensitive
     file system (Windows, macOS) or a spreadsheet: they must not both occur."""
