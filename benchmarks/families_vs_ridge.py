@@ -4,7 +4,7 @@ Per dataset and channel of each results.csv: for every family fitted on all trai
 (approach ``global``) and for thermbench's choice (the ``chosen`` rows), the median and worst held-out
 RMSE over the folds; against ``baseline_ridge``, fold by fold, the mean paired difference (family minus
 ridge, µm) and its standard error over the folds: a family is *worse than the ridge* when the mean
-difference exceeds its own standard error (``worse`` column), and ``max |d|`` is the largest per-fold
+difference exceeds its own standard error (and 0.01 µm) (``worse`` column), and ``max |d|`` is the largest per-fold
 difference (``ridge_history`` is the ridge made deployable: it should be ~0).
 Given two files (``--before``), the table shows both.
 
@@ -20,6 +20,8 @@ import numpy as np
 import pandas as pd
 
 REFERENCE = "baseline_ridge"
+#: a mean difference below this is a tie (the digits a report prints)
+TIE_UM = 0.01
 
 
 def table(path: str) -> pd.DataFrame:
@@ -39,7 +41,7 @@ def table(path: str) -> pd.DataFrame:
                          "median_um": float(s.median()), "worst_um": float(s.max()),
                          "mean_d_um": float(diff.mean()) if diff.size else float("nan"), "se_d_um": se,
                          "max_abs_d_um": float(np.max(np.abs(diff))) if diff.size else float("nan"),
-                         "worse": bool(diff.size > 1 and diff.mean() > se)})  # fmt: skip
+                         "worse": bool(diff.size > 1 and diff.mean() > max(se, TIE_UM))})  # fmt: skip
     return pd.DataFrame(rows)
 
 
