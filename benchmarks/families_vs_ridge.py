@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -50,6 +51,9 @@ def main(argv=None) -> int:
     ap.add_argument("results", help="results.csv of a benchmark")
     ap.add_argument("--before", help="results.csv of the same benchmark at an earlier commit")
     a = ap.parse_args(argv)
+    for path in (a.results, a.before):
+        if path is not None and not Path(path).is_file():
+            ap.error(f"{path}: no such file (the results.csv a `thermbench benchmark` wrote into its report_dir)")
     now = table(a.results)
     if a.before:
         old = table(a.before)[["dataset", "family", "median_um", "worst_um"]]
