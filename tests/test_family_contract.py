@@ -70,7 +70,7 @@ FAST = {
 #: would read the rise of 20 minutes later over the gap (the drift rises by about a third of its RMS there).
 #: The seed 002 Kalman filter of ``preprocess: default`` is defined per sample (its time constant is about
 #: 95 samples, :class:`~thermbench.preprocess.filters.KalmanFilter`): with 20 samples missing it smooths the
-#: gap over a different span, which moves the predictions of the families that use it by up to 6 % here
+#: gap over a different span, which moves the predictions of the families that use it by up to 8 % here
 IRREGULAR_TOL = 0.10
 #: predictions that must not change at all: the same rows in the same order reach the same arithmetic
 SAME = dict(rtol=1e-9, atol=1e-9)
