@@ -77,7 +77,7 @@ SAME = dict(rtol=1e-9, atol=1e-9)
 
 TRAIN = {"spindle": ["run1", "run2", "run3", "run4"], "screw": ["a", "b"]}
 HELD_OUT = {"spindle": "run5", "screw": "c"}
-SCREW_NAMES = {"a": "cond10", "b": "cond9", "c": "Cond_1"}  # text order: Cond_1, cond10, cond9
+SCREW_NAMES = {"a": "cond9", "b": "cond10", "c": "Cond_1"}  # text order: Cond_1, cond10, cond9 (c, b, a)
 
 
 # ------------------------------------------------------------------------------------------------ data ---

@@ -57,6 +57,23 @@ def _same(a, b) -> None:
 def test_natural_key_orders_names_as_a_person_reads_them():
     names = ["run10", "Run2", "run1", "2024-03-10", "2024-03-09", "Sheet 10", "sheet 9"]
     assert sorted(names, key=natural_key) == ["2024-03-09", "2024-03-10", "run1", "Run2", "run10", "sheet 9", "Sheet 10"]
+    # a superscript is a digit to str.isdigit but not a decimal number: text, not a crash
+    assert sorted(["Probe_1²", "Probe_1"], key=natural_key) == ["Probe_1", "Probe_1²"]
+
+
+def test_a_run_the_dataset_does_not_declare_is_never_taken_for_another(tmp_path):
+    d = tmp_path / "files"
+    for k in (1, 2):
+        d.mkdir(exist_ok=True)
+        _log([f"exp{k}"]).drop(columns="run").to_csv(d / f"exp{k}.csv", index=False)
+    _write(d, None, "time: {column: t, unit: s}", "{temp: t1_C, z_um: {channel: z, unit: um}}", path="exp*.csv",
+           run="{from: file}")
+    text = (d / "mapping.yaml").read_text().replace("  reference:", "  runs: {exp1: {}}\n  reference:")
+    (d / "mapping.yaml").write_text(text)
+    from thermbench.data.import_mapping import MappingError
+
+    with pytest.raises(MappingError, match="exp2"):
+        import_dataset(d / "mapping.yaml", tmp_path / "A")
 
 
 def test_a_run_column_in_seconds_orders_the_runs_naturally_whatever_the_rows_order(tmp_path):

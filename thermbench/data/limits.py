@@ -110,7 +110,7 @@ def natural_key(name: str) -> tuple:
     without regard to case (``run2`` before ``run10``, ``Sheet 9`` before ``sheet 10``; ISO dates in date
     order). Names equal under it are ordered by the name itself."""
     parts = re.split(r"(\d+)", str(name))
-    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.casefold()) for p in parts if p), str(name)
+    return tuple((0, int(p), "") if p.isdecimal() else (1, 0, p.casefold()) for p in parts if p), str(name)
 
 
 def run_id_key(run_id: str) -> str:
