@@ -73,10 +73,10 @@ def _align_process(m: Mapping, frames: dict, meta: Metadata, path: Path) -> pd.D
             seen[col] = n
     parts = []
     b = frames[base]
-    present = list(pd.unique(b["run"]))
+    present = dict.fromkeys(pd.unique(b["run"]))
     # the dataset's order (import_columns._run_order), not the rows'; a run the dataset does not declare
     # stays a run of its own (its rows are never taken for another's), and the validation names it
-    runs = [r for r in meta.runs if r in set(present)] + [r for r in present if r not in meta.runs]
+    runs = [r for r in meta.runs if r in present] + [r for r in present if r not in meta.runs]
     for run in runs:
         # (a one-run file in time order, a long log: its columns are taken as they are, not copied)
         sel = slice(None) if len(runs) == 1 else b["run"] == run
