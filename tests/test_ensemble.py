@@ -30,6 +30,9 @@ def test_stack_weights_recover_a_known_mix_and_fall_back_to_the_mean():
     w, how = stack_weights(np.column_stack([a, b, c]), 0.3 * a + 0.7 * b)
     np.testing.assert_allclose(w, [0.3, 0.7, 0.0], atol=1e-12)
     assert how == "nnls"
+    # a mix whose least-squares weights sum to 0.8 (0.4 and 0.4): scaled to a weighted average, 0.5 and 0.5
+    w, how = stack_weights(np.column_stack([a, b, c]), 0.4 * a + 0.4 * b)
+    np.testing.assert_allclose(w, [0.5, 0.5, 0.0], atol=1e-12)
     w, how = stack_weights(np.column_stack([a, b]), -a - b)  # no non-negative mix helps: the plain mean
     assert list(w) == [0.5, 0.5] and how.startswith("mean")
 
@@ -55,7 +58,7 @@ def test_the_weights_are_non_negative_least_squares_on_out_of_run_predictions(pl
             fitted = member.fit(planted, [r for r in TRAIN if r != run])
             P[rows, i] = fitted.predict_at(planted, run, rd.loc[rows, "t_s"].to_numpy(), rd.loc[rows, "target_mm"].to_numpy())
     w, _ = nnls(P, rd["error_um"].to_numpy())
-    np.testing.assert_allclose(m.weights_, w, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(m.weights_, w / w.sum(), rtol=1e-6, atol=1e-9)  # a weighted average of the members
     assert m.stacking_ == "nnls" and m.member_names_ == [  # each named by what it sets away from its defaults
         "LinearHistory(delays_s=[[0]], operating=['spindle_rpm'])", "ThermalLag(max_inputs=2)",
         "LinearHistory(delays_s=[[0, 900, 1800, 3600]])"]  # fmt: skip

@@ -5,7 +5,7 @@ often as skill, while a combination of several reasonable models averages their 
 on a real five-run test, non-negative stacking of four linear-with-history models and their plain mean
 both beat picking the best of them). So::
 
-    E(t, x) = Σ_i w_i · E_i(t, x),   w_i ≥ 0
+    E(t, x) = Σ_i w_i · E_i(t, x),   w_i ≥ 0,   Σ_i w_i = 1
 
 * ``E_i``: member ``i``'s full prediction (thermal and geometric), the member fitted on every training
   run;
@@ -13,7 +13,11 @@ both beat picking the best of them). So::
   error on the members' **out-of-run** predictions: each training run predicted by members fitted
   without it (:func:`thermbench.bench.splits.row_folds` through scikit-learn's ``cross_val_predict``, the run
   the group), so a member that fits its training runs well but holds up badly gets little weight;
-  no intercept (a constant would be a model of its own);
+  no intercept (a constant would be a model of its own), and the weights scaled to sum to one (as the
+  SuperLearner's NNLS combination does: van der Laan, Polley and Hubbard 2007, *Super Learner*): a sum
+  below one would shrink every member's answer toward no compensation, a gain fitted on the few
+  out-of-run predictions, i.e. a model of its own too; so the stack is a weighted average of its
+  members, never outside the range of their answers;
 * the fallback is the plain mean (``w_i = 1/n``): with one training run (no run to hold out), or when the
   least squares give every member zero weight; ``stacking="mean"`` asks for it.
 
@@ -60,11 +64,12 @@ class StackedEnsembleParams(Params):
 
 def stack_weights(P: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, str]:
     """Non-negative weights of the columns of ``P`` (one member's out-of-run predictions each) that fit
-    ``y`` in least squares, or the plain mean when they are all zero: (weights, what set them)."""
+    ``y`` in least squares, scaled to sum to one, or the plain mean when they are all zero: (weights,
+    what set them)."""
     w, _ = nnls(np.asarray(P, dtype=float), np.asarray(y, dtype=float))
     if not np.isfinite(w).all() or w.sum() <= 0:
         return np.full(P.shape[1], 1.0 / P.shape[1]), "mean (the least squares gave every member zero weight)"
-    return w, "nnls"
+    return w / w.sum(), "nnls"
 
 
 def _plain(v):
