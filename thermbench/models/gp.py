@@ -2,8 +2,9 @@
 
 The public GP compensator (petrkaftan/Thermal_Compensation) regresses the thermal error on the
 temperatures with a Gaussian process and reports its predictive standard deviation; here the
-features are those of :mod:`thermbench.models.thermal_lag` (first-order lags of the inputs it
-chose, at the time constants it chose, by cross-validation over whole runs), and the process is
+features are those of :mod:`thermbench.models.thermal_lag` with its stepwise selection
+(``thermal_lag_stepwise``: first-order lags of the inputs it chose, at the time constants it
+chose, by cross-validation over whole runs), and the process is
 scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor` with a kernel of a
 linear part, a smooth part and noise::
 

@@ -1,6 +1,6 @@
 """Thermal-lag regression: the thermal error as a sum of first-order responses to measured inputs.
 
-Thermal error is a lagged response to heat (issue 39; the adaptive ARX models with automatic
+Thermal error is a lagged response to heat (the adaptive ARX models with automatic
 input selection of the ETH Zurich machine-tool group write it as a sum of first-order responses
 to measured temperatures and operating signals). Here::
 
@@ -23,10 +23,14 @@ to measured temperatures and operating signals). Here::
   a run the fold trains on.
 
 With ``select=False`` there is no selection: every candidate input enters with every lag of the
-chosen set, the ridge penalty keeping the weights of inputs that do not help small (issue 54: "a
-ridge on first-order lags" of every sensor, one of the linear-with-history models that held up on
-real tests); the penalty and the time constants are chosen together over the same folds of whole
-runs, scored as scikit-learn's GridSearchCV scores them (:func:`grid_choice`).
+chosen set, the ridge penalty keeping the weights of inputs that do not help small ("a ridge on
+first-order lags" of every sensor, one of the linear-with-history models that held up on real
+tests); the penalty and the time constants are chosen together over the same folds of whole
+runs, scored as scikit-learn's GridSearchCV scores them (:func:`grid_choice`). This is the
+``thermal_lag`` family of ``conf/model``: a machine's sensors move together, and on correlated
+inputs shrinkage predicts more stably than a subset chosen from a few runs (Breiman 1996,
+*Heuristics of instability and stabilization in model selection*, Ann. Statist. 24(6)); the
+stepwise selection is ``thermal_lag_stepwise``.
 
 Along an axis with several measuring targets, the position P and P x each lag join the features
 (the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
