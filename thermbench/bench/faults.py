@@ -1,0 +1,474 @@
+"""Sensor faults at the compensator: each sensor checked sample by sample, a faulty one replaced, the correction bounded.
+
+A linear model weights every sensor it reads; when one of them comes loose (it reads the air, a
+local heat source, a broken wire), the correction follows it: on a real lathe test one sensor rose
+38 K where it rises 5 K in every other run, and the model it fed moved the tool by 354 µm where
+the thermal error was 54 µm. Stock controllers bound the compensation (SINUMERIK MD32760 limits
+its rate; TwinCAT likewise). Here the rules and their thresholds come from the training runs'
+process logs as logged (what the compensator reads), never from the run being compensated.
+
+**Detection** (:class:`SensorLimits` fitted, :class:`FaultMonitor` stepped per sample), per sensor:
+
+* ``open``: a reading that is not a finite number or lies outside ``PLAUSIBLE_C`` (an open or
+  shorted RTD or thermocouple reads its transmitter's over- or under-range: PT100 transmitters
+  read 850 °C or -200 °C);
+* ``range``: the rise above the run's first sample beyond the training runs' range by more than
+  the range's width (at least ``RANGE_MIN_K``): a run may heat more than any training run did, by
+  as much again, before a sensor is judged;
+* ``rate``: the rate of change (the envelope's first-order high-pass,
+  :func:`thermbench.bench.intervals.rise_and_rate`, K/h) beyond ``RATE_FACTOR`` x the largest the
+  training runs show plus ``RATE_MIN_K_H``: a jump, which no machine's mass makes;
+* ``stuck``: the reading unchanged for longer than ``STUCK_FACTOR`` x the longest unchanged
+  stretch of the training runs (at least ``STUCK_MIN_S``) while the rise the other sensors predict
+  for it moved by more than ``STUCK_MOVE_K`` since (a machine at a steady state holds its readings
+  for longer than any training run did, but a sensor whose neighbours say it warmed or cooled by
+  that much does not hold its last digit; the prediction's offset, which the ``others`` tolerance
+  allows for, cancels in a change); a sensor no other predicts is judged on the time alone, and one
+  that never moved in training is never judged stuck;
+* ``others``: each sensor's rise as the other sensors' rises predict it, a least-squares line
+  fitted on the training runs (the sensors of one machine heat together); the sensor is faulty when
+  its rise departs from that prediction by more than ``OTHERS_FACTOR`` x the largest departure of a
+  training run held out of the fit (at least ``OTHERS_MIN_K``), and departs most of all sensors
+  relative to that tolerance (a fault in one sensor moves the others' predictions by its weight in
+  them, its own by all of it). A sensor already judged faulty enters the others' predictions as it
+  is reconstructed (below).
+
+A sensor judged faulty stays faulty for the rest of the run (latched): a sensor that read wrong
+once is not trusted again without an operator. **Degradation**: from that sample on, the model is
+given in its place the reading the other sensors predict (the same line: sensor reconstruction
+from the correlation of the sensors, Dunia, Qin, Edgar and McAvoy, *Identification of faulty
+sensors using principal component analysis*, AIChE J. 42(10), 1996), the faulty ones among them
+as they are reconstructed; a sensor no other predicts is held at its last trusted reading. Every
+family reads its inputs so, whatever it is.
+
+**Bounds** (:class:`Bounds`): the correction never exceeds ``max_um`` in magnitude (default
+``BOUND_FACTOR`` x the largest |thermal error| of the training runs: the largest drift seen plus a
+margin) and never changes faster than ``rate_um_s`` (default ``RATE_BOUND_FACTOR`` x the largest
+change of the training runs' error over ``RATE_WINDOW_S``, per second).
+
+:func:`deployed_predictions` is a fitted model as the compensator runs it: monitor, replacement and
+bounds; the benchmark scores it beside the raw model. :func:`plant_fault` puts one of the four
+faults into a run of a dataset (the faults the tests and ``benchmarks/bench_faults.py`` plant).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .intervals import RATE_WINDOW_S, rise_and_rate
+
+__all__ = ["Bounds", "FaultMonitor", "SensorLimits", "deployed_predictions", "fault_summary", "plant_fault", "without_sensors", "FAULT_KINDS", "RULES"]
+
+#: a temperature outside this range is no temperature of a machine tool: an open or shorted sensor (°C)
+PLAUSIBLE_C = (-40.0, 150.0)
+#: the smallest margin beyond the training rise range (K)
+RANGE_MIN_K = 3.0
+#: the rate rule: this many times the training runs' largest |rate|, plus RATE_MIN_K_H
+RATE_FACTOR = 2.0
+RATE_MIN_K_H = 5.0
+#: the stuck rule: this many times the longest unchanged stretch of the training runs, at least STUCK_MIN_S
+STUCK_FACTOR = 2.0
+STUCK_MIN_S = 1800.0
+#: ... and while the others predict it moved by more than this since (K)
+STUCK_MOVE_K = 2.0
+#: the others rule: this many times the largest departure of a held-out training run, at least OTHERS_MIN_K
+#: (a few training runs show only a few departures, and every sensor of a machine is judged at once)
+OTHERS_FACTOR = 3.0
+OTHERS_MIN_K = 2.0
+#: the value bound: this many times the largest |thermal error| of the training runs
+BOUND_FACTOR = 1.5
+#: the rate bound: this many times the largest change of the training error over RATE_WINDOW_S
+RATE_BOUND_FACTOR = 2.0
+
+#: the rules, in the order a sample is checked (the first that fires names the fault)
+RULES = ("open", "range", "rate", "stuck", "others")
+#: the faults :func:`plant_fault` plants
+FAULT_KINDS = ("jump", "drift", "stuck", "open")
+
+
+@dataclass
+class SensorLimits:
+    """What the training runs say of each sensor (module docstring): the fitted side of the rules.
+
+    Per sensor ``i`` of ``sensors``: ``rise_lo`` / ``rise_hi`` (K), ``rate_max`` (K/h, the largest
+    |rate|), ``flat_s`` (the longest unchanged stretch, s; inf when it never moved); its rise as
+    the others predict it, ``icpt[i] + coef[i] @ rise`` (``coef[i, i] = 0``), and the departure
+    beyond which it is faulty, ``tol_K[i]`` (inf: no other sensor predicts it)."""
+
+    sensors: tuple[str, ...]
+    rise_lo: np.ndarray
+    rise_hi: np.ndarray
+    rate_max: np.ndarray
+    flat_s: np.ndarray
+    icpt: np.ndarray
+    coef: np.ndarray
+    tol_K: np.ndarray
+    tau_s: float = RATE_WINDOW_S
+
+    @classmethod
+    def fit(cls, ds, runs: Sequence[str], sensors: Sequence[str]) -> "SensorLimits":
+        """The limits of ``sensors`` over the process logs of ``runs``."""
+        sensors = tuple(sensors)
+        n = len(sensors)
+        rises, rates, flats, run_of = [], [], np.zeros(n), []
+        for run in runs:
+            t, T = _log(ds, run, sensors)
+            if t.size == 0:
+                continue
+            rise, rate = rise_and_rate(t, T)
+            rises.append(rise)
+            rates.append(rate)
+            run_of += [run] * t.size
+            flats = np.maximum(flats, _longest_flat(t, T))
+        if not rises:
+            raise ValueError(f"no process-log samples of sensors {list(sensors)} in runs {list(runs)}")
+        R, D = np.vstack(rises), np.vstack(rates)
+        with np.errstate(invalid="ignore"):
+            rise_lo, rise_hi = np.nanmin(R, axis=0), np.nanmax(R, axis=0)
+            rate_max = np.nanmax(np.abs(D), axis=0)
+        moved = rise_hi > rise_lo
+        flat_s = np.where(moved, flats, np.inf)
+        icpt, coef, tol = _others_lines(R, np.asarray(run_of), moved)
+        return cls(sensors, rise_lo, rise_hi, rate_max, flat_s, icpt, coef, tol)
+
+    # the thresholds the rules use, from the fitted limits
+    @property
+    def range_margin_K(self) -> np.ndarray:
+        return np.maximum(self.rise_hi - self.rise_lo, RANGE_MIN_K)
+
+    @property
+    def rate_limit_K_h(self) -> np.ndarray:
+        return RATE_FACTOR * self.rate_max + RATE_MIN_K_H
+
+    @property
+    def stuck_after_s(self) -> np.ndarray:
+        return np.maximum(STUCK_FACTOR * self.flat_s, STUCK_MIN_S)
+
+    def to_dict(self) -> dict[str, Any]:
+        def finite(a):  # JSON has no inf
+            return [None if not math.isfinite(v) else float(v) for v in a]
+
+        return {"sensors": list(self.sensors), "rise_lo": self.rise_lo.tolist(), "rise_hi": self.rise_hi.tolist(),
+                "rate_max": self.rate_max.tolist(), "flat_s": finite(self.flat_s), "icpt": self.icpt.tolist(),
+                "coef": self.coef.tolist(), "tol_K": finite(self.tol_K), "tau_s": self.tau_s}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "SensorLimits":
+        def inf(a):
+            return np.array([np.inf if v is None else float(v) for v in a])
+
+        n = len(d["sensors"])
+        return cls(tuple(d["sensors"]), np.asarray(d["rise_lo"], float), np.asarray(d["rise_hi"], float),
+                   np.asarray(d["rate_max"], float), inf(d["flat_s"]), np.asarray(d["icpt"], float),
+                   np.asarray(d["coef"], float).reshape(n, n), inf(d["tol_K"]), float(d.get("tau_s", RATE_WINDOW_S)))  # fmt: skip
+
+
+def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
+    """Per sensor, its rise by least squares on the other moving sensors' rises (rows of ``R``,
+    samples x sensors, of the runs ``run_of``), and its tolerance: ``OTHERS_FACTOR`` x the largest
+    departure on a run held out of the fit (the line fitted on the other runs; with one run, on
+    itself), at least ``OTHERS_MIN_K``."""
+    n = R.shape[1]
+    icpt, coef, tol = np.zeros(n), np.zeros((n, n)), np.full(n, np.inf)
+    ok = np.isfinite(R).all(axis=1)
+    R, run_of = R[ok], run_of[ok]
+    runs = list(dict.fromkeys(run_of.tolist()))
+
+    def line(rows, i, others):
+        X = np.column_stack([np.ones(int(rows.sum())), R[rows][:, others]])
+        w, *_ = np.linalg.lstsq(X, R[rows, i], rcond=None)
+        return w
+
+    for i in range(n):
+        others = [k for k in range(n) if k != i and moved[k]]
+        if not moved[i] or not others or R.shape[0] < len(others) + 2:
+            continue
+        w = line(np.ones(R.shape[0], bool), i, others)
+        icpt[i], coef[i, others] = w[0], w[1:]
+        worst = 0.0
+        for r in runs if len(runs) > 1 else [None]:
+            test = run_of == r if r is not None else np.ones(R.shape[0], bool)
+            wr = line(~test if r is not None else test, i, others)
+            worst = max(worst, float(np.max(np.abs(R[test, i] - wr[0] - R[test][:, others] @ wr[1:]))))
+        tol[i] = max(OTHERS_FACTOR * worst, OTHERS_MIN_K)
+    return icpt, coef, tol
+
+
+class FaultMonitor:
+    """The rules of :class:`SensorLimits` followed sample by sample (module docstring), as the
+    compensator follows them: :meth:`step` takes a sample's temperatures (°C, the limits' sensor
+    order) and returns those the model is to read, a faulty sensor's replaced. ``fault[i]`` is the
+    rule that judged sensor ``i`` faulty (None: healthy), ``onset_s[i]`` the sample's time."""
+
+    def __init__(self, limits: SensorLimits) -> None:
+        self.lim = limits
+        self.reset()
+
+    def reset(self) -> None:
+        n = len(self.lim.sensors)
+        self.T0 = np.full(n, np.nan)  # the run's first plausible reading of each sensor
+        self.e = np.full(n, np.nan)  # the rate's exponential average
+        self.t_last: float | None = None
+        self.last_value = np.full(n, np.nan)
+        self.changed_s = np.zeros(n)
+        self.predicted_at_change = np.full(n, np.nan)  # the others' prediction of the rise when it last changed
+        self.trusted = np.full(n, np.nan)  # the last reading of each sensor judged healthy
+        self.fault: list[str | None] = [None] * n
+        self.onset_s = np.full(n, np.nan)
+
+    @property
+    def faulty(self) -> list[str]:
+        return [s for s, f in zip(self.lim.sensors, self.fault) if f is not None]
+
+    def step(self, t_s: float, temps_C) -> np.ndarray:
+        lim = self.lim
+        T = np.asarray(temps_C, dtype=float).ravel().copy()
+        n = T.size
+        lo_c, hi_c = PLAUSIBLE_C
+        plausible = np.isfinite(T) & (T >= lo_c) & (T <= hi_c)
+        first = plausible & ~np.isfinite(self.T0)  # the rises count from each sensor's first plausible reading
+        self.T0[first] = T[first]
+        self.e[first] = T[first]
+        if self.t_last is not None and t_s > self.t_last:
+            a = 1.0 - math.exp(-(t_s - self.t_last) / lim.tau_s)
+            go = plausible & ~first
+            self.e[go] += a * (T[go] - self.e[go])
+        if self.t_last is None:
+            self.changed_s[:] = t_s
+        self.t_last = float(t_s)
+        changed = ~(T == self.last_value)
+        self.changed_s[changed] = t_s
+        self.last_value = T.copy()
+        rise = T - self.T0
+        rate = (T - self.e) * (3600.0 / lim.tau_s)
+        margin = lim.range_margin_K
+        known = np.where(np.isfinite(rise), rise, 0.0)
+        self._reconstruct(known)
+        predicted = lim.icpt + lim.coef @ known  # each sensor's rise as the others predict it
+        self.predicted_at_change[changed | ~np.isfinite(self.predicted_at_change)] = predicted[
+            changed | ~np.isfinite(self.predicted_at_change)]
+        for i in range(n):
+            if self.fault[i] is not None:
+                continue
+            why = None
+            if not plausible[i]:
+                why = "open"
+            elif rise[i] > lim.rise_hi[i] + margin[i] or rise[i] < lim.rise_lo[i] - margin[i]:
+                why = "range"
+            elif abs(rate[i]) > lim.rate_limit_K_h[i]:
+                why = "rate"
+            elif t_s - self.changed_s[i] > lim.stuck_after_s[i] and (
+                    not math.isfinite(lim.tol_K[i]) or abs(predicted[i] - self.predicted_at_change[i]) > STUCK_MOVE_K):
+                why = "stuck"
+            if why is not None:
+                self.fault[i], self.onset_s[i] = why, float(t_s)
+        used = np.where(np.isfinite(rise), rise, 0.0)  # the rises the model reads: a faulty sensor's reconstructed
+        self._reconstruct(used)
+        healthy = np.array([f is None for f in self.fault])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            depart = np.abs(used - (lim.icpt + lim.coef @ used)) / lim.tol_K
+        depart = np.where(healthy & np.isfinite(depart), depart, 0.0)
+        if depart.size and depart.max() > 1.0:  # the one that departs most, relative to its tolerance
+            j = int(np.argmax(depart))
+            self.fault[j], self.onset_s[j] = "others", float(t_s)
+            self._reconstruct(used)
+        for i in range(n):
+            if self.fault[i] is None:
+                self.trusted[i] = T[i]
+        base = np.where(np.isfinite(self.T0), self.T0, T)
+        return np.where(healthy & np.array([f is None for f in self.fault]), T, base + used)
+
+    def _reconstruct(self, rise: np.ndarray) -> None:
+        """The faulty sensors' rises in ``rise`` (in place) as the others predict them (the faulty ones
+        among the others as reconstructed: a few passes of the same lines); a sensor no other
+        predicts at its last trusted rise."""
+        bad = [i for i, f in enumerate(self.fault) if f is not None]
+        if not bad:
+            return
+        lim = self.lim
+        for i in bad:  # the start: the last trusted rise
+            ok = np.isfinite(self.trusted[i]) and np.isfinite(self.T0[i])
+            rise[i] = self.trusted[i] - self.T0[i] if ok else 0.0
+        for _ in range(3 if len(bad) > 1 else 1):
+            for i in bad:
+                if math.isfinite(lim.tol_K[i]):
+                    rise[i] = lim.icpt[i] + lim.coef[i] @ rise
+
+
+@dataclass
+class Bounds:
+    """The correction's bounds: ``|E| <= max_um``, ``|dE/dt| <= rate_um_s`` (module docstring)."""
+
+    max_um: float
+    rate_um_s: float
+
+    @classmethod
+    def fit(cls, ds, runs: Sequence[str]) -> "Bounds":
+        """From the thermal errors of ``runs``: ``BOUND_FACTOR`` x the largest |error|, and
+        ``RATE_BOUND_FACTOR`` x the largest change over ``RATE_WINDOW_S`` (per second)."""
+        from ..data.reference import thermal_errors
+
+        te = thermal_errors(ds)
+        te = te[te["run_id"].isin(list(runs))]
+        if te.empty or not np.isfinite(te["thermal_um"]).any():
+            raise ValueError(f"no thermal error in runs {list(runs)} to bound a correction by")
+        top = float(np.nanmax(np.abs(te["thermal_um"].to_numpy(dtype=float))))
+        rate = 0.0
+        keys = ["run_id"] + [c for c in ("target_mm", "direction") if c in te.columns]
+        for _, g in te.groupby(keys, sort=False):  # one series per run and measuring position
+            g = g.sort_values("t_s")
+            t, e = g["t_s"].to_numpy(dtype=float), g["thermal_um"].to_numpy(dtype=float)
+            if t.size < 2:
+                continue
+            later = np.interp(t + RATE_WINDOW_S, t, e, right=np.nan)
+            d = np.abs(later - e)[np.isfinite(later)]
+            if d.size:
+                rate = max(rate, float(d.max()) / RATE_WINDOW_S)
+            elif t[-1] > t[0]:  # a run shorter than the window
+                rate = max(rate, float(np.ptp(e)) / float(t[-1] - t[0]))
+        if top <= 0:
+            raise ValueError(f"no thermal error in runs {list(runs)} to bound a correction by")
+        return cls(BOUND_FACTOR * top, RATE_BOUND_FACTOR * rate if rate > 0 else math.inf)
+
+    def apply(self, t_s, predicted_um) -> tuple[np.ndarray, np.ndarray]:
+        """The predictions at times ``t_s`` (ascending) bounded in value, then in rate from the
+        first (the compensator starts where the model does); and per value whether a bound acted."""
+        t = np.asarray(t_s, dtype=float)
+        p = np.asarray(predicted_um, dtype=float)
+        out = np.clip(p, -self.max_um, self.max_um)
+        acted = out != p
+        for k in range(1, out.size):
+            step = self.rate_um_s * max(t[k] - t[k - 1], 0.0)
+            v = min(max(out[k], out[k - 1] - step), out[k - 1] + step)
+            if v != out[k]:
+                acted[k] = True
+                out[k] = v
+        return out, acted
+
+
+def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bounds: Bounds | None, fallback=None):
+    """A fitted ``model``'s predictions on ``run`` as the compensator makes them: the process log
+    through a :class:`FaultMonitor` (a faulty sensor replaced from the sample it is judged faulty),
+    the model on that log, the answer bounded by ``bounds``. ``fallback(faulty)`` (optional): the
+    model to switch to once the sensors ``faulty`` (a tuple) are judged faulty, fitted without them
+    (:func:`without_sensors`), or None where there is none: then the model reads the replaced
+    readings. Returns (predictions at the run's readings, the monitor after the run, per reading
+    whether a bound acted)."""
+    from ..data.reference import thermal_errors
+
+    monitor = None
+    view = ds
+    te = thermal_errors(ds)
+    tr = te[te["run_id"] == run].reset_index(drop=True)
+    if limits is not None and limits.sensors:
+        monitor = FaultMonitor(limits)
+        pr = ds.process_run(run)
+        cols = [ds.metadata.sensor_column(s) for s in limits.sensors]
+        t = pr["t_s"].to_numpy(dtype=float)
+        T = pr[cols].to_numpy(dtype=float)
+        used = np.vstack([monitor.step(tk, Tk) for tk, Tk in zip(t, T)]) if t.size else T
+        if monitor.faulty:
+            process = ds.process.copy()
+            rows = (process["run_id"] == run).to_numpy()
+            process.loc[rows, cols] = used
+            view = replace(ds, process=process)
+    pred = np.asarray(model.predict(view, run), dtype=float)
+    if monitor is not None and monitor.faulty and fallback is not None:
+        # from each onset on, the model fitted without every sensor judged faulty by then
+        t_read = tr["t_s"].to_numpy(dtype=float)
+        onsets = sorted({float(o) for o in monitor.onset_s if np.isfinite(o)})
+        for k, onset in enumerate(onsets):
+            faulty = tuple(s for s, o in zip(limits.sensors, monitor.onset_s) if np.isfinite(o) and o <= onset)
+            alt = fallback(faulty)
+            if alt is None:
+                continue
+            end = onsets[k + 1] if k + 1 < len(onsets) else np.inf
+            span = (t_read >= onset) & (t_read < end)
+            if span.any():
+                pred[span] = np.asarray(alt.predict(view, run), dtype=float)[span]
+    acted = np.zeros(pred.size, dtype=bool)
+    if bounds is not None:  # in time, per measuring position (the value at one target follows its previous one)
+        keys = [c for c in ("target_mm", "direction") if c in tr.columns]
+        groups = tr.groupby(keys, sort=False).indices.values() if keys else [np.arange(len(tr))]
+        t = tr["t_s"].to_numpy(dtype=float)
+        for idx in groups:
+            idx = np.asarray(idx)[np.argsort(t[idx], kind="stable")]
+            pred[idx], acted[idx] = bounds.apply(t[idx], pred[idx])
+    return pred, monitor, acted
+
+
+def without_sensors(model, ds, runs: Sequence[str], drop: Sequence[str]):
+    """``model``'s family fitted on ``runs`` without the sensors ``drop`` (a clone whose ``sensors``
+    are the others), or None when the family has no ``sensors`` to set or nothing is left."""
+    from sklearn.base import clone
+
+    if "sensors" not in model.get_params(deep=False):
+        return None
+    mine = model.get_params(deep=False)["sensors"]
+    keep = [s for s in (list(ds.metadata.sensors) if mine is None else list(mine)) if s not in set(drop)]
+    if not keep:
+        return None
+    return clone(model).set_params(sensors=keep).fit(ds, list(runs))
+
+
+def plant_fault(ds, run: str, sensor: str, kind: str, onset_s: float, *, jump_K: float = 30.0,
+                drift_K_h: float = 10.0, open_C: float = 850.0):  # fmt: skip
+    """A copy of ``ds`` with one fault in sensor ``sensor`` of run ``run`` from ``onset_s`` on (the
+    other runs and sensors as they are): ``jump`` (+``jump_K``), ``drift`` (+``drift_K_h`` per hour
+    since the onset), ``stuck`` (the reading at the onset held) or ``open`` (``open_C``, a PT100
+    transmitter's over-range)."""
+    if kind not in FAULT_KINDS:
+        raise ValueError(f"fault kind {kind!r}: expected one of {list(FAULT_KINDS)}")
+    if sensor not in ds.metadata.sensors:
+        raise ValueError(f"sensor {sensor!r} is not a sensor of the dataset; it has {list(ds.metadata.sensors)}")
+    col = ds.metadata.sensor_column(sensor)
+    process = ds.process.copy()
+    process[col] = process[col].astype(float)
+    rows = (process["run_id"] == run).to_numpy()
+    if not rows.any():
+        raise ValueError(f"run {run!r} has no process log; runs: {list(ds.run_ids)}")
+    t = process.loc[rows, "t_s"].to_numpy(dtype=float)
+    v = process.loc[rows, col].to_numpy(dtype=float)
+    after = t >= onset_s
+    if not after.any():
+        raise ValueError(f"onset {onset_s} s is after the last sample of run {run!r} ({t[-1]} s)")
+    if kind == "jump":
+        v = np.where(after, v + jump_K, v)
+    elif kind == "drift":
+        v = np.where(after, v + drift_K_h * (t - onset_s) / 3600.0, v)
+    elif kind == "stuck":
+        v = np.where(after, v[np.argmax(after)], v)
+    else:
+        v = np.where(after, open_C, v)
+    process.loc[rows, col] = v
+    return replace(ds, process=process)
+
+
+def _log(ds, run: str, sensors: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    pr = ds.process_run(run)
+    cols = [ds.metadata.sensor_column(s) for s in sensors]
+    return pr["t_s"].to_numpy(dtype=float), pr[cols].to_numpy(dtype=float).reshape(len(pr), len(cols))
+
+
+def _longest_flat(t: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Per column of ``T`` (samples x sensors), the longest time its value stays unchanged."""
+    out = np.zeros(T.shape[1])
+    for i in range(T.shape[1]):
+        change = np.flatnonzero(np.diff(T[:, i]) != 0) + 1
+        starts = np.concatenate([[0], change])
+        ends = np.concatenate([change, [T.shape[0] - 1]])
+        if starts.size:
+            out[i] = float(np.max(t[ends] - t[starts]))
+    return out
+
+
+def fault_summary(monitor: FaultMonitor | None) -> str:
+    """``sensor: rule at t s`` for each sensor judged faulty ('' when none)."""
+    if monitor is None:
+        return ""
+    return "; ".join(f"{s}: {f} at {o:.0f} s" for s, f, o in zip(monitor.lim.sensors, monitor.fault, monitor.onset_s)
+                     if f is not None)  # fmt: skip
