@@ -169,13 +169,14 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert len(paths) == 4 and max(paths) < head
     assert f"mlflow run: {res.mlflow_run_id}" in tail
     assert f"{run.data.metrics[f'{cells[0]}/held_out_median_rmse_um']:.2f}" == cells[2]
-    assert f"{run.data.metrics[f'{cells[0]}/uncompensated_median_rmse_um']:.2f}" == cells[6]
+    assert f"{run.data.metrics[f'{cells[0]}/uncompensated_median_rmse_um']:.2f}" == cells[7]
+    assert f"{run.data.metrics[f'{cells[0]}/as_deployed_median_rmse_um']:.2f}" == cells[4]  # the choice as deployed
     # one nested run per (dataset, family, approach) under the benchmark run
     children = MlflowClient().search_runs(
         [run.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{res.mlflow_run_id}'")
     assert {(c.data.tags["model"], c.data.tags["approach"]) for c in children} == {
-        ("mlr_seed001", "single"), ("mlr_seed001", "global"),
-        ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "bank"),
+        ("mlr_seed001", "single"), ("mlr_seed001", "global"), ("mlr_seed001", "as_deployed"),
+        ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "as_deployed"), ("mlr_seed002", "bank"),
         ("mlr_seed002", "bank_soft")}
     # the dataset, as an MLflow dataset input of the benchmark run and of each cell: its name,
     # the content hash of its data (loaded here) as the digest, its directory as the source

@@ -120,3 +120,25 @@ def test_the_adaptive_approach_goes_through_the_report(lathe, tmp_path):  # noqa
     ad = probe[(probe["approach"] == "adaptive-600s") & (probe["family"] == "thermal_lag")]
     line = next(ln for ln in text.splitlines() if "| thermal_lag " in ln and "| adaptive " in ln and "| 600s " in ln)
     assert f"{ad['rmse_um'].mean():.2f}" in line and f"{ad['probes_per_h'].mean():.2f}" in line
+
+
+def test_every_fold_fit_is_scored_as_deployed_beside_itself(lathe, tmp_path):  # noqa: F811
+    """approach global on the three days: each fold's thermal_lag fit is also scored as the compensator
+    runs it (rows as_deployed: never a baseline's), and where no sensor was judged faulty and no bound
+    acted, its score is the raw fit's to the digit; the answer says both."""
+    import pandas as pd
+
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[thermal_lag,baseline_ridge]", "bank_families=[]",
+               "approaches=[global]")  # fmt: skip
+    bm.benchmark(cfg)
+    table = pd.read_csv(tmp_path / "reports" / "results.csv", keep_default_na=False, na_values=[""])
+    dep = table[table["approach"] == "as_deployed"]
+    glob = table[(table["approach"] == "global") & (table["kind"] == "validation")]
+    assert set(dep["family"]) == {"thermal_lag"} and not dep["chosen"].any()
+    both = dep.merge(glob[glob["family"] == "thermal_lag"], on=["fold", "test"], suffixes=("", "_raw"))
+    assert len(both) == len(dep) == glob["family"].eq("thermal_lag").sum()
+    quiet = both[both["faults"].isna() & (both["bounded_share"] == 0)]
+    assert len(quiet) > 0
+    assert (quiet["rmse_um"] == quiet["rmse_um_raw"]).all()
+    report = (tmp_path / "reports" / "report.md").read_text()
+    assert "as deployed µm" in report.splitlines()[2]

@@ -18,6 +18,7 @@ from thermbench.bench.faults import (
     Bounds,
     FaultMonitor,
     SensorLimits,
+    _may_fire,
     _others_lines,
     deployed_predictions,
     plant_fault,
@@ -80,6 +81,9 @@ def test_the_clean_real_tail_judges_no_sensor_faulty_and_the_model_reads_it_as_l
     ds, blocks, tail, limits = fl
     m, _ = _monitor(ds, tail, limits)
     assert m.faulty == []
+    pr = ds.process_run(tail)
+    cols = [ds.metadata.sensor_column(s) for s in limits.sensors]
+    assert not _may_fire(limits, pr["t_s"].to_numpy(dtype=float), pr[cols].to_numpy(dtype=float))  # no loop needed
     for r in blocks:
         assert _monitor(ds, r, limits)[0].faulty == [], r
     from thermbench.models.linear_history import RidgeHistory
@@ -246,3 +250,19 @@ def test_the_limits_round_trip_through_json(fl):
     bad = plant_fault(ds, tail, "t5", "drift", onset)
     a, b = _monitor(bad, tail, limits)[0], _monitor(bad, tail, back)[0]
     assert a.fault == b.fault and np.array_equal(a.onset_s, b.onset_s, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", [None, "jump", "drift", "stuck", "open"])
+def test_a_whole_log_through_the_monitor_is_the_monitor_sample_by_sample(fl, kind):
+    """FaultMonitor.run skips the per-sample loop on a log where no rule comes near firing; what it
+    returns must be what stepping every sample gives, clean or faulty."""
+    ds, blocks, tail, limits = fl
+    bad = ds if kind is None else plant_fault(ds, tail, "t5", kind, _onset(ds, tail))
+    pr = bad.process_run(tail)
+    cols = [ds.metadata.sensor_column(s) for s in limits.sensors]
+    t, T = pr["t_s"].to_numpy(dtype=float), pr[cols].to_numpy(dtype=float)
+    used, m = FaultMonitor.run(limits, t, T)
+    one = FaultMonitor(limits)
+    stepped = np.vstack([one.step(tk, Tk) for tk, Tk in zip(t, T)])
+    np.testing.assert_array_equal(used, stepped)
+    assert m.fault == one.fault and np.array_equal(m.onset_s, one.onset_s, equal_nan=True)

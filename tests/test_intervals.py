@@ -141,7 +141,7 @@ def test_the_adaptive_approach_scores_without_its_probes_and_the_naive_peer_by_h
     out = bm.run_task(dcfg, family, cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
                       probe={"every_s": [600], "trigger": "uncertainty", "threshold_um": 0.6, "noise": noise})  # fmt: skip
     res = out["results"]
-    assert {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty", "global"} == set(res["approach"])
+    assert {"adaptive-600s", "naive_probe-600s", "adaptive-uncertainty", "global", "as_deployed"} == set(res["approach"])
     ds = load_split({**dcfg, "channel": "dia"}).dataset
     model = build_model(cfg, seed=0)
     for held in ds.run_ids:
@@ -253,7 +253,7 @@ def test_the_gp_refit_peer_is_the_gp_posterior_given_its_probes_by_hand(lathe): 
     out = bm.run_task(dcfg, "gp", cfg, ["global", "adaptive"], None, seed=0, channel="dia", cv="loro",
                       probe={"every_s": [600], "trigger": None, "noise": noise})  # fmt: skip
     res = out["results"]
-    assert {"adaptive-600s", "naive_probe-600s", "gp_refit-600s", "global"} == set(res["approach"])
+    assert {"adaptive-600s", "naive_probe-600s", "gp_refit-600s", "global", "as_deployed"} == set(res["approach"])
     ds = load_split({**dcfg, "channel": "dia"}).dataset
     model = build_model(cfg, seed=0)
     for held in ds.run_ids:

@@ -15,6 +15,7 @@ import pandas as pd
 from ..errors import ExperimentError
 from ..experiment import model_flags
 from .calibration import probe_rows
+from .faults import DEPLOYED_APPROACH
 from .plan import DEPLOY_FOLD, case_label, family_class
 
 
@@ -54,8 +55,7 @@ def choose(results: pd.DataFrame, exclude: Sequence[str] = (), blocked: Iterable
     keep = [(d, f, a) not in bad and f not in exclude
             for d, f, a in zip(results["case"], results["family"], results["approach"])]  # fmt: skip
     results = results[keep]
-    v = results[(results["kind"] == "validation") & (results["approach"] != "single")
-                & ~probe_rows(results)]  # fmt: skip
+    v = results[_held_out_rows(results)]
     cols = ["dataset", "channel", "case", "family", "approach"]
     if v.empty:
         return pd.DataFrame(columns=cols)
@@ -154,13 +154,32 @@ def deployed_choice(nested: pd.DataFrame, results: pd.DataFrame, baselines: Sequ
     return chosen.reset_index(drop=True), nested[~deploy].reset_index(drop=True)
 
 
+def _held_out_rows(r: pd.DataFrame) -> pd.Series:
+    """The rows a model is compared and chosen on: validation rows of the approaches that fit a
+    model (not ``single``, not the probe replays, not the fold fits scored as deployed: those are
+    reported beside the model they replay)."""
+    return (r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r) & (r["approach"] != DEPLOYED_APPROACH)
+
+
+def _deployed_per_fold(r: pd.DataFrame) -> pd.DataFrame:
+    """The fold fits scored as deployed (bench/faults.py), per (case, family, fold): the mean RMSE over
+    the fold's held-out runs, and the runs on which a sensor was judged faulty (``run: faults``)."""
+    v = r[(r["kind"] == "validation") & (r["approach"] == DEPLOYED_APPROACH)]
+    if v.empty:
+        return pd.DataFrame(columns=["case", "family", "fold", "deployed_rmse_um", "faults"])
+    faults = v["faults"].fillna("").astype(str) if "faults" in v else pd.Series("", index=v.index)
+    v = v.assign(_f=[f"{run}: {f}" if f else "" for run, f in zip(v["run_id"], faults)])
+    return v.groupby(["case", "family", "fold"], sort=False).agg(
+        deployed_rmse_um=("rmse_um", "mean"), faults=("_f", lambda x: "; ".join(f for f in x if f))).reset_index()  # fmt: skip
+
+
 def _held_out_per_fold(results: pd.DataFrame) -> tuple[pd.DataFrame, bool]:
     """The held-out scores per (case, family, approach, fold): the mean over the fold's held-out runs of
     ``rmse_um`` and ``rms_error_um``, and with intervals (a ``coverage_<level>`` column) of ``coverage`` and
     ``half_width_um``; and whether there are intervals. The rows :func:`held_out_summary` and
     :func:`held_out_table` are made of (validation rows, not ``single``, not the probe approaches)."""
     r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
+    v = r[_held_out_rows(r)]
     cov = next((c for c in v.columns if str(c).startswith("coverage_")), None)  # the interval's level, e.g. coverage_90
     extra = {"coverage": (cov, "mean"), "half_width_um": ("half_width_um", "mean")} if cov and "half_width_um" in v else {}
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False).agg(
@@ -176,8 +195,13 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     the root of the mean square over its held-out runs' readings, approximated by the mean of the
     runs' RMSE when a fold holds out several runs); with intervals (a ``coverage_<level>`` column),
     the choice's coverage and half-width, means over its folds of each fold's mean over its runs
-    (``chosen_coverage``, ``chosen_half_width_um``; NaN where the chosen approach has no interval)."""
+    (``chosen_coverage``, ``chosen_half_width_um``; NaN where the chosen approach has no interval); and
+    the choice as deployed, each fold's choice scored with the sensor checks, the fallback and the
+    bounds of the compensator (``chosen_deployed_median_rmse_um``, ``chosen_deployed_worst_rmse_um``,
+    ``chosen_faults``: the held-out runs on which a sensor was judged faulty; absent where a fold's
+    choice has no such score, a bank)."""
     per_fold, interval = _held_out_per_fold(results)
+    deployed = _deployed_per_fold(_with_case(results))
     out = []
     for case, g in per_fold.groupby("case", sort=False):
         ch = choice[choice["case"] == case]
@@ -194,6 +218,12 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
             if interval:  # the choice's interval over its held-out runs: the mean of each fold's coverage and half-width
                 row |= {"chosen_coverage": float(chosen["coverage"].mean()),
                         "chosen_half_width_um": float(chosen["half_width_um"].mean())}  # fmt: skip
+            dep = deployed[deployed["case"] == case].merge(chosen.loc[chosen["approach"] == "global", ["fold", "family"]],
+                                                          on=["fold", "family"])  # fmt: skip
+            if len(dep) == len(chosen):  # every fold's choice scored as deployed
+                d = dep.set_index("fold")["deployed_rmse_um"]
+                row |= {"chosen_deployed_median_rmse_um": float(d.median()), "chosen_deployed_worst_rmse_um": float(d.max()),
+                        "chosen_faults": "; ".join(f for f in dep["faults"] if f)}  # fmt: skip
         if not base.empty:
             med = base.groupby(["family", "approach"])["rmse_um"].median().sort_values()
             fam, app = med.index[0]
@@ -255,7 +285,7 @@ def held_out_flags(results: pd.DataFrame, baselines: Sequence[str]) -> list[str]
     compensation (its RMSE above the run's ``rms_error_um``), and a median held-out RMSE over the
     folds above the best baseline's (:func:`held_out_summary`'s best baseline). One line each."""
     r = _with_case(results)
-    v = r[(r["kind"] == "validation") & (r["approach"] != "single") & ~probe_rows(r)]
+    v = r[_held_out_rows(r)]
     if v.empty or "rms_error_um" not in v:
         return []
     per_fold = v.groupby(["case", "family", "approach", "fold"], sort=False)["rmse_um"].mean()

@@ -61,7 +61,7 @@ import numpy as np
 
 from .intervals import RATE_WINDOW_S, rise_and_rate
 
-__all__ = ["Bounds", "FaultMonitor", "SensorLimits", "deployed_predictions", "fault_summary", "plant_fault", "without_sensors", "FAULT_KINDS", "RULES"]
+__all__ = ["DEPLOYED_APPROACH", "deployed_rows", "Bounds", "FaultMonitor", "SensorLimits", "deployed_predictions", "fault_summary", "plant_fault", "without_sensors", "FAULT_KINDS", "RULES"]
 
 #: a temperature outside this range is no temperature of a machine tool: an open or shorted sensor (°C)
 PLAUSIBLE_C = (-40.0, 150.0)
@@ -86,6 +86,8 @@ RATE_BOUND_FACTOR = 2.0
 
 #: the rules, in the order a sample is checked (the first that fires names the fault)
 RULES = ("open", "range", "rate", "stuck", "others")
+#: the benchmark's approach of a family's fold fit scored as deployed (:func:`deployed_rows`)
+DEPLOYED_APPROACH = "as_deployed"
 #: the faults :func:`plant_fault` plants
 FAULT_KINDS = ("jump", "drift", "stuck", "open")
 
@@ -171,29 +173,34 @@ def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
     """Per sensor, its rise by least squares on the other moving sensors' rises (rows of ``R``,
     samples x sensors, of the runs ``run_of``), and its tolerance: ``OTHERS_FACTOR`` x the largest
     departure on a run held out of the fit (the line fitted on the other runs; with one run, on
-    itself), at least ``OTHERS_MIN_K``."""
+    itself), at least ``OTHERS_MIN_K``. The fits come from each run's sums of products (the normal
+    equations), so a run held out costs a small solve."""
     n = R.shape[1]
     icpt, coef, tol = np.zeros(n), np.zeros((n, n)), np.full(n, np.inf)
     ok = np.isfinite(R).all(axis=1)
     R, run_of = R[ok], run_of[ok]
     runs = list(dict.fromkeys(run_of.tolist()))
+    X = np.column_stack([np.ones(R.shape[0]), R])  # column 0 the intercept, 1 + k sensor k
+    rows = {r: run_of == r for r in runs}
+    gram = {r: X[rows[r]].T @ X[rows[r]] for r in runs}
+    total = sum(gram.values()) if runs else np.zeros((n + 1, n + 1))
 
-    def line(rows, i, others):
-        X = np.column_stack([np.ones(int(rows.sum())), R[rows][:, others]])
-        w, *_ = np.linalg.lstsq(X, R[rows, i], rcond=None)
-        return w
+    def line(G, i, others):
+        cols = [0, *[1 + k for k in others]]
+        w, *_ = np.linalg.lstsq(G[np.ix_(cols, cols)], G[cols, 1 + i], rcond=None)
+        return cols, w
 
     for i in range(n):
         others = [k for k in range(n) if k != i and moved[k]]
         if not moved[i] or not others or R.shape[0] < len(others) + 2:
             continue
-        w = line(np.ones(R.shape[0], bool), i, others)
+        cols, w = line(total, i, others)
         icpt[i], coef[i, others] = w[0], w[1:]
         worst = 0.0
         for r in runs if len(runs) > 1 else [None]:
-            test = run_of == r if r is not None else np.ones(R.shape[0], bool)
-            wr = line(~test if r is not None else test, i, others)
-            worst = max(worst, float(np.max(np.abs(R[test, i] - wr[0] - R[test][:, others] @ wr[1:]))))
+            test = rows[r] if r is not None else np.ones(R.shape[0], bool)
+            _, wr = line(total - gram[r], i, others) if r is not None else (cols, w)
+            worst = max(worst, float(np.max(np.abs(R[test, i] - X[test][:, cols] @ wr))))
         tol[i] = max(OTHERS_FACTOR * worst, OTHERS_MIN_K)
     return icpt, coef, tol
 
@@ -223,6 +230,21 @@ class FaultMonitor:
     @property
     def faulty(self) -> list[str]:
         return [s for s, f in zip(self.lim.sensors, self.fault) if f is not None]
+
+    @classmethod
+    def run(cls, limits: SensorLimits, t_s, temps_C) -> tuple[np.ndarray, "FaultMonitor"]:
+        """A whole log (``temps_C``: samples x sensors) through a new monitor: the temperatures the
+        model is to read, and the monitor after the last sample. The same as :meth:`step` sample by
+        sample; a log on which no rule comes near firing (checked on whole arrays, with a margin for
+        rounding) is returned as it is without the per-sample loop."""
+        t = np.asarray(t_s, dtype=float)
+        T = np.asarray(temps_C, dtype=float).reshape(t.size, -1)
+        m = cls(limits)
+        if t.size and not _may_fire(limits, t, T):
+            m.T0, m.t_last = T[0].copy(), float(t[-1])
+            return T.copy(), m
+        used = np.vstack([m.step(tk, Tk) for tk, Tk in zip(t, T)]) if t.size else T.copy()
+        return used, m
 
     def step(self, t_s: float, temps_C) -> np.ndarray:
         lim = self.lim
@@ -299,6 +321,34 @@ class FaultMonitor:
                     rise[i] = lim.icpt[i] + lim.coef[i] @ rise
 
 
+def _may_fire(lim: SensorLimits, t: np.ndarray, T: np.ndarray, slack: float = 1e-6) -> bool:
+    """Whether any rule of :meth:`FaultMonitor.step` could fire on the log, every sensor healthy
+    (before a first fault nothing is replaced, so the rules see the log as it is): the same tests
+    on whole arrays, each threshold lowered by ``slack`` of itself (so rounding never hides one)."""
+    lo_c, hi_c = PLAUSIBLE_C
+    if not (np.isfinite(T).all() and (T >= lo_c).all() and (T <= hi_c).all()):
+        return True
+    rise, rate = rise_and_rate(t, T, lim.tau_s)
+    margin = lim.range_margin_K
+    if ((rise > (lim.rise_hi + margin) - slack * np.abs(lim.rise_hi + margin)) |
+            (rise < (lim.rise_lo - margin) + slack * np.abs(lim.rise_lo - margin))).any():  # fmt: skip
+        return True
+    if (np.abs(rate) > lim.rate_limit_K_h * (1.0 - slack)).any():
+        return True
+    predicted = lim.icpt + rise @ lim.coef.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if (np.abs(rise - predicted) / lim.tol_K > 1.0 - slack).any():
+            return True
+    # stuck: the time since each sensor's reading last changed, and the others' prediction then
+    changed = np.vstack([np.ones((1, T.shape[1]), bool), T[1:] != T[:-1]])
+    idx = np.where(changed, np.arange(t.size)[:, None], 0)
+    last = np.maximum.accumulate(idx, axis=0)
+    since = t[:, None] - t[last]
+    moved = np.abs(predicted - np.take_along_axis(predicted, last, axis=0))
+    need = np.where(np.isfinite(lim.tol_K), moved > STUCK_MOVE_K * (1.0 - slack), True)
+    return bool(((since > lim.stuck_after_s * (1.0 - slack)) & need).any())
+
+
 @dataclass
 class Bounds:
     """The correction's bounds: ``|E| <= max_um``, ``|dE/dt| <= rate_um_s`` (module docstring)."""
@@ -365,12 +415,9 @@ def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bound
     te = thermal_errors(ds)
     tr = te[te["run_id"] == run].reset_index(drop=True)
     if limits is not None and limits.sensors:
-        monitor = FaultMonitor(limits)
         pr = ds.process_run(run)
         cols = [ds.metadata.sensor_column(s) for s in limits.sensors]
-        t = pr["t_s"].to_numpy(dtype=float)
-        T = pr[cols].to_numpy(dtype=float)
-        used = np.vstack([monitor.step(tk, Tk) for tk, Tk in zip(t, T)]) if t.size else T
+        used, monitor = FaultMonitor.run(limits, pr["t_s"].to_numpy(dtype=float), pr[cols].to_numpy(dtype=float))
         if monitor.faulty:
             process = ds.process.copy()
             rows = (process["run_id"] == run).to_numpy()
@@ -472,3 +519,49 @@ def fault_summary(monitor: FaultMonitor | None) -> str:
         return ""
     return "; ".join(f"{s}: {f} at {o:.0f} s" for s, f, o in zip(monitor.lim.sensors, monitor.fault, monitor.onset_s)
                      if f is not None)  # fmt: skip
+
+
+def deployed_rows(model, ds, train: Sequence[str], held_out: Sequence[str]):
+    """A fitted ``model`` (fitted on ``train``) scored on each run of ``held_out`` as deployed
+    (:func:`deployed_predictions`): the sensor limits over every sensor of the dataset and the
+    bounds from ``train``; a fault in a sensor the model reads switches to the family fitted on
+    ``train`` without it where the family can drop one (:func:`without_sensors`). One row per run:
+    ``run_id``, the :func:`~thermbench.bench.metrics.residual_metrics`, ``faults`` (each sensor
+    judged faulty, its rule and time; '' for none), ``fallback`` (the sensors the model that took
+    over does without; '' for none) and ``bounded_share`` (the share of readings where a bound
+    acted)."""
+    import pandas as pd
+
+    from ..data.reference import thermal_errors
+    from .metrics import residual_metrics
+
+    sensors = list(ds.metadata.sensors)
+    limits = SensorLimits.fit(ds, list(train), sensors) if sensors else None
+    bounds = Bounds.fit(ds, list(train))
+    reads = set(model.required_inputs().sensors)
+    fits: dict[tuple, Any] = {}
+    dropped: list[str] = []
+
+    def fallback(faulty):
+        drop = tuple(x for x in faulty if x in reads)
+        if not drop:
+            return None
+        if drop not in fits:
+            fits[drop] = without_sensors(model, ds, train, drop)
+        if fits[drop] is not None:
+            dropped[:] = list(drop)
+        return fits[drop]
+
+    te = thermal_errors(ds)
+    rows = []
+    for run in held_out:
+        dropped.clear()
+        pred, monitor, acted = deployed_predictions(model, ds, run, limits, bounds, fallback)
+        tr = te[te["run_id"] == run]
+        bad = int(np.sum(~np.isfinite(pred)))
+        metrics = (residual_metrics(tr["error_um"], pred, tr["thermal_um"]) if not bad else
+                   dict.fromkeys(residual_metrics(tr["error_um"], np.zeros(len(tr)), tr["thermal_um"]), float("nan")))  # fmt: skip
+        rows.append({"run_id": run, **metrics, "nonfinite_predictions": bad, "faults": fault_summary(monitor),
+                     "fallback": " ".join(dropped), "bounded_share": float(acted.mean()) if acted.size else 0.0})  # fmt: skip
+    return pd.DataFrame(rows)
+

@@ -121,9 +121,16 @@ def rise_and_rate(t_s: np.ndarray, T_C: np.ndarray, tau_s: float = RATE_WINDOW_S
     T = np.asarray(T_C, dtype=float).reshape(t.size, -1)
     if t.size == 0:
         return T.copy(), T.copy()
-    a = 1.0 - np.exp(-np.diff(t) / tau_s)
+    dt = np.diff(t)
+    a = 1.0 - np.exp(-dt / tau_s)
     e = np.empty_like(T)
     e[0] = T[0]
+    if dt.size and np.allclose(dt, dt[0], rtol=1e-9, atol=0.0) and np.isfinite(T).all():  # a regular log: one filter
+        from scipy.signal import lfilter
+
+        a0 = float(a[0])
+        e[1:] = lfilter([a0], [1.0, -(1.0 - a0)], T[1:], axis=0, zi=((1.0 - a0) * T[0])[None, :])[0]
+        return T - T[0], (T - e) * (3600.0 / tau_s)
     for k in range(1, t.size):
         e[k] = e[k - 1] + a[k - 1] * (T[k] - e[k - 1])
     return T - T[0], (T - e) * (3600.0 / tau_s)

@@ -22,6 +22,7 @@ from ..models.base import ModelError
 from ..models.gp import GaussianProcessLag
 from .adapt import ProbePlan
 from .calibration import calibrate_fold, fold_intervals, gp_refit_results, probe_results
+from .faults import DEPLOYED_APPROACH, deployed_rows
 from .parallel import run_workers
 from .plan import BANKS, CELL_FAILURES, DEPLOY_FOLD, interval_settings, reference_only_model
 from .splits import load_split, outer_folds
@@ -201,6 +202,19 @@ def run_task(
         except CELL_FAILURES as exc:
             fail(approach, exc, approach, "+".join(split.validation))
     ref_only = reference_only_model(model)  # a baseline: inner folds for its intervals and probe peers only
+    if "global" in approaches and not ref_only:  # each fold's fit as the compensator runs it (bench/faults.py)
+        by_name = {f.name: f for f in folds}
+        for name, fitted in fold_models.items():
+            train, held = (split.states, split.validation) if cv == "declared" else (by_name[name].train,
+                                                                                      by_name[name].held_out)  # fmt: skip
+            try:
+                res = deployed_rows(fitted, ds, train, held)
+            except CELL_FAILURES as exc:
+                fail(f"{DEPLOYED_APPROACH} fold {name}", exc, DEPLOYED_APPROACH, name)
+                continue
+            res.insert(1, "own", False)
+            res["fit_s"] = 0.0
+            rows.append(tag(res, DEPLOYED_APPROACH, "all", fitted, fold=None if cv == "declared" else name))
     # the model to deploy is chosen as each outer fold's is, by the inner folds of its training runs: every run
     # (the states for declared); its fold is DEPLOY_FOLD (scored by no held-out run: the outer folds say how
     # well this procedure holds up). An outer fold with the same training runs serves as it is.

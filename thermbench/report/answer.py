@@ -29,6 +29,7 @@ ANSWER_HEADERS = {
     "deploy": "deploy",
     "median_um": "held out µm",
     "worst_um": "worst µm",
+    "deployed_um": "as deployed µm",
     "baseline_um": "baseline µm",
     "ratio": "vs baseline",
     "none_um": "uncompensated µm",
@@ -49,7 +50,8 @@ def answer_table(held: pd.DataFrame, chosen: pd.DataFrame) -> pd.DataFrame:
     held-out RMSE median / worst over the folds, the best baseline's median, no compensation's
     median, the choice's interval coverage and mean half-width); ``chosen``, the deployed
     (family, approach) per case (:func:`thermbench.bench.choice.deployed_choice`). Columns: ``case``,
-    ``deploy``, ``folds``, ``median_um``, ``worst_um``, ``baseline`` (the best baseline family),
+    ``deploy``, ``folds``, ``median_um``, ``worst_um``, ``deployed_um`` (the choice as deployed, its median),
+    ``faults`` (the held-out runs on which a sensor was judged faulty), ``baseline`` (the best baseline family),
     ``baseline_um``, ``ratio`` (the choice's median over the best baseline's), ``none_um``,
     ``coverage`` (a fraction) and ``half_width_um``; NaN where a case has no such figure."""
     deploy = {r.case: _model(r.family, r.approach) for r in chosen.itertuples()} if len(chosen) else {}
@@ -59,13 +61,15 @@ def answer_table(held: pd.DataFrame, chosen: pd.DataFrame) -> pd.DataFrame:
         base = s.get("best_baseline")
         rows.append({"case": s["case"], "deploy": deploy.get(s["case"], "-"), "folds": int(s["folds"]),
                      "median_um": get("chosen_median_rmse_um"), "worst_um": get("chosen_worst_rmse_um"),
+                     "deployed_um": get("chosen_deployed_median_rmse_um"),
+                     "faults": s.get("chosen_faults") if isinstance(s.get("chosen_faults"), str) else "",
                      "baseline": base.split(" (")[0] if isinstance(base, str) else "-",
                      "baseline_um": get("baseline_median_rmse_um"),
                      "ratio": get("chosen_median_rmse_um") / get("baseline_median_rmse_um"),
                      "none_um": get("none_median_rmse_um"), "coverage": get("chosen_coverage"),
                      "half_width_um": get("chosen_half_width_um")})  # fmt: skip
-    return pd.DataFrame(rows, columns=["case", "deploy", "folds", "median_um", "worst_um", "baseline", "baseline_um",
-                                       "ratio", "none_um", "coverage", "half_width_um"])  # fmt: skip
+    return pd.DataFrame(rows, columns=["case", "deploy", "folds", "median_um", "worst_um", "deployed_um", "faults",
+                                       "baseline", "baseline_um", "ratio", "none_um", "coverage", "half_width_um"])  # fmt: skip
 
 
 def _shown(answer: pd.DataFrame) -> pd.DataFrame:
@@ -73,7 +77,7 @@ def _shown(answer: pd.DataFrame) -> pd.DataFrame:
     um = lambda v: "-" if pd.isna(v) else f"{v:.2f}"  # noqa: E731
     out = pd.DataFrame({
         "case": answer["case"], "deploy": answer["deploy"], "median_um": answer["median_um"].map(um),
-        "worst_um": answer["worst_um"].map(um), "baseline_um": answer["baseline_um"].map(um),
+        "worst_um": answer["worst_um"].map(um), "deployed_um": answer["deployed_um"].map(um), "baseline_um": answer["baseline_um"].map(um),
         "ratio": answer["ratio"].map(lambda v: "-" if pd.isna(v) else f"{v:.2f}×"), "none_um": answer["none_um"].map(um),
         "coverage": answer["coverage"].map(lambda v: "-" if pd.isna(v) else f"{100 * v:.0f} %"),
         "half_width_um": answer["half_width_um"].map(um),
@@ -91,6 +95,11 @@ def _notes(answer: pd.DataFrame, level: float) -> list[str]:
         f"- **held out / worst**: its RMSE on runs it was never fitted on, median and worst over "
         f"{' or '.join(map(str, folds))} fold{'s' if folds != [1] else ''}; each fold's model chosen without "
         "that fold's runs.",
+        "- **as deployed**: the same median with each fold's model run as the compensator runs it: every sensor "
+        "checked at every sample, a faulty one replaced, the correction bounded in value and rate "
+        "(thermbench/bench/faults.py; '-' for a bank).",
+        *[f"- {r['case']} as deployed: a sensor judged faulty on held-out {r['faults']}" for r in answer.to_dict("records")
+          if isinstance(r.get("faults"), str) and r["faults"]],
         f"- **baseline**: the best baseline's median ({', '.join(bases) or 'none run'}); **vs baseline**: "
         "held out ÷ baseline, below 1 is better.",
         f"- **interval covers / ±**: the share of held-out readings inside the model's {100 * level:.0f} % "
@@ -116,10 +125,11 @@ def answer_text(answer: pd.DataFrame, level: float) -> str:
 
 def answer_metrics(answer: pd.DataFrame, level: float) -> dict[str, float]:
     """The answer as MLflow metrics of the parent run, ``<case>/<figure>``: ``held_out_median_rmse_um``,
-    ``held_out_worst_rmse_um``, ``best_baseline_median_rmse_um``, ``ratio_to_best_baseline``,
+    ``held_out_worst_rmse_um``, ``as_deployed_median_rmse_um``, ``best_baseline_median_rmse_um``, ``ratio_to_best_baseline``,
     ``uncompensated_median_rmse_um``, ``interval_coverage_<level %>`` and ``interval_half_width_um``
     (finite figures only)."""
     names = {"median_um": "held_out_median_rmse_um", "worst_um": "held_out_worst_rmse_um",
+             "deployed_um": "as_deployed_median_rmse_um",
              "baseline_um": "best_baseline_median_rmse_um", "ratio": "ratio_to_best_baseline",
              "none_um": "uncompensated_median_rmse_um", "coverage": f"interval_coverage_{round(100 * level)}",
              "half_width_um": "interval_half_width_um"}  # fmt: skip
