@@ -427,3 +427,54 @@ def test_a_history_hole_is_a_time_without_any_input():
     assert history_hole(1000.0, 1130.0, [np.array([900.0, 1200.0])], 200.0) == ""
     assert "for 130 s" in history_hole(1000.0, 1130.0, [np.array([900.0, 1200.0])], 60.0)
     assert history_hole(1000.0, 1120.0, [np.array([1060.0])], 60.0) == ""
+
+
+def _faults_manifest(max_um=1000.0):
+    """Limits of two sensors that heat together (T_b = 2 T_a above their first readings, a line the
+    others rule reads), as an export writes them (thermbench/bench/faults.py)."""
+    return {"faults": {"limits": {"sensors": ["T_a", "T_b"], "rise_lo_K": [0.0, 0.0], "rise_hi_K": [5.0, 10.0],
+                                  "rate_max_K_h": [10.0, 20.0], "flat_s": [10.0, 10.0], "icpt": [0.0, 0.0],
+                                  "coef": [[0.0, 0.5], [2.0, 0.0]], "tol_K": [2.0, 2.0], "tau_s": 600.0},
+                       "bounds": {"max_um": max_um, "rate_um_s": 1.0}}}  # fmt: skip
+
+
+class TwoSensorModel(FakeModel):
+    temperatures = ["T_a", "T_b"]
+
+    def _total(self, t, x):  # 1 µm per K of T_b's rise
+        past = [s for s in self.steps if s[0] <= t + 1e-12]
+        return 0.0 * np.asarray(x, dtype=float) + (past[-1][3][1] - 20.0 if past else 0.0)
+
+
+def _r2(ts, a, b):
+    return {"axis_mm": Reading(100.0, ts), "feed_mm_min": Reading(3000.0, ts), "T_a_C": Reading(a, ts),
+            "T_b_C": Reading(b, ts)}  # fmt: skip
+
+
+def test_an_open_sensor_is_flagged_from_its_sample_and_the_model_reads_it_as_the_other_predicts():
+    """T_b opens (850 °C) at cycle 10: SENSOR_FAULT on that cycle and every one after, the cycle
+    names it, and the model is stepped with 20 + 2 x T_a's rise in its place (the line of the
+    manifest), so the compensation keeps following T_a; the written value never jumps."""
+    m = TwoSensorModel()
+    m.manifest = _faults_manifest()
+    lg = CycleLogic(m, Settings.from_config({"rate_limit_um_s": 1000.0, "ranges": {"temperature_C": [-300, 900]}}))
+    out = []
+    for k in range(20):
+        a = 20.0 + 0.1 * k
+        out.append(lg.cycle(_r2(1000.0 + k, a, 850.0 if k >= 10 else 20.0 + 0.2 * k), now_wall_s=0.01 * k))
+    assert [bool(c.flags & Flags.SENSOR_FAULT) for c in out] == [k >= 10 for k in range(20)]
+    assert all(c.faulty == ["T_b"] for c in out[10:]) and all(c.faulty == [] for c in out[:10])
+    for k, step in enumerate(m.steps):
+        assert step[3][1] == pytest.approx(20.0 + 0.2 * k)  # read as logged before, reconstructed after: 2 x 0.1 k
+    assert max(abs(b.value_um - a.value_um) for a, b in zip(out, out[1:])) < 0.25
+
+
+def test_the_compensation_is_held_to_the_manifest_bound():
+    m = TwoSensorModel()
+    m.manifest = _faults_manifest(max_um=1.0)
+    lg = CycleLogic(m, Settings.from_config({"rate_limit_um_s": 1000.0, "ranges": {"temperature_C": [-20, 80]}}))
+    out = [lg.cycle(_r2(1000.0 + k, 20.0 + 0.1 * k, 20.0 + 0.2 * k), now_wall_s=0.01 * k) for k in range(12)]
+    for k, c in enumerate(out):
+        raw = 0.2 * k  # T_b's rise, 1 µm per K
+        assert c.value_um == pytest.approx(-min(raw, 1.0))  # compensation = -error, bounded at 1 µm
+        assert bool(c.flags & Flags.BOUNDED) == (raw > 1.0 + 1e-9)

@@ -222,7 +222,8 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
                                                           on=["fold", "family"])  # fmt: skip
             if len(dep) == len(chosen):  # every fold's choice scored as deployed
                 d = dep.set_index("fold")["deployed_rmse_um"]
-                row |= {"chosen_deployed_median_rmse_um": float(d.median()), "chosen_deployed_worst_rmse_um": float(d.max()),
+                row |= {"chosen_deployed_median_rmse_um": float(d.median(skipna=False)),  # a fold with no score: NaN
+                        "chosen_deployed_worst_rmse_um": float(d.max(skipna=False)),
                         "chosen_faults": "; ".join(f for f in dep["faults"] if f)}  # fmt: skip
         if not base.empty:
             med = base.groupby(["family", "approach"])["rmse_um"].median().sort_values()

@@ -42,7 +42,7 @@ as they are reconstructed; a sensor no other predicts is held at its last truste
 family reads its inputs so, whatever it is.
 
 **Bounds** (:class:`Bounds`): the correction never exceeds ``max_um`` in magnitude (default
-``BOUND_FACTOR`` x the largest |thermal error| of the training runs: the largest drift seen plus a
+``BOUND_FACTOR`` x the largest |error| of the training runs: the largest drift seen plus a
 margin) and never changes faster than ``rate_um_s`` (default ``RATE_BOUND_FACTOR`` x the largest
 change of the training runs' error over ``RATE_WINDOW_S``, per second).
 
@@ -75,6 +75,10 @@ STUCK_FACTOR = 2.0
 STUCK_MIN_S = 1800.0
 #: ... and while the others predict it moved by more than this since (K)
 STUCK_MOVE_K = 2.0
+#: the others' lines: ridge on standardised rises, the penalty this share of each variance (sensors that
+#: heat together are nearly collinear: unpenalised, a line can weight one neighbour ten times over and
+#: pass its fault on many times over)
+RIDGE_SHARE = 0.01
 #: the others rule: this many times the largest departure of a held-out training run, at least OTHERS_MIN_K
 #: (a few training runs show only a few departures, and every sensor of a machine is judged at once)
 OTHERS_FACTOR = 3.0
@@ -96,19 +100,22 @@ FAULT_KINDS = ("jump", "drift", "stuck", "open")
 class SensorLimits:
     """What the training runs say of each sensor (module docstring): the fitted side of the rules.
 
-    Per sensor ``i`` of ``sensors``: ``rise_lo`` / ``rise_hi`` (K), ``rate_max`` (K/h, the largest
+    Per sensor ``i`` of ``sensors``: ``rise_lo_K`` / ``rise_hi_K`` (K), ``rate_max_K_h`` (K/h, the largest
     |rate|), ``flat_s`` (the longest unchanged stretch, s; inf when it never moved); its rise as
     the others predict it, ``icpt[i] + coef[i] @ rise`` (``coef[i, i] = 0``), and the departure
-    beyond which it is faulty, ``tol_K[i]`` (inf: no other sensor predicts it)."""
+    beyond which it is faulty, ``tol_K[i]`` (inf: no other sensor predicts it); ``start_offset_K[i]``,
+    how far its first reading lies above the others' mean at a run's start (the mean over the runs:
+    where a sensor is faulty from the first sample, the reading it is reconstructed from)."""
 
     sensors: tuple[str, ...]
-    rise_lo: np.ndarray
-    rise_hi: np.ndarray
-    rate_max: np.ndarray
+    rise_lo_K: np.ndarray
+    rise_hi_K: np.ndarray
+    rate_max_K_h: np.ndarray
     flat_s: np.ndarray
     icpt: np.ndarray
     coef: np.ndarray
     tol_K: np.ndarray
+    start_offset_K: np.ndarray | None = None
     tau_s: float = RATE_WINDOW_S
 
     @classmethod
@@ -116,11 +123,12 @@ class SensorLimits:
         """The limits of ``sensors`` over the process logs of ``runs``."""
         sensors = tuple(sensors)
         n = len(sensors)
-        rises, rates, flats, run_of = [], [], np.zeros(n), []
+        rises, rates, flats, run_of, starts = [], [], np.zeros(n), [], []
         for run in runs:
             t, T = _log(ds, run, sensors)
             if t.size == 0:
                 continue
+            starts.append(T[0])
             rise, rate = rise_and_rate(t, T)
             rises.append(rise)
             rates.append(rate)
@@ -130,21 +138,25 @@ class SensorLimits:
             raise ValueError(f"no process-log samples of sensors {list(sensors)} in runs {list(runs)}")
         R, D = np.vstack(rises), np.vstack(rates)
         with np.errstate(invalid="ignore"):
-            rise_lo, rise_hi = np.nanmin(R, axis=0), np.nanmax(R, axis=0)
-            rate_max = np.nanmax(np.abs(D), axis=0)
-        moved = rise_hi > rise_lo
+            rise_lo_K, rise_hi_K = np.nanmin(R, axis=0), np.nanmax(R, axis=0)
+            rate_max_K_h = np.nanmax(np.abs(D), axis=0)
+        moved = rise_hi_K > rise_lo_K
         flat_s = np.where(moved, flats, np.inf)
         icpt, coef, tol = _others_lines(R, np.asarray(run_of), moved)
-        return cls(sensors, rise_lo, rise_hi, rate_max, flat_s, icpt, coef, tol)
+        S = np.vstack(starts)  # each run's first reading: how far each sensor starts from the others' mean
+        with np.errstate(invalid="ignore"):
+            others_mean = (np.nansum(S, axis=1, keepdims=True) - S) / max(n - 1, 1)
+            offset = np.nan_to_num(np.nanmean(S - others_mean, axis=0)) if n > 1 else np.zeros(n)
+        return cls(sensors, rise_lo_K, rise_hi_K, rate_max_K_h, flat_s, icpt, coef, tol, offset)
 
     # the thresholds the rules use, from the fitted limits
     @property
     def range_margin_K(self) -> np.ndarray:
-        return np.maximum(self.rise_hi - self.rise_lo, RANGE_MIN_K)
+        return np.maximum(self.rise_hi_K - self.rise_lo_K, RANGE_MIN_K)
 
     @property
     def rate_limit_K_h(self) -> np.ndarray:
-        return RATE_FACTOR * self.rate_max + RATE_MIN_K_H
+        return RATE_FACTOR * self.rate_max_K_h + RATE_MIN_K_H
 
     @property
     def stuck_after_s(self) -> np.ndarray:
@@ -154,9 +166,11 @@ class SensorLimits:
         def finite(a):  # JSON has no inf
             return [None if not math.isfinite(v) else float(v) for v in a]
 
-        return {"sensors": list(self.sensors), "rise_lo": self.rise_lo.tolist(), "rise_hi": self.rise_hi.tolist(),
-                "rate_max": self.rate_max.tolist(), "flat_s": finite(self.flat_s), "icpt": self.icpt.tolist(),
-                "coef": self.coef.tolist(), "tol_K": finite(self.tol_K), "tau_s": self.tau_s}  # fmt: skip
+        return {"sensors": list(self.sensors), "rise_lo_K": self.rise_lo_K.tolist(), "rise_hi_K": self.rise_hi_K.tolist(),
+                "rate_max_K_h": self.rate_max_K_h.tolist(), "flat_s": finite(self.flat_s), "icpt": self.icpt.tolist(),
+                "coef": self.coef.tolist(), "tol_K": finite(self.tol_K),
+                "start_offset_K": (self.start_offset_K if self.start_offset_K is not None else np.zeros(len(self.sensors))).tolist(),
+                "tau_s": self.tau_s}  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "SensorLimits":
@@ -164,13 +178,14 @@ class SensorLimits:
             return np.array([np.inf if v is None else float(v) for v in a])
 
         n = len(d["sensors"])
-        return cls(tuple(d["sensors"]), np.asarray(d["rise_lo"], float), np.asarray(d["rise_hi"], float),
-                   np.asarray(d["rate_max"], float), inf(d["flat_s"]), np.asarray(d["icpt"], float),
-                   np.asarray(d["coef"], float).reshape(n, n), inf(d["tol_K"]), float(d.get("tau_s", RATE_WINDOW_S)))  # fmt: skip
+        return cls(tuple(d["sensors"]), np.asarray(d["rise_lo_K"], float), np.asarray(d["rise_hi_K"], float),
+                   np.asarray(d["rate_max_K_h"], float), inf(d["flat_s"]), np.asarray(d["icpt"], float),
+                   np.asarray(d["coef"], float).reshape(n, n), inf(d["tol_K"]),
+                   np.asarray(d.get("start_offset_K", np.zeros(n)), float), float(d.get("tau_s", RATE_WINDOW_S)))  # fmt: skip
 
 
 def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
-    """Per sensor, its rise by least squares on the other moving sensors' rises (rows of ``R``,
+    """Per sensor, its rise by ridge regression (``RIDGE_SHARE``) on the other moving sensors' rises (rows of ``R``,
     samples x sensors, of the runs ``run_of``), and its tolerance: ``OTHERS_FACTOR`` x the largest
     departure on a run held out of the fit (the line fitted on the other runs; with one run, on
     itself), at least ``OTHERS_MIN_K``. The fits come from each run's sums of products (the normal
@@ -185,10 +200,14 @@ def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
     gram = {r: X[rows[r]].T @ X[rows[r]] for r in runs}
     total = sum(gram.values()) if runs else np.zeros((n + 1, n + 1))
 
-    def line(G, i, others):
+    def line(G, i, others):  # ridge on standardised rises, the penalty RIDGE_SHARE of each variance
         cols = [0, *[1 + k for k in others]]
-        w, *_ = np.linalg.lstsq(G[np.ix_(cols, cols)], G[cols, 1 + i], rcond=None)
-        return cols, w
+        N = G[0, 0]
+        m = G[0, cols[1:]] / N
+        C = G[np.ix_(cols[1:], cols[1:])] / N - np.outer(m, m)
+        c = G[cols[1:], 1 + i] / N - m * G[0, 1 + i] / N
+        w = np.linalg.solve(C + RIDGE_SHARE * np.diag(np.maximum(np.diag(C), 1e-12)), c)
+        return cols, np.concatenate([[G[0, 1 + i] / N - m @ w], w])
 
     for i in range(n):
         others = [k for k in range(n) if k != i and moved[k]]
@@ -217,13 +236,13 @@ class FaultMonitor:
 
     def reset(self) -> None:
         n = len(self.lim.sensors)
-        self.T0 = np.full(n, np.nan)  # the run's first plausible reading of each sensor
+        self.T0_C = np.full(n, np.nan)  # the run's first plausible reading of each sensor
         self.e = np.full(n, np.nan)  # the rate's exponential average
         self.t_last: float | None = None
-        self.last_value = np.full(n, np.nan)
+        self.last_value_C = np.full(n, np.nan)
         self.changed_s = np.zeros(n)
         self.predicted_at_change = np.full(n, np.nan)  # the others' prediction of the rise when it last changed
-        self.trusted = np.full(n, np.nan)  # the last reading of each sensor judged healthy
+        self.trusted_C = np.full(n, np.nan)  # the last reading of each sensor judged healthy
         self.fault: list[str | None] = [None] * n
         self.onset_s = np.full(n, np.nan)
 
@@ -236,12 +255,20 @@ class FaultMonitor:
         """A whole log (``temps_C``: samples x sensors) through a new monitor: the temperatures the
         model is to read, and the monitor after the last sample. The same as :meth:`step` sample by
         sample; a log on which no rule comes near firing (checked on whole arrays, with a margin for
-        rounding) is returned as it is without the per-sample loop."""
-        t = np.asarray(t_s, dtype=float)
-        T = np.asarray(temps_C, dtype=float).reshape(t.size, -1)
+        rounding) is returned as it is without the per-sample loop; the monitor returned then says
+        which sensors were judged faulty (none) and where the rises counted from, and is not to be
+        stepped further."""
+        t = np.asarray(t_s, dtype=float).ravel()
+        T = np.asarray(temps_C, dtype=float)
+        n = len(limits.sensors)
+        if T.shape != (t.size, n):
+            raise ValueError(f"a log of {t.size} samples x {n} sensors {list(limits.sensors)} was expected, got an array "
+                             f"of shape {T.shape}")  # fmt: skip
+        if t.size > 1 and not (np.diff(t) > 0).all():
+            raise ValueError("the log's times must increase from sample to sample")
         m = cls(limits)
         if t.size and not _may_fire(limits, t, T):
-            m.T0, m.t_last = T[0].copy(), float(t[-1])
+            m.T0_C, m.t_last = T[0].copy(), float(t[-1])
             return T.copy(), m
         used = np.vstack([m.step(tk, Tk) for tk, Tk in zip(t, T)]) if t.size else T.copy()
         return used, m
@@ -252,8 +279,14 @@ class FaultMonitor:
         n = T.size
         lo_c, hi_c = PLAUSIBLE_C
         plausible = np.isfinite(T) & (T >= lo_c) & (T <= hi_c)
-        first = plausible & ~np.isfinite(self.T0)  # the rises count from each sensor's first plausible reading
-        self.T0[first] = T[first]
+        if self.t_last is None and not plausible.all():  # faulty from the first sample: where it would start,
+            # by the others' mean and the training runs' offset from it (it stays faulty: latched)
+            ref = float(np.mean(T[plausible])) if plausible.any() else 20.0
+            offset = lim.start_offset_K if lim.start_offset_K is not None else np.zeros(n)
+            self.T0_C[~plausible] = ref + offset[~plausible]
+            self.e[~plausible] = self.T0_C[~plausible]
+        first = plausible & ~np.isfinite(self.T0_C)  # the rises count from each sensor's first plausible reading
+        self.T0_C[first] = T[first]
         self.e[first] = T[first]
         if self.t_last is not None and t_s > self.t_last:
             a = 1.0 - math.exp(-(t_s - self.t_last) / lim.tau_s)
@@ -262,10 +295,10 @@ class FaultMonitor:
         if self.t_last is None:
             self.changed_s[:] = t_s
         self.t_last = float(t_s)
-        changed = ~(T == self.last_value)
+        changed = ~(T == self.last_value_C)
         self.changed_s[changed] = t_s
-        self.last_value = T.copy()
-        rise = T - self.T0
+        self.last_value_C = T.copy()
+        rise = T - self.T0_C
         rate = (T - self.e) * (3600.0 / lim.tau_s)
         margin = lim.range_margin_K
         known = np.where(np.isfinite(rise), rise, 0.0)
@@ -279,7 +312,7 @@ class FaultMonitor:
             why = None
             if not plausible[i]:
                 why = "open"
-            elif rise[i] > lim.rise_hi[i] + margin[i] or rise[i] < lim.rise_lo[i] - margin[i]:
+            elif rise[i] > lim.rise_hi_K[i] + margin[i] or rise[i] < lim.rise_lo_K[i] - margin[i]:
                 why = "range"
             elif abs(rate[i]) > lim.rate_limit_K_h[i]:
                 why = "rate"
@@ -294,15 +327,34 @@ class FaultMonitor:
         with np.errstate(invalid="ignore", divide="ignore"):
             depart = np.abs(used - (lim.icpt + lim.coef @ used)) / lim.tol_K
         depart = np.where(healthy & np.isfinite(depart), depart, 0.0)
-        if depart.size and depart.max() > 1.0:  # the one that departs most, relative to its tolerance
-            j = int(np.argmax(depart))
+        if depart.size and depart.max() > 1.0:  # the sensor whose reconstruction explains the departures best
+            j = self._culprit(used, healthy)
             self.fault[j], self.onset_s[j] = "others", float(t_s)
             self._reconstruct(used)
         for i in range(n):
             if self.fault[i] is None:
-                self.trusted[i] = T[i]
-        base = np.where(np.isfinite(self.T0), self.T0, T)
+                self.trusted_C[i] = T[i]
+        base = np.where(np.isfinite(self.T0_C), self.T0_C, T)
         return np.where(healthy & np.array([f is None for f in self.fault]), T, base + used)
+
+    def _culprit(self, rise: np.ndarray, healthy: np.ndarray) -> int:
+        """Of the healthy sensors, the one that, read as the others predict it, leaves the smallest sum
+        of squared departures (relative to their tolerances) over the other healthy sensors: the
+        reconstruction-based identification of Dunia et al. (a fault moves every line that weights
+        the faulty sensor, so the sensor departing most need not be the faulty one)."""
+        lim = self.lim
+        best, score = -1, math.inf
+        for j in np.flatnonzero(healthy & np.isfinite(lim.tol_K)):
+            u = rise.copy()
+            u[j] = lim.icpt[j] + lim.coef[j] @ u
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = (u - (lim.icpt + lim.coef @ u)) / lim.tol_K
+            keep = healthy.copy()
+            keep[j] = False
+            left = float(np.sum(np.where(keep & np.isfinite(d), d, 0.0) ** 2))
+            if left < score:
+                best, score = int(j), left
+        return best
 
     def _reconstruct(self, rise: np.ndarray) -> None:
         """The faulty sensors' rises in ``rise`` (in place) as the others predict them (the faulty ones
@@ -313,8 +365,8 @@ class FaultMonitor:
             return
         lim = self.lim
         for i in bad:  # the start: the last trusted rise
-            ok = np.isfinite(self.trusted[i]) and np.isfinite(self.T0[i])
-            rise[i] = self.trusted[i] - self.T0[i] if ok else 0.0
+            ok = np.isfinite(self.trusted_C[i]) and np.isfinite(self.T0_C[i])
+            rise[i] = self.trusted_C[i] - self.T0_C[i] if ok else 0.0
         for _ in range(3 if len(bad) > 1 else 1):
             for i in bad:
                 if math.isfinite(lim.tol_K[i]):
@@ -330,8 +382,8 @@ def _may_fire(lim: SensorLimits, t: np.ndarray, T: np.ndarray, slack: float = 1e
         return True
     rise, rate = rise_and_rate(t, T, lim.tau_s)
     margin = lim.range_margin_K
-    if ((rise > (lim.rise_hi + margin) - slack * np.abs(lim.rise_hi + margin)) |
-            (rise < (lim.rise_lo - margin) + slack * np.abs(lim.rise_lo - margin))).any():  # fmt: skip
+    if ((rise > (lim.rise_hi_K + margin) - slack * np.abs(lim.rise_hi_K + margin)) |
+            (rise < (lim.rise_lo_K - margin) + slack * np.abs(lim.rise_lo_K - margin))).any():  # fmt: skip
         return True
     if (np.abs(rate) > lim.rate_limit_K_h * (1.0 - slack)).any():
         return True
@@ -358,18 +410,19 @@ class Bounds:
 
     @classmethod
     def fit(cls, ds, runs: Sequence[str]) -> "Bounds":
-        """From the thermal errors of ``runs``: ``BOUND_FACTOR`` x the largest |error|, and
-        ``RATE_BOUND_FACTOR`` x the largest change over ``RATE_WINDOW_S`` (per second)."""
+        """From the errors of ``runs``: ``BOUND_FACTOR`` x the largest |error| (what a model predicts:
+        the thermal error with the run's cold reference), and ``RATE_BOUND_FACTOR`` x the largest
+        change of the thermal error over ``RATE_WINDOW_S`` (per second)."""
         from ..data.reference import thermal_errors
 
         te = thermal_errors(ds)
         te = te[te["run_id"].isin(list(runs))]
         if te.empty or not np.isfinite(te["thermal_um"]).any():
             raise ValueError(f"no thermal error in runs {list(runs)} to bound a correction by")
-        top = float(np.nanmax(np.abs(te["thermal_um"].to_numpy(dtype=float))))
+        top = float(np.nanmax(np.abs(te["error_um"].to_numpy(dtype=float))))  # what is predicted: the whole error
         rate = 0.0
-        keys = ["run_id"] + [c for c in ("target_mm", "direction") if c in te.columns]
-        for _, g in te.groupby(keys, sort=False):  # one series per run and measuring position
+        keys = ["run_id"] + [c for c in ("channel", "target_mm", "direction") if c in te.columns]
+        for _, g in te.groupby(keys, sort=False, dropna=False):  # one series per run and measuring position
             g = g.sort_values("t_s")
             t, e = g["t_s"].to_numpy(dtype=float), g["thermal_um"].to_numpy(dtype=float)
             if t.size < 2:
@@ -439,8 +492,8 @@ def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bound
                 pred[span] = np.asarray(alt.predict(view, run), dtype=float)[span]
     acted = np.zeros(pred.size, dtype=bool)
     if bounds is not None:  # in time, per measuring position (the value at one target follows its previous one)
-        keys = [c for c in ("target_mm", "direction") if c in tr.columns]
-        groups = tr.groupby(keys, sort=False).indices.values() if keys else [np.arange(len(tr))]
+        keys = [c for c in ("channel", "target_mm", "direction") if c in tr.columns]
+        groups = tr.groupby(keys, sort=False, dropna=False).indices.values() if keys else [np.arange(len(tr))]
         t = tr["t_s"].to_numpy(dtype=float)
         for idx in groups:
             idx = np.asarray(idx)[np.argsort(t[idx], kind="stable")]
@@ -449,15 +502,18 @@ def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bound
 
 
 def without_sensors(model, ds, runs: Sequence[str], drop: Sequence[str]):
-    """``model``'s family fitted on ``runs`` without the sensors ``drop`` (a clone whose ``sensors``
-    are the others), or None when the family has no ``sensors`` to set or nothing is left."""
+    """``model``'s family fitted on ``runs`` without the sensors ``drop``: a clone whose ``sensors``
+    are those the fitted model reads (or its own list) but ``drop``; None when the family has no list
+    of ``sensors`` to set (none, or a rule such as ``auto``), when it reads none of ``drop``, or when
+    nothing is left."""
     from sklearn.base import clone
 
-    if "sensors" not in model.get_params(deep=False):
+    mine = model.get_params(deep=False).get("sensors", "absent")
+    if not (mine is None or isinstance(mine, (list, tuple))):  # no such parameter, or a rule ('auto', 'all')
         return None
-    mine = model.get_params(deep=False)["sensors"]
-    keep = [s for s in (list(ds.metadata.sensors) if mine is None else list(mine)) if s not in set(drop)]
-    if not keep:
+    reads = list(model.required_inputs().sensors)  # what the fitted model reads, whatever None means to it
+    keep = [s for s in (reads if mine is None else list(mine)) if s not in set(drop)]
+    if not keep or keep == reads:
         return None
     return clone(model).set_params(sensors=keep).fit(ds, list(runs))
 
@@ -547,7 +603,12 @@ def deployed_rows(model, ds, train: Sequence[str], held_out: Sequence[str]):
         if not drop:
             return None
         if drop not in fits:
-            fits[drop] = without_sensors(model, ds, train, drop)
+            from .plan import CELL_FAILURES
+
+            try:
+                fits[drop] = without_sensors(model, ds, train, drop)
+            except CELL_FAILURES:  # the family cannot do without them: it reads them reconstructed
+                fits[drop] = None
         if fits[drop] is not None:
             dropped[:] = list(drop)
         return fits[drop]

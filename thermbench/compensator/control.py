@@ -21,6 +21,13 @@ network:
   compensation is then held at the value the controller has (``HELD``).
 * **Outage**: longer than the runtime accepts between samples (``TB_MAX_GAP_S``) -> the
   model is restarted (``RESTARTED``) and the compensation held until it predicts again.
+* **Sensor faults** (:mod:`thermbench.bench.faults`, the model's manifest ``faults``): every
+  temperature of every model sample checked against the limits of the training runs (open circuit,
+  out of range, a rate no training run shows, stuck, departing from the other sensors); a sensor
+  judged faulty stays so until the model restarts, the model reads it as the other sensors predict
+  it, and every cycle after is flagged ``SENSOR_FAULT`` (the cycle log's ``faulty`` names them).
+  The compensation's magnitude never exceeds the manifest's bound (the largest thermal error of
+  the training runs plus half of it; ``BOUNDED`` when it acts).
 * **Rate limit**: the compensation never changes in time faster than ``rate_limit_um_s``
   per second of machine time, counted per cycle and at most one sample period per cycle
   (so no step after an outage or a freeze either; the role of SINUMERIK MD32760
@@ -73,6 +80,8 @@ class Flags(enum.IntFlag):
     # than the runtime bridges): its zero is the machine as it was then; set on every cycle after
     PROBE = 4096  # a probe reading (a new timestamp on the probe input) updated the correction this cycle
     EXTRAPOLATING = 8192  # the inputs are outside the envelope the model was fitted on (manifest 'envelope')
+    SENSOR_FAULT = 16384  # a temperature sensor was judged faulty (manifest 'faults'): the model reads it reconstructed
+    BOUNDED = 32768  # the compensation was held to the bound of its magnitude (manifest 'faults.bounds.max_um')
 
 
 def flag_names(f: int) -> str:
@@ -114,6 +123,7 @@ class Cycle:
     rc: int = 0
     correction_um: float = 0.0  # the probe filter's correction of the total at the current position
     probe_um: float | None = None  # the probe reading taken this cycle
+    faulty: list[str] = field(default_factory=list)  # the temperature sensors judged faulty so far
 
 
 class CycleLogic:
@@ -169,6 +179,19 @@ class CycleLogic:
             self.guard = EnvelopeGuard(Envelope.from_dict(env), float(env.get("rate_tau_s", 600.0)))
         else:
             self.guard = None  # an export without an envelope (before issue 41): nothing to flag
+        faults = (getattr(model, "manifest", None) or {}).get("faults")
+        self.monitor, self.bound_um = None, math.inf
+        if faults is not None:  # the sensor checks and the bound of the training runs (thermbench/bench/faults.py)
+            from ..bench.faults import FaultMonitor, SensorLimits
+
+            if faults.get("limits") is not None:  # None: the model reads no temperature
+                limits = SensorLimits.from_dict(faults["limits"])
+                if list(limits.sensors) != list(model.temperatures):
+                    raise _config_error(f"the model's manifest 'faults' checks sensors {list(limits.sensors)}, the model "
+                                        f"reads {list(model.temperatures)}: export it again")  # fmt: skip
+                self.monitor = FaultMonitor(limits)
+            bound = (faults.get("bounds") or {}).get("max_um")
+            self.bound_um = math.inf if bound is None else float(bound)
         self.interval = (getattr(model, "manifest", None) or {}).get("interval")
         if self.s.extrapolation == "limit" and (self.guard is None or not self.interval):
             what = "no training envelope" if self.guard is None else "no interval"
@@ -183,6 +206,8 @@ class CycleLogic:
         self.t_start = None  # set by the first sample after it
         if getattr(self, "guard", None) is not None:
             self.guard.reset()  # the rises count from the new first sample, as the model's
+        if getattr(self, "monitor", None) is not None:
+            self.monitor.reset()  # as the guard: a new first sample, and every sensor trusted again
 
     # ------------------------------------------------------------ warm restart ---
     STATE_COLUMNS = ("k", "axis_mm", "feed_mm_min", "load_N", "measuring")
@@ -307,6 +332,9 @@ class CycleLogic:
         c = self._cycle(readings, now_wall_s, now_epoch_s)
         if self.cold:
             c.flags = int(c.flags | Flags.COLD)
+        if self.monitor is not None and self.monitor.faulty:  # on every cycle until the model restarts
+            c.flags = int(c.flags | Flags.SENSOR_FAULT)
+            c.faulty = list(self.monitor.faulty)
         return c
 
     def _cycle(self, readings: Mapping[str, Reading], now_wall_s: float, now_epoch_s: float | None = None) -> Cycle:
@@ -415,6 +443,8 @@ class CycleLogic:
             self.fresh_t_s = None  # a new model state: ramp from what the controller holds
         i = c.inputs
         temps = [i[f"{s}_C"] for s in self.model.temperatures]
+        if self.monitor is not None:  # what the model reads: a faulty sensor as the others predict it
+            temps = [float(v) for v in self.monitor.step(k * self.period_s, temps)]
         args = (k * self.period_s, i["axis_mm"], i["feed_mm_min"], temps)
         op = [i[n] for n in self.operating]
         kw = {"operating": op} if op else {}
@@ -450,6 +480,9 @@ class CycleLogic:
             return self._held_from(c, Flags.NOT_READY if rc in (-14, -13) else Flags.RUNTIME)
         c.predicted_um, c.label = total, label
         total = self._corrected(t, total)
+        if abs(total) > self.bound_um:
+            total = math.copysign(self.bound_um, total)
+            c.flags |= Flags.BOUNDED
         c.correction_um = total - c.predicted_um
         # the rate limit acts on the change in time (at fixed positions), per cycle of machine time
         # (at most one sample period per cycle: no step after an outage or a freeze)
@@ -464,6 +497,9 @@ class CycleLogic:
                 c.rc = int(rcs[rcs < 0][0])
                 return self._held_from(c, Flags.RUNTIME)
             tot = self._corrected(t, tot)
+            if np.any(np.abs(tot) > self.bound_um):
+                tot = np.clip(tot, -self.bound_um, self.bound_um)
+                c.flags |= Flags.BOUNDED
             want_line = errorline.fit_line(xs, self.sign * tot, self._ref())
             want = (float(want_line.at(a)), float(want_line.at(b)))
             prev = self.ends_um or (0.0, 0.0)

@@ -27,7 +27,8 @@ class CycleLog:
         self.fh = self.out.fh
         self.w = csv.writer(self.fh)
         self.w.writerow(["wall_s", "cycle", "t_s", "late_ms", "cycle_ms", *inputs, "held", "value_um", "offset_um",
-                         "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names", "correction_um", "probe_um"])  # fmt: skip
+                         "slope_um_per_m", "ref_mm", "predicted_um", "label", "rc", "flags", "flag_names", "correction_um", "probe_um",
+                         "faulty"])  # fmt: skip
 
     def write(self, wall_s: float, k: int, c: Cycle, late_ms: float, cycle_ms: float) -> None:
         ln = c.line
@@ -35,7 +36,7 @@ class CycleLog:
                          *[_f(c.inputs.get(n)) for n in self.inputs], ";".join(c.held), _f(c.value_um),
                          _f(ln.offset_um if ln else None), _f(ln.slope_um_per_m if ln else None), _f(ln.ref_mm if ln else None),
                          _f(c.predicted_um), c.label, c.rc, c.flags, flag_names(c.flags), _f(c.correction_um),
-                         _f(c.probe_um)])  # fmt: skip
+                         _f(c.probe_um), ";".join(c.faulty)])  # fmt: skip
 
     def close(self) -> None:
         self.out.close()

@@ -227,6 +227,17 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
                                "bytes": write_envelope(tmp / ENVELOPE_FILE, env, RATE_WINDOW_S),
                                "note": "rises above the run's first sample (K), high-pass rates (K/h), operating values; "
                                        "the file: the C runtime's guard (tb_guard_open)"}  # fmt: skip
+            from ..bench.faults import Bounds, SensorLimits
+
+            try:
+                bounds = Bounds.fit(ds, list(model.train_runs_))
+                bound = {"max_um": bounds.max_um, "rate_um_s": bounds.rate_um_s}
+            except ValueError:  # no thermal error in the training runs to bound a correction by
+                bound = {"max_um": None, "rate_um_s": None}
+            man["faults"] = {"limits": SensorLimits.fit(ds, list(model.train_runs_), temps).to_dict() if temps else None,
+                             "bounds": bound,
+                             "note": "each temperature checked per sample against the training runs (open, range, rate, "
+                                     "stuck, the others' prediction: thermbench/bench/faults.py); |compensation| <= max_um"}  # fmt: skip
             if opts.interval_level is not None:
                 man["interval"] = interval_calibration(model, ds, list(model.train_runs_), temps, ops, opts.interval_level,
                                                        opts.interval_kappa, name)  # fmt: skip
