@@ -41,7 +41,8 @@ def main(argv=None) -> int:
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    from thermbench.bench.faults import FAULT_KINDS, Bounds, SensorLimits, deployed_predictions, fault_summary, plant_fault, without_sensors
+    from thermbench.bench.deployed import FAULT_KINDS, deployed_predictions, plant_fault, without_sensors
+    from thermbench.bench.faults import Bounds, SensorLimits, fault_summary
     from thermbench.bench.metrics import residual_metrics
     from thermbench.config import config_dir
     from thermbench.data.io import load_dataset

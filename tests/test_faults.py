@@ -1,4 +1,4 @@
-"""Sensor faults at the compensator (thermbench/bench/faults.py): detection, replacement, bounds.
+"""Sensor faults at the compensator (thermbench/bench/faults.py, deployed.py): detection, replacement, bounds.
 
 The faults are planted into the shipped real spindle test (fl_thermal: five constant-speed blocks
 to fit the limits on, the stepped tail to plant into), so the truth of each check is what was
@@ -13,17 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from thermbench.bench.faults import (
-    PLAUSIBLE_C,
-    Bounds,
-    FaultMonitor,
-    SensorLimits,
-    _may_fire,
-    _others_lines,
-    deployed_predictions,
-    plant_fault,
-    without_sensors,
-)
+from thermbench.bench.deployed import deployed_predictions, plant_fault, without_sensors
+from thermbench.bench.faults import PLAUSIBLE_C, Bounds, FaultMonitor, SensorLimits, _may_fire, _others_lines
 from thermbench.bench.metrics import residual_metrics
 from thermbench.data.reference import thermal_errors
 

@@ -15,7 +15,7 @@ import pandas as pd
 from ..errors import ExperimentError
 from ..experiment import model_flags
 from .calibration import probe_rows
-from .faults import DEPLOYED_APPROACH
+from .deployed import DEPLOYED_APPROACH
 from .plan import DEPLOY_FOLD, case_label, family_class
 
 
@@ -162,7 +162,7 @@ def _held_out_rows(r: pd.DataFrame) -> pd.Series:
 
 
 def _deployed_per_fold(r: pd.DataFrame) -> pd.DataFrame:
-    """The fold fits scored as deployed (bench/faults.py), per (case, family, fold): the mean RMSE over
+    """The fold fits scored as deployed (bench/deployed.py), per (case, family, fold): the mean RMSE over
     the fold's held-out runs, and the runs on which a sensor was judged faulty (``run: faults``)."""
     v = r[(r["kind"] == "validation") & (r["approach"] == DEPLOYED_APPROACH)]
     if v.empty:

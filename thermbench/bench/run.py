@@ -22,7 +22,7 @@ from ..models.base import ModelError
 from ..models.gp import GaussianProcessLag
 from .adapt import ProbePlan
 from .calibration import calibrate_fold, fold_intervals, gp_refit_results, probe_results
-from .faults import DEPLOYED_APPROACH, deployed_rows
+from .deployed import DEPLOYED_APPROACH, deployed_rows
 from .parallel import run_workers
 from .plan import BANKS, CELL_FAILURES, DEPLOY_FOLD, interval_settings, reference_only_model
 from .splits import load_split, outer_folds
@@ -202,7 +202,7 @@ def run_task(
         except CELL_FAILURES as exc:
             fail(approach, exc, approach, "+".join(split.validation))
     ref_only = reference_only_model(model)  # a baseline: inner folds for its intervals and probe peers only
-    if "global" in approaches and not ref_only:  # each fold's fit as the compensator runs it (bench/faults.py)
+    if "global" in approaches and not ref_only:  # each fold's fit as the compensator runs it (bench/deployed.py)
         by_name = {f.name: f for f in folds}
         for name, fitted in fold_models.items():
             train, held = (split.states, split.validation) if cv == "declared" else (by_name[name].train,
