@@ -85,7 +85,7 @@ def main(argv=None) -> int:
         tr = te[te["run_id"] == run]
         none = float(np.sqrt(np.mean(tr["error_um"].to_numpy() ** 2)))
         raw = rmse(run, model.predict(v, run))
-        dep, mon, acted = deployed_predictions(model, v, run, limits, bounds, fallback)
+        dep, mon, acted = deployed_predictions(model, v, run, limits, bounds, fallback, te)
         clean.append({"run": run, "raw": raw, "deployed": rmse(run, dep), "none": none, "false_faults": mon.faulty, "judged": fault_summary(mon),
                       "bounded": float(acted.mean())})  # fmt: skip
         t = v.process_run(run)["t_s"].to_numpy(dtype=float)
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
                 with np.errstate(all="ignore"):
                     p_raw = np.asarray(model.predict(bad, run), dtype=float)
                 r_raw = rmse(run, p_raw) if np.isfinite(p_raw).all() else float("inf")
-                dep, mon, _ = deployed_predictions(model, bad, run, limits, bounds, fallback)
+                dep, mon, _ = deployed_predictions(model, bad, run, limits, bounds, fallback, te)  # a planted fault leaves the errors as they are
                 i = sensors.index(s)
                 cases.append({"fault": kind, "run": run, "sensor": s, "raw": r_raw, "deployed": rmse(run, dep), "none": none,
                               "clean": clean[-1]["deployed"],

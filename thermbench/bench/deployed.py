@@ -27,19 +27,21 @@ FAULT_KINDS = ("jump", "drift", "stuck", "open")
 _REFIT_FAILURES = (ValueError, np.linalg.LinAlgError, FloatingPointError)
 
 
-def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bounds: Bounds | None, fallback=None):
+def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bounds: Bounds | None, fallback=None,
+                         errors=None):  # fmt: skip
     """A fitted ``model``'s predictions on ``run`` as the compensator makes them: the process log
     through a :class:`FaultMonitor` (a faulty sensor replaced from the sample it is judged faulty),
     the model on that log, the answer bounded by ``bounds``. ``fallback(faulty)`` (optional): the
     model to switch to once the sensors ``faulty`` (a tuple) are judged faulty, fitted without them
     (:func:`without_sensors`), or None where there is none: then the model reads the replaced
-    readings. Returns (predictions at the run's readings, the monitor after the run, per reading
-    whether a bound acted)."""
+    readings. ``errors``: the dataset's :func:`~thermbench.data.reference.thermal_errors`, when the
+    caller has them already (else computed here). Returns (predictions at the run's readings, the
+    monitor after the run, per reading whether a bound acted)."""
     from ..data.reference import thermal_errors
 
     monitor = None
     view = ds
-    te = thermal_errors(ds)
+    te = thermal_errors(ds) if errors is None else errors
     tr = te[te["run_id"] == run].reset_index(drop=True)
     if limits is not None and limits.sensors:
         pr = ds.process_run(run)
@@ -163,7 +165,7 @@ def deployed_rows(model, ds, train: Sequence[str], held_out: Sequence[str]):
     rows = []
     for run in held_out:
         dropped.clear()
-        pred, monitor, acted = deployed_predictions(model, ds, run, limits, bounds, fallback)
+        pred, monitor, acted = deployed_predictions(model, ds, run, limits, bounds, fallback, te)
         tr = te[te["run_id"] == run]
         bad = int(np.sum(~np.isfinite(pred)))
         metrics = (residual_metrics(tr["error_um"], pred, tr["thermal_um"]) if not bad else
