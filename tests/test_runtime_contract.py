@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 
 from thermbench.export import encoding, target
-from thermbench.export.fileformat import ENVELOPE_KIND, Kind
+from thermbench.export.fileformat import DATA_KINDS, ENVELOPE_KIND, FAULTS_KIND, Kind
 from thermbench.export.runtime import embedded_dir
 
 HEADER = (embedded_dir() / "include" / "tb_runtime.h").read_text()
@@ -30,9 +30,12 @@ def test_the_kind_codes_are_one_list_on_both_sides():
     for _, name in registered:  # each kind's table in its own file
         assert f"const tbi_kind tbi_kind_{name} = " in (embedded_dir() / "src" / f"tb_kind_{name}.c").read_text()
     assert target.KIND_CODES == {int(k): k.name.lower() for k in Kind}
-    # the envelope file (tb_guard_open): a kind code of its own, outside the models'
-    envelope = re.search(r"#define TB_KIND_ENVELOPE (\d+)u", HEADER)
-    assert envelope and int(envelope[1]) == ENVELOPE_KIND and ENVELOPE_KIND not in {int(k) for k in Kind}
+    # the envelope file (tb_guard_open) and the faults file (tb_faults_open): kind codes of their own,
+    # outside the models'
+    for code, name in DATA_KINDS.items():
+        m = re.search(rf"#define TB_KIND_{name} (\d+)u", HEADER)
+        assert m and int(m[1]) == code and code not in {int(k) for k in Kind}
+    assert DATA_KINDS == {ENVELOPE_KIND: "ENVELOPE", FAULTS_KIND: "FAULTS"}
 
 
 def test_the_limits_are_the_headers():

@@ -285,7 +285,7 @@ def test_alias_resolves_for_export_and_evaluate(workdir):
                                     f"export.out_dir={out_dir}", "export.onnx=false"))
     folder = out_dir / REGISTERED
     assert res.outputs["dir"] == str(out_dir)
-    assert sorted(p.name for p in folder.iterdir()) == [".thermbench-output.json", "envelope.tbm", "manifest.json", "model.tbm"]
+    assert sorted(p.name for p in folder.iterdir()) == [".thermbench-output.json", "envelope.tbm", "faults.tbm", "manifest.json", "model.tbm"]
     manifest = read_manifest(folder)
     assert manifest["mlflow_run_id"] == v1.mlflow_run_id  # the run that logged version 1
     assert manifest["source"]["uri"] == f"models:/{REGISTERED}@champion"

@@ -117,6 +117,9 @@ enum {
 };
 /* not a model: a model's training envelope, read by tb_guard_open (src/tb_guard.c) */
 #define TB_KIND_ENVELOPE 11u
+/* not a model: the sensor checks and the correction's bounds, read by tb_faults_open (src/tb_faults.c);
+ * a data kind above every model kind */
+#define TB_KIND_FAULTS 64u
 
 /* error codes (all < 0) */
 enum {
@@ -252,6 +255,37 @@ typedef struct {
 int tb_guard_open(tb_guard *g, const uint8_t *file, size_t len);
 void tb_guard_reset(tb_guard *g);
 int tb_guard_step(tb_guard *g, const tb_sample *s, tb_real *distance);
+
+/* sensor faults and the correction's bounds (src/tb_faults.c; thermbench/bench/faults.py FaultMonitor,
+ * Bounds): the export's faults.tbm, read in place. Per control cycle, before tb_model_step:
+ *   tb_faults_step(&f, &sample, temps);   the model reads temps (a faulty sensor as the others
+ *                                         predict it) in place of sample.temps_C[0..n_sensors)
+ *   f.faulty: bit i set once sensor i is judged faulty (SENSOR_FAULT), f.fault[i] the rule
+ *   (TB_FAULT_*), f.onset_s[i] the sample's time; latched until tb_faults_reset (a model restart).
+ * Per answer: tb_faults_bound(&f, &b, t_s, total_um, &bounded_um) returns 1 when a bound acted
+ * (BOUNDED), one tb_bound per series of answers (a position along the axis). */
+enum { TB_FAULT_NONE = 0, TB_FAULT_OPEN = 1, TB_FAULT_RANGE = 2, TB_FAULT_RATE = 3, TB_FAULT_STUCK = 4, TB_FAULT_OTHERS = 5 };
+typedef struct {
+    const uint8_t *payload;   /* the file's scalars, arrays and lines, float32 */
+    uint32_t n_sensors;
+    tb_real tau_s, max_um, rate_um_s; /* max_um, rate_um_s < 0: no such bound */
+    tb_real T0_C[TB_MAX_SENSORS], e_C[TB_MAX_SENSORS], last_C[TB_MAX_SENSORS]; /* first reading, average, last */
+    tb_real changed_s[TB_MAX_SENSORS], pac_K[TB_MAX_SENSORS]; /* when it last changed, the others' prediction then */
+    tb_real trusted_C[TB_MAX_SENSORS], onset_s[TB_MAX_SENSORS];
+    tb_real t_last_s;
+    uint32_t faulty, trusted; /* bit i: sensor i judged faulty; has a trusted reading */
+    uint8_t fault[TB_MAX_SENSORS];
+    int started;
+} tb_faults;
+typedef struct {
+    tb_real value_um, t_s; /* the series' last bounded value and its time */
+    int started;
+} tb_bound;
+
+int tb_faults_open(tb_faults *f, const uint8_t *file, size_t len);
+void tb_faults_reset(tb_faults *f);
+int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C);
+int tb_faults_bound(const tb_faults *f, tb_bound *b, tb_real t_s, tb_real value_um, tb_real *bounded_um);
 
 #ifdef __cplusplus
 }

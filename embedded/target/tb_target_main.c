@@ -14,10 +14,12 @@
  *
  * One file: a model. Several: a per-condition bank, the classifier first (members in class
  * order). An envelope file linked beside them (tb_guard_file, tb_guard_bytes > 0: models.S) runs
- * the extrapolation guard tb_guard over the samples, as tb_replay --guard (it needs L). Every query
+ * the extrapolation guard tb_guard over the samples, as tb_replay --guard (it needs L); a faults file
+ * (tb_faults_file, tb_faults_bytes > 0) the sensor checks and bounds of tb_faults, as tb_replay
+ * --faults (it needs L; one bound series per axis_mm, at most MAX_SERIES). Every query
  * is answered as soon as the runtime is ready for its time, the rest after finish (L: with the
  * samples up to its time only). Output (semihosting stdout), one line per query as tb_replay's:
- *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance]
+ *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance] [bounded_um bounded rules]
  * then a COUNT line per operation (below), "INFO key value ..." (the target's sizeof of the
  * runtime's structures, the probes taken and skipped) and "END rc stack_bytes arena_bytes": the
  * deepest stack of any runtime call (the stack is painted before each call and read after it) and
@@ -27,6 +29,7 @@
 #include "tb_runtime.h"
 #include "../tools/tb_stream.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -41,6 +44,8 @@ extern const uint32_t tb_file_bytes[];
 extern const uint32_t tb_n_files;
 extern const uint8_t *const tb_guard_file; /* the envelope file (models.S), when tb_guard_bytes > 0 */
 extern const uint32_t tb_guard_bytes;
+extern const uint8_t *const tb_faults_file; /* the faults file (models.S), when tb_faults_bytes > 0 */
+extern const uint32_t tb_faults_bytes;
 extern void initialise_monitor_handles(void);
 extern void tb_target_stack_repaint(void);
 extern uint32_t tb_target_stack_below(uint32_t sp);
@@ -48,10 +53,15 @@ extern uint32_t tb_target_stack_below(uint32_t sp);
 static uint64_t arena[(TB_ARENA_BYTES + 7) / 8];
 static tb_model models[TB_MAX_CONDITIONS + 1];
 static tb_bank bank;
-static int use_bank, live, probing, guarding;
+static int use_bank, live, probing, guarding, checking;
 static size_t arena_used;
 static tb_probe_state filt;
 static tb_guard guard;
+static tb_faults faults;
+#define MAX_SERIES 16
+static double series_x[MAX_SERIES];
+static tb_bound series[MAX_SERIES];
+static uint32_t n_series;
 static unsigned long probes_skipped;
 
 /* semihosting exit and faults: tb_target_semihost.c; stdout is flushed before the exit */
@@ -75,11 +85,14 @@ void tb_target_flush(void) { fflush(stdout); }
 /* "finish": tb_*_finish at the stream's end (it integrates the last partial step: what it costs depends on
    where the stream ends), counted apart from the per-sample control cycle ("step"); "probe_update",
    "probe_correct": tb_probe_update per probe reading, tb_probe_correct per answer (the prediction before
-   each is counted as "predict"); "guard_step": tb_guard_step per sample */
+   each is counted as "predict"); "guard_step": tb_guard_step per sample; "faults_step": tb_faults_step per
+   sample, "faults_bound": tb_faults_bound per answer */
 enum { MARK_END = 0, MARK_STEP = 1, MARK_PREDICT = 2, MARK_OPEN = 3, MARK_CALIBRATE = 4, MARK_FINISH = 5,
-       MARK_PROBE_UPDATE = 6, MARK_PROBE_CORRECT = 7, MARK_GUARD_STEP = 8, N_MARKS = 9 };
+       MARK_PROBE_UPDATE = 6, MARK_PROBE_CORRECT = 7, MARK_GUARD_STEP = 8, MARK_FAULTS_STEP = 9, MARK_FAULTS_BOUND = 10,
+       N_MARKS = 11 };
 static const char *const mark_name[N_MARKS] = {"none", "step", "predict", "open", "calibrate", "finish",
-                                               "probe_update", "probe_correct", "guard_step"};
+                                               "probe_update", "probe_correct", "guard_step", "faults_step",
+                                               "faults_bound"};
 static uint32_t mark_at, mark_what;
 static unsigned long mark_n[N_MARKS];
 static double mark_sum[N_MARKS]; /* newlib-nano prints no long long */
@@ -206,12 +219,28 @@ static int next_query(void)
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
-/* the end of an answer line: the guard's distance at the last sample stepped */
-static void end_line(void)
+/* the end of an answer line: the guard's distance at the last sample stepped; the total bounded in its
+   series (the query's axis_mm), whether a bound acted, each sensor's rule (tb_replay's) */
+static void end_line(double t, double x, double total)
 {
-    if (guarding && guard.started) printf(" %.17g\n", (double)guard.distance);
-    else if (guarding) printf(" nan\n");
-    else printf("\n");
+    if (guarding && guard.started) printf(" %.17g", (double)guard.distance);
+    else if (guarding) printf(" nan");
+    if (checking) {
+        tb_real out = (tb_real)total;
+        uint32_t k, i;
+        int acted = 0;
+        for (k = 0; k < n_series && series_x[k] != x; k++) continue;
+        if (k == n_series && n_series < MAX_SERIES) series_x[n_series++] = x;
+        if (k < n_series) {
+            rt_begin(MARK_FAULTS_BOUND);
+            acted = tb_faults_bound(&faults, &series[k], (tb_real)t, (tb_real)total, &out);
+            rt_end();
+        }
+        printf(" %.17g %d ", (double)out, acted > 0);
+        for (i = 0; i < faults.n_sensors; i++) putchar('0' + faults.fault[i]);
+        if (!faults.n_sensors) putchar('-');
+    }
+    printf("\n");
 }
 
 /* the queries and probes up to time upto (all: every one left; before: strictly before upto, live),
@@ -228,7 +257,7 @@ static void answer_until(double upto, int all, int before)
             else {
                 printf("%.17g %.17g nan nan -1 %d", q_t, q_x, TB_E_NOTREADY);
                 if (probing) printf(" nan nan");
-                end_line();
+                end_line(q_t, q_x, (double)NAN);
             }
             next_query();
             continue;
@@ -245,6 +274,7 @@ static void answer_until(double upto, int all, int before)
             }
             if (rc != TB_OK) probes_skipped++;
         } else {
+            double bound_what = rc == TB_OK ? (double)tot : (double)NAN;
             printf("%.17g %.17g %.17g %.17g %d %d", q_t, q_x, (double)th, (double)tot, (int)lab, rc);
             if (probing) {
                 tb_real corr = 0, var = 0;
@@ -254,8 +284,9 @@ static void answer_until(double upto, int all, int before)
                     rt_end();
                 }
                 printf(" %.17g %.17g", (double)corr, (double)var);
+                bound_what = (double)corr;
             }
-            end_line();
+            end_line(q_t, q_x, bound_what);
         }
         next_query();
     }
@@ -266,10 +297,11 @@ static void answer(double upto, int all) { answer_until(upto, all, 0); }
 static void report(int rc)
 {
     count_report();
-    printf("INFO sizeof_tb_model %lu sizeof_tb_bank %lu sizeof_tb_probe_state %lu sizeof_tb_guard %lu sizeof_tb_real %lu "
-           "probes_taken %lu probes_skipped %lu\n",
+    printf("INFO sizeof_tb_model %lu sizeof_tb_bank %lu sizeof_tb_probe_state %lu sizeof_tb_guard %lu sizeof_tb_faults %lu "
+           "sizeof_tb_real %lu probes_taken %lu probes_skipped %lu\n",
            (unsigned long)sizeof(tb_model), (unsigned long)sizeof(tb_bank), (unsigned long)sizeof(tb_probe_state),
-           (unsigned long)sizeof(tb_guard), (unsigned long)sizeof(tb_real), (unsigned long)filt.n_probes, probes_skipped);
+           (unsigned long)sizeof(tb_guard), (unsigned long)sizeof(tb_faults), (unsigned long)sizeof(tb_real),
+           (unsigned long)filt.n_probes, probes_skipped);
     printf("END %d %lu %lu\n", rc, (unsigned long)rt_stack_max, (unsigned long)arena_used);
 }
 
@@ -332,6 +364,16 @@ int main(void)
         }
         guarding = 1;
     }
+    if (tb_faults_bytes > 0) {
+        rt_begin(MARK_OPEN);
+        rc = tb_faults_open(&faults, tb_faults_file, tb_faults_bytes);
+        rt_end();
+        if (rc != TB_OK) {
+            printf("END %d 0 0 faults %s\n", rc, tb_strerror(rc));
+            return 0;
+        }
+        checking = 1;
+    }
     sf = fopen("samples.txt", "r");
     qf = fopen("queries.txt", "r");
     if (!sf || !qf) {
@@ -341,6 +383,10 @@ int main(void)
     next_query(); /* and the options before the first record */
     if (bad_header) {
         printf("END %d 0 0 queries.txt: F: bad probe filter parameters\n", TB_E_ARG);
+        return 0;
+    }
+    if (checking && !live) {
+        printf("END %d 0 0 the faults file needs L in queries.txt (a query's bound follows the samples up to it)\n", TB_E_ARG);
         return 0;
     }
     if (guarding && !live) {
@@ -353,6 +399,19 @@ int main(void)
         tb_real temps[MAX_TEMPS];
         if (!tb_parse_sample(line, &s, temps, MAX_TEMPS)) continue;
         if (live) answer_until((double)s.t_s, 0, 1); /* the queries this sample comes after */
+        if (checking) { /* the model reads the temperatures as the sensor checks give them */
+            tb_real read[TB_MAX_SENSORS];
+            uint32_t k;
+            rt_begin(MARK_FAULTS_STEP);
+            rc = tb_faults_step(&faults, &s, read);
+            rt_end();
+            if (rc != TB_OK) {
+                printf("END %d %lu %lu faults: sample t=%.17g %s\n", rc, (unsigned long)rt_stack_max,
+                       (unsigned long)arena_used, (double)s.t_s, tb_strerror(rc));
+                return 0;
+            }
+            for (k = 0; k < faults.n_sensors; k++) temps[k] = read[k];
+        }
         rt_begin(MARK_STEP);
         rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
         rt_end();

@@ -13,6 +13,11 @@
  *   --guard FILE (an option before the model, with --live): the extrapolation guard of tb_guard over
  *   the samples, FILE an envelope file (the export's envelope.tbm); every query line then ends in
  *   the guard's distance at the last sample before it (0 inside the envelope, nan before any)
+ *   --faults FILE (an option before the model, with --live): the sensor checks and bounds of tb_faults,
+ *   FILE a faults file (the export's faults.tbm); the model (and the guard) read each sample's
+ *   temperatures as tb_faults_step gives them, and every query line then ends in the total error
+ *   bounded (tb_faults_bound, one series per axis_mm), whether a bound acted (0/1), and the rule
+ *   of each sensor so far, a digit per sensor (TB_FAULT_*: 0 healthy)
  *   --live (an option before the model): every query is answered with the samples up to its time
  *   only, before the next sample is stepped, as a compensator answers for the time it writes (a
  *   model whose values at t are final later, e.g. the screw physics between macro steps, gives its
@@ -26,13 +31,14 @@
  *                                                              time as a probe comes before it)
  * Every query is answered as soon as the runtime is ready for its time (tb_*_ready_s), the
  * rest after tb_*_finish at the end of the stream (--live: see above). Output, one line per query:
- *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance]
+ *   t_s axis_mm thermal_um total_um label rc [corrected_um var_um2] [distance] [bounded_um bounded rules]
  * A probe prints nothing; one the runtime cannot answer yet (or refuses) is skipped and counted
  * on stderr.
  */
 #include "tb_runtime.h"
 #include "tb_stream.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -92,19 +98,37 @@ static query_t *queries;
 static size_t n_q, q_done;
 
 static tb_bank bank;
-static int use_bank, lenient, live, probing, guarding;
+static int use_bank, lenient, live, probing, guarding, checking;
 static tb_guard guard;
+static tb_faults faults;
+#define MAX_SERIES 256
+static double series_x[MAX_SERIES];
+static tb_bound series[MAX_SERIES];
+static size_t n_series;
 static unsigned long rejected, probes_skipped;
 static tb_probe_state filt;
 
 static tb_real ready(void) { return use_bank ? tb_bank_ready_s(&bank) : tb_model_ready_s(&models[0]); }
 
-/* the end of an answer line: the guard's distance at the last sample stepped (--guard) */
-static void end_line(void)
+/* the end of an answer line: the guard's distance at the last sample stepped (--guard); the total
+ * bounded in its series (the query's axis_mm), whether a bound acted, each sensor's rule (--faults) */
+static void end_line(double t, double x, double total)
 {
-    if (guarding && guard.started) printf(" %.17g\n", (double)guard.distance);
-    else if (guarding) printf(" nan\n");
-    else printf("\n");
+    if (guarding && guard.started) printf(" %.17g", (double)guard.distance);
+    else if (guarding) printf(" nan");
+    if (checking) {
+        tb_real out = (tb_real)total;
+        size_t k;
+        uint32_t i;
+        int acted = 0;
+        for (k = 0; k < n_series && series_x[k] != x; k++) continue;
+        if (k == n_series && n_series < MAX_SERIES) series_x[n_series++] = x;
+        if (k < n_series) acted = tb_faults_bound(&faults, &series[k], (tb_real)t, (tb_real)total, &out);
+        printf(" %.17g %d ", (double)out, acted > 0);
+        for (i = 0; i < faults.n_sensors; i++) putchar('0' + faults.fault[i]);
+        if (!faults.n_sensors) putchar('-');
+    }
+    printf("\n");
 }
 
 /* the queries up to time upto (all: every one left; before: strictly before upto, --live), each
@@ -121,7 +145,7 @@ static void answer_until(double upto, int all, int before)
             else {
                 printf("%.17g %.17g nan nan -1 %d", queries[q_done].t, queries[q_done].x, TB_E_NOTREADY);
                 if (probing) printf(" nan nan");
-                end_line();
+                end_line(queries[q_done].t, queries[q_done].x, NAN);
             }
             q_done++;
             continue;
@@ -136,10 +160,10 @@ static void answer_until(double upto, int all, int before)
             if (rc == TB_OK) tb_probe_correct(&filt, (tb_real)queries[q_done].t, tot, &corr, &var);
             printf("%.17g %.17g %.17g %.17g %d %d %.17g %.17g", queries[q_done].t, queries[q_done].x, (double)th, (double)tot,
                    (int)lab, rc, (double)corr, (double)var);
-            end_line();
+            end_line(queries[q_done].t, queries[q_done].x, (double)corr);
         } else {
             printf("%.17g %.17g %.17g %.17g %d %d", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
-            end_line();
+            end_line(queries[q_done].t, queries[q_done].x, rc == TB_OK ? (double)tot : NAN);
         }
         q_done++;
     }
@@ -153,8 +177,9 @@ int main(int argc, char **argv)
     char line[8192];
     size_t cap_q = 1024;
     while (argc >= 2 && (strcmp(argv[1], "--lenient") == 0 || strcmp(argv[1], "--live") == 0 || strcmp(argv[1], "--probe") == 0 ||
-                         strcmp(argv[1], "--guard") == 0)) {
-        if (strcmp(argv[1], "--guard") == 0) {
+                         strcmp(argv[1], "--guard") == 0 || strcmp(argv[1], "--faults") == 0)) {
+        if (strcmp(argv[1], "--guard") == 0 || strcmp(argv[1], "--faults") == 0) {
+            int is_guard = strcmp(argv[1], "--guard") == 0;
             FILE *f;
             size_t n;
             if (argc < 3) return 1;
@@ -165,13 +190,14 @@ int main(int argc, char **argv)
             }
             n = fread(file_pool + file_used, 1, FILE_POOL - file_used, f);
             fclose(f);
-            rc = tb_guard_open(&guard, file_pool + file_used, n);
+            rc = is_guard ? tb_guard_open(&guard, file_pool + file_used, n) : tb_faults_open(&faults, file_pool + file_used, n);
             if (rc != TB_OK) {
                 fprintf(stderr, "tb_replay: %s: error %d: %s\n", argv[2], rc, tb_strerror(rc));
                 return 3;
             }
             file_used += (n + 7u) & ~(size_t)7u;
-            guarding = 1;
+            if (is_guard) guarding = 1;
+            else checking = 1;
             argv++;
             argc--;
         } else if (strcmp(argv[1], "--probe") == 0) {
@@ -195,7 +221,11 @@ int main(int argc, char **argv)
         argc--;
     }
     if (argc < 2) {
-        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--probe QB QG R B0 G0] [--guard FILE] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        fprintf(stderr, "usage: tb_replay [--lenient] [--live] [--probe QB QG R B0 G0] [--guard FILE] [--faults FILE] [--info FILE...] | MODEL | --bank CLF M0 M1 ...\n");
+        return 1;
+    }
+    if (checking && !live) {
+        fprintf(stderr, "tb_replay: --faults needs --live (a query's bound follows the samples up to it)\n");
         return 1;
     }
     if (guarding && !live) {
@@ -272,6 +302,15 @@ int main(int argc, char **argv)
             tb_real temps[MAX_TEMPS];
             if (!tb_parse_sample(p, &s, temps, MAX_TEMPS)) continue;
             if (live) answer_until((double)s.t_s, 0, 1); /* the queries this sample comes after */
+            if (checking) { /* the model reads the temperatures as the sensor checks give them */
+                tb_real read[TB_MAX_SENSORS];
+                uint32_t k;
+                if ((rc = tb_faults_step(&faults, &s, read)) != TB_OK) {
+                    fprintf(stderr, "tb_replay: faults: sample t=%.17g: error %d: %s\n", (double)s.t_s, rc, tb_strerror(rc));
+                    return 11;
+                }
+                for (k = 0; k < faults.n_sensors; k++) temps[k] = read[k];
+            }
             rc = use_bank ? tb_bank_step(&bank, &s) : tb_model_step(&models[0], &s);
             if (rc != TB_OK && lenient && (rc == TB_E_INPUT || rc == TB_E_SAMPLING)) {
                 rejected++;

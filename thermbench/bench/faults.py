@@ -64,6 +64,8 @@ __all__ = ["Bounds", "FaultMonitor", "SensorLimits", "fault_summary", "RULES"]
 
 #: a temperature outside this range is no temperature of a machine tool: an open or shorted sensor (°C)
 PLAUSIBLE_C = (-40.0, 150.0)
+#: where a sensor faulty from a run's first sample starts when no sensor is plausible then (°C)
+UNKNOWN_START_C = 20.0
 #: the smallest margin beyond the training rise range (K)
 RANGE_MIN_K = 3.0
 #: the rate rule: this many times the training runs' largest |rate|, plus RATE_MIN_K_H
@@ -276,7 +278,7 @@ class FaultMonitor:
         plausible = np.isfinite(T) & (T >= lo_c) & (T <= hi_c)
         if self.t_last is None and not plausible.all():  # faulty from the first sample: where it would start,
             # by the others' mean and the training runs' offset from it (it stays faulty: latched)
-            ref = float(np.mean(T[plausible])) if plausible.any() else 20.0
+            ref = float(np.mean(T[plausible])) if plausible.any() else UNKNOWN_START_C
             offset = lim.start_offset_K if lim.start_offset_K is not None else np.zeros(n)
             self.T0_C[~plausible] = ref + offset[~plausible]
             self.e[~plausible] = self.T0_C[~plausible]
@@ -434,17 +436,24 @@ class Bounds:
 
     def apply(self, t_s, predicted_um) -> tuple[np.ndarray, np.ndarray]:
         """The predictions at times ``t_s`` (ascending) bounded in value, then in rate from the
-        first (the compensator starts where the model does); and per value whether a bound acted."""
+        first (the compensator starts where the model does); and per value whether a bound acted.
+        A prediction that is not a number (no answer yet) stays so, acts no bound, and the rate
+        bound goes on from the last bounded value (``tb_faults_bound`` of the C runtime alike)."""
         t = np.asarray(t_s, dtype=float)
         p = np.asarray(predicted_um, dtype=float)
         out = np.clip(p, -self.max_um, self.max_um)
-        acted = out != p
-        for k in range(1, out.size):
-            step = self.rate_um_s * max(t[k] - t[k - 1], 0.0)
-            v = min(max(out[k], out[k - 1] - step), out[k - 1] + step)
-            if v != out[k]:
-                acted[k] = True
-                out[k] = v
+        acted = np.isfinite(p) & (out != p)
+        last = None  # the index of the last finite bounded value
+        for k in range(out.size):
+            if not np.isfinite(out[k]):
+                continue
+            if last is not None:
+                step = self.rate_um_s * max(t[k] - t[last], 0.0)
+                v = min(max(out[k], out[last] - step), out[last] + step)
+                if v != out[k]:
+                    acted[k] = True
+                    out[k] = v
+            last = k
         return out, acted
 
 

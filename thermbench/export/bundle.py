@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import sys
 import zlib
 from dataclasses import dataclass
@@ -231,13 +232,18 @@ def export_model(model: ThermalErrorModel, out_dir: Path, name: str, ds=None, he
 
             try:
                 bounds = Bounds.fit(ds, list(model.train_runs_))
-                bound = {"max_um": bounds.max_um, "rate_um_s": bounds.rate_um_s}
+                bound = {"max_um": bounds.max_um, "rate_um_s": bounds.rate_um_s if math.isfinite(bounds.rate_um_s) else None}
             except ValueError:  # no thermal error in the training runs to bound a correction by
                 bound = {"max_um": None, "rate_um_s": None}
-            man["faults"] = {"limits": SensorLimits.fit(ds, list(model.train_runs_), temps).to_dict() if temps else None,
-                             "bounds": bound,
+            from .faultfile import FAULTS_FILE, write_faults
+
+            limits = SensorLimits.fit(ds, list(model.train_runs_), temps) if temps else None
+            man["faults"] = {"limits": limits.to_dict() if limits is not None else None, "bounds": bound,
+                             "file": FAULTS_FILE,
+                             "bytes": write_faults(tmp / FAULTS_FILE, limits, bounds if bound["max_um"] is not None else None),
                              "note": "each temperature checked per sample against the training runs (open, range, rate, "
-                                     "stuck, the others' prediction: thermbench/bench/faults.py); |compensation| <= max_um"}  # fmt: skip
+                                     "stuck, the others' prediction: thermbench/bench/faults.py); |compensation| <= max_um, "
+                                     "|its change| <= rate_um_s per second; the file: the C runtime's checks (tb_faults_open)"}  # fmt: skip
             if opts.interval_level is not None:
                 man["interval"] = interval_calibration(model, ds, list(model.train_runs_), temps, ops, opts.interval_level,
                                                        opts.interval_kappa, name)  # fmt: skip

@@ -20,21 +20,26 @@ FORMAT = "thermbench-export/1"
 def replay_dir(model_dir: Path, ds, run: str, queries: pd.DataFrame, variant: str = "model", sanitize: bool = False,
                exe: Path | None = None, manifest: dict | None = None, samples: pd.DataFrame | None = None,
                lenient: bool = False, live: bool = False, probes: pd.DataFrame | None = None,
-               probe_params=None, guard: bool = False) -> pd.DataFrame:  # fmt: skip
+               probe_params=None, guard: bool = False, faults: bool = False) -> pd.DataFrame:  # fmt: skip
     """The C runtime's predictions at ``queries`` over ``run`` of ``ds``, from an export directory
     (``live``: as the compensator answers; ``probes`` with ``probe_params``: corrected by probe
     readings; ``guard``: with the extrapolation guard's distance from the export's envelope file,
-    :func:`.runtime.replay`)."""
+    ``faults``: with the sensor checks and bounds of the export's faults file, :func:`.runtime.replay`)."""
     files, samples, temps, bank = replay_inputs(model_dir, ds, run, variant, manifest, samples)
-    env = None
+    env = checks = None
+    man = manifest if manifest is not None else read_manifest(Path(model_dir))
+    if faults:
+        checks = Path(model_dir) / man.get("faults", {}).get("file", "")
+        if not man.get("faults", {}).get("file") or not checks.is_file():
+            raise ExportError(f"{model_dir}: no faults file (exported without its training data, or before thermbench "
+                              "wrote one): the sensor checks need it")  # fmt: skip
     if guard:
-        man = manifest if manifest is not None else read_manifest(Path(model_dir))
         env = Path(model_dir) / man.get("envelope", {}).get("file", "")
         if not man.get("envelope", {}).get("file") or not env.is_file():
             raise ExportError(f"{model_dir}: no envelope file (exported without its training data, or before thermbench "
                               "wrote one): the guard needs it")  # fmt: skip
     return runtime.replay(files, samples, temps, queries, bank=bank, sanitize=sanitize, exe=exe, lenient=lenient,
-                          live=live, probes=probes, probe_params=probe_params, guard=env)  # fmt: skip
+                          live=live, probes=probes, probe_params=probe_params, guard=env, faults=checks)  # fmt: skip
 
 
 def replay_inputs(model_dir: Path, ds, run: str, variant: str = "model", manifest: dict | None = None,

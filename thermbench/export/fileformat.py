@@ -62,10 +62,15 @@ class Kind(enum.IntEnum):
 #: not a model: a model's training envelope (``TB_KIND_ENVELOPE`` of tb_runtime.h, read by
 #: ``tb_guard_open``; :mod:`thermbench.export.guard`), in the same file format
 ENVELOPE_KIND = 11
+#: not a model: the sensor checks and the correction's bounds (``TB_KIND_FAULTS``, read by
+#: ``tb_faults_open``; :mod:`thermbench.export.faultfile`), a data kind above every model kind
+FAULTS_KIND = 64
+#: the kinds that are data for the runtime, not models
+DATA_KINDS = {ENVELOPE_KIND: "ENVELOPE", FAULTS_KIND: "FAULTS"}
 
 
 def kind_name(kind) -> str:
-    return "ENVELOPE" if int(kind) == ENVELOPE_KIND else Kind(kind).name
+    return DATA_KINDS.get(int(kind)) or Kind(kind).name
 
 
 #: kinds whose latest payload layout is beyond version 1 (tbi_kind.max_version in the C runtime)
@@ -75,7 +80,7 @@ MAX_VERSION = max(KIND_VERSIONS.values(), default=VERSION)
 
 def kind_version(kind) -> int:
     """The latest payload version of ``kind`` (what :func:`pack` writes)."""
-    return VERSION if int(kind) == ENVELOPE_KIND else KIND_VERSIONS.get(Kind(kind), VERSION)
+    return VERSION if int(kind) in DATA_KINDS else KIND_VERSIONS.get(Kind(kind), VERSION)
 
 
 class ModelFileError(ValueError):
@@ -84,7 +89,7 @@ class ModelFileError(ValueError):
 
 @dataclass
 class ModelFile:
-    kind: Kind  # or ENVELOPE_KIND
+    kind: Kind  # or one of DATA_KINDS
     dims: tuple[int, ...]
     payload: np.ndarray  # float32
     version: int = VERSION  # of the kind's payload layout
@@ -135,7 +140,7 @@ def unpack(data: bytes, name: str = "model file") -> ModelFile:
     if crc != zlib.crc32(data[:-4]) & 0xFFFFFFFF:
         raise ModelFileError(f"{name}: CRC-32 mismatch (the file is damaged)")
     try:
-        kind = kind if kind == ENVELOPE_KIND else Kind(kind)
+        kind = kind if kind in DATA_KINDS else Kind(kind)
     except ValueError:
         raise ModelFileError(f"{name}: unknown model kind {kind}") from None
     if version > kind_version(kind):

@@ -145,7 +145,7 @@ TB_E_NOTREADY = -14
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
            bank: bool = False, sanitize: bool = False, exe: Path | None = None, lenient: bool = False,
            live: bool = False, probes: pd.DataFrame | None = None, probe_params=None,
-           guard: Path | None = None) -> pd.DataFrame:  # fmt: skip
+           guard: Path | None = None, faults: Path | None = None) -> pd.DataFrame:  # fmt: skip
     """Run the C runtime over ``samples`` and answer ``queries``: a DataFrame with ``t_s``,
     ``axis_mm``, ``thermal_um``, ``total_um``, ``label`` (bank condition index, -1 none), ``rc``.
     ``lenient``: samples the runtime refuses are skipped (as a compensator would), not an error.
@@ -155,14 +155,22 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
     (:class:`thermbench.bench.adapt.ProbeParams`): the probe readings ``probes`` correct the model by
     ``tb_probe``, and each answer gets ``corrected_um`` and ``var_um2``. ``guard``: an envelope
     file (:mod:`.guard`; needs ``live``): each answer gets ``distance``, the extrapolation
-    guard's at the last sample before it (``tb_guard``; 0 inside the envelope)."""
+    guard's at the last sample before it (``tb_guard``; 0 inside the envelope). ``faults``: a faults
+    file (:mod:`.faultfile`; needs ``live``): the model reads each sample's temperatures as
+    ``tb_faults_step`` gives them, and each answer gets :data:`FAULT_COLUMNS`: the total (or the
+    probe-corrected total) bounded by ``tb_faults_bound`` (one series per ``axis_mm``), whether a
+    bound acted, and each sensor's rule so far (a digit per sensor, ``TB_FAULT_*``: 0 healthy)."""
     exe = exe or build("tb_replay", sanitize=sanitize)
     return replay_text(exe, files, stream_text(samples, temps, queries, probes if probe_params is not None else None),
-                       bank=bank, lenient=lenient, live=live, probe_params=probe_params, guard=guard)  # fmt: skip
+                       bank=bank, lenient=lenient, live=live, probe_params=probe_params, guard=guard, faults=faults)  # fmt: skip
 
 
 #: tb_replay's answer to a query, one line each
 REPLAY_COLUMNS = {"t_s": float, "axis_mm": float, "thermal_um": float, "total_um": float, "label": int, "rc": int}
+#: what an answer adds with a faults file (tb_replay --faults)
+FAULT_COLUMNS = {"bounded_um": float, "bounded": int, "rules": str}
+#: the rule of each digit of ``rules`` (TB_FAULT_* of tb_runtime.h; 0: healthy)
+FAULT_RULES = (None, "open", "range", "rate", "stuck", "others")
 
 
 def probe_args(params) -> list[str]:
@@ -172,16 +180,17 @@ def probe_args(params) -> list[str]:
 
 
 def replay_text(exe: Path, files: Sequence[Path], text: str, bank: bool = False, lenient: bool = False,
-                live: bool = False, probe_params=None, guard: Path | None = None) -> pd.DataFrame:  # fmt: skip
+                live: bool = False, probe_params=None, guard: Path | None = None,
+                faults: Path | None = None) -> pd.DataFrame:  # fmt: skip
     """:func:`replay` of an input already written by :func:`stream_text` (one text for several builds)."""
-    if guard is not None and not live:
-        raise ValueError("replay: a guard answers live (live=True)")
+    if (guard is not None or faults is not None) and not live:
+        raise ValueError("replay: a guard or a faults file answers live (live=True)")
     args = ((["--lenient"] if lenient else []) + (["--live"] if live else []) + (probe_args(probe_params) if probe_params else [])
-            + (["--guard", str(guard)] if guard is not None else []) + (["--bank"] if bank else [])
-            + [str(f) for f in files])  # fmt: skip
+            + (["--guard", str(guard)] if guard is not None else []) + (["--faults", str(faults)] if faults is not None else [])
+            + (["--bank"] if bank else []) + [str(f) for f in files])  # fmt: skip
     out = run_tool(exe, args, text)
     cols = {**REPLAY_COLUMNS, **({"corrected_um": float, "var_um2": float} if probe_params else {}),
-            **({"distance": float} if guard is not None else {})}  # fmt: skip
+            **({"distance": float} if guard is not None else {}), **(FAULT_COLUMNS if faults is not None else {})}  # fmt: skip
     if not out.strip():
         df = pd.DataFrame({c: pd.Series(dtype=t) for c, t in cols.items()})
     else:  # single spaces, %.17g (nan before a state): pandas' C parser

@@ -85,13 +85,15 @@ def _run(cmd: Sequence[str], what: str, cwd: Path | None = None) -> str:
 
 
 def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 16384, offset: int = 0,
-          trap_unaligned: bool = False, guard: Path | None = None, icount_shift: int = 0) -> Firmware:  # fmt: skip
+          trap_unaligned: bool = False, guard: Path | None = None, icount_shift: int = 0,
+          faults: Path | None = None) -> Firmware:  # fmt: skip
     """The firmware image running ``files`` (one model, or a bank: the classifier then the
     members in class order) from flash, in ``precision`` ("double" or "float"), with a static
     arena of ``arena_bytes``. ``offset``: the first file starts this many bytes past an
     8-byte boundary (the alignment tests); ``trap_unaligned``: unaligned accesses fault;
     ``guard``: an envelope file (the export's ``envelope.tbm``) linked into flash beside the models,
-    followed by ``tb_guard`` over the samples; ``icount_shift`` (0 to 3): the image counts
+    followed by ``tb_guard`` over the samples; ``faults``: a faults file (the export's ``faults.tbm``)
+    linked beside them, the sensor checks and bounds of ``tb_faults``; ``icount_shift`` (0 to 3): the image counts
     instructions for ``qemu -icount shift=icount_shift``, in steps of 40 >> shift (:func:`run` runs
     it so). Cached by a hash of the sources, the files and the options."""
     if precision not in PRECISIONS:
@@ -102,22 +104,24 @@ def build(files: Sequence[Path], precision: str = "double", arena_bytes: int = 1
     d, t = embedded_dir(), _target_dir()
     files = [Path(f) for f in files]
     guard = Path(guard) if guard is not None else None
+    faults = Path(faults) if faults is not None else None
     harness = [*PRECISIONS[precision], f"-DTB_ARENA_BYTES={int(arena_bytes)}", *(["-DTB_TRAP_UNALIGNED"] if trap_unaligned else []),
                *([f"-DTB_ICOUNT_SHIFT={icount_shift}"] if icount_shift else [])]  # fmt: skip
     objs = _objects(precision)  # the runtime and the start-up: one compilation per precision
     key = _hash([t / "tb_target_main.c", d / "tools" / "tb_stream.h", t / "stm32f407.ld", *objs, *files], cc, *harness,
-                f"offset={offset}", *([f"guard={_hash([guard])}"] if guard is not None else []))  # fmt: skip
+                f"offset={offset}", *([f"guard={_hash([guard])}"] if guard is not None else []),
+                *([f"faults={_hash([faults])}"] if faults is not None else []))  # fmt: skip
     own = lambda work: [_compile(cc, s, work, harness) for s in (t / "tb_target_main.c", work / "models.S")]  # noqa: E731
     specs = ["--specs=rdimon.specs", "-u", "_printf_float", "-u", "_scanf_float"]  # semihosting stdio
-    fw = _sized(_linked(key, files, offset, objs, own, specs, "linking the firmware", guard))
+    fw = _sized(_linked(key, files, offset, objs, own, specs, "linking the firmware", guard, faults))
     fw.icount_shift = icount_shift
     return fw
 
 
 def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], own, specs: Sequence[str], what: str,
-            guard: Path | None = None) -> Path:  # fmt: skip
+            guard: Path | None = None, faults: Path | None = None) -> Path:  # fmt: skip
     """``<cache>/target/<key>/firmware.elf``: ``objs`` and the objects ``own(work)`` compiles (after
-    ``models.S`` holds ``files``, and the envelope file ``guard``, in flash) linked by the STM32F407
+    ``models.S`` holds ``files``, the envelope file ``guard`` and the faults file ``faults``, in flash) linked by the STM32F407
     script with newlib-nano and ``specs``; made in a temporary directory and renamed (reused when present)."""
     cc, _ = toolchain()
     out_dir = cache_dir() / "target" / key
@@ -126,7 +130,7 @@ def _linked(key: str, files: Sequence[Path], offset: int, objs: Sequence[Path], 
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=out_dir.parent))
         try:
-            (work / "models.S").write_text(_models_asm(files, offset, guard))
+            (work / "models.S").write_text(_models_asm(files, offset, guard, faults))
             _run([cc, *CPU_FLAGS, "-nostartfiles", "--specs=nano.specs", *specs, f"-T{_target_dir() / 'stm32f407.ld'}",
                   "-Wl,--gc-sections", f"-Wl,-Map={work / 'firmware.map'}", *objs, *own(work), "-lm", "-o",
                   work / "firmware.elf"], what, cwd=work)  # fmt: skip
@@ -282,23 +286,29 @@ def soft_routines(fw: Firmware) -> dict[str, list[str]]:
     return {k: v for k, v in reached_routines(fw).items() if SOFT_ROUTINE.match(k)}
 
 
-def _models_asm(files: Sequence[Path], offset: int, guard: Path | None = None) -> str:
+def _models_asm(files: Sequence[Path], offset: int, guard: Path | None = None, faults: Path | None = None) -> str:
     """The model files in flash (``.rodata``), each on an 8-byte boundary plus ``offset``; and the
-    envelope file ``guard`` on an 8-byte boundary (``tb_guard_file``, ``tb_guard_bytes``: 0 without;
-    in a section of their own, which an image that does not read them drops)."""
+    envelope file ``guard`` and the faults file ``faults`` on 8-byte boundaries (``tb_guard_file``,
+    ``tb_guard_bytes``, ``tb_faults_file``, ``tb_faults_bytes``: 0 without; in sections of their own,
+    which an image that does not read them drops)."""
     lines = ['    .section .rodata.tb_models,"a"']
     for i, f in enumerate(files):
         lines += ["    .balign 8", *([f"    .space {offset}"] if offset else []), f"tb_file_{i}:",
                   f'    .incbin "{Path(f).resolve()}"', f"tb_file_{i}_end:"]  # fmt: skip
     if guard is not None:
         lines += ["    .balign 8", "tb_guard_0:", f'    .incbin "{Path(guard).resolve()}"', "tb_guard_0_end:"]
+    if faults is not None:
+        lines += ["    .balign 8", "tb_faults_0:", f'    .incbin "{Path(faults).resolve()}"', "tb_faults_0_end:"]
     lines += ['    .section .rodata.tb_index,"a"', "    .balign 4", "    .global tb_files", "tb_files:",
               *[f"    .word tb_file_{i}" for i in range(len(files))], "    .global tb_file_bytes", "tb_file_bytes:",
               *[f"    .word tb_file_{i}_end - tb_file_{i}" for i in range(len(files))], "    .global tb_n_files",
               "tb_n_files:", f"    .word {len(files)}",
               '    .section .rodata.tb_guard_index,"a"', "    .balign 4", "    .global tb_guard_file", "tb_guard_file:",
               f"    .word {'tb_guard_0' if guard is not None else 0}", "    .global tb_guard_bytes", "tb_guard_bytes:",
-              f"    .word {'tb_guard_0_end - tb_guard_0' if guard is not None else 0}", ""]  # fmt: skip
+              f"    .word {'tb_guard_0_end - tb_guard_0' if guard is not None else 0}",
+              '    .section .rodata.tb_faults_index,"a"', "    .balign 4", "    .global tb_faults_file", "tb_faults_file:",
+              f"    .word {'tb_faults_0' if faults is not None else 0}", "    .global tb_faults_bytes", "tb_faults_bytes:",
+              f"    .word {'tb_faults_0_end - tb_faults_0' if faults is not None else 0}", ""]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -335,19 +345,22 @@ def run(fw: Firmware, samples_text: str, queries_text: str, timeout_s: float = 6
 
 def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], queries: pd.DataFrame,
            precision: str = "double", arena_bytes: int = 16384, live: bool = False, probes: pd.DataFrame | None = None,
-           probe_params=None, guard: Path | None = None, **build_kw) -> tuple[pd.DataFrame, dict]:  # fmt: skip
+           probe_params=None, guard: Path | None = None, faults: Path | None = None,
+           **build_kw) -> tuple[pd.DataFrame, dict]:  # fmt: skip
     """:func:`thermbench.export.runtime.replay` on the target: the predictions (``t_s``, ``axis_mm``,
     ``thermal_um``, ``total_um``, ``label``, ``rc``; with ``probe_params``, ``corrected_um`` and
     ``var_um2``: the probe readings ``probes`` correct the model by ``tb_probe``; with ``guard``, an
     envelope file linked into flash, ``distance``: ``tb_guard``'s at the last sample before each
-    query, which needs ``live``) and what the run reports (``rc``, ``stack_bytes``, ``arena_bytes``,
+    query, which needs ``live``; with ``faults``, a faults file linked into flash,
+    :data:`~thermbench.export.runtime.FAULT_COLUMNS` as ``tb_replay --faults`` gives them, which
+    needs ``live``) and what the run reports (``rc``, ``stack_bytes``, ``arena_bytes``,
     ``flash_bytes``, ``ram_bytes``; per operation ``<what>_calls``, ``_insn_mean``, ``_insn_max`` and
     ``_stack_bytes``, ``what`` one of step, predict, open, calibrate, finish, probe_update,
-    probe_correct, guard_step; ``sizeof_tb_model``, ``sizeof_tb_probe_state``, ``sizeof_tb_guard``
+    probe_correct, guard_step, faults_step, faults_bound; ``sizeof_tb_model``, ``sizeof_tb_probe_state``, ``sizeof_tb_guard``
     ... on the target; ``probes_taken``, ``probes_skipped``). ``build_kw``: :func:`build`'s."""
-    if guard is not None and not live:
-        raise ValueError("replay: a guard answers live (live=True)")
-    fw = build(files, precision, arena_bytes, guard=guard, **build_kw)
+    if (guard is not None or faults is not None) and not live:
+        raise ValueError("replay: a guard or a faults file answers live (live=True)")
+    fw = build(files, precision, arena_bytes, guard=guard, faults=faults, **build_kw)
     text = stream_text(samples, temps, queries, probes if probe_params is not None else None)
     head = ["L"] if live else []
     if probe_params is not None:
@@ -369,6 +382,6 @@ def replay(files: Sequence[Path], samples: pd.DataFrame, temps: Sequence[str], q
         rep[f"{what}_calls"], rep[f"{what}_insn_mean"], rep[f"{what}_insn_max"] = int(n), float(total) / max(int(n), 1), int(most)
         rep[f"{what}_stack_bytes"] = int(stack)
     cols = {**runtime.REPLAY_COLUMNS, **({"corrected_um": float, "var_um2": float} if probe_params is not None else {}),
-            **({"distance": float} if guard is not None else {})}  # fmt: skip
+            **({"distance": float} if guard is not None else {}), **(runtime.FAULT_COLUMNS if faults is not None else {})}  # fmt: skip
     df = pd.DataFrame([ln.split() for ln in lines], columns=list(cols)).astype(cols)
     return df, rep
