@@ -478,3 +478,18 @@ def test_the_compensation_is_held_to_the_manifest_bound():
         raw = 0.2 * k  # T_b's rise, 1 µm per K
         assert c.value_um == pytest.approx(-min(raw, 1.0))  # compensation = -error, bounded at 1 µm
         assert bool(c.flags & Flags.BOUNDED) == (raw > 1.0 + 1e-9)
+
+
+def test_a_user_s_bound_overrides_the_manifest_s_and_a_bad_one_names_its_key():
+    """bound_um: 0.5 over the manifest's 1.0: the compensation stops at 0.5 µm (BOUNDED beyond)."""
+    m = TwoSensorModel()
+    m.manifest = _faults_manifest(max_um=1.0)
+    lg = CycleLogic(m, Settings.from_config({"rate_limit_um_s": 1000.0, "bound_um": 0.5,
+                                             "ranges": {"temperature_C": [-20, 80]}}))  # fmt: skip
+    out = [lg.cycle(_r2(1000.0 + k, 20.0 + 0.1 * k, 20.0 + 0.2 * k), now_wall_s=0.01 * k) for k in range(12)]
+    for k, c in enumerate(out):
+        raw = 0.2 * k
+        assert c.value_um == pytest.approx(-min(raw, 0.5))
+        assert bool(c.flags & Flags.BOUNDED) == (raw > 0.5 + 1e-9)
+    with pytest.raises(Exception, match="bound_um"):
+        Settings.from_config({"bound_um": -1.0})

@@ -196,8 +196,8 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
     runs' RMSE when a fold holds out several runs); with intervals (a ``coverage_<level>`` column),
     the choice's coverage and half-width, means over its folds of each fold's mean over its runs
     (``chosen_coverage``, ``chosen_half_width_um``; NaN where the chosen approach has no interval); and
-    the choice as deployed, each fold's choice scored with the sensor checks, the fallback and the
-    bounds of the compensator (``chosen_deployed_median_rmse_um``, ``chosen_deployed_worst_rmse_um``,
+    the choice as deployed, each fold's choice scored with the sensor checks, the reconstruction of
+    a faulty sensor and the bounds of the compensator (``chosen_deployed_median_rmse_um``, ``chosen_deployed_worst_rmse_um``,
     ``chosen_faults``: the held-out runs on which a sensor was judged faulty; absent where a fold's
     choice has no such score, a bank)."""
     per_fold, interval = _held_out_per_fold(results)

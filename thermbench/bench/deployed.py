@@ -4,14 +4,16 @@
 :mod:`thermbench.bench.faults` (a faulty sensor read as the other sensors predict it, or the family
 refitted without it, :func:`without_sensors`), the model on that log, its answer bounded in value
 and rate. :func:`deployed_rows` scores a benchmark fold's fit so, beside its raw score
-(approach :data:`DEPLOYED_APPROACH`). :func:`plant_fault` puts one of four faults into one sensor
+(approach :data:`DEPLOYED_APPROACH`), as the export runs it: a faulty sensor read as the others
+predict it (the refit without it, ``fallback``, is measured by ``benchmarks/bench_faults.py
+--fallback refit``, not exported). :func:`plant_fault` puts one of four faults into one sensor
 of one run (a jump, a drift, a stuck reading, an open circuit).
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -23,8 +25,6 @@ __all__ = ["DEPLOYED_APPROACH", "FAULT_KINDS", "deployed_predictions", "deployed
 DEPLOYED_APPROACH = "as_deployed"
 #: the faults :func:`plant_fault` plants
 FAULT_KINDS = ("jump", "drift", "stuck", "open")
-#: what a refit may raise (thermbench.bench.plan.CELL_FAILURES; ModelError is a ValueError)
-_REFIT_FAILURES = (ValueError, np.linalg.LinAlgError, FloatingPointError)
 
 
 def deployed_predictions(model, ds, run: str, limits: SensorLimits | None, bounds: Bounds | None, fallback=None,
@@ -128,48 +128,29 @@ def plant_fault(ds, run: str, sensor: str, kind: str, onset_s: float, *, jump_K:
 
 
 def deployed_rows(model, ds, train: Sequence[str], held_out: Sequence[str]):
-    """A fitted ``model`` (fitted on ``train``) scored on each run of ``held_out`` as deployed
-    (:func:`deployed_predictions`): the sensor limits over every sensor of the dataset and the
-    bounds from ``train``; a fault in a sensor the model reads switches to the family fitted on
-    ``train`` without it where the family can drop one (:func:`without_sensors`). One row per run:
+    """A fitted ``model`` (fitted on ``train``) scored on each run of ``held_out`` as the exported
+    compensator runs it (:func:`deployed_predictions`, as the C runtime's tb_faults and the OPC UA /
+    LinuxCNC loops do): the sensor limits over the sensors the model reads and the bounds from
+    ``train``; a sensor judged faulty read as the other sensors predict it. One row per run:
     ``run_id``, the :func:`~thermbench.bench.metrics.residual_metrics`, ``faults`` (each sensor
-    judged faulty, its rule and time; '' for none), ``fallback`` (the sensors the model that took
-    over does without; '' for none) and ``bounded_share`` (the share of readings where a bound
-    acted)."""
+    judged faulty, its rule and time; '' for none) and ``bounded_share`` (the share of readings
+    where a bound acted)."""
     import pandas as pd
 
     from ..data.reference import thermal_errors
     from .metrics import residual_metrics
 
-    sensors = list(ds.metadata.sensors)
-    limits = SensorLimits.fit(ds, list(train), sensors) if sensors else None
+    reads = [s for s in ds.metadata.sensors if s in set(model.required_inputs().sensors)]
+    limits = SensorLimits.fit(ds, list(train), reads) if reads else None
     bounds = Bounds.fit(ds, list(train))
-    reads = set(model.required_inputs().sensors)
-    fits: dict[tuple, Any] = {}
-    dropped: list[str] = []
-
-    def fallback(faulty):
-        drop = tuple(x for x in faulty if x in reads)
-        if not drop:
-            return None
-        if drop not in fits:
-            try:
-                fits[drop] = without_sensors(model, ds, train, drop)
-            except _REFIT_FAILURES:  # the family cannot do without them: it reads them reconstructed
-                fits[drop] = None
-        if fits[drop] is not None:
-            dropped[:] = list(drop)
-        return fits[drop]
-
     te = thermal_errors(ds)
     rows = []
     for run in held_out:
-        dropped.clear()
-        pred, monitor, acted = deployed_predictions(model, ds, run, limits, bounds, fallback, te)
+        pred, monitor, acted = deployed_predictions(model, ds, run, limits, bounds, None, te)
         tr = te[te["run_id"] == run]
         bad = int(np.sum(~np.isfinite(pred)))
         metrics = (residual_metrics(tr["error_um"], pred, tr["thermal_um"]) if not bad else
                    dict.fromkeys(residual_metrics(tr["error_um"], np.zeros(len(tr)), tr["thermal_um"]), float("nan")))  # fmt: skip
         rows.append({"run_id": run, **metrics, "nonfinite_predictions": bad, "faults": fault_summary(monitor),
-                     "fallback": " ".join(dropped), "bounded_share": float(acted.mean()) if acted.size else 0.0})  # fmt: skip
+                     "bounded_share": float(acted.mean()) if acted.size else 0.0})  # fmt: skip
     return pd.DataFrame(rows)

@@ -81,7 +81,7 @@ class Flags(enum.IntFlag):
     PROBE = 4096  # a probe reading (a new timestamp on the probe input) updated the correction this cycle
     EXTRAPOLATING = 8192  # the inputs are outside the envelope the model was fitted on (manifest 'envelope')
     SENSOR_FAULT = 16384  # a temperature sensor was judged faulty (manifest 'faults'): the model reads it reconstructed
-    BOUNDED = 32768  # the compensation was held to the bound of its magnitude (manifest 'faults.bounds.max_um')
+    BOUNDED = 32768  # the compensation was held to the bound of its magnitude (bound_um, else manifest 'faults.bounds.max_um')
 
 
 def flag_names(f: int) -> str:
@@ -192,6 +192,8 @@ class CycleLogic:
                 self.monitor = FaultMonitor(limits)
             bound = (faults.get("bounds") or {}).get("max_um")
             self.bound_um = math.inf if bound is None else float(bound)
+        if self.s.bound_um is not None:  # the user's bound (config key bound_um) over the training runs'
+            self.bound_um = float(self.s.bound_um)
         self.interval = (getattr(model, "manifest", None) or {}).get("interval")
         if self.s.extrapolation == "limit" and (self.guard is None or not self.interval):
             what = "no training envelope" if self.guard is None else "no interval"

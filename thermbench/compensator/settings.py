@@ -71,6 +71,7 @@ class Settings:
     line_ref_mm: float | None = None
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
     probe: Any = None  # thermbench.bench.adapt.ProbeParams of the probe filter (config key probe)
+    bound_um: float | None = None  # the compensation's magnitude at most this (None: the manifest's faults.bounds.max_um)
     extrapolation: str = "report"  # outside the training envelope: report (flag only) | hold the last value inside
     # | limit: the interval's inner edge (manifest 'interval': the prediction moved toward 0 by its half-width)
 
@@ -86,7 +87,8 @@ class Settings:
                 line_points=_count(line, "n_points", 21, "line.n_points"),
                 line_ref_mm=None if line.get("ref_mm") is None else _num(line, "ref_mm", 0.0, False, "line.ref_mm"),
                 ranges={k: _pair(v, f"ranges.{k}") for k, v in (cfg.get("ranges") or {}).items()},
-                probe=_probe_params(cfg.get("probe")), extrapolation=str(cfg.get("extrapolation", "report")))  # fmt: skip
+                probe=_probe_params(cfg.get("probe")), extrapolation=str(cfg.get("extrapolation", "report")),
+                bound_um=None if cfg.get("bound_um") is None else _num(cfg, "bound_um", 0.0))  # fmt: skip
         if s.convention not in ("compensation", "error"):
             raise config_error(f"config key 'convention': expected compensation or error, got {s.convention!r}")
         if s.clock not in ("source", "client"):
