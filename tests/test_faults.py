@@ -65,7 +65,7 @@ def test_the_others_lines_are_scikit_learns_ridge_and_nearly_recover_an_exact_mi
     rng = np.random.default_rng(1)
     A, B = np.cumsum(rng.standard_normal((2, 300)), axis=1)
     R = np.column_stack([A, B, 1.0 + 2.0 * A - B])
-    icpt, coef, tol = _others_lines(R, np.repeat(["r1", "r2", "r3"], 100), np.ones(3, bool))
+    icpt, coef, tol, _ = _others_lines(R, np.repeat(["r1", "r2", "r3"], 100), np.ones(3, bool))
     np.testing.assert_allclose([icpt[2], *coef[2, :2]], _ridge_line(R, 2, [0, 1]), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(coef[2, :2], [2.0, -1.0], rtol=0.05)
     assert tol[2] == 2.0  # OTHERS_MIN_K
@@ -74,7 +74,7 @@ def test_the_others_lines_are_scikit_learns_ridge_and_nearly_recover_an_exact_mi
 
 def test_a_sensor_that_never_moved_is_predicted_by_none_and_never_judged_stuck():
     R = np.column_stack([np.linspace(0, 5, 200), np.zeros(200)])
-    icpt, coef, tol = _others_lines(R, np.repeat(["a", "b"], 100), np.array([True, False]))
+    icpt, coef, tol, _ = _others_lines(R, np.repeat(["a", "b"], 100), np.array([True, False]))
     assert np.isinf(tol[1]) and np.isinf(tol[0])  # nothing predicts the still one; the moving one has no moving other
 
 

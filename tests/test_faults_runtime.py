@@ -55,7 +55,7 @@ def test_the_faults_file_holds_the_manifest_s_limits_and_bounds(fl_export):
     limits, bounds = read_faults(out / FAULTS_FILE, man["temperatures"])
     want = SensorLimits.from_dict(f["limits"])
     assert limits.sensors == want.sensors
-    for key in ("rise_lo_K", "rise_hi_K", "rate_max_K_h", "flat_s", "icpt", "coef", "tol_K", "start_offset_K"):
+    for key in ("rise_lo_K", "rise_hi_K", "rate_max_K_h", "flat_s", "icpt", "coef", "tol_K", "start_offset_K", "rate_tol"):
         a, b = getattr(limits, key), getattr(want, key)
         assert (np.isinf(a) == np.isinf(b)).all(), key
         np.testing.assert_allclose(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b), rtol=1e-6, atol=1e-6, err_msg=key)
@@ -192,3 +192,35 @@ def test_a_damaged_or_foreign_faults_file_is_refused(fl_export, seed001_exports,
                        faults=seed001_exports / "mlr" / "envelope.tbm")  # fmt: skip
     with pytest.raises(ModelFileError, match="not a faults file"):
         read_faults(seed001_exports / "mlr" / "envelope.tbm")
+
+
+def test_a_drift_is_judged_by_its_rate_before_its_rise_departs(tmp_path, seed001_exports):
+    """Three sensors that move together (each line half the other two), the rises' tolerance wide (100 K)
+    and the rates' 5 K/h; C drifts at 10 K/h from the first sample while A and B hold. Its high-pass
+    rate, by hand (the average e += (1 - exp(-dt/600)) (T - e), rate = (T - e) 3600/600), passes 5 K/h
+    at the sample computed here, long before its 100 K rise tolerance: C, and only C, is judged
+    'others' there (its reconstruction explains A's and B's departures; A's or B's would not), in
+    Python and in C alike, and from then on the model reads C as A and B put it: 20 °C."""
+    lim = SensorLimits(("A", "B", "C"), np.zeros(3), np.full(3, 100.0), np.full(3, 100.0), np.full(3, 1e6), np.zeros(3),
+                       np.array([[0.0, 0.5, 0.5], [0.5, 0.0, 0.5], [0.5, 0.5, 0.0]]), np.full(3, 100.0), np.zeros(3), 600.0,
+                       np.full(3, 5.0))  # fmt: skip
+    t = np.arange(0.0, 3600.0, 60.0)
+    c = 20.0 + 10.0 * t / 3600.0
+    e, first = 20.0, None
+    for k in range(1, t.size):  # the hand computation of C's rate
+        e += (1.0 - math.exp(-60.0 / 600.0)) * (c[k] - e)
+        if first is None and (c[k] - e) * 6.0 > 5.0:
+            first = k
+    assert first is not None and t[first] < 1800.0 and c[first] - 20.0 < 100.0
+    m = FaultMonitor(lim)
+    read = np.array([m.step(tk, [20.0, 20.0, ck]) for tk, ck in zip(t, c)])
+    assert m.fault == [None, None, "others"] and m.onset_s[2] == t[first]
+    np.testing.assert_allclose(read[first:, 2], 20.0)
+    np.testing.assert_allclose(read[:first, 2], c[:first])
+    path = tmp_path / "faults.tbm"
+    write_faults(path, lim, None)
+    # the seed001 model reads two sensors (A and B here); the checks read three, C the third column
+    s = pd.DataFrame({"t_s": t, "axis_mm": 0.0, "feed_mm_min": 0.0, "T_nut_C": 20.0, "T_bed_C": 20.0, "C": c})
+    got = runtime.replay([seed001_exports / "mlr" / "model.tbm"], s, ["T_nut_C", "T_bed_C", "C"],
+                         pd.DataFrame({"t_s": t, "axis_mm": 0.0}), live=True, faults=path)  # fmt: skip
+    assert got["rules"].tolist() == ["000"] * first + ["005"] * (t.size - first)

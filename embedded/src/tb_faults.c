@@ -12,13 +12,15 @@
  *   stuck   T unchanged for longer than max(stuck_factor * flat_s, stuck_min_s) while the others'
  *           prediction of its rise moved by more than stuck_move_K since it last changed (flat_s < 0:
  *           never judged stuck; tol_K < 0: judged on the time alone)
- *   others  |rise - (icpt + coef @ rise)| > tol_K for a healthy sensor: the one sensor whose
- *           reconstruction leaves the smallest sum of squared departures (over tol) of the other
- *           healthy sensors is judged (Dunia, Qin, Edgar and McAvoy, AIChE J. 42(10), 1996)
+ *   others  |rise - (icpt + coef @ rise)| > tol_K or |rate - coef @ rate| > rate_tol_K_h for a
+ *           healthy sensor: the one sensor whose reconstruction (rise and rate) leaves the smallest
+ *           sum of squared departures (each over its tolerance) of the other healthy sensors is
+ *           judged (Dunia, Qin, Edgar and McAvoy, AIChE J. 42(10), 1996)
  * A faulty sensor's rise is reconstructed from the start of its last trusted reading by the lines
  * icpt + coef @ rise (the faulty ones among the others as reconstructed: 3 passes when more than one
  * is faulty), and the model reads T0 + that rise; a sensor no other predicts (tol_K < 0) is held at
- * its last trusted reading. A sensor not plausible at the run's first sample starts at the
+ * its last trusted reading; its rate as coef @ rate by the same passes (0 when no other predicts
+ * it). A sensor not plausible at the run's first sample starts at the
  * plausible sensors' mean (unknown_start_C when none is) plus its start_offset_K.
  *
  * Bounds (tb_faults_bound): |value| <= max_um (max_um < 0: none), then the change since the previous
@@ -27,8 +29,8 @@
  *
  * The faults file (written by the export, thermbench/export/faultfile.py, kind TB_KIND_FAULTS) has
  * the model file's header and CRC; dims = [n]; payload: the TBF_SCALARS scalars below, then the
- * arrays rise_lo_K, rise_hi_K, rate_max_K_h, flat_s, tol_K, start_offset_K, icpt (n each), then
- * coef (n x n, row i the line of sensor i, coef[i][i] = 0). The sensors are the model's, in the order
+ * arrays rise_lo_K, rise_hi_K, rate_max_K_h, flat_s, tol_K, start_offset_K, icpt, rate_tol_K_h
+ * (n each; tol_K, rate_tol_K_h < 0: no such line), then coef (n x n, row i the line of sensor i, coef[i][i] = 0). The sensors are the model's, in the order
  * of its samples' temps_C. The file is read in place.
  */
 #include "tb_internal.h"
@@ -48,7 +50,7 @@ enum {
     TBF_RATE_UM_S,
     TBF_SCALARS
 };
-enum { TBF_RISE_LO = 0, TBF_RISE_HI, TBF_RATE_MAX, TBF_FLAT, TBF_TOL, TBF_OFFSET, TBF_ICPT, TBF_ARRAYS };
+enum { TBF_RISE_LO = 0, TBF_RISE_HI, TBF_RATE_MAX, TBF_FLAT, TBF_TOL, TBF_OFFSET, TBF_ICPT, TBF_RATE_TOL, TBF_ARRAYS };
 
 static tb_real sc(const tb_faults *f, uint32_t k) { return (tb_real)tbi_rd_f32(f->payload + 4u * k); }
 static tb_real arr(const tb_faults *f, uint32_t a, uint32_t i)
@@ -67,6 +69,27 @@ static tb_real line(const tb_faults *f, uint32_t i, const tb_real *rise)
     uint32_t k;
     for (k = 0; k < f->n_sensors; k++) p += coef(f, i, k) * rise[k];
     return p;
+}
+
+/* coef[i] @ rate: sensor i's rate as the others' rates predict it */
+static tb_real rate_line(const tb_faults *f, uint32_t i, const tb_real *rate)
+{
+    tb_real p = 0;
+    uint32_t k;
+    for (k = 0; k < f->n_sensors; k++) p += coef(f, i, k) * rate[k];
+    return p;
+}
+
+/* sensor k's departures from the others' prediction over their tolerances (0 without a line): rise, rate */
+static tb_real dep_rise(const tb_faults *f, uint32_t k, const tb_real *rise)
+{
+    tb_real tol = arr(f, TBF_TOL, k);
+    return tol < 0 ? 0 : (rise[k] - line(f, k, rise)) / tol;
+}
+static tb_real dep_rate(const tb_faults *f, uint32_t k, const tb_real *rate)
+{
+    tb_real tol = arr(f, TBF_RATE_TOL, k);
+    return tol < 0 ? 0 : (rate[k] - rate_line(f, k, rate)) / tol;
 }
 
 int tb_faults_open(tb_faults *f, const uint8_t *file, size_t len)
@@ -115,6 +138,21 @@ void tb_faults_reset(tb_faults *f)
     memset(f->fault, 0, sizeof f->fault);
 }
 
+/* the faulty sensors' rates in rate (in place), by the lines without their intercept (0 without one) */
+static void reconstruct_rates(const tb_faults *f, tb_real *rate)
+{
+    uint32_t i, pass, n = f->n_sensors, n_bad = 0;
+    for (i = 0; i < n; i++)
+        if (f->fault[i]) {
+            rate[i] = 0;
+            n_bad++;
+        }
+    if (!n_bad) return;
+    for (pass = 0; pass < (n_bad > 1 ? 3u : 1u); pass++)
+        for (i = 0; i < n; i++)
+            if (f->fault[i] && arr(f, TBF_TOL, i) >= 0) rate[i] = rate_line(f, i, rate);
+}
+
 /* the faulty sensors' rises in rise (in place), from their last trusted rise, by the lines */
 static void reconstruct(const tb_faults *f, tb_real *rise)
 {
@@ -137,8 +175,8 @@ static int plausible(const tb_faults *f, tb_real T)
 
 int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
 {
-    uint32_t i, j, n;
-    tb_real t, known[TB_MAX_SENSORS], used[TB_MAX_SENSORS], pred[TB_MAX_SENSORS], worst = 0;
+    uint32_t i, j, k, n;
+    tb_real t, known[TB_MAX_SENSORS], used[TB_MAX_SENSORS], pred[TB_MAX_SENSORS], rates[TB_MAX_SENSORS], worst = 0;
     uint32_t changed = 0, ok = 0;
     if (!f || !f->payload || !s || !temps_C) return TB_E_ARG;
     n = f->n_sensors;
@@ -203,27 +241,42 @@ int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
             f->faulty |= 1u << i;
         }
     }
-    for (i = 0; i < n; i++) used[i] = isfinite(s->temps_C[i]) ? s->temps_C[i] - f->T0_C[i] : 0;
+    for (i = 0; i < n; i++) {
+        tb_real T = s->temps_C[i];
+        used[i] = isfinite(T) ? T - f->T0_C[i] : 0;
+        rates[i] = isfinite(T) ? (T - f->e_C[i]) * (TB_R(3600.0) / f->tau_s) : 0;
+    }
     reconstruct(f, used);
+    reconstruct_rates(f, rates);
     for (i = 0; i < n; i++) { /* the healthy sensors' departures from the others' prediction, over their tolerance */
-        tb_real tol = arr(f, TBF_TOL, i), d;
-        if (f->fault[i] || tol < 0) continue;
-        d = tbm_fabs(used[i] - line(f, i, used)) / tol;
-        if (d > worst) worst = d;
+        tb_real a, b;
+        if (f->fault[i]) continue;
+        a = tbm_fabs(dep_rise(f, i, used));
+        b = tbm_fabs(dep_rate(f, i, rates));
+        if (a > worst) worst = a;
+        if (b > worst) worst = b;
     }
     if (worst > 1) { /* the sensor whose reconstruction explains the departures best */
-        tb_real u[TB_MAX_SENSORS], best = 0;
+        /* read as the others predict it, sensor j moves each other line by coef[k][j] times its change:
+         * the others' predictions once (pr, prr), then O(n) per candidate (thermbench/bench/faults.py
+         * recomputes them whole: the same sums, in another order) */
+        tb_real pr[TB_MAX_SENSORS], prr[TB_MAX_SENSORS], best = 0;
         uint32_t culprit = n;
+        for (k = 0; k < n; k++) {
+            pr[k] = line(f, k, used);
+            prr[k] = rate_line(f, k, rates);
+        }
         for (j = 0; j < n; j++) {
-            tb_real left = 0;
-            uint32_t k;
+            tb_real left = 0, du, dr;
             if (f->fault[j] || arr(f, TBF_TOL, j) < 0) continue;
-            memcpy(u, used, n * sizeof *u);
-            u[j] = line(f, j, u);
+            du = pr[j] - used[j]; /* its rise and rate, reconstructed, less as read */
+            dr = prr[j] - rates[j];
             for (k = 0; k < n; k++)
-                if (k != j && !f->fault[k] && arr(f, TBF_TOL, k) >= 0) {
-                    tb_real d = (u[k] - line(f, k, u)) / arr(f, TBF_TOL, k);
-                    left += d * d;
+                if (k != j && !f->fault[k]) {
+                    tb_real c = coef(f, k, j), tol = arr(f, TBF_TOL, k), rtol = arr(f, TBF_RATE_TOL, k);
+                    tb_real a = tol < 0 ? 0 : (used[k] - pr[k] - c * du) / tol;
+                    tb_real b = rtol < 0 ? 0 : (rates[k] - prr[k] - c * dr) / rtol;
+                    left += a * a + b * b;
                 }
             if (culprit == n || left < best) {
                 culprit = j;

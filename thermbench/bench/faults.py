@@ -30,8 +30,12 @@ process logs as logged (what the compensator reads), never from the run being co
   its rise departs from that prediction by more than ``OTHERS_FACTOR`` x the largest departure of a
   training run held out of the fit (at least ``OTHERS_MIN_K``), and departs most of all sensors
   relative to that tolerance (a fault in one sensor moves the others' predictions by its weight in
-  them, its own by all of it). A sensor already judged faulty enters the others' predictions as it
-  is reconstructed (below).
+  them, its own by all of it). The same holds of the rates (the lines without their intercept
+  predict each sensor's rate from the others' rates): a sensor whose rate departs from the
+  others' prediction by more than ``OTHERS_FACTOR`` x the largest such departure of a held-out
+  training run (at least ``RATE_OTHERS_MIN_K_H``) is faulty too, which judges a drift long before
+  its rise has departed by the rise's tolerance. A sensor already judged faulty enters the
+  others' predictions as it is reconstructed (below).
 
 A sensor judged faulty stays faulty for the rest of the run (latched): a sensor that read wrong
 once is not trusted again without an operator. **Degradation**: from that sample on, the model is
@@ -84,6 +88,8 @@ RIDGE_SHARE = 0.01
 #: (a few training runs show only a few departures, and every sensor of a machine is judged at once)
 OTHERS_FACTOR = 3.0
 OTHERS_MIN_K = 2.0
+#: ... and of the rates (K/h): a few times the rate one 0.1 K step of a reading makes (0.1 K x 3600 s/h / 600 s)
+RATE_OTHERS_MIN_K_H = 2.0
 #: the value bound: this many times the largest |thermal error| of the training runs
 BOUND_FACTOR = 1.5
 #: the rate bound: this many times the largest change of the training error over RATE_WINDOW_S
@@ -100,7 +106,8 @@ class SensorLimits:
     Per sensor ``i`` of ``sensors``: ``rise_lo_K`` / ``rise_hi_K`` (K), ``rate_max_K_h`` (K/h, the largest
     |rate|), ``flat_s`` (the longest unchanged stretch, s; inf when it never moved); its rise as
     the others predict it, ``icpt[i] + coef[i] @ rise`` (``coef[i, i] = 0``), and the departure
-    beyond which it is faulty, ``tol_K[i]`` (inf: no other sensor predicts it); ``start_offset_K[i]``,
+    beyond which it is faulty, ``tol_K[i]`` (inf: no other sensor predicts it), and that of its rate
+    from the others' rates, ``rate_tol_K_h[i]`` (inf, or None for every sensor: no such rule); ``start_offset_K[i]``,
     how far its first reading lies above the others' mean at a run's start (the mean over the runs:
     where a sensor is faulty from the first sample, the reading it is reconstructed from)."""
 
@@ -114,6 +121,7 @@ class SensorLimits:
     tol_K: np.ndarray
     start_offset_K: np.ndarray | None = None
     tau_s: float = RATE_WINDOW_S
+    rate_tol_K_h: np.ndarray | None = None
 
     @classmethod
     def fit(cls, ds, runs: Sequence[str], sensors: Sequence[str]) -> "SensorLimits":
@@ -139,12 +147,12 @@ class SensorLimits:
             rate_max_K_h = np.nanmax(np.abs(D), axis=0)
         moved = rise_hi_K > rise_lo_K
         flat_s = np.where(moved, flats, np.inf)
-        icpt, coef, tol = _others_lines(R, np.asarray(run_of), moved)
+        icpt, coef, tol, rate_tol = _others_lines(R, np.asarray(run_of), moved, D)
         S = np.vstack(starts)  # each run's first reading: how far each sensor starts from the others' mean
         with np.errstate(invalid="ignore"):
             others_mean = (np.nansum(S, axis=1, keepdims=True) - S) / max(n - 1, 1)
             offset = np.nan_to_num(np.nanmean(S - others_mean, axis=0)) if n > 1 else np.zeros(n)
-        return cls(sensors, rise_lo_K, rise_hi_K, rate_max_K_h, flat_s, icpt, coef, tol, offset)
+        return cls(sensors, rise_lo_K, rise_hi_K, rate_max_K_h, flat_s, icpt, coef, tol, offset, RATE_WINDOW_S, rate_tol)
 
     # the thresholds the rules use, from the fitted limits
     @property
@@ -159,6 +167,11 @@ class SensorLimits:
     def stuck_after_s(self) -> np.ndarray:
         return np.maximum(STUCK_FACTOR * self.flat_s, STUCK_MIN_S)
 
+    @property
+    def rate_tol(self) -> np.ndarray:
+        """``rate_tol_K_h``, inf where there is none."""
+        return np.full(len(self.sensors), np.inf) if self.rate_tol_K_h is None else self.rate_tol_K_h
+
     def to_dict(self) -> dict[str, Any]:
         def finite(a):  # JSON has no inf
             return [None if not math.isfinite(v) else float(v) for v in a]
@@ -167,7 +180,7 @@ class SensorLimits:
                 "rate_max_K_h": self.rate_max_K_h.tolist(), "flat_s": finite(self.flat_s), "icpt": self.icpt.tolist(),
                 "coef": self.coef.tolist(), "tol_K": finite(self.tol_K),
                 "start_offset_K": (self.start_offset_K if self.start_offset_K is not None else np.zeros(len(self.sensors))).tolist(),
-                "tau_s": self.tau_s}  # fmt: skip
+                "tau_s": self.tau_s, "rate_tol_K_h": finite(self.rate_tol)}  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "SensorLimits":
@@ -178,18 +191,24 @@ class SensorLimits:
         return cls(tuple(d["sensors"]), np.asarray(d["rise_lo_K"], float), np.asarray(d["rise_hi_K"], float),
                    np.asarray(d["rate_max_K_h"], float), inf(d["flat_s"]), np.asarray(d["icpt"], float),
                    np.asarray(d["coef"], float).reshape(n, n), inf(d["tol_K"]),
-                   np.asarray(d.get("start_offset_K", np.zeros(n)), float), float(d.get("tau_s", RATE_WINDOW_S)))  # fmt: skip
+                   np.asarray(d.get("start_offset_K", np.zeros(n)), float), float(d.get("tau_s", RATE_WINDOW_S)),
+                   inf(d["rate_tol_K_h"]) if d.get("rate_tol_K_h") is not None else None)  # fmt: skip
 
 
-def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
+def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray, D: np.ndarray | None = None):
     """Per sensor, its rise by ridge regression (``RIDGE_SHARE``) on the other moving sensors' rises (rows of ``R``,
     samples x sensors, of the runs ``run_of``), and its tolerance: ``OTHERS_FACTOR`` x the largest
     departure on a run held out of the fit (the line fitted on the other runs; with one run, on
-    itself), at least ``OTHERS_MIN_K``. The fits come from each run's sums of products (the normal
-    equations), so a run held out costs a small solve."""
+    itself), at least ``OTHERS_MIN_K``; with the rates ``D`` (rows as ``R``'s), the same of the rate
+    predicted by the line without its intercept, at least ``RATE_OTHERS_MIN_K_H`` (inf without
+    ``D``). The fits come from each run's sums of products (the normal equations), so a run held
+    out costs a small solve. Returns (icpt, coef, tol, rate_tol)."""
     n = R.shape[1]
-    icpt, coef, tol = np.zeros(n), np.zeros((n, n)), np.full(n, np.inf)
+    icpt, coef, tol, rate_tol = np.zeros(n), np.zeros((n, n)), np.full(n, np.inf), np.full(n, np.inf)
     ok = np.isfinite(R).all(axis=1)
+    if D is not None:
+        ok &= np.isfinite(D).all(axis=1)
+        D = D[ok]
     R, run_of = R[ok], run_of[ok]
     runs = list(dict.fromkeys(run_of.tolist()))
     X = np.column_stack([np.ones(R.shape[0]), R])  # column 0 the intercept, 1 + k sensor k
@@ -212,13 +231,17 @@ def _others_lines(R: np.ndarray, run_of: np.ndarray, moved: np.ndarray):
             continue
         cols, w = line(total, i, others)
         icpt[i], coef[i, others] = w[0], w[1:]
-        worst = 0.0
+        worst = worst_rate = 0.0
         for r in runs if len(runs) > 1 else [None]:
             test = rows[r] if r is not None else np.ones(R.shape[0], bool)
             _, wr = line(total - gram[r], i, others) if r is not None else (cols, w)
             worst = max(worst, float(np.max(np.abs(R[test, i] - X[test][:, cols] @ wr))))
+            if D is not None:
+                worst_rate = max(worst_rate, float(np.max(np.abs(D[test, i] - D[test][:, others] @ wr[1:]))))
         tol[i] = max(OTHERS_FACTOR * worst, OTHERS_MIN_K)
-    return icpt, coef, tol
+        if D is not None:
+            rate_tol[i] = max(OTHERS_FACTOR * worst_rate, RATE_OTHERS_MIN_K_H)
+    return icpt, coef, tol, rate_tol
 
 
 class FaultMonitor:
@@ -320,12 +343,12 @@ class FaultMonitor:
                 self.fault[i], self.onset_s[i] = why, float(t_s)
         used = np.where(np.isfinite(rise), rise, 0.0)  # the rises the model reads: a faulty sensor's reconstructed
         self._reconstruct(used)
+        rates = np.where(np.isfinite(rate), rate, 0.0)  # and the rates, a faulty sensor's as the others' predict it
+        self._reconstruct_rates(rates)
         healthy = np.array([f is None for f in self.fault])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            depart = np.abs(used - (lim.icpt + lim.coef @ used)) / lim.tol_K
-        depart = np.where(healthy & np.isfinite(depart), depart, 0.0)
+        depart = np.where(healthy, self._departures(used, rates), 0.0)
         if depart.size and depart.max() > 1.0:  # the sensor whose reconstruction explains the departures best
-            j = self._culprit(used, healthy)
+            j = self._culprit(used, rates, healthy)
             self.fault[j], self.onset_s[j] = "others", float(t_s)
             self._reconstruct(used)
         for i in range(n):
@@ -334,24 +357,48 @@ class FaultMonitor:
         base = np.where(np.isfinite(self.T0_C), self.T0_C, T)
         return np.where(healthy & np.array([f is None for f in self.fault]), T, base + used)
 
-    def _culprit(self, rise: np.ndarray, healthy: np.ndarray) -> int:
-        """Of the healthy sensors, the one that, read as the others predict it, leaves the smallest sum
-        of squared departures (relative to their tolerances) over the other healthy sensors: the
-        reconstruction-based identification of Dunia et al. (a fault moves every line that weights
-        the faulty sensor, so the sensor departing most need not be the faulty one)."""
+    def _departures(self, rise: np.ndarray, rates: np.ndarray, signed: bool = False) -> np.ndarray:
+        """Per sensor, the larger of its rise's and its rate's departure from the others' prediction,
+        each over its tolerance (0 where there is no such line); ``signed``: the two as a pair
+        (2 x sensors, with their signs) instead."""
+        lim = self.lim
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = np.vstack([(rise - (lim.icpt + lim.coef @ rise)) / lim.tol_K, (rates - lim.coef @ rates) / lim.rate_tol])
+        d = np.where(np.isfinite(d), d, 0.0)
+        return d if signed else np.abs(d).max(axis=0)
+
+    def _culprit(self, rise: np.ndarray, rates: np.ndarray, healthy: np.ndarray) -> int:
+        """Of the healthy sensors, the one that, read as the others predict it (its rise and its rate),
+        leaves the smallest sum of squared departures (relative to their tolerances) over the other
+        healthy sensors: the reconstruction-based identification of Dunia et al. (a fault moves every
+        line that weights the faulty sensor, so the sensor departing most need not be the faulty one)."""
         lim = self.lim
         best, score = -1, math.inf
         for j in np.flatnonzero(healthy & np.isfinite(lim.tol_K)):
-            u = rise.copy()
+            u, ur = rise.copy(), rates.copy()
             u[j] = lim.icpt[j] + lim.coef[j] @ u
-            with np.errstate(invalid="ignore", divide="ignore"):
-                d = (u - (lim.icpt + lim.coef @ u)) / lim.tol_K
+            ur[j] = lim.coef[j] @ ur
+            d = self._departures(u, ur, signed=True)
             keep = healthy.copy()
             keep[j] = False
-            left = float(np.sum(np.where(keep & np.isfinite(d), d, 0.0) ** 2))
+            left = float(np.sum(d[:, keep] ** 2))
             if left < score:
                 best, score = int(j), left
         return best
+
+    def _reconstruct_rates(self, rates: np.ndarray) -> None:
+        """The faulty sensors' rates in ``rates`` (in place) as the others' rates predict them (the
+        lines without their intercept, the passes of :meth:`_reconstruct`); 0 for a sensor no other
+        predicts (it is held)."""
+        bad = [i for i, f in enumerate(self.fault) if f is not None]
+        if not bad:
+            return
+        lim = self.lim
+        rates[bad] = 0.0
+        for _ in range(3 if len(bad) > 1 else 1):
+            for i in bad:
+                if math.isfinite(lim.tol_K[i]):
+                    rates[i] = lim.coef[i] @ rates
 
     def _reconstruct(self, rise: np.ndarray) -> None:
         """The faulty sensors' rises in ``rise`` (in place) as the others predict them (the faulty ones
@@ -387,6 +434,8 @@ def _may_fire(lim: SensorLimits, t: np.ndarray, T: np.ndarray, slack: float = 1e
     predicted = lim.icpt + rise @ lim.coef.T
     with np.errstate(invalid="ignore", divide="ignore"):
         if (np.abs(rise - predicted) / lim.tol_K > 1.0 - slack).any():
+            return True
+        if (np.abs(rate - rate @ lim.coef.T) / lim.rate_tol > 1.0 - slack).any():
             return True
     # stuck: the time since each sensor's reading last changed, and the others' prediction then
     changed = np.vstack([np.ones((1, T.shape[1]), bool), T[1:] != T[:-1]])

@@ -6,9 +6,10 @@ them in Python.
 The model file's header and CRC (:mod:`.fileformat`), kind ``FAULTS_KIND``; dims ``[n]`` (the
 sensors checked, the model's temperatures in its samples' order); payload: the rules' parameters
 and the bounds (:data:`SCALARS`, in that order), then per sensor ``rise_lo_K``, ``rise_hi_K``,
-``rate_max_K_h``, ``flat_s``, ``tol_K``, ``start_offset_K``, ``icpt`` (n each), then ``coef``
-(n x n, row-major). An infinity of the Python side (a sensor that never moved: ``flat_s``; one no
-other predicts: ``tol_K``; a bound that is not set) is written as -1, which the C runtime reads so.
+``rate_max_K_h``, ``flat_s``, ``tol_K``, ``start_offset_K``, ``icpt``, ``rate_tol_K_h`` (n each),
+then ``coef`` (n x n, row-major). An infinity of the Python side (a sensor that never moved:
+``flat_s``; one no other predicts: ``tol_K``, ``rate_tol_K_h``; a bound that is not set) is written
+as -1, which the C runtime reads so.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ FAULTS_FILE = "faults.tbm"
 SCALARS = ("tau_s", "plausible_lo_C", "plausible_hi_C", "unknown_start_C", "range_min_K", "rate_factor", "rate_min_K_h",
            "stuck_factor", "stuck_min_s", "stuck_move_K", "max_um", "rate_um_s")  # fmt: skip
 #: the per-sensor arrays after them, in order (then coef)
-ARRAYS = ("rise_lo_K", "rise_hi_K", "rate_max_K_h", "flat_s", "tol_K", "start_offset_K", "icpt")
+ARRAYS = ("rise_lo_K", "rise_hi_K", "rate_max_K_h", "flat_s", "tol_K", "start_offset_K", "icpt", "rate_tol_K_h")
 
 
 def _rules() -> dict[str, float]:
@@ -52,12 +53,13 @@ def faults_payload(limits: F.SensorLimits | None, bounds: F.Bounds | None) -> tu
     if limits is None:
         return [0], np.asarray(head, dtype=float)
     offset = limits.start_offset_K if limits.start_offset_K is not None else np.zeros(n)
-    if np.any(np.isfinite(limits.flat_s) & (limits.flat_s < 0)) or np.any(np.isfinite(limits.tol_K) & (limits.tol_K <= 0)):
+    tols = np.concatenate([limits.tol_K, limits.rate_tol])
+    if np.any(np.isfinite(limits.flat_s) & (limits.flat_s < 0)) or np.any(np.isfinite(tols) & (tols <= 0)):
         raise ValueError("sensor limits with a negative stuck time or a tolerance <= 0 cannot be written (-1 means none)")
     coef = np.asarray(limits.coef, dtype=float).copy()
     np.fill_diagonal(coef, 0.0)
     body = [limits.rise_lo_K, limits.rise_hi_K, limits.rate_max_K_h, _neg_inf(limits.flat_s), _neg_inf(limits.tol_K), offset,
-            limits.icpt, coef.ravel()]  # fmt: skip
+            limits.icpt, _neg_inf(limits.rate_tol), coef.ravel()]  # fmt: skip
     return [n], np.concatenate([np.asarray(head, dtype=float), *[np.asarray(b, dtype=float).ravel() for b in body]])
 
 
@@ -95,5 +97,5 @@ def read_faults(path: Path, sensors=None) -> tuple[F.SensorLimits | None, F.Boun
         raise ValueError(f"{path}: {n} sensors, {len(sensors)} names given")
     neg = lambda v: np.where(v < 0, np.inf, v)  # noqa: E731
     limits = F.SensorLimits(sensors, a["rise_lo_K"], a["rise_hi_K"], a["rate_max_K_h"], neg(a["flat_s"]), a["icpt"], coef,
-                            neg(a["tol_K"]), a["start_offset_K"], float(head["tau_s"]))  # fmt: skip
+                            neg(a["tol_K"]), a["start_offset_K"], float(head["tau_s"]), neg(a["rate_tol_K_h"]))  # fmt: skip
     return limits, bounds
