@@ -86,6 +86,8 @@ def test_c_checks_and_bounds_equal_python_at_every_sample(fl_export, kind, flags
     raw = runtime.replay(files, replaced, temps, q, exe=exe, live=True)
     rules, bounded, acted = _python(limits, bounds, samples, cols, raw["total_um"].to_numpy(float))
     assert c["rules"].tolist() == rules
+    # the model read what Python's monitor gave it: its unbounded totals are those on the replaced readings
+    np.testing.assert_allclose(c["total_um"].to_numpy(float), raw["total_um"].to_numpy(float), rtol=0, atol=tol_um)
     got = c["bounded_um"].to_numpy(float)
     assert (np.isnan(got) == np.isnan(bounded)).all()
     np.testing.assert_allclose(got[~np.isnan(got)], bounded[~np.isnan(bounded)], rtol=0, atol=tol_um)
@@ -149,10 +151,14 @@ def test_the_checks_and_bounds_by_hand(seed001_exports, tmp_path):
 
 
 def test_a_not_a_number_answer_leaves_the_rate_bound_going_from_the_last():
+    """An answer that is not finite passes as it is (as tb_faults_bound passes it), acts no bound,
+    and the rate bound goes on from the last value."""
     out, acted = Bounds(100.0, 0.1).apply([0.0, 10.0, 20.0, 30.0], [0.0, np.nan, 50.0, 50.0])
     assert np.isnan(out[1]) and not acted[1]
     np.testing.assert_allclose(out[[0, 2, 3]], [0.0, 2.0, 3.0])  # 0.1 µm/s over 20 s, then 10 s
     assert acted.tolist() == [False, False, True, True]
+    out, acted = Bounds(100.0, 0.1).apply([0.0, 10.0], [np.inf, 5.0])
+    assert np.isinf(out[0]) and not acted[0] and out[1] == 5.0
 
 
 def test_a_sensor_open_from_the_first_sample_starts_where_the_others_put_it(tmp_path, seed001_exports):

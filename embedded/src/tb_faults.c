@@ -117,8 +117,9 @@ int tb_faults_open(tb_faults *f, const uint8_t *file, size_t len)
         !(sc(f, TBF_STUCK_MIN) >= 0) || !(sc(f, TBF_STUCK_MOVE) >= 0))
         rc = TB_E_PAYLOAD;
     for (i = 0; i < n && rc == TB_OK; i++) /* rise_lo <= rise_hi, rate_max >= 0, a sensor's line without itself */
-        if (!(arr(f, TBF_RISE_LO, i) <= arr(f, TBF_RISE_HI, i)) || !(arr(f, TBF_RATE_MAX, i) >= 0) || coef(f, i, i) != 0)
-            rc = TB_E_PAYLOAD;
+        if (!(arr(f, TBF_RISE_LO, i) <= arr(f, TBF_RISE_HI, i)) || !(arr(f, TBF_RATE_MAX, i) >= 0) || coef(f, i, i) != 0 ||
+            arr(f, TBF_TOL, i) == 0 || arr(f, TBF_RATE_TOL, i) == 0 || (arr(f, TBF_TOL, i) < 0 && arr(f, TBF_RATE_TOL, i) >= 0))
+            rc = TB_E_PAYLOAD; /* a tolerance is > 0 or none (< 0); a rate line only where there is a rise line */
     if (rc != TB_OK) {
         memset(f, 0, sizeof *f); /* a refused file checks nothing (tb_faults_step: TB_E_ARG) */
         return rc;
@@ -283,10 +284,12 @@ int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
                 best = left;
             }
         }
-        f->fault[culprit] = TB_FAULT_OTHERS;
-        f->onset_s[culprit] = t;
-        f->faulty |= 1u << culprit;
-        reconstruct(f, used);
+        if (culprit < n) { /* always: a departure is of a sensor with a line, itself a candidate */
+            f->fault[culprit] = TB_FAULT_OTHERS;
+            f->onset_s[culprit] = t;
+            f->faulty |= 1u << culprit;
+            reconstruct(f, used);
+        }
     }
     for (i = 0; i < n; i++) {
         if (!f->fault[i]) {
@@ -305,13 +308,17 @@ int tb_faults_bound(const tb_faults *f, tb_bound *b, tb_real t_s, tb_real value_
     tb_real v = value_um;
     int acted = 0;
     if (!f || !f->payload || !b || !bounded_um) return TB_E_ARG;
-    if (!isfinite(value_um) || !isfinite(t_s)) { /* no value: nothing to bound, the series goes on from its last */
+    if (!isfinite(value_um)) { /* no value: nothing to bound, the series goes on from its last */
         *bounded_um = value_um;
         return 0;
     }
     if (f->max_um >= 0 && tbm_fabs(v) > f->max_um) {
         v = v > 0 ? f->max_um : -f->max_um;
         acted = 1;
+    }
+    if (!isfinite(t_s)) { /* no time: the value bound only, the series left alone */
+        *bounded_um = v;
+        return acted;
     }
     if (b->started && f->rate_um_s >= 0) {
         tb_real dt = t_s > b->t_s ? t_s - b->t_s : 0, step = f->rate_um_s * dt;

@@ -284,7 +284,7 @@ static void answer_until(double upto, int all, int before)
                     rt_end();
                 }
                 printf(" %.17g %.17g", (double)corr, (double)var);
-                bound_what = (double)corr;
+                if (rc == TB_OK) bound_what = (double)corr;
             }
             end_line(q_t, q_x, bound_what);
         }

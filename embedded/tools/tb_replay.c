@@ -160,7 +160,7 @@ static void answer_until(double upto, int all, int before)
             if (rc == TB_OK) tb_probe_correct(&filt, (tb_real)queries[q_done].t, tot, &corr, &var);
             printf("%.17g %.17g %.17g %.17g %d %d %.17g %.17g", queries[q_done].t, queries[q_done].x, (double)th, (double)tot,
                    (int)lab, rc, (double)corr, (double)var);
-            end_line(queries[q_done].t, queries[q_done].x, (double)corr);
+            end_line(queries[q_done].t, queries[q_done].x, rc == TB_OK ? (double)corr : NAN);
         } else {
             printf("%.17g %.17g %.17g %.17g %d %d", queries[q_done].t, queries[q_done].x, (double)th, (double)tot, (int)lab, rc);
             end_line(queries[q_done].t, queries[q_done].x, rc == TB_OK ? (double)tot : NAN);

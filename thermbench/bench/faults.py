@@ -486,11 +486,11 @@ class Bounds:
     def apply(self, t_s, predicted_um) -> tuple[np.ndarray, np.ndarray]:
         """The predictions at times ``t_s`` (ascending) bounded in value, then in rate from the
         first (the compensator starts where the model does); and per value whether a bound acted.
-        A prediction that is not a number (no answer yet) stays so, acts no bound, and the rate
+        A prediction that is not finite (no answer yet) stays so, acts no bound, and the rate
         bound goes on from the last bounded value (``tb_faults_bound`` of the C runtime alike)."""
         t = np.asarray(t_s, dtype=float)
         p = np.asarray(predicted_um, dtype=float)
-        out = np.clip(p, -self.max_um, self.max_um)
+        out = np.where(np.isfinite(p), np.clip(p, -self.max_um, self.max_um), p)
         acted = np.isfinite(p) & (out != p)
         last = None  # the index of the last finite bounded value
         for k in range(out.size):

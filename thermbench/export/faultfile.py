@@ -53,6 +53,8 @@ def faults_payload(limits: F.SensorLimits | None, bounds: F.Bounds | None) -> tu
     if limits is None:
         return [0], np.asarray(head, dtype=float)
     offset = limits.start_offset_K if limits.start_offset_K is not None else np.zeros(n)
+    if np.any(~np.isfinite(limits.tol_K) & np.isfinite(limits.rate_tol)):
+        raise ValueError("sensor limits with a rate line where there is no rise line cannot be written")
     tols = np.concatenate([limits.tol_K, limits.rate_tol])
     if np.any(np.isfinite(limits.flat_s) & (limits.flat_s < 0)) or np.any(np.isfinite(tols) & (tols <= 0)):
         raise ValueError("sensor limits with a negative stuck time or a tolerance <= 0 cannot be written (-1 means none)")
