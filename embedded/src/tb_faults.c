@@ -139,34 +139,20 @@ void tb_faults_reset(tb_faults *f)
     memset(f->fault, 0, sizeof f->fault);
 }
 
-/* the faulty sensors' rates in rate (in place), by the lines without their intercept (0 without one) */
-static void reconstruct_rates(const tb_faults *f, tb_real *rate)
+/* the faulty sensors' rises in v (in place), from their last trusted rise, by the lines; rates: their
+ * rates instead, from 0, by the lines without their intercept (0 where no other predicts it) */
+static void reconstruct(const tb_faults *f, tb_real *v, int rates)
 {
     uint32_t i, pass, n = f->n_sensors, n_bad = 0;
     for (i = 0; i < n; i++)
         if (f->fault[i]) {
-            rate[i] = 0;
+            v[i] = !rates && ((f->trusted >> i) & 1u) ? f->trusted_C[i] - f->T0_C[i] : 0;
             n_bad++;
         }
     if (!n_bad) return;
     for (pass = 0; pass < (n_bad > 1 ? 3u : 1u); pass++)
         for (i = 0; i < n; i++)
-            if (f->fault[i] && arr(f, TBF_TOL, i) >= 0) rate[i] = rate_line(f, i, rate);
-}
-
-/* the faulty sensors' rises in rise (in place), from their last trusted rise, by the lines */
-static void reconstruct(const tb_faults *f, tb_real *rise)
-{
-    uint32_t i, pass, n = f->n_sensors, n_bad = 0;
-    for (i = 0; i < n; i++)
-        if (f->fault[i]) {
-            rise[i] = (f->trusted >> i) & 1u ? f->trusted_C[i] - f->T0_C[i] : 0;
-            n_bad++;
-        }
-    if (!n_bad) return;
-    for (pass = 0; pass < (n_bad > 1 ? 3u : 1u); pass++)
-        for (i = 0; i < n; i++)
-            if (f->fault[i] && arr(f, TBF_TOL, i) >= 0) rise[i] = line(f, i, rise);
+            if (f->fault[i] && arr(f, TBF_TOL, i) >= 0) v[i] = rates ? rate_line(f, i, v) : line(f, i, v);
 }
 
 static int plausible(const tb_faults *f, tb_real T)
@@ -216,7 +202,7 @@ int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
         f->last_C[i] = s->temps_C[i];
         known[i] = isfinite(s->temps_C[i]) ? s->temps_C[i] - f->T0_C[i] : 0;
     }
-    reconstruct(f, known);
+    reconstruct(f, known, 0);
     for (i = 0; i < n; i++) pred[i] = line(f, i, known);
     for (i = 0; i < n; i++)
         if (!f->started || ((changed >> i) & 1u)) f->pac_K[i] = pred[i];
@@ -247,8 +233,8 @@ int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
         used[i] = isfinite(T) ? T - f->T0_C[i] : 0;
         rates[i] = isfinite(T) ? (T - f->e_C[i]) * (TB_R(3600.0) / f->tau_s) : 0;
     }
-    reconstruct(f, used);
-    reconstruct_rates(f, rates);
+    reconstruct(f, used, 0);
+    reconstruct(f, rates, 1);
     for (i = 0; i < n; i++) { /* the healthy sensors' departures from the others' prediction, over their tolerance */
         tb_real a, b;
         if (f->fault[i]) continue;
@@ -288,7 +274,7 @@ int tb_faults_step(tb_faults *f, const tb_sample *s, tb_real *temps_C)
             f->fault[culprit] = TB_FAULT_OTHERS;
             f->onset_s[culprit] = t;
             f->faulty |= 1u << culprit;
-            reconstruct(f, used);
+            reconstruct(f, used, 0);
         }
     }
     for (i = 0; i < n; i++) {

@@ -344,7 +344,7 @@ class FaultMonitor:
         used = np.where(np.isfinite(rise), rise, 0.0)  # the rises the model reads: a faulty sensor's reconstructed
         self._reconstruct(used)
         rates = np.where(np.isfinite(rate), rate, 0.0)  # and the rates, a faulty sensor's as the others' predict it
-        self._reconstruct_rates(rates)
+        self._reconstruct(rates, rates=True)
         healthy = np.array([f is None for f in self.fault])
         depart = np.where(healthy, self._departures(used, rates), 0.0)
         if depart.size and depart.max() > 1.0:  # the sensor whose reconstruction explains the departures best
@@ -386,35 +386,23 @@ class FaultMonitor:
                 best, score = int(j), left
         return best
 
-    def _reconstruct_rates(self, rates: np.ndarray) -> None:
-        """The faulty sensors' rates in ``rates`` (in place) as the others' rates predict them (the
-        lines without their intercept, the passes of :meth:`_reconstruct`); 0 for a sensor no other
-        predicts (it is held)."""
+    def _reconstruct(self, values: np.ndarray, rates: bool = False) -> None:
+        """The faulty sensors' rises in ``values`` (in place) as the others predict them (the faulty
+        ones among the others as reconstructed: a few passes of the same lines), a sensor no other
+        predicts at its last trusted rise; ``rates``: the rates instead, by the lines without their
+        intercept, from 0 (a sensor no other predicts is held: no rate)."""
         bad = [i for i, f in enumerate(self.fault) if f is not None]
         if not bad:
             return
         lim = self.lim
-        rates[bad] = 0.0
+        for i in bad:  # the start: the last trusted rise (no rate)
+            ok = not rates and np.isfinite(self.trusted_C[i]) and np.isfinite(self.T0_C[i])
+            values[i] = self.trusted_C[i] - self.T0_C[i] if ok else 0.0
+        icpt = np.zeros_like(lim.icpt) if rates else lim.icpt
         for _ in range(3 if len(bad) > 1 else 1):
             for i in bad:
                 if math.isfinite(lim.tol_K[i]):
-                    rates[i] = lim.coef[i] @ rates
-
-    def _reconstruct(self, rise: np.ndarray) -> None:
-        """The faulty sensors' rises in ``rise`` (in place) as the others predict them (the faulty ones
-        among the others as reconstructed: a few passes of the same lines); a sensor no other
-        predicts at its last trusted rise."""
-        bad = [i for i, f in enumerate(self.fault) if f is not None]
-        if not bad:
-            return
-        lim = self.lim
-        for i in bad:  # the start: the last trusted rise
-            ok = np.isfinite(self.trusted_C[i]) and np.isfinite(self.T0_C[i])
-            rise[i] = self.trusted_C[i] - self.T0_C[i] if ok else 0.0
-        for _ in range(3 if len(bad) > 1 else 1):
-            for i in bad:
-                if math.isfinite(lim.tol_K[i]):
-                    rise[i] = lim.icpt[i] + lim.coef[i] @ rise
+                    values[i] = icpt[i] + lim.coef[i] @ values
 
 
 def _may_fire(lim: SensorLimits, t: np.ndarray, T: np.ndarray, slack: float = 1e-6) -> bool:
