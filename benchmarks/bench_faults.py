@@ -11,7 +11,16 @@ how many cases as deployed is worse than no compensation (and how many of those 
 model as deployed, without the fault, beats no compensation). And the clean runs: the largest change of
 the held-out RMSE as deployed against the raw model's.
 
+``--off-after S [S ...]`` asks what detection delay a slow fault leaves room for: for the drifts and the
+stuck readings on runs where the clean model as deployed beats no compensation, the raw model's
+correction with the fault up to ``S`` seconds after the onset and no correction from then on (as
+bounded), and the share of those cases no worse than no compensation, per delay; beside it, per
+sensor, the largest departure of its rise (K) and of its rate (K/h) from the others' prediction on
+a training run held out of the lines (the tolerance over ``OTHERS_FACTOR``: what a clean run
+shows), smallest / largest over the folds.
+
     .venv/bin/python benchmarks/bench_faults.py DATASET_DIR [--family ridge_history] [--channel C] [--onset 0.33]
+        [--off-after 0 300 600 1200 1800 3600]
 """
 
 from __future__ import annotations
@@ -36,14 +45,18 @@ def main(argv=None) -> int:
                          "the others predict it; refit (measured, not exported): switch to the family fitted without "
                          "the faulty sensor where it can drop one (else the readings reconstructed)")
     ap.add_argument("--onset", type=float, default=1 / 3, help="the fault's onset, as a fraction of the run (default 1/3)")
+    ap.add_argument("--off-after", type=float, nargs="+", default=None, metavar="S",
+                    help="delays (s): the drifts and stuck readings with no correction from S after the onset on")
     a = ap.parse_args(argv)
+    if a.off_after is not None and any(d < 0 for d in a.off_after):
+        ap.error("--off-after: delays are seconds after the onset, >= 0")
     if not Path(a.dataset).is_dir():
         ap.error(f"{a.dataset}: no such dataset directory")
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
     from thermbench.bench.deployed import FAULT_KINDS, deployed_predictions, plant_fault, without_sensors
-    from thermbench.bench.faults import Bounds, SensorLimits, fault_summary
+    from thermbench.bench.faults import OTHERS_FACTOR, Bounds, SensorLimits, fault_summary
     from thermbench.bench.metrics import residual_metrics
     from thermbench.config import config_dir
     from thermbench.data.io import load_dataset
@@ -67,13 +80,15 @@ def main(argv=None) -> int:
         tr = te[te["run_id"] == run]
         return residual_metrics(tr["error_um"], pred, tr["thermal_um"])["rmse_um"]
 
-    cases, clean = [], []
+    cases, clean, offs, noise = [], [], [], []
     t0 = time.perf_counter()
     for run in v.run_ids:
         train = [r for r in v.run_ids if r != run]
         model = instantiate(cfg).fit(v, train)
         limits = SensorLimits.fit(v, train, [s for s in sensors if s in set(model.required_inputs().sensors)])
         bounds = Bounds.fit(v, train)
+        noise.append(pd.DataFrame({"sensor": limits.sensors, "rise_K": limits.tol_K / OTHERS_FACTOR,
+                                   "rate_K_h": limits.rate_tol / OTHERS_FACTOR}))  # fmt: skip
         cache = {}
 
         def fallback(faulty, model=model, train=train, cache=cache):
@@ -99,6 +114,10 @@ def main(argv=None) -> int:
                     p_raw = np.asarray(model.predict(bad, run), dtype=float)
                 r_raw = rmse(run, p_raw) if np.isfinite(p_raw).all() else float("inf")
                 dep, mon, _ = deployed_predictions(model, bad, run, limits, bounds, fallback, te)  # a planted fault leaves the errors as they are
+                if a.off_after is not None and kind in ("drift", "stuck") and clean[-1]["deployed"] < none:
+                    t_read = tr["t_s"].to_numpy(dtype=float)
+                    offs.append({"fault": kind, **{f"{d:g} s": rmse(run, bounds.apply(t_read, np.where(t_read >= first + d, 0.0, p_raw))[0]) <= none
+                                                   for d in a.off_after}})  # fmt: skip
                 i = list(limits.sensors).index(s)
                 cases.append({"fault": kind, "run": run, "sensor": s, "raw": r_raw, "deployed": rmse(run, dep), "none": none,
                               "clean": clean[-1]["deployed"],
@@ -127,6 +146,15 @@ def main(argv=None) -> int:
           f"a sensor judged faulty on {int((cl['false_faults'].str.len() > 0).sum())} of {len(cl)} clean runs "
           f"{sorted({s for x in cl['false_faults'] for s in x})}; a bound acted on {100 * cl['bounded'].mean():.2f} % of the readings")  # fmt: skip
     print(cl.drop(columns=["false_faults"]).round(3).to_markdown(index=False))
+    if a.off_after is not None:
+        o = pd.DataFrame(offs)
+        print("drifts and stuck readings on runs the clean model beats none: the share no worse than none with no correction "
+              "from the delay after the onset on (s):")  # fmt: skip
+        print(o.groupby("fault").agg(["mean"]).droplevel(1, axis=1).assign(cases=o.groupby("fault").size()).round(3).to_markdown())
+        nz = pd.concat(noise).groupby("sensor", sort=False).agg(["min", "max"]).round(2)
+        nz.columns = [f"{k} {m}" for k, m in nz.columns]
+        print("the largest departure of a clean held-out training run from the others' prediction, over the folds:")
+        print(nz.to_markdown())
     worst = c.loc[(c["deployed"] > c["none"]) & (c["clean"] < c["none"])]
     if len(worst):
         print("as deployed worse than no compensation, on runs where the clean model as deployed beats it:")
