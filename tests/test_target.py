@@ -367,6 +367,45 @@ def test_a_thermal_lag_export_for_the_cortex_m4f_is_within_its_budget(thermal_la
 
 
 @pytest.fixture(scope="module")
+def lag_bank_export(tmp_path_factory):
+    """The lag bank with the start state (THERMAL_LAG layout 2, conf/model/lag_bank.yaml's settings) on
+    twenty sensors that start warm by different amounts (tests/test_start_state.py's runs), no ambient
+    sensor: forty inputs, six lags each; run "r4" held out."""
+    from omegaconf import OmegaConf
+
+    from thermbench.config import config_dir
+    from thermbench.models.thermal_lag import ThermalLag
+
+    from .test_start_state import twenty_sensors
+
+    ds = twenty_sensors()
+    cfg = OmegaConf.to_container(OmegaConf.load(f"{config_dir()}/model/lag_bank.yaml"))
+    params = {k: v for k, v in cfg.items() if not k.startswith("_")}
+    model = ThermalLag(**params).fit(ds, ["r0", "r1", "r2", "r3"])
+    assert len(model.inputs_) == 40 and len(model.taus_s_) == 6
+    out = tmp_path_factory.mktemp("lag_bank") / "lb"
+    export_model(model, out, "lb", ds=ds, heldout=["r4"])
+    return ds, out, model
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_the_lag_bank_with_its_start_state_runs_on_the_target(lag_bank_export, precision):
+    """THERMAL_LAG layout 2 from flash on the emulated Cortex-M4F: the start state captured at the
+    first sample as on the host, every reading to 5e-10 µm in double, within 0.01 µm in float."""
+    ds, model_dir, _ = lag_bank_export
+    _host_and_target_agree(ds, model_dir, "r4", precision, min_readings=300)
+
+
+def test_a_lag_bank_export_for_the_cortex_m4f_is_within_its_budget(lag_bank_export, tmp_path):
+    """Forty inputs through six lags each on the M4 in float: within the budget (RAM, file, cycle and
+    prediction instructions), at parity."""
+    ds, _, model = lag_bank_export
+    man = export_model(model, tmp_path / "m4", "lb", ds=ds, heldout=["r4"],
+                       options=ExportOptions(target="cortex-m4f", onnx=False))  # fmt: skip
+    assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM
+
+
+@pytest.fixture(scope="module")
 def linear_history_export(tmp_path_factory):
     """The linear-with-history family (LINEAR_HISTORY kind: three sensors' delay lines and the spindle
     speed's) on the planted irregular runs of tests/test_linear_history.py; run "r4" held out."""

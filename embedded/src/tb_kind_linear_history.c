@@ -36,6 +36,10 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
         c->err = TB_E_DIMS;
         return;
     }
+    if (m->dims[1] > TB_MAX_SENSORS + 1u) { /* one input a sensor and the operating input */
+        c->err = TB_E_DIMS;
+        return;
+    }
     if (!tbi_parse_lag_head(c, m, &src, &ch)) return;
     m->off[O_F] = c->pos;
     h = tbi_take_pair(c, 0, TB_R(1e9), 1); /* the line's step > 0 */
@@ -46,7 +50,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
         if (dl > dmax) dmax = dl;
     }
     if (!c->err && (tb_real)C < dmax / h + 3) c->err = TB_E_DIMS; /* the line cannot hold the longest delay */
-    tbi_parse_lag_weights(c, m, ND, src, ch);
+    tbi_parse_lag_weights(c, m, ND, src, ch, m->dims[4] ? m->dims[0] : (m->dims[0] ? m->dims[0] - 1 : 0));
 }
 
 static void carve(const tb_model *m, tbi_arena *a, void **ks)

@@ -8,7 +8,12 @@
  * dims [S, NI, NT, P, U]: sensors in the block, inputs, time constants, position terms (0/1),
  * operating input (0/1); body: u_source (0 feed, 1 axis, 2 load, 3 an input channel), u_channel,
  * u_scale R (> 0), tau[NT] R (>= 0), input codes[NI] (a sensor index < S, or S: the operating
- * input), a0 R, b0 R, wA[NI x NT] R, then with P: wB[NI x NT] R. R: a float32 (hi, lo) pair.
+ * input, or from version 2 S + 1 + k: the start state of sensor k), a0 R, b0 R, wA[NI x NT] R, then
+ * with P: wB[NI x NT] R; version 2 then the start state's reference: a sensor index < S, or S: the
+ * mean of the block's sensors. R: a float32 (hi, lo) pair.
+ * The start state of sensor k (thermbench.models.thermal_lag.start_state): its first value above
+ * the reference's first value, T0[k] - T0[ref], an input held from the first sample, lagged as the
+ * others (its tau-0 weight is 0: the readings count from the run's first).
  */
 #include "tb_internal.h"
 
@@ -21,20 +26,38 @@ typedef struct {
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 {
-    uint32_t NT = m->dims[2], i, src, ch;
-    (void)version;
+    uint32_t NT = m->dims[2], S = m->dims[0], U = m->dims[4], i, src, ch;
     if (!tbi_parse_lag_head(c, m, &src, &ch)) return;
     m->off[O_A] = c->pos; /* taus */
     for (i = 0; i < NT && !c->err; i++) tbi_take_pair(c, 0, TB_R(1e9), 0);
-    tbi_parse_lag_weights(c, m, NT, src, ch);
+    tbi_parse_lag_weights(c, m, NT, src, ch, version >= 2 ? 2u * S : (U ? S : (S ? S - 1 : 0)));
+    if (c->err) return;
+    for (i = 0; i < m->dims[1]; i++) /* S is the operating input's code: only with one */
+        if ((uint32_t)PV(m, m->off[O_B] + i) == S && !U) c->err = TB_E_PAYLOAD;
+    m->off[O_F] = 0;
+    if (version >= 2) { /* the start state's reference */
+        m->off[O_F] = c->pos;
+        tbi_take_int(c, 0, S);
+    }
 }
 
-/* THERMAL_LAG's and LINEAR_HISTORY's dims [S, NI, NW, P, U] checked, the sensor and geometric blocks and
- * the body's head: u_source (*src), u_channel (*ch), u_scale; 0 on an error (c->err set) */
+/* the start state's reference: the reference sensor's first value, or the block's mean first value */
+static tb_real start_ref(const tb_model *m, const tb_real *T0)
+{
+    uint32_t S = m->dims[0], r = (uint32_t)PV(m, m->off[O_F]), j;
+    tb_real sum = 0;
+    if (r < S) return T0[r];
+    for (j = 0; j < S; j++) sum += T0[j];
+    return S ? sum / (tb_real)S : 0;
+}
+
+/* THERMAL_LAG's and LINEAR_HISTORY's dims [S, NI, NW, P, U] checked (NI up to two inputs a sensor, its
+ * rise and its start state, and the operating input), the sensor and geometric blocks and the body's
+ * head: u_source (*src), u_channel (*ch), u_scale; 0 on an error (c->err set) */
 int tbi_parse_lag_head(tbi_cur *c, tb_model *m, uint32_t *src, uint32_t *ch)
 {
     uint32_t *d = m->dims, S = d[0], NI = d[1], NW = d[2], P = d[3], U = d[4];
-    if (S > TB_MAX_SENSORS || NI < 1 || NI > TB_MAX_SENSORS + 1 || NW < 1 || NW > TB_MAX_LAG_TAUS || P > 1 || U > 1) {
+    if (S > TB_MAX_SENSORS || NI < 1 || NI > 2u * TB_MAX_SENSORS + 1u || NW < 1 || NW > TB_MAX_LAG_TAUS || P > 1 || U > 1) {
         c->err = TB_E_DIMS;
         return 0;
     }
@@ -48,13 +71,14 @@ int tbi_parse_lag_head(tbi_cur *c, tb_model *m, uint32_t *src, uint32_t *ch)
 }
 
 /* THERMAL_LAG's and LINEAR_HISTORY's body after their per-input columns (NW of them: time constants
- * or delays): the input codes, a0, b0, wA and with position terms wB (offsets O_B..O_E), and the
- * operating input's source src and channel ch checked (dims [S, NI, NW, P, U] as both kinds') */
-void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch)
+ * or delays): the input codes (each <= max_code), a0, b0, wA and with position terms wB (offsets
+ * O_B..O_E), and the operating input's source src and channel ch checked (dims [S, NI, NW, P, U] as
+ * both kinds') */
+void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch, uint32_t max_code)
 {
     uint32_t S = m->dims[0], NI = m->dims[1], P = m->dims[3], U = m->dims[4], i;
-    m->off[O_B] = c->pos; /* input codes */
-    for (i = 0; i < NI && !c->err; i++) tbi_take_int(c, 0, U ? S : (S ? S - 1 : 0));
+    m->off[O_B] = c->pos; /* input codes, each at most max_code */
+    for (i = 0; i < NI && !c->err; i++) tbi_take_int(c, 0, max_code);
     if (!U && S == 0) c->err = TB_E_DIMS; /* no input at all */
     m->off[O_C] = tbi_take(c, 4);          /* a0, b0 */
     m->off[O_D] = tbi_take(c, 2 * NI * NW); /* wA */
@@ -106,16 +130,20 @@ static void sample(const tb_model *m, void *ks, const tbi_motion *mo, const tb_r
     uint32_t NI = m->dims[1], NT = m->dims[2], S = m->dims[0], i, k;
     tb_real u_scale = PR(m, m->off[O_BODY] + 2u), A = PR(m, m->off[O_C]), B = PR(m, m->off[O_C] + 2u);
     tb_real dt = r->started ? mo->t_s - r->t_last : 0;
+    tb_real ref = m->off[O_F] ? start_ref(m, mo->T0) : 0, a[TB_MAX_LAG_TAUS];
+    for (k = 0; k < NT; k++) { /* each time constant's decay over this interval, once for every input */
+        tb_real tau = PR(m, m->off[O_A] + 2u * k);
+        a[k] = tau > 0 && r->started ? tbm_exp(-dt / tau) : 0;
+    }
     for (i = 0; i < NI; i++) {
         uint32_t code = (uint32_t)PV(m, m->off[O_B] + i);
-        tb_real u = code < S ? dT[code] : mo->op_u / u_scale;
+        tb_real u = code < S ? dT[code] : code == S ? mo->op_u / u_scale : mo->T0[code - S - 1u] - ref;
         for (k = 0; k < NT; k++) {
             tb_real tau = PR(m, m->off[O_A] + 2u * k), *y = &r->y[i * NT + k];
             if (tau <= 0) {
                 *y = u;
             } else if (r->started) {
-                tb_real a = tbm_exp(-dt / tau);
-                *y = a * *y + (1 - a) * u;
+                *y = a[k] * *y + (1 - a[k]) * u;
             } /* the first sample: 0 (the machine had not started) */
             A += PR(m, m->off[O_D] + 2u * (i * NT + k)) * *y;
             if (m->dims[3]) B += PR(m, m->off[O_E] + 2u * (i * NT + k)) * *y;
@@ -132,6 +160,6 @@ static int predict(const tb_model *m, const void *ks, tb_real t, tb_real axis_mm
 }
 
 const tbi_kind tbi_kind_thermal_lag = {
-    .kind = TB_KIND_THERMAL_LAG, .max_version = 1, .pipeline = 1, .parse = parse, .carve = carve, .check = check,
+    .kind = TB_KIND_THERMAL_LAG, .max_version = 2, .pipeline = 1, .parse = parse, .carve = carve, .check = check,
     .op_input = op_input, .sample = sample, .predict = predict,
 };

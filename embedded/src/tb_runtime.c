@@ -448,7 +448,11 @@ static void process_sample(const tbi_kind *ops, tb_model *m, tbi_state *st, cons
     }
     for (j = 0; j < c->S; j++) dT[j] = filtered[j] - c->T0[j];
     hist_push(c, mo->t_s, dT);
-    if (ops->sample) ops->sample(m, st->ks, mo, dT);
+    if (ops->sample) {
+        tbi_motion with = *mo;
+        with.T0 = c->T0;
+        ops->sample(m, st->ks, &with, dT);
+    }
 }
 
 static void flush_start(const tbi_kind *ops, tb_model *m, tbi_state *st)

@@ -74,7 +74,7 @@ def kind_name(kind) -> str:
 
 
 #: kinds whose latest payload layout is beyond version 1 (tbi_kind.max_version in the C runtime)
-KIND_VERSIONS: dict[Kind, int] = {Kind.PHYSICS: 2}
+KIND_VERSIONS: dict[Kind, int] = {Kind.PHYSICS: 2, Kind.THERMAL_LAG: 2}
 MAX_VERSION = max(KIND_VERSIONS.values(), default=VERSION)
 
 

@@ -20,10 +20,13 @@ real ``R`` a float32 (hi, lo) pair::
     u_channel  that channel's index in tb_sample.temps_C (0 unless u_source 3)
     u_scale R  (1 without an operating input)
     tau        NT R (s; 0: the input itself)
-    inputs     NI codes: a sensor's index in the block, or S: the operating input
+    inputs     NI codes: a sensor's index in the block, S: the operating input, or S + 1 + k: the
+               start state of sensor k (:func:`~thermbench.models.thermal_lag.start_state`)
     a0 R, b0 R
-    wA         NI x NT R (input-major, as the model's features)
+    wA         NI x NT R (input-major, as the model's features; a start state's tau-0 weight 0)
     wB         NI x NT R (with position terms only)
+    ref        the start state's reference: its sensor's index in the block, or S: the block's mean
+               (layout version 2; version 1 ends at wB and has no start state)
 
 dims ``[S, NI, NT, P, U]``. At most one operating input: a model that chose two is refused in one
 line (the runtime carries one operating value per sample).
@@ -54,9 +57,14 @@ def _linear_inputs(model, channels, where: str, kind: str):
     operating, notes)."""
     if not hasattr(model, "coef_"):
         raise ExportError(f"{where}: the {kind} model is not fitted")
+    from ..models.thermal_lag import START, _kept
+
     inputs = list(model.inputs_)
     sensors = [i for i in inputs if i in model.sensor_names_]
-    ops = [i for i in inputs if i not in model.sensor_names_]
+    ops = [i for i in inputs if i not in model.sensor_names_ and not i.startswith(START)]
+    missing = [i[len(START):] for i in inputs if i.startswith(START) and i[len(START):] not in sensors]
+    if missing:
+        raise ExportError(f"{where}: the start state of sensors {missing} whose rises it does not read")
     if len(ops) > 1:
         raise ExportError(f"{where}: it chose {len(ops)} operating inputs {ops}; the C runtime carries one per "
                           "sample (fit it with operating=[one column])")  # fmt: skip
@@ -86,8 +94,16 @@ def _linear_inputs(model, channels, where: str, kind: str):
         b0, wA, wB = float(coef[0]), coef[1 : 1 + n], coef[1 + n : 1 + 2 * n]
     else:
         b0, wA, wB = 0.0, coef, np.zeros(0)
+    if hasattr(model, "taus_s_"):  # the columns the model leaves out (a start state's tau 0) back, weight 0
+        kept = _kept(inputs, model.taus_s_)
+        full = np.zeros((2, kept.size))
+        full[0, kept] = wA
+        if wB.size:
+            full[1, kept] = wB
+        wA, wB = full[0], (full[1] if wB.size else wB)
     head = [float(source), float(channel), *_pair(scale)]
-    codes = [float(sensors.index(i)) if i in sensors else float(S) for i in inputs]
+    codes = [float(sensors.index(i)) if i in sensors else
+             float(S + 1 + sensors.index(i[len(START):])) if i.startswith(START) else float(S) for i in inputs]  # fmt: skip
     notes = {"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}}
     return sensors, ch, head, codes, [*_pair(a0), *_pair(b0)], wA, wB, int(bool(ops)), ops, notes
 
@@ -103,7 +119,10 @@ def encode_thermal_lag(model, channels: dict[str, int] | None = None, period_s: 
     taus = [float(t) for t in model.taus_s_]
     if len(taus) > MAX_TAUS:
         raise ExportError(f"{where}: {len(taus)} time constants exceed the C runtime's {MAX_TAUS} (THERMAL_LAG)")
-    body = [*head, *_pairs(taus), *codes, *ab, *_pairs(wA), *_pairs(wB)]
+    ref = getattr(model, "start_reference_", None)
+    if ref is not None and ref not in sensors:
+        raise ExportError(f"{where}: the start state's reference sensor {ref!r} is not among the sensors it reads")
+    body = [*head, *_pairs(taus), *codes, *ab, *_pairs(wA), *_pairs(wB), float(sensors.index(ref) if ref is not None else len(sensors))]
     payload = [0.0, *sensor_block(sensors, None, ch, where), *geometric_block(model.geometric_, where), *body]
     dims = [len(sensors), len(codes), len(taus), int(bool(model.uses_position_)), U]
     return Encoded(Kind.THERMAL_LAG, dims, payload, sensors, needs_load=bool(ops) and ops[0] == "load_N", notes=notes)

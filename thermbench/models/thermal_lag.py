@@ -42,7 +42,7 @@ model kept is one of them), ``cv_rmse_um_``, ``coef_``/``intercept_``
 
 from __future__ import annotations
 
-from typing import Annotated, Optional, Sequence
+from typing import Annotated, Literal, Optional, Sequence
 
 import numpy as np
 from annotated_types import Ge, Gt, Len
@@ -58,7 +58,15 @@ from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, _name, derived, readings, sensor_series
 from .params import Bool, Expect, Int, Params, check_params
 
-__all__ = ["ThermalLag", "first_order_lag", "grid_choice", "linear_fit"]
+__all__ = ["START", "ThermalLag", "first_order_lag", "grid_choice", "linear_fit", "start_state"]
+
+#: the prefix of a start-state input's name (``start:<sensor>``, :func:`start_state`)
+START = "start:"
+#: a start state enters when at least this many training runs start with levels that span START_MIN_SPREAD_K
+#: (three points show a slope and its scatter; 1 K is ten steps of a 0.1 K reading, well above a sensor's
+#: offset drift between runs)
+START_MIN_RUNS = 3
+START_MIN_SPREAD_K = 1.0
 
 #: the default candidate sets of time constants (s): the rise alone, then 30 min, then 15 min /
 #: 1 h, then 15 min / 1 h / 4 h beside it (a spindle test's drift moves over minutes to hours)
@@ -88,6 +96,28 @@ def first_order_lag(t_s: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
     return y
 
 
+def start_state(t_s: np.ndarray, level_K: float, tau_s: float) -> np.ndarray:
+    """The start state of one sensor through the lag of time constant ``tau_s``: its level above
+    the reference at the run's first sample, ``level_K`` (the ambient sensor's first reading, or
+    with no ambient sensor the mean first reading of the candidate sensors), held as the input of
+    :func:`first_order_lag` from 0: ``level_K (1 - exp(-(t - t_0) / tau))`` on a regular log.
+
+    A run that starts warm (a new shift, a restart after a stop) carries heat that flows out over
+    the machine's time constants while the run's own heat flows in; its readings count from the
+    first one, so what the stored heat does to them is 0 at the start and grows as it relaxes,
+    which is this form for a first-order element (seed 000 §3.1: the screw's temperature field as
+    first-order responses). The input itself (tau 0, a constant offset at the start) is left out:
+    the readings count from the run's first."""
+    t = np.asarray(t_s, dtype=float)
+    return first_order_lag(t, np.full(t.size, float(level_K)), tau_s)
+
+
+def _kept(inputs: Sequence[str], taus: Sequence[float]) -> np.ndarray:
+    """The feature columns (input-major, one per time constant) that enter: all but a start-state
+    input's tau-0 column (:func:`start_state`)."""
+    return np.array([not (name.startswith(START) and float(t) == 0.0) for name in inputs for t in taus], dtype=bool)
+
+
 class ThermalLagParams(Params):
     sensors: Annotated[Optional[Annotated[Sequence[str], Len(min_length=1)]],
                        Expect("None or a non-empty list of sensor names")]  # fmt: skip
@@ -98,6 +128,8 @@ class ThermalLagParams(Params):
     max_inputs: Annotated[Int, Ge(1)]
     min_gain: Annotated[float, Ge(0), Expect("a fraction >= 0 (0.02: a 2 % lower cross-validated RMSE)")]
     select: Bool
+    start: Bool
+    score: Annotated[Literal["mean", "worst"], Expect("'mean' or 'worst'")]
 
 
 class ThermalLag(ThermalErrorModel):
@@ -120,6 +152,12 @@ class ThermalLag(ThermalErrorModel):
         An input enters only when it lowers the cross-validated RMSE by this fraction.
     select : bool
         False: no selection, every candidate input enters (``max_inputs`` and ``min_gain`` unused).
+    start : bool
+        True: the state each run starts from enters too (:func:`start_state`), through the time
+        constants above 0 (with ``select=False`` only).
+    score : {'mean', 'worst'}
+        How the penalty and the time constants are chosen over the folds of whole runs (with
+        ``select=False``): the lowest mean held-out mean square, or the lowest worst fold's.
     """
 
     complexity = 1  # ThermalErrorModel.complexity
@@ -127,7 +165,7 @@ class ThermalLag(ThermalErrorModel):
     params_model = ThermalLagParams
 
     def __init__(self, sensors=None, operating=None, taus_s=DEFAULT_TAUS_S, alphas=tuple(np.logspace(-3, 3, 13)),
-                 max_inputs=6, min_gain=0.02, select=True):  # fmt: skip
+                 max_inputs=6, min_gain=0.02, select=True, start=False, score="mean"):  # fmt: skip
         self.sensors = sensors
         self.operating = operating
         self.taus_s = taus_s
@@ -135,10 +173,21 @@ class ThermalLag(ThermalErrorModel):
         self.max_inputs = max_inputs
         self.min_gain = min_gain
         self.select = select
+        self.start = start
+        self.score = score
 
     # ------------------------------------------------------------ features ---
     def _input_series(self, ds: Dataset, run: str, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """(t, u) of input ``name`` over the run's log: a sensor's rise, or an operating column scaled."""
+        """(t, u) of input ``name`` over the run's log: a sensor's rise, a sensor's start state
+        (``START`` + name, :func:`start_state`), or an operating column scaled."""
+        if name.startswith(START):
+            sensor = name[len(START):]
+            cols = [sensor] + ([self.start_reference_] if self.start_reference_ is not None else list(self.sensor_names_))
+            s = sensor_series(ds, run, list(dict.fromkeys(cols)), None)
+            first = {c: float(s[ds.metadata.sensor_column(c)].iloc[0]) if len(s) else 0.0 for c in cols}
+            ref = first[cols[1]] if self.start_reference_ is not None else float(np.mean([first[c] for c in cols[1:]]))
+            t = s["t_s"].to_numpy(dtype=float)
+            return t, np.full(t.size, first[sensor] - ref)
         if name in self.sensor_names_:
             s = sensor_series(ds, run, [name], None)
             col = s[ds.metadata.sensor_column(name)].to_numpy(dtype=float)
@@ -159,7 +208,8 @@ class ThermalLag(ThermalErrorModel):
             t, u = self._input_series(ds, run, name)
             return t, {tau: first_order_lag(t, u, tau) for tau in self.all_taus_}
 
-        key = ("thermal_lag", run, name, self.scale_of_.get(name, 1.0), tuple(self.all_taus_))
+        key = ("thermal_lag", run, name, self.scale_of_.get(name, 1.0), tuple(self.all_taus_),
+               getattr(self, "start_reference_", None) if name.startswith(START) else None)
         t, by_tau = derived(ds, key, make, copy=False)
         return np.column_stack([np.interp(t_s, t, by_tau[tau]) for tau in taus])
 
@@ -167,10 +217,22 @@ class ThermalLag(ThermalErrorModel):
         t = np.asarray(t_s, dtype=float)
         cols = [self._lags(ds, run, name, taus, t) for name in inputs]
         z = np.hstack(cols) if cols else np.zeros((t.size, 0))
+        z = z[:, _kept(inputs, taus)]
         if not self.uses_position_:
             return z
         p = np.asarray(axis_mm, dtype=float)[:, None]
         return np.hstack([p, z, p * z])
+
+    def _start_varies(self, ds: Dataset, runs: list[str], name: str) -> bool:
+        """Whether the training runs start differently enough for the start state ``name`` to say
+        anything: at least ``START_MIN_RUNS`` runs whose levels span ``START_MIN_SPREAD_K`` (runs that
+        all start alike, or the segments of one test that keep its log from its start, carry a start
+        state that is only a function of time, which a model would extrapolate as a trend)."""
+        if len(runs) < START_MIN_RUNS:
+            return False
+        levels = [self._input_series(ds, r, name)[1][:1] for r in runs]
+        levels = np.concatenate(levels) if levels else np.zeros(0)
+        return levels.size >= START_MIN_RUNS and float(np.ptp(levels)) >= START_MIN_SPREAD_K
 
     # ----------------------------------------------------------------- fit ---
     def _set_inputs(self, ds: Dataset, runs: list[str], p) -> tuple[list[str], list[str]]:
@@ -187,6 +249,10 @@ class ThermalLag(ThermalErrorModel):
             raise ModelError(f"the dataset {_name(ds)} has no temperature sensor and no operating input: "
                              "nothing to regress on")  # fmt: skip
         self.sensor_names_ = sensors
+        self.start_reference_ = None
+        if getattr(p, "start", False):
+            amb = [s for s in sensors if ds.metadata.sensors[s] == "ambient"]
+            self.start_reference_ = amb[0] if amb else None
         self.scale_of_ = {}
         for c in operating:  # each operating signal over its largest training value
             top = 0.0
@@ -204,7 +270,13 @@ class ThermalLag(ThermalErrorModel):
 
         p = check_params(self, self.params_model)
         sensors, operating = self._set_inputs(ds, runs, p)
-        candidates = sensors + operating
+        if p.start and p.select:
+            raise ModelError("start: the start state enters with select: false (every input), not with stepwise selection")
+        starts = [START + s for s in sensors if s != self.start_reference_] if p.start else []
+        if starts and not any(t > 0 for s in p.taus_s for t in s):
+            raise ModelError("start: the start state enters through time constants above 0; taus_s has none")
+        starts = [name for name in starts if self._start_varies(ds, runs, name)]
+        candidates = sensors + operating + starts
         self.all_taus_ = sorted({float(t) for s in p.taus_s for t in s})
         rd = readings(ds, runs)
         self.uses_position_ = np.unique(rd["target_mm"].to_numpy()).size > 1
@@ -219,12 +291,13 @@ class ThermalLag(ThermalErrorModel):
 
             def features(taus) -> np.ndarray:  # as _features lays them out, from the lags computed above
                 idx = [self.all_taus_.index(float(t)) for t in taus]
-                z = np.hstack([full[name][:, idx] for name in candidates])
+                z = np.hstack([full[name][:, idx] for name in candidates])[:, _kept(candidates, taus)]
                 return np.hstack([pos, z, pos * z]) if self.uses_position_ else z
 
             self.inputs_ = candidates
+            sets = [t for t in p.taus_s if not starts or any(v > 0 for v in t)]  # the start state needs a lag
             (self.cv_rmse_um_, self.taus_s_, self.alpha_), self.cv_results_ = grid_choice(
-                features, p.taus_s, y, folds, "ridge", p.alphas)  # fmt: skip
+                features, sets, y, folds, "ridge", p.alphas, score=p.score, groups=run_of)  # fmt: skip
             self.selection_ = [("(every input)", self.cv_rmse_um_)]
             self.mean_, self.scale_, self.coef_, self.intercept_ = linear_fit(features(self.taus_s_), y, "ridge",
                                                                               self.alpha_)  # fmt: skip
@@ -262,18 +335,27 @@ class ThermalLag(ThermalErrorModel):
         return encode_thermal_lag(self, channels, period_s, where)
 
     def _model_inputs(self) -> Inputs:
-        return Inputs(sensors=tuple(i for i in self.inputs_ if i in self.sensor_names_),
-                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_))  # fmt: skip
+        sensors = [i for i in self.inputs_ if i in self.sensor_names_]
+        if any(i.startswith(START) for i in self.inputs_):  # the start state reads its reference too
+            ref = [self.start_reference_] if self.start_reference_ is not None else self.sensor_names_
+            sensors += [i[len(START):] for i in self.inputs_ if i.startswith(START)] + list(ref)
+        return Inputs(sensors=tuple(dict.fromkeys(sensors)),
+                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_ and not i.startswith(START)))  # fmt: skip
 
 
-def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequence, cv: str = "runs"):
+def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequence, cv: str = "runs",
+                score: str = "mean", groups=None):
     """The set of history terms (delays or time constants, one of ``sets``) and the hyper-parameter
     (a ridge penalty, or a number of PLS components) of lowest cross-validated RMSE, searched
     together: ((rmse, set, value), every candidate's rmse as dicts). ``features(set)`` gives the
     feature matrix; ``cv="runs"``: the mean held-out mean square over ``folds`` (whole runs), as
     scikit-learn's GridSearchCV scores it (the ridge's penalties from one decomposition per fold);
     ``cv="gcv"`` (ridge only): :class:`~sklearn.linear_model.RidgeCV`'s efficient leave-one-reading-out
-    error (generalised cross-validation, as ``baseline_ridge``), which does not hold whole runs out."""
+    error (generalised cross-validation, as ``baseline_ridge``), which does not hold whole runs out.
+    ``score="worst"`` (ridge over runs only): the lowest worst held-out mean square of one run
+    (``groups``: each row's run; without it, of one fold) instead of the lowest mean over the folds,
+    so that a penalty that buys a lower mean with one run far worse is not chosen (the part from the
+    worst day is scrapped; a minimax choice over the held-out runs)."""
     name = "n_components" if estimator == "pls" else "alpha"
     results, best = [], None
     for hist in sets:
@@ -290,8 +372,14 @@ def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequ
         elif estimator == "ridge":  # what GridSearchCV over StandardScaler + Ridge gives, every penalty from one
             # decomposition per fold (_FoldGram; tests/test_thermal_lag.py checks it against scikit-learn)
             cols = np.arange(X.shape[1])
-            mse = [_FoldGram(X, y, tr, te).sse(cols, values) / len(te) for tr, te in folds]
-            rmse = np.sqrt(np.mean(mse, axis=0))
+            if score == "worst":  # each held-out run's mean square, the worst of them
+                labels = np.asarray(groups) if groups is not None else None
+                mse = [m for tr, te in folds for m in _FoldGram(X, y, tr, te).mse_by(
+                    cols, values, labels[te] if labels is not None else np.zeros(len(te)))]  # fmt: skip
+                rmse = np.sqrt(np.max(mse, axis=0))
+            else:
+                mse = [_FoldGram(X, y, tr, te).sse(cols, values) / len(te) for tr, te in folds]
+                rmse = np.sqrt(np.mean(mse, axis=0))
         else:
             search = GridSearchCV(make_pipeline(StandardScaler(), PLSRegression(scale=False)),
                                   {"plsregression__n_components": values}, cv=folds,
@@ -348,11 +436,22 @@ class _FoldGram:
         self.ys = float(yt.sum())
         self.Xte, self.yte = X[test], y[test]
 
-    def sse(self, cols: np.ndarray, alphas: Sequence[float]) -> np.ndarray:
-        """Held-out sum of squared errors of the ridge on ``cols``, one per penalty."""
+    def mse_by(self, cols: np.ndarray, alphas: Sequence[float], labels: np.ndarray) -> np.ndarray:
+        """Held-out mean squared error of the ridge on ``cols`` per label of the held-out rows
+        (``labels``: one per held-out row, e.g. its run): labels x penalties."""
+        sq = self.sse(cols, alphas, rows=True)
+        keys, inv = np.unique(np.asarray(labels).astype(str), return_inverse=True)
+        out = np.zeros((keys.size, sq.shape[1]))
+        np.add.at(out, inv, sq)
+        return out / np.bincount(inv)[:, None]
+
+    def sse(self, cols: np.ndarray, alphas: Sequence[float], rows: bool = False) -> np.ndarray:
+        """Held-out sum of squared errors of the ridge on ``cols``, one per penalty (``rows``: per
+        held-out row, rows x penalties)."""
         ym = self.ys / self.n
         if cols.size == 0:
-            return np.full(len(alphas), float(np.sum((self.yte - ym) ** 2)))
+            sq = np.repeat(((self.yte - ym) ** 2)[:, None], len(alphas), axis=1)
+            return sq if rows else sq.sum(axis=0)
         mu = self.s[cols] / self.n
         cov = self.G[np.ix_(cols, cols)] - self.n * np.outer(mu, mu)
         sd = np.sqrt(np.clip(np.diag(cov) / self.n, 0.0, None))
@@ -363,7 +462,8 @@ class _FoldGram:
         lam, V = np.linalg.eigh(A)  # every penalty from one decomposition: w(a) = V (V'b / (lam + a))
         P, q = Zte @ V, V.T @ b
         W = q[:, None] / (np.clip(lam, 0.0, None)[:, None] + np.asarray(alphas)[None, :])
-        return np.sum((P @ W + (ym - self.yte)[:, None]) ** 2, axis=0)
+        sq = (P @ W + (ym - self.yte)[:, None]) ** 2
+        return sq if rows else np.sum(sq, axis=0)
 
 
 def _forward_groups(blocks: dict[str, np.ndarray], fixed: np.ndarray, y: np.ndarray, folds, alphas, max_inputs: int,
