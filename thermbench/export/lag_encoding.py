@@ -57,12 +57,11 @@ def _linear_inputs(model, channels, where: str, kind: str):
     operating, notes)."""
     if not hasattr(model, "coef_"):
         raise ExportError(f"{where}: the {kind} model is not fitted")
-    from ..models.thermal_lag import START, _kept
-
+    is_start = getattr(model, "is_start_input", lambda name: False)  # a start state (thermal_lag only)
     inputs = list(model.inputs_)
     sensors = [i for i in inputs if i in model.sensor_names_]
-    ops = [i for i in inputs if i not in model.sensor_names_ and not i.startswith(START)]
-    missing = [i[len(START):] for i in inputs if i.startswith(START) and i[len(START):] not in sensors]
+    ops = [i for i in inputs if i not in model.sensor_names_ and not is_start(i)]
+    missing = [model.start_sensor(i) for i in inputs if is_start(i) and model.start_sensor(i) not in sensors]
     if missing:
         raise ExportError(f"{where}: the start state of sensors {missing} whose rises it does not read")
     if len(ops) > 1:
@@ -95,7 +94,7 @@ def _linear_inputs(model, channels, where: str, kind: str):
     else:
         b0, wA, wB = 0.0, coef, np.zeros(0)
     if hasattr(model, "taus_s_"):  # the columns the model leaves out (a start state's tau 0) back, weight 0
-        kept = _kept(inputs, model.taus_s_)
+        kept = model.kept_columns()
         full = np.zeros((2, kept.size))
         full[0, kept] = wA
         if wB.size:
@@ -103,7 +102,7 @@ def _linear_inputs(model, channels, where: str, kind: str):
         wA, wB = full[0], (full[1] if wB.size else wB)
     head = [float(source), float(channel), *_pair(scale)]
     codes = [float(sensors.index(i)) if i in sensors else
-             float(S + 1 + sensors.index(i[len(START):])) if i.startswith(START) else float(S) for i in inputs]  # fmt: skip
+             float(S + 1 + sensors.index(model.start_sensor(i))) if is_start(i) else float(S) for i in inputs]  # fmt: skip
     notes = {"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}}
     return sensors, ch, head, codes, [*_pair(a0), *_pair(b0)], wA, wB, int(bool(ops)), ops, notes
 

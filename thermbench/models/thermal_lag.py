@@ -157,7 +157,8 @@ class ThermalLag(ThermalErrorModel):
         constants above 0 (with ``select=False`` only).
     score : {'mean', 'worst'}
         How the penalty and the time constants are chosen over the folds of whole runs (with
-        ``select=False``): the lowest mean held-out mean square, or the lowest worst fold's.
+        ``select=False``): the lowest mean held-out mean square, or the lowest worst held-out run's
+        (one training run: the mean over its blocks, which are not runs).
     """
 
     complexity = 1  # ThermalErrorModel.complexity
@@ -297,7 +298,8 @@ class ThermalLag(ThermalErrorModel):
             self.inputs_ = candidates
             sets = [t for t in p.taus_s if not starts or any(v > 0 for v in t)]  # the start state needs a lag
             (self.cv_rmse_um_, self.taus_s_, self.alpha_), self.cv_results_ = grid_choice(
-                features, sets, y, folds, "ridge", p.alphas, score=p.score, groups=run_of)  # fmt: skip
+                features, sets, y, folds, "ridge", p.alphas, score=p.score if len(runs) > 1 else "mean",
+                groups=run_of)  # one run: its blocks are no runs, the mean of them  # fmt: skip
             self.selection_ = [("(every input)", self.cv_rmse_um_)]
             self.mean_, self.scale_, self.coef_, self.intercept_ = linear_fit(features(self.taus_s_), y, "ridge",
                                                                               self.alpha_)  # fmt: skip
@@ -333,6 +335,21 @@ class ThermalLag(ThermalErrorModel):
         from ..export.lag_encoding import encode_thermal_lag
 
         return encode_thermal_lag(self, channels, period_s, where)
+
+    @staticmethod
+    def is_start_input(name: str) -> bool:
+        """Whether input ``name`` is a sensor's start state (:func:`start_state`)."""
+        return name.startswith(START)
+
+    @staticmethod
+    def start_sensor(name: str) -> str:
+        """The sensor of start-state input ``name``."""
+        return name[len(START):]
+
+    def kept_columns(self) -> np.ndarray:
+        """Which of the fitted model's feature columns (inputs x time constants, input-major) enter."""
+        self._check_fitted()
+        return _kept(self.inputs_, self.taus_s_)
 
     def _model_inputs(self) -> Inputs:
         sensors = [i for i in self.inputs_ if i in self.sensor_names_]
