@@ -215,3 +215,15 @@ def test_twenty_sensors_with_their_start_states_export_within_the_c_runtimes_lim
     man = export_model(m, tmp_path / "tl", "tl", ds=ds, heldout=["r4"])
     p = man["parity"]["model"]
     assert p["max_abs_diff_um"] < 1e-9 and p["float_max_abs_diff_um"] < 0.01
+
+
+def test_the_start_level_follows_the_sensors_whose_mean_it_counts_from_on_one_dataset():
+    """Two fits with different sensor lists on the same dataset object (its derived-value cache
+    shared): each start level counts from the mean first reading of its own sensors."""
+    ds = spindle_dataset(_runs(), sensors={"T_a": "spindle", "T_b": "structure", "T_c": "structure"}, operating=[])
+    t = np.arange(0.0, 6 * 3600.0 + 1, DT_S)
+    a0, b0, c0 = 20.0 + 3.0, 21.0 + 0.5 + 0.3 * np.sin(1.0), 20.0  # run r1's first readings (T_c: 20 °C by default)
+    two = ThermalLag(sensors=["T_a", "T_b"], taus_s=[[0.0, TAU_S]], select=False, start=True).fit(ds, ["r0", "r1", "r2"])
+    three = ThermalLag(sensors=["T_a", "T_b", "T_c"], taus_s=[[0.0, TAU_S]], select=False, start=True).fit(ds, ["r0", "r1", "r2"])
+    np.testing.assert_allclose(two._lags(ds, "r1", "start:T_a", [TAU_S], t)[:, 0], (a0 - (a0 + b0) / 2) * (1 - np.exp(-t / TAU_S)), atol=1e-9)
+    np.testing.assert_allclose(three._lags(ds, "r1", "start:T_a", [TAU_S], t)[:, 0], (a0 - (a0 + b0 + c0) / 3) * (1 - np.exp(-t / TAU_S)), atol=1e-9)

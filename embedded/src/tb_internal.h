@@ -211,7 +211,7 @@ int tbi_common_span(const tbi_common *c, tb_real *t_first, tb_real *t_last);
 /* THERMAL_LAG's and LINEAR_HISTORY's payload around their NW per-input columns (tb_kind_thermal_lag.c): the
  * blocks and the body's head (0 on an error), then the codes and weights after the columns */
 int tbi_parse_lag_head(tbi_cur *c, tb_model *m, uint32_t *src, uint32_t *ch);
-void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch, uint32_t max_code);
+void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch, int starts);
 
 /* ------------------------------------------ a query ring of A(t), B(t) */
 /* The last values of a kind whose error is A(t) + x B(t) at its samples (thermal_lag, linear_history):

@@ -50,7 +50,7 @@ static void parse(tbi_cur *c, tb_model *m, uint16_t version)
         if (dl > dmax) dmax = dl;
     }
     if (!c->err && (tb_real)C < dmax / h + 3) c->err = TB_E_DIMS; /* the line cannot hold the longest delay */
-    tbi_parse_lag_weights(c, m, ND, src, ch, m->dims[4] ? m->dims[0] : (m->dims[0] ? m->dims[0] - 1 : 0));
+    tbi_parse_lag_weights(c, m, ND, src, ch, 0);
 }
 
 static void carve(const tb_model *m, tbi_arena *a, void **ks)

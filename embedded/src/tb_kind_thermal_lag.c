@@ -26,14 +26,12 @@ typedef struct {
 
 static void parse(tbi_cur *c, tb_model *m, uint16_t version)
 {
-    uint32_t NT = m->dims[2], S = m->dims[0], U = m->dims[4], i, src, ch;
+    uint32_t NT = m->dims[2], S = m->dims[0], i, src, ch;
     if (!tbi_parse_lag_head(c, m, &src, &ch)) return;
     m->off[O_A] = c->pos; /* taus */
     for (i = 0; i < NT && !c->err; i++) tbi_take_pair(c, 0, TB_R(1e9), 0);
-    tbi_parse_lag_weights(c, m, NT, src, ch, version >= 2 ? 2u * S : (U ? S : (S ? S - 1 : 0)));
+    tbi_parse_lag_weights(c, m, NT, src, ch, version >= 2);
     if (c->err) return;
-    for (i = 0; i < m->dims[1]; i++) /* S is the operating input's code: only with one */
-        if ((uint32_t)PV(m, m->off[O_B] + i) == S && !U) c->err = TB_E_PAYLOAD;
     m->off[O_F] = 0;
     if (version >= 2) { /* the start state's reference */
         m->off[O_F] = c->pos;
@@ -71,14 +69,17 @@ int tbi_parse_lag_head(tbi_cur *c, tb_model *m, uint32_t *src, uint32_t *ch)
 }
 
 /* THERMAL_LAG's and LINEAR_HISTORY's body after their per-input columns (NW of them: time constants
- * or delays): the input codes (each <= max_code), a0, b0, wA and with position terms wB (offsets
- * O_B..O_E), and the operating input's source src and channel ch checked (dims [S, NI, NW, P, U] as
- * both kinds') */
-void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch, uint32_t max_code)
+ * or delays): the input codes (a sensor < S, S the operating input with U, with starts S + 1 + k the
+ * start state of sensor k), a0, b0, wA and with position terms wB (offsets O_B..O_E), and the
+ * operating input's source src and channel ch checked (dims [S, NI, NW, P, U] as both kinds') */
+void tbi_parse_lag_weights(tbi_cur *c, tb_model *m, uint32_t NW, uint32_t src, uint32_t ch, int starts)
 {
     uint32_t S = m->dims[0], NI = m->dims[1], P = m->dims[3], U = m->dims[4], i;
-    m->off[O_B] = c->pos; /* input codes, each at most max_code */
-    for (i = 0; i < NI && !c->err; i++) tbi_take_int(c, 0, max_code);
+    m->off[O_B] = c->pos; /* input codes */
+    for (i = 0; i < NI && !c->err; i++) {
+        uint32_t code = tbi_take_int(c, 0, starts ? 2u * S : (U ? S : (S ? S - 1 : 0)));
+        if (!c->err && code == S && !U) c->err = TB_E_PAYLOAD; /* the operating input's code, with none */
+    }
     if (!U && S == 0) c->err = TB_E_DIMS; /* no input at all */
     m->off[O_C] = tbi_take(c, 4);          /* a0, b0 */
     m->off[O_D] = tbi_take(c, 2 * NI * NW); /* wA */

@@ -181,14 +181,12 @@ class ThermalLag(ThermalErrorModel):
     def _input_series(self, ds: Dataset, run: str, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(t, u) of input ``name`` over the run's log: a sensor's rise, a sensor's start state
         (``START`` + name, :func:`start_state`), or an operating column scaled."""
-        if name.startswith(START):
-            sensor = name[len(START):]
-            cols = [sensor] + ([self.start_reference_] if self.start_reference_ is not None else list(self.sensor_names_))
-            s = sensor_series(ds, run, list(dict.fromkeys(cols)), None)
-            first = {c: float(s[ds.metadata.sensor_column(c)].iloc[0]) if len(s) else 0.0 for c in cols}
-            ref = first[cols[1]] if self.start_reference_ is not None else float(np.mean([first[c] for c in cols[1:]]))
+        if self.is_start_input(name):
+            sensor, refs = self.start_sensor(name), list(self._start_references())
+            s = sensor_series(ds, run, list(dict.fromkeys([sensor, *refs])), None)
+            first = {c: float(s[ds.metadata.sensor_column(c)].iloc[0]) if len(s) else 0.0 for c in [sensor, *refs]}
             t = s["t_s"].to_numpy(dtype=float)
-            return t, np.full(t.size, first[sensor] - ref)
+            return t, np.full(t.size, first[sensor] - float(np.mean([first[c] for c in refs])))
         if name in self.sensor_names_:
             s = sensor_series(ds, run, [name], None)
             col = s[ds.metadata.sensor_column(name)].to_numpy(dtype=float)
@@ -210,7 +208,7 @@ class ThermalLag(ThermalErrorModel):
             return t, {tau: first_order_lag(t, u, tau) for tau in self.all_taus_}
 
         key = ("thermal_lag", run, name, self.scale_of_.get(name, 1.0), tuple(self.all_taus_),
-               getattr(self, "start_reference_", None) if name.startswith(START) else None)
+               self._start_references() if self.is_start_input(name) else None)
         t, by_tau = derived(ds, key, make, copy=False)
         return np.column_stack([np.interp(t_s, t, by_tau[tau]) for tau in taus])
 
@@ -223,6 +221,11 @@ class ThermalLag(ThermalErrorModel):
             return z
         p = np.asarray(axis_mm, dtype=float)[:, None]
         return np.hstack([p, z, p * z])
+
+    def _start_references(self) -> tuple[str, ...]:
+        """The sensors whose mean first reading a start state counts from: the ambient sensor, or
+        every candidate sensor when there is none."""
+        return (self.start_reference_,) if self.start_reference_ is not None else tuple(self.sensor_names_)
 
     def _start_varies(self, ds: Dataset, runs: list[str], name: str) -> bool:
         """Whether the training runs start differently enough for the start state ``name`` to say
@@ -353,11 +356,11 @@ class ThermalLag(ThermalErrorModel):
 
     def _model_inputs(self) -> Inputs:
         sensors = [i for i in self.inputs_ if i in self.sensor_names_]
-        if any(i.startswith(START) for i in self.inputs_):  # the start state reads its reference too
-            ref = [self.start_reference_] if self.start_reference_ is not None else self.sensor_names_
-            sensors += [i[len(START):] for i in self.inputs_ if i.startswith(START)] + list(ref)
+        starts = [self.start_sensor(i) for i in self.inputs_ if self.is_start_input(i)]
+        if starts:  # the start state reads its reference too
+            sensors += [*starts, *self._start_references()]
         return Inputs(sensors=tuple(dict.fromkeys(sensors)),
-                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_ and not i.startswith(START)))  # fmt: skip
+                      operating=tuple(i for i in self.inputs_ if i not in self.sensor_names_ and not self.is_start_input(i)))  # fmt: skip
 
 
 def grid_choice(features, sets, y: np.ndarray, folds, estimator: str, grid: Sequence, cv: str = "runs",
