@@ -227,3 +227,69 @@ def test_the_start_level_follows_the_sensors_whose_mean_it_counts_from_on_one_da
     three = ThermalLag(sensors=["T_a", "T_b", "T_c"], taus_s=[[0.0, TAU_S]], select=False, start=True).fit(ds, ["r0", "r1", "r2"])
     np.testing.assert_allclose(two._lags(ds, "r1", "start:T_a", [TAU_S], t)[:, 0], (a0 - (a0 + b0) / 2) * (1 - np.exp(-t / TAU_S)), atol=1e-9)
     np.testing.assert_allclose(three._lags(ds, "r1", "start:T_a", [TAU_S], t)[:, 0], (a0 - (a0 + b0 + c0) / 3) * (1 - np.exp(-t / TAU_S)), atol=1e-9)
+
+
+def machine_runs(n_runs=8, n_sensors=6, seed=3):
+    """Runs whose error follows the machine's mean stored heat: each of ``n_sensors`` sensors reads the
+    ambient (20 °C) plus the run's stored heat h, its own offset from it at the start (±1 K, drawn per
+    run and sensor: where the sensor sits) and a gain of the run's heating; the error is 2 x lag_3600 of
+    the heating minus 1.5 x (the sensors' mean level above ambient at the start) (1 - exp(-t / 3600))
+    plus noise. Returns (runs, each run's mean start level)."""
+    rng = np.random.default_rng(seed)
+    gains = rng.uniform(0.5, 1.5, n_sensors)
+    runs, levels = {}, {}
+    for k in range(n_runs):
+        h, amp, on, off = rng.uniform(0.0, 6.0), rng.uniform(2.0, 6.0), rng.uniform(300, 3600), rng.uniform(9000, 20000)
+        t = np.arange(0.0, 6 * 3600.0 + 1, DT_S)
+        heat = rise(t, amp, 1200.0, on, off)
+        offsets = rng.uniform(-1.0, 1.0, n_sensors)
+        levels[f"m{k}"] = float(np.mean(h + offsets))
+        err = (2.0 * first_order_lag(t, heat, TAU_S) - 1.5 * levels[f"m{k}"] * (1 - np.exp(-t / TAU_S))
+               + NOISE_UM * rng.standard_normal(t.size))  # fmt: skip
+        runs[f"m{k}"] = {"t_s": t, "spindle_rpm": np.full(t.size, 1000.0), "read_t_s": t, "error_um": err,
+                         "T_amb_C": np.full(t.size, 20.0)}  # fmt: skip
+        for i in range(n_sensors):
+            runs[f"m{k}"][f"S{i}_C"] = 20.0 + h + offsets[i] + gains[i] * heat
+    return runs, levels
+
+
+def test_the_machines_mean_start_level_is_chosen_where_the_error_follows_the_stored_heat_and_the_c_runtime_carries_it(tmp_path):
+    """The start state as one level, the sensors' mean first reading above the ambient's: chosen over
+    each sensor's level by the folds of whole runs where the error follows the machine's mean stored
+    heat (six sensors, seven training runs: a level per sensor and lag fits the runs' offsets), the
+    level by hand, and the C runtime (each sensor's start state at 1/6 of the mean's weights) at parity."""
+    from thermbench.export import export_model
+    from thermbench.models.thermal_lag import START_MEAN
+
+    runs, levels = machine_runs()
+    ds = spindle_dataset(runs, sensors={**{f"S{i}": "structure" for i in range(6)}, "T_amb": "ambient"}, operating=[])
+    train = [f"m{k}" for k in range(7)]
+    m = ThermalLag(taus_s=[[0.0, 900.0, TAU_S]], select=False, start=True, score="worst").fit(ds, train)
+    assert m.start_form_ == "mean"
+    assert [i for i in m.inputs_ if i.startswith("start:")] == [START_MEAN]
+    assert {r["start"] for r in m.cv_results_} == {"each", "mean"}  # both forms were scored
+    t = np.arange(0.0, 6 * 3600.0 + 1, DT_S)
+    np.testing.assert_allclose(m._lags(ds, "m7", START_MEAN, [TAU_S], t)[:, 0], levels["m7"] * (1 - np.exp(-t / TAU_S)), atol=1e-9)
+    each = ThermalLag(taus_s=[[0.0, 900.0, TAU_S]], select=False, start=True, score="worst")
+    each._set_inputs(ds, train, check_params_of(each))
+    assert each.start_sensors(START_MEAN) == [f"S{i}" for i in range(6)]
+    held = _rmse(m, ds, "m7")
+    assert held < 4 * NOISE_UM
+    man = export_model(m, tmp_path / "tl", "tl", ds=ds, heldout=["m7"])
+    p = man["parity"]["model"]
+    assert p["max_abs_diff_um"] < 1e-9 and p["float_max_abs_diff_um"] < 0.01
+    assert p["heldout_rmse_um_c"] == pytest.approx(held, abs=1e-9)
+
+
+def check_params_of(model):
+    from thermbench.models.params import check_params
+
+    return check_params(model, model.params_model)
+
+
+def test_with_no_ambient_sensor_there_is_no_mean_level_the_sensors_levels_count_from_their_mean():
+    """With no ambient sensor the sensors' mean above their own mean is 0: only each sensor's level."""
+    runs, _ = machine_runs()
+    ds = spindle_dataset(runs, sensors={f"S{i}": "structure" for i in range(6)}, operating=[])
+    m = ThermalLag(taus_s=[[0.0, TAU_S]], select=False, start=True).fit(ds, [f"m{k}" for k in range(7)])
+    assert m.start_form_ == "each" and {r["start"] for r in m.cv_results_} == {"each"}

@@ -406,6 +406,44 @@ def test_a_lag_bank_export_for_the_cortex_m4f_is_within_its_budget(lag_bank_expo
 
 
 @pytest.fixture(scope="module")
+def lag_bank_mean_export(tmp_path_factory):
+    """The lag bank (conf/model/lag_bank.yaml's settings) where the machine's one start level is chosen
+    (tests/test_start_state.py's machine runs: six sensors and an ambient one, seven training runs):
+    the mean exported as each sensor's start state at a sixth of its weights; run "m7" held out."""
+    from omegaconf import OmegaConf
+
+    from thermbench.config import config_dir
+    from thermbench.models.thermal_lag import START_MEAN, ThermalLag
+
+    from .test_lumped import spindle_dataset
+    from .test_start_state import machine_runs
+
+    runs, _ = machine_runs()
+    ds = spindle_dataset(runs, sensors={**{f"S{i}": "structure" for i in range(6)}, "T_amb": "ambient"}, operating=[])
+    cfg = OmegaConf.to_container(OmegaConf.load(f"{config_dir()}/model/lag_bank.yaml"))
+    model = ThermalLag(**{k: v for k, v in cfg.items() if not k.startswith("_")}).fit(ds, [f"m{k}" for k in range(7)])
+    assert START_MEAN in model.inputs_
+    out = tmp_path_factory.mktemp("lag_bank_mean") / "lb"
+    export_model(model, out, "lb", ds=ds, heldout=["m7"])
+    return ds, out, model
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_the_lag_bank_with_the_machines_start_level_runs_on_the_target(lag_bank_mean_export, precision):
+    """The machine's mean start level, carried as its sensors' start states, on the emulated
+    Cortex-M4F: every reading to 5e-10 µm in double, within 0.01 µm in float."""
+    ds, model_dir, _ = lag_bank_mean_export
+    _host_and_target_agree(ds, model_dir, "m7", precision, min_readings=300)
+
+
+def test_a_lag_bank_with_the_machines_start_level_is_within_the_cortex_m4f_budget(lag_bank_mean_export, tmp_path):
+    ds, _, model = lag_bank_mean_export
+    man = export_model(model, tmp_path / "m4", "lb", ds=ds, heldout=["m7"],
+                       options=ExportOptions(target="cortex-m4f", onnx=False))  # fmt: skip
+    assert man["footprint"]["within_budget"] and man["parity"]["model"]["max_abs_diff_um"] <= FLOAT_UM
+
+
+@pytest.fixture(scope="module")
 def linear_history_export(tmp_path_factory):
     """The linear-with-history family (LINEAR_HISTORY kind: three sensors' delay lines and the spindle
     speed's) on the planted irregular runs of tests/test_linear_history.py; run "r4" held out."""

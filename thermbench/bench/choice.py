@@ -19,6 +19,16 @@ from .deployed import DEPLOYED_APPROACH
 from .plan import DEPLOY_FOLD, case_label, family_class
 
 
+#: a held-out RMSE beats another when lower by more than this fraction of it: two implementations of one
+#: model (ridge_history and baseline_ridge) differ by rounding, 1e-12 µm, which is a tie, not a win
+TIE_REL = 1e-6
+
+
+def beats(a, b):
+    """Where RMSE ``a`` is lower than ``b`` by more than :data:`TIE_REL` of ``b`` (elementwise)."""
+    return np.asarray(a, dtype=float) < np.asarray(b, dtype=float) * (1.0 - TIE_REL)
+
+
 def flagged(results: pd.DataFrame) -> dict[tuple[str, str, str, str], list[str]]:
     """(case, family, approach, train) -> what disqualifies that fitted model
     (:func:`thermbench.experiment.model_flags`); models with no flag are left out. The case
@@ -214,7 +224,7 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
             c = chosen.set_index("fold")["rmse_um"]
             row |= {"chosen_median_rmse_um": float(c.median()), "chosen_worst_rmse_um": float(c.max()),
                     "chosen": "; ".join(f"{f}: {a} {b}" for f, a, b in chosen[["fold", "family", "approach"]].itertuples(index=False)),
-                    "beat_no_compensation": f"{int((c < none.reindex(c.index)).sum())}/{len(c)}"}  # fmt: skip
+                    "beat_no_compensation": f"{int(beats(c, none.reindex(c.index)).sum())}/{len(c)}"}  # fmt: skip
             if interval:  # the choice's interval over its held-out runs: the mean of each fold's coverage and half-width
                 row |= {"chosen_coverage": float(chosen["coverage"].mean()),
                         "chosen_half_width_um": float(chosen["half_width_um"].mean())}  # fmt: skip
@@ -233,7 +243,7 @@ def held_out_summary(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seq
                     "baseline_worst_rmse_um": float(b.max())}  # fmt: skip
             if not chosen.empty:
                 common = c.index.intersection(b.index)
-                row["beat_best_baseline"] = f"{int((c[common] < b[common]).sum())}/{len(common)}"
+                row["beat_best_baseline"] = f"{int(beats(c[common], b[common]).sum())}/{len(common)}"
         out.append(row)
     return pd.DataFrame(out)
 
@@ -266,9 +276,9 @@ def held_out_table(results: pd.DataFrame, choice: pd.DataFrame, baselines: Seque
                      for k in ("coverage", "half_width_um")} if interval else {}  # fmt: skip
             return {"case": case, "model": label, "folds": len(scores), "median_rmse_um": float(scores.median()),
                     "worst_rmse_um": float(scores.max()),
-                    "beat_no_compensation": f"{int((scores < none.reindex(scores.index)).sum())}/{len(scores)}",
+                    "beat_no_compensation": f"{int(beats(scores, none.reindex(scores.index)).sum())}/{len(scores)}",
                     "beat_best_baseline": "-" if best is None or is_best else
-                    f"{int((scores[common] < best[2][common]).sum())}/{len(common)}"} | means  # fmt: skip
+                    f"{int(beats(scores[common], best[2][common]).sum())}/{len(common)}"} | means  # fmt: skip
 
         if not chosen.empty:
             out.append(row("thermbench's choice (nested)", chosen.set_index("fold")["rmse_um"], cells=chosen))

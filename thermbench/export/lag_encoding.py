@@ -21,7 +21,9 @@ real ``R`` a float32 (hi, lo) pair::
     u_scale R  (1 without an operating input)
     tau        NT R (s; 0: the input itself)
     inputs     NI codes: a sensor's index in the block, S: the operating input, or S + 1 + k: the
-               start state of sensor k (:func:`~thermbench.models.thermal_lag.start_state`)
+               start state of sensor k (:func:`~thermbench.models.thermal_lag.start_state`; the
+               machine's mean level, ``START_MEAN``, is the start states of its sensors, each with
+               the mean's weights over their number: the lags are linear)
     a0 R, b0 R
     wA         NI x NT R (input-major, as the model's features; a start state's tau-0 weight 0)
     wB         NI x NT R (with position terms only)
@@ -61,7 +63,7 @@ def _linear_inputs(model, channels, where: str, kind: str):
     inputs = list(model.inputs_)
     sensors = [i for i in inputs if i in model.sensor_names_]
     ops = [i for i in inputs if i not in model.sensor_names_ and not is_start(i)]
-    missing = [model.start_sensor(i) for i in inputs if is_start(i) and model.start_sensor(i) not in sensors]
+    missing = [k for i in inputs if is_start(i) for k in model.start_sensors(i) if k not in sensors]
     if missing:
         raise ExportError(f"{where}: the start state of sensors {missing} whose rises it does not read")
     if len(ops) > 1:
@@ -101,8 +103,20 @@ def _linear_inputs(model, channels, where: str, kind: str):
             full[1, kept] = wB
         wA, wB = full[0], (full[1] if wB.size else wB)
     head = [float(source), float(channel), *_pair(scale)]
-    codes = [float(sensors.index(i)) if i in sensors else
-             float(S + 1 + sensors.index(model.start_sensor(i))) if is_start(i) else float(S) for i in inputs]  # fmt: skip
+    codes, rows = [], []  # a start state of several sensors' mean: one input each, its weights over their number
+    NT = wA.size // max(len(inputs), 1)
+    for n, i in enumerate(inputs):
+        if is_start(i):
+            of = model.start_sensors(i)
+            codes += [float(S + 1 + sensors.index(k)) for k in of]
+            rows += [(n, 1.0 / len(of))] * len(of)  # the lags are linear: the mean's lag is the lags' mean
+        else:
+            codes.append(float(sensors.index(i)) if i in sensors else float(S))
+            rows.append((n, 1.0))
+    if len(rows) != len(inputs):
+        def spread(w):
+            return np.concatenate([w.reshape(len(inputs), NT)[n] * f for n, f in rows]) if w.size else w
+        wA, wB = spread(wA), spread(wB)
     notes = {"operating_inputs": operating, "operating_channels": {operating[0]: channel} if operating else {}}
     return sensors, ch, head, codes, [*_pair(a0), *_pair(b0)], wA, wB, int(bool(ops)), ops, notes
 

@@ -32,6 +32,15 @@ inputs shrinkage predicts more stably than a subset chosen from a few runs (Brei
 *Heuristics of instability and stabilization in model selection*, Ann. Statist. 24(6)); the
 stepwise selection is ``thermal_lag_stepwise``.
 
+With ``start=True`` (and ``select=False``) the state each run starts from enters too
+(:func:`start_state`), in one of two forms chosen by the same folds and score as the penalty:
+each sensor's first reading above the reference (the ambient sensor; with none, the sensors' mean),
+or, with an ambient sensor, the machine's one level (:data:`START_MEAN`: the mean first reading of
+the other sensors above the ambient's, the heat the machine stores). A level per sensor and time
+constant is many weights learnt from one start vector per training run, and a machine's sensors
+start warm together: the one level asks the runs for one profile per time constant. Each form
+enters only where the training runs start apart (``START_MIN_RUNS``, ``START_MIN_SPREAD_K``).
+
 Along an axis with several measuring targets, the position P and P x each lag join the features
 (the slope of a thermal error that grows along the axis). Fitted: ``inputs_`` (the chosen
 inputs, in the order they entered), ``taus_s_``, ``alpha_``, ``selection_`` (each step: the
@@ -58,10 +67,13 @@ from ..data.dataset import Dataset
 from .base import Inputs, ModelError, ThermalErrorModel, _name, derived, readings, sensor_series
 from .params import Bool, Expect, Int, Params, check_params
 
-__all__ = ["START", "ThermalLag", "first_order_lag", "grid_choice", "linear_fit", "start_state"]
+__all__ = ["START", "START_MEAN", "ThermalLag", "first_order_lag", "grid_choice", "linear_fit", "start_state"]
 
 #: the prefix of a start-state input's name (``start:<sensor>``, :func:`start_state`)
 START = "start:"
+#: the start state of the machine as one level: the mean first reading of the sensors other than the
+#: ambient above the ambient's (the heat the machine stores, one number a run)
+START_MEAN = START + "(mean)"
 #: a start state enters when at least this many training runs start with levels that span START_MIN_SPREAD_K
 #: (three points show a slope and its scatter; 1 K is ten steps of a 0.1 K reading, well above a sensor's
 #: offset drift between runs)
@@ -182,11 +194,12 @@ class ThermalLag(ThermalErrorModel):
         """(t, u) of input ``name`` over the run's log: a sensor's rise, a sensor's start state
         (``START`` + name, :func:`start_state`), or an operating column scaled."""
         if self.is_start_input(name):
-            sensor, refs = self.start_sensor(name), list(self._start_references())
-            s = sensor_series(ds, run, list(dict.fromkeys([sensor, *refs])), None)
-            first = {c: float(s[ds.metadata.sensor_column(c)].iloc[0]) if len(s) else 0.0 for c in [sensor, *refs]}
+            levels, refs = self.start_sensors(name), list(self._start_references())
+            s = sensor_series(ds, run, list(dict.fromkeys([*levels, *refs])), None)
+            first = {c: float(s[ds.metadata.sensor_column(c)].iloc[0]) if len(s) else 0.0 for c in [*levels, *refs]}
             t = s["t_s"].to_numpy(dtype=float)
-            return t, np.full(t.size, first[sensor] - float(np.mean([first[c] for c in refs])))
+            level = float(np.mean([first[c] for c in levels])) - float(np.mean([first[c] for c in refs]))
+            return t, np.full(t.size, level)
         if name in self.sensor_names_:
             s = sensor_series(ds, run, [name], None)
             col = s[ds.metadata.sensor_column(name)].to_numpy(dtype=float)
@@ -208,7 +221,7 @@ class ThermalLag(ThermalErrorModel):
             return t, {tau: first_order_lag(t, u, tau) for tau in self.all_taus_}
 
         key = ("thermal_lag", run, name, self.scale_of_.get(name, 1.0), tuple(self.all_taus_),
-               self._start_references() if self.is_start_input(name) else None)
+               (self._start_references(), tuple(self.start_sensors(name))) if self.is_start_input(name) else None)
         t, by_tau = derived(ds, key, make, copy=False)
         return np.column_stack([np.interp(t_s, t, by_tau[tau]) for tau in taus])
 
@@ -276,11 +289,17 @@ class ThermalLag(ThermalErrorModel):
         sensors, operating = self._set_inputs(ds, runs, p)
         if p.start and p.select:
             raise ModelError("start: the start state enters with select: false (every input), not with stepwise selection")
-        starts = [START + s for s in sensors if s != self.start_reference_] if p.start else []
+        others = [s for s in sensors if s != self.start_reference_]
+        starts = [START + s for s in others] if p.start else []
         if starts and not any(t > 0 for s in p.taus_s for t in s):
             raise ModelError("start: the start state enters through time constants above 0; taus_s has none")
-        starts = [name for name in starts if self._start_varies(ds, runs, name)]
-        candidates = sensors + operating + starts
+        # the two forms of the start state (module docstring): each sensor's level, and with an ambient
+        # sensor and two others or more the machine's mean level too; each only where the runs start apart
+        forms = {"each": [name for name in starts if self._start_varies(ds, runs, name)]}
+        if starts and self.start_reference_ is not None and len(others) > 1 and self._start_varies(ds, runs, START_MEAN):
+            forms["mean"] = [START_MEAN]
+        forms = {k: v for k, v in forms.items() if v} or {"none": []}
+        candidates = sensors + operating + list(dict.fromkeys(n for v in forms.values() for n in v))
         self.all_taus_ = sorted({float(t) for s in p.taus_s for t in s})
         rd = readings(ds, runs)
         self.uses_position_ = np.unique(rd["target_mm"].to_numpy()).size > 1
@@ -291,23 +310,30 @@ class ThermalLag(ThermalErrorModel):
                                  for r in runs]) for name in candidates}  # fmt: skip
         pos = rd["target_mm"].to_numpy(dtype=float)[:, None]
         folds = row_folds(run_of)
-        if not p.select:  # every candidate, the penalty and the time constants over whole runs (grid_choice)
+        if not p.select:  # every candidate, the penalty, the time constants and the start form over whole runs
 
-            def features(taus) -> np.ndarray:  # as _features lays them out, from the lags computed above
+            def features(inputs, taus) -> np.ndarray:  # as _features lays them out, from the lags computed above
                 idx = [self.all_taus_.index(float(t)) for t in taus]
-                z = np.hstack([full[name][:, idx] for name in candidates])[:, _kept(candidates, taus)]
+                z = np.hstack([full[name][:, idx] for name in inputs])[:, _kept(inputs, taus)]
                 return np.hstack([pos, z, pos * z]) if self.uses_position_ else z
 
-            self.inputs_ = candidates
             sets = [t for t in p.taus_s if not starts or any(v > 0 for v in t)]  # the start state needs a lag
-            (self.cv_rmse_um_, self.taus_s_, self.alpha_), self.cv_results_ = grid_choice(
-                features, sets, y, folds, "ridge", p.alphas, score=p.score if len(runs) > 1 else "mean",
-                groups=run_of)  # one run: its blocks are no runs, the mean of them  # fmt: skip
+            best, self.cv_results_ = None, []
+            for form, names in forms.items():  # grid_choice per form (the same folds and score), the lowest
+                inputs = sensors + operating + names
+                choice, results = grid_choice(lambda taus: features(inputs, taus), sets, y, folds, "ridge", p.alphas,
+                                              score=p.score if len(runs) > 1 else "mean",
+                                              groups=run_of)  # one run: its blocks are no runs, the mean of them  # fmt: skip
+                self.cv_results_ += [r | {"start": form} for r in results]
+                if best is None or choice[0] < best[0][0]:
+                    best = (choice, form, inputs)
+            (self.cv_rmse_um_, self.taus_s_, self.alpha_), self.start_form_, self.inputs_ = best
             self.selection_ = [("(every input)", self.cv_rmse_um_)]
-            self.mean_, self.scale_, self.coef_, self.intercept_ = linear_fit(features(self.taus_s_), y, "ridge",
-                                                                              self.alpha_)  # fmt: skip
+            self.mean_, self.scale_, self.coef_, self.intercept_ = linear_fit(features(self.inputs_, self.taus_s_), y,
+                                                                              "ridge", self.alpha_)  # fmt: skip
             self.geometric_ = Polynomial([0.0])
             return
+        self.start_form_ = "none"
         best = None
         for taus in p.taus_s:
             idx = [self.all_taus_.index(float(t)) for t in taus]
@@ -344,10 +370,12 @@ class ThermalLag(ThermalErrorModel):
         """Whether input ``name`` is a sensor's start state (:func:`start_state`)."""
         return name.startswith(START)
 
-    @staticmethod
-    def start_sensor(name: str) -> str:
-        """The sensor of start-state input ``name``."""
-        return name[len(START):]
+    def start_sensors(self, name: str) -> list[str]:
+        """The sensors whose mean first reading the start-state input ``name`` is: one sensor, or for
+        :data:`START_MEAN` every candidate sensor but the reference."""
+        if name == START_MEAN:
+            return [s for s in self.sensor_names_ if s not in self._start_references()]
+        return [name[len(START):]]
 
     def kept_columns(self) -> np.ndarray:
         """Which of the fitted model's feature columns (inputs x time constants, input-major) enter."""
@@ -356,7 +384,7 @@ class ThermalLag(ThermalErrorModel):
 
     def _model_inputs(self) -> Inputs:
         sensors = [i for i in self.inputs_ if i in self.sensor_names_]
-        starts = [self.start_sensor(i) for i in self.inputs_ if self.is_start_input(i)]
+        starts = [s for i in self.inputs_ if self.is_start_input(i) for s in self.start_sensors(i)]
         if starts:  # the start state reads its reference too
             sensors += [*starts, *self._start_references()]
         return Inputs(sensors=tuple(dict.fromkeys(sensors)),
