@@ -1,4 +1,4 @@
-"""Adversarial datasets for ``thermbench validate`` (issue 17, "Bad input").
+"""Adversarial datasets for ``thermbench validate``: bad input.
 
 A small valid dataset is written by hand here (plain text, numpy and pandas: not with
 thermbench's simulator nor ``save_dataset``), then each :class:`Case` applies one

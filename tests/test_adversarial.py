@@ -22,7 +22,7 @@ import pytest
 from tests.adversarial import CASES, build, snapshot
 from thermbench.cli import main
 
-# The budget for every case: 10 s and 1 GB. The validate process runs with its address
+# The budget for every case: 10 s and 1 GB. The validate process runs with its address
 # space capped at 1 GiB (an allocation past it fails inside the process, which would then not end
 # in its one-line error), its peak resident memory and CPU time are measured, and it must end within
 # 10 s of wall time (a FIFO opened for reading would block without using CPU).

@@ -79,7 +79,7 @@ def test_ols_on_all_sixteen_reproduces_sklearn_on_the_workbook():
 
 
 def _ridge_by_hand(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray) -> float:
-    """Issue 38's ten lines: standardised features, RidgeCV over 13 alphas 1e-3..1e3; held-out RMSE."""
+    """The ten-line ridge baseline: standardised features, RidgeCV over 13 alphas 1e-3..1e3; held-out RMSE."""
     from sklearn.linear_model import RidgeCV
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
@@ -90,7 +90,7 @@ def _ridge_by_hand(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.nda
 
 def test_ridge_with_a_30_min_lag_reproduces_the_independent_figures_on_the_workbook():
     """``baseline_ridge``: the rises of the sixteen sensors and the same rises 30 min earlier (0 before
-    the test's first 30 min), ridge over 13 alphas. Issue 38 measured it independently on the tail
+    the test's first 30 min), ridge over 13 alphas. Measured independently on the tail
     (train on everything before 144 465 s, rises from the first row): 2.38 / 1.92 / 1.73 / 1.78 /
     2.32 µm. The family, trained on the five constant-speed blocks (from 465 s), must equal the ten
     lines run directly on the workbook's columns over the same rows, and stay near those figures."""
@@ -107,7 +107,7 @@ def test_ridge_with_a_30_min_lag_reproduces_the_independent_figures_on_the_workb
     model = build_model(group_option("model", "baseline_ridge"), seed=0)
     for ch, figure in issue.items():
         y = df[ch].to_numpy() - df[ch].iloc[0]
-        assert _ridge_by_hand(X, y, ~tail, tail) == pytest.approx(figure, abs=0.005)  # the ten lines are issue 38's
+        assert _ridge_by_hand(X, y, ~tail, tail) == pytest.approx(figure, abs=0.005)  # the ten lines reproduce the independent figures
         split = load_split({**group_option("dataset", "fl_thermal"), "channel": ch})
         fitted = clone(model).fit(split.dataset, split.states)
         er = split.dataset.errors_run("tail")

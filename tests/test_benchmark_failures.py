@@ -1,4 +1,4 @@
-"""One failed cell is one line, never a crash (issue 54): a family that cannot fit or predict on a
+"""One failed cell is one line, never a crash: a family that cannot fit or predict on a
 fold is recorded in results.csv (kind ``failed``, its reason in ``failure``) and in the report, is no
 candidate there, and the benchmark finishes. The data: four runs whose readings are noise that no
 temperature explains, so thermal_lag's selection keeps no input and the Gaussian process on its
@@ -57,7 +57,7 @@ def test_a_family_that_cannot_fit_is_one_line_and_a_row_and_the_benchmark_finish
 
 
 def test_the_deployed_model_is_picked_by_the_rule_the_held_out_figures_score(tmp_path):
-    """One choice, used twice (issue 54): the model exported and marked chosen is what the nested rule
+    """One choice, used twice: the model exported and marked chosen is what the nested rule
     (the simplest within one standard error of the lowest mean inner RMSE over whole held-out runs) picks on the inner folds of every run, and those
     folds hold each run out once; recomputed here from the inner scores with pandas."""
     import yaml

@@ -1,4 +1,4 @@
-"""The benchmark pointed at a user's own dataset (issue 38): an entry of ``datasets`` that is a
+"""The benchmark pointed at a user's own dataset: an entry of ``datasets`` that is a
 dataset directory is that dataset, named by its machine; with ``families: null`` it gets every
 family, and each it cannot serve is said in one line. Each mistake is one line naming the key."""
 
@@ -142,3 +142,41 @@ def test_every_fold_fit_is_scored_as_deployed_beside_itself(lathe, tmp_path):  #
     assert (quiet["rmse_um"] == quiet["rmse_um_raw"]).all()
     report = (tmp_path / "reports" / "report.md").read_text()
     assert "as deployed µm" in report.splitlines()[2]
+
+
+def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_dataset_again(lathe, tmp_path):
+    """The benchmark's manifest records where a dataset directory was (``dataset_path``), so
+    ``thermbench export`` of its models replays the held-out runs from it with no export.dataset;
+    a manifest whose directory is gone is one line saying to set export.dataset."""
+    import yaml
+
+    from thermbench.config import ConfigError
+    from thermbench.export.encoding import ExportError
+    from thermbench.export.job import run_export
+
+    cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[ridge_history,baseline_ridge]", "bank_families=[]",
+               "approaches=[global]")  # fmt: skip
+    bm.benchmark(cfg)
+    models = tmp_path / "models"
+    man = yaml.safe_load((models / "manifest.yaml").read_text())
+    key = next(k for k in man if "__ridge_history__" in k)
+    assert man[key]["dataset_path"] == str(lathe.resolve())
+    from thermbench.config import load_config
+
+    def export_cfg(out, *extra):  # a tracking store of its own: what the export knows of the dataset is the manifest's
+        return load_config("export", [f"export.source={models}", f"export.select=[{key}]", f"export.out_dir={out}",
+                                      "export.n_jobs=1", "export.onnx=false", f"tracking.uri=sqlite:///{tmp_path}/other.db",
+                                      f"tracking.artifact_root={tmp_path}/other_art", *extra])  # fmt: skip
+
+    # the lathe logs every 120 s, the C runtime takes a sample at least every 60 s: the parity replay of the
+    # lathe's runs (found from the manifest) is refused in one line that says so and what to do
+    with pytest.raises(ExportError, match=r"lathe_d: run 'Day_\d' is logged up to 120 s apart; the C runtime takes a "
+                                          r"sample at least every 60 s .*export.verify=false"):
+        run_export(export_cfg(tmp_path / "x"))
+    assert not (tmp_path / "x").exists()  # nothing half-written
+    rows, _ = run_export(export_cfg(tmp_path / "x", "export.verify=false"))
+    assert list(rows["model"]) == [key] and (tmp_path / "x" / key / "model.tbm").is_file()
+    man[key]["dataset_path"] = str(tmp_path / "gone")
+    (models / "manifest.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
+    with pytest.raises(ConfigError, match=r"is not a dataset directory here; set export.dataset"):
+        run_export(export_cfg(tmp_path / "y"))

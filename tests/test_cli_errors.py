@@ -1,5 +1,5 @@
-"""Bad input on the command line: one line on stderr, exit 2, before any work starts
-(issue 17), and everything else keeps its traceback.
+"""Bad input on the command line: one line on stderr, exit 2, before any work starts,
+and everything else keeps its traceback.
 
 * Hydra mistakes (a typo in a key or a group option, a mandatory ``???`` value left out,
   a malformed or empty override, a value of the wrong type, a sweep without ``-m``) for

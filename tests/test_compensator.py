@@ -208,7 +208,7 @@ def test_namespace_uris_resolve_on_a_server_that_numbers_its_namespaces_differen
         return str(exc.value), summary, await server
 
     refused, s, f = asyncio.run(both())
-    # the file and the key as written in it, then the node (issue 34)
+    # the file and the key as written in it, then the node
     assert refused.startswith(f"{hard}: key outputs.value.node: output value node 'ns=2;s=X.TempComp_um'"), refused
     assert "does not exist on opc.tcp://127.0.0.1:" in refused, refused
     assert "\n" not in refused
@@ -651,4 +651,4 @@ def test_probe_node_corrects_the_loop_as_replay_with_the_same_probes(machine, se
     assert away.sum() > 100 and np.abs(fresh["correction_um"].to_numpy()[k > probes["t_s"].iloc[0]]).max() > 0.05
     ok = away & (ref["rc"].to_numpy() == 0)
     np.testing.assert_allclose(fresh["predicted_um"].to_numpy()[ok], ref["total_um"].to_numpy()[ok], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(corrected[ok], ref["corrected_um"].to_numpy()[ok], rtol=0, atol=1e-3)  # issue 41: <= 0.01
+    np.testing.assert_allclose(corrected[ok], ref["corrected_um"].to_numpy()[ok], rtol=0, atol=1e-3)  # required: <= 0.01

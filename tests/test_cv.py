@@ -1,4 +1,4 @@
-"""Cross-validation over runs (thermbench/splits.py, issue 38): whole runs held out, each once, and
+"""Cross-validation over runs (thermbench/bench/splits.py): whole runs held out, each once, and
 the benchmark's held-out scores checked against scikit-learn fitted by hand on the same runs."""
 
 from __future__ import annotations
@@ -232,7 +232,7 @@ def test_a_dataset_with_nothing_to_classify_skips_the_banks_in_one_line(lathe, t
 
 
 def test_runs_regressor_is_a_scikit_learn_estimator_over_whole_runs(lathe):  # noqa: F811
-    """The thin adapter (issue 38): clone keeps the dataset by reference; scikit-learn's
+    """The thin adapter: clone keeps the dataset by reference; scikit-learn's
     cross_val_predict with LeaveOneGroupOut gives, per held-out run, the RMSE thermbench's own
     scoring (metrics.evaluate) gives for a fit on the other runs; GridSearchCV over a model
     parameter picks the value of smaller held-out RMSE, as the hand loop does."""

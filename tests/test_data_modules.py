@@ -1,4 +1,4 @@
-"""The dataset package's modules import one another one way only (issue 37): the class, the
+"""The dataset package's modules import one another one way only: the class, the
 shared readers and checks, format 1, format 2, the views and the reference each in a module
 that imports none of the modules built on it."""
 
@@ -72,7 +72,7 @@ def _thermbench_imports(path: Path) -> set[str]:
 
 
 def test_splits_and_views_are_shared_from_one_module_below_the_jobs():
-    """issue 38: the runs and views the jobs fit on (thermbench.bench.splits), the workers
+    """The runs and views the jobs fit on (thermbench.bench.splits), the workers
     (thermbench.bench.parallel): the benchmark, the export and the replay take them from there; none of
     those, nor splits, imports the Hydra-job module thermbench.experiment back (no import circle)."""
     root = DATA.parent

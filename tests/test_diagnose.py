@@ -1,4 +1,4 @@
-"""The discrepancy workflow (issue "Discrepancy workflow") on data where an effect is hidden.
+"""The discrepancy workflow on data where an effect is hidden.
 
 Datasets come from :mod:`thermbench.discrepancy.hidden`: a world with a finer
 discretisation, its own sensor model and random duty cycles; each effect's strength is

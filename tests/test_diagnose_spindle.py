@@ -1,4 +1,4 @@
-"""The discrepancy workflow on a spindle test (issue "The discrepancy workflow on a measurement").
+"""The discrepancy workflow on a spindle test.
 
 The data are hand-made (:mod:`thermbench.discrepancy.hidden_spindle`): the truth is written as ODEs and
 integrated by ``solve_ivp``, independently of the network's discretisation; each hidden term's

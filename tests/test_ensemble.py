@@ -95,7 +95,9 @@ def test_it_is_a_scikit_learn_estimator_and_names_a_bad_member(planted):
 def ensemble_export(planted, tmp_path_factory):
     from thermbench.export import export_model
 
-    m = StackedEnsemble(members=_members()).fit(planted, TRAIN)
+    # the plain mean: every member in the file (the least squares give one of these members weight 0, and
+    # a member of weight 0 is left out of it: test_a_member_of_weight_zero_is_left_out_of_the_file...)
+    m = StackedEnsemble(members=_members(), stacking="mean").fit(planted, TRAIN)
     out = tmp_path_factory.mktemp("ensemble") / "en"
     man = export_model(m, out, "en", ds=planted, heldout=["r4"])
     return m, out, man
@@ -111,6 +113,26 @@ def test_the_c_runtime_kind_reproduces_python_in_both_precisions(planted, ensemb
     assert p["max_abs_diff_um"] < 1e-9 and p["float_max_abs_diff_um"] < 0.01
     assert p["heldout_rmse_um_c"] == pytest.approx(evaluate(m, planted, ["r4"])["rmse_um"].iloc[0], abs=1e-9)
     assert man["operating"] == ["spindle_rpm"] and man["temperatures"] == ["T_a", "T_b", "T_c"]
+
+
+def test_a_member_of_weight_zero_is_left_out_of_the_file_and_the_sum_is_the_same(planted, ensemble_export, tmp_path):
+    """A member the stack gives weight 0 adds nothing: the file carries the others (its state would
+    cost the M4F's RAM) and answers as the Python model, which sums every member, at every reading."""
+    import copy
+
+    from thermbench.export import export_model
+
+    m, _, full = ensemble_export
+    zeroed = copy.deepcopy(m)
+    w = np.asarray(m.weights_, dtype=float).copy()
+    w[1] = 0.0
+    zeroed.weights_ = w / w.sum()
+    man = export_model(zeroed, tmp_path / "z", "en", ds=planted, heldout=["r4"])
+    p = man["parity"]["model"]
+    assert man["files"]["model"]["dims"][0] == 2 and full["files"]["model"]["dims"][0] == 3
+    assert man["files"]["model"]["bytes"] < full["files"]["model"]["bytes"]
+    assert p["max_abs_diff_um"] < 1e-9 and p["float_max_abs_diff_um"] < 0.01
+    assert p["heldout_rmse_um_c"] == pytest.approx(evaluate(zeroed, planted, ["r4"])["rmse_um"].iloc[0], abs=1e-9)
 
 
 @pytest.mark.target

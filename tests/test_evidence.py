@@ -1,4 +1,4 @@
-"""What limits a held-out score (thermbench/evidence.py, issue 39): each piece of evidence checked
+"""What limits a held-out score (thermbench/evidence.py): each piece of evidence checked
 against a hand count or the noise a test planted, and the verdict the report gives."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ the Python models on held-out runs (seed 002 §2.5: the compensator loads models
 time), bad files, ONNX, reduced-set LSSVM, the export job and ``thermbench replay``.
 
 The C runtime is compiled here with gcc (-std=c99 -Wall -Wextra -Werror -pedantic), once
-more under -fsanitize=address,undefined. The tolerance 0.01 um is the issue's requirement;
+more under -fsanitize=address,undefined. The tolerance 0.01 um is the requirement;
 the Python models are the reference.
 """
 
@@ -29,7 +29,7 @@ from thermbench.models.physics import PhysicsModel
 
 from .families import FAST_PHYSICS, HELDOUT, TRAIN, families as _families  # noqa: F401
 
-TOL_UM = 0.01  # the issue: the C runtime reproduces the Python models within 0.01 um
+TOL_UM = 0.01  # required: the C runtime reproduces the Python models within 0.01 um
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ def _c_vs_python(model, model_dir, ds, runs, sanitize=False):
 
 @pytest.mark.parametrize("name", ["mlr_seed001", "mlr_seed002", "mlr_seed004", "gru", "mlp", "lssvm", "physics", "ar_seed003"])
 def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, ds, name):
-    """Issue 36: every process sample of a held-out run (grid and macro-step times, the stream's end)
+    """Every process sample of a held-out run (grid and macro-step times, the stream's end)
     in the single- and the double-precision build, the run as recorded and moved to t = 2^22 s,
     where floats are 0.5 s apart: the same answers to rounding (measured: at most 4e-4 um)."""
     from .families import double_and_float_at_every_sample

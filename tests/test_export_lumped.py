@@ -5,7 +5,7 @@ log starts long before its readings (the history) included; under ASan/UBSan; in
 (:class:`~thermbench.export.native.LiveModel`); and one-line errors for what it cannot run.
 
 The payload is float32, but every real of the body is a float32 (hi, lo) pair: the measured
-parity is ~1e-12 um (1e-4 um asserted; the issue asks 0.01 um).
+parity is ~1e-12 um (1e-4 um asserted; 0.01 um required).
 """
 
 from __future__ import annotations
@@ -287,7 +287,7 @@ def _body_offset(enc) -> int:
 
 @pytest.mark.parametrize("name", ["speed_2nodes", "ambient_and_sensors"])
 def test_float_and_double_agree_at_every_sample_also_at_t_2_22(exported, spindle, name):
-    """Issue 36: every process sample of run "h" (its 15-s log, readings off the grid, the stream's
+    """Every process sample of run "h" (its 15-s log, readings off the grid, the stream's
     end) in the single- and the double-precision build, the run as recorded and moved to
     t = 2^22 s (floats 0.5 s apart there): the float build's times step the network as the
     double build's do, so the answers agree to rounding at both clocks."""

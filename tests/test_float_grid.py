@@ -1,4 +1,4 @@
-"""Single precision at the classifier's grid times (issue 36): the float runtime answered a query
+"""Single precision at the classifier's grid times: the float runtime answered a query
 exactly at a grid time with the previous condition's member, because its readiness said "ready
 until 1e-6 s before the next grid time" and in float that margin vanishes (at 840 s floats are
 6.1e-5 apart). The seed 002 MLR bank (9 members) on table6_1 changes condition at 840 s; the float

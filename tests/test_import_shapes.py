@@ -1,4 +1,4 @@
-"""Two common shapes of a lab's files, imported with a mapping file alone (issue 37), and the
+"""Two common shapes of a lab's files, imported with a mapping file alone, and the
 mapping mistakes around them: each one line naming the key, and nothing written.
 
 Shape 1: one workbook per instrument (temperatures in one, a measured displacement in the other),

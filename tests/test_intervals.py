@@ -1,4 +1,4 @@
-"""Prediction intervals and the training envelope (thermbench/intervals.py, issue 41): the envelope
+"""Prediction intervals and the training envelope (thermbench/intervals.py): the envelope
 and the conformal quantile by hand, and the benchmark's coverage_90 / half_width_um recomputed from
 fits made by hand on the same runs."""
 

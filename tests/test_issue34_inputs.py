@@ -1,4 +1,4 @@
-"""Issue 34: the user's input files and settings, read strictly and reported by name.
+"""The user's input files and settings, read strictly and reported by name.
 
 * nodes and station files are read by the strict YAML loader (no aliases, anchors or
   duplicate keys; one line naming the file and the line);

@@ -1,4 +1,4 @@
-"""Issue 34: what a run records of its dataset (MLflow dataset inputs) and the threads its
+"""What a run records of its dataset (MLflow dataset inputs) and the threads its
 fits get (every family on the thread count its job was given, so parallel jobs never
 oversubscribe the cores).
 

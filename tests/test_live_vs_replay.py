@@ -1,4 +1,4 @@
-"""The live compensator answers for the time it writes, as ``thermbench replay`` does (issue 36).
+"""The live compensator answers for the time it writes, as ``thermbench replay`` does.
 
 The compensator (CycleLogic over the in-process runtime) used to ask the model for its value at
 the model's last final time (``ready_s``): for the screw physics that is the last macro step

@@ -386,7 +386,7 @@ def test_too_few_samples():
 
 
 def test_a_long_swarm_shows_its_progress_only_when_a_job_asks(clean_ds, capsys, monkeypatch):
-    """issue 38: fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
+    """Fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
     One step per swarm iteration, as many as ``iters``; outside show_fit_progress nothing is drawn."""
     from thermbench.models import base
 
@@ -424,7 +424,7 @@ def test_validation_holds_whole_runs_out_counted_by_hand():
 
 
 def test_run_grouped_validation_does_not_pick_the_overfit_that_random_rows_pick():
-    """Issue 39's planted case: the error is a smooth function of the temperature plus, in each run,
+    """A planted case: the error is a smooth function of the temperature plus, in each run,
     a slow drift of its own (autocorrelated in time, unrelated to the temperature). Validated on
     random rows, the swarm picks a narrow kernel that follows each run's drift between its
     neighbours; validated on whole runs, a wider one. On a run neither saw, the run-grouped choice is better."""

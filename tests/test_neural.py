@@ -340,7 +340,7 @@ def test_preprocess_filters_the_inputs(cls, kw):
 
 
 def test_a_long_training_shows_its_epochs_only_when_a_job_asks(clean_ds, capsys, monkeypatch):
-    """issue 38: fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
+    """Fits longer than 10 s show progress (in thermbench train); the delay set to 0 here.
     One step per epoch: no validation split, so all max_epochs run; none drawn outside show_fit_progress."""
     from thermbench.models import base
 

@@ -1,5 +1,5 @@
-"""Pre-compensation of a whole part program, every axis with its own model (issue 42,
-thermbench/precompensate/axes.py): one time line over all axes (timed by hand here), each axis
+"""Pre-compensation of a whole part program, every axis with its own model
+(thermbench/precompensate/axes.py): one time line over all axes (timed by hand here), each axis
 revised by its own model (stub models with known errors, and physics models equal to their
 simulator truths), axes without a model left as written, the axes file and the CLI's messages."""
 

@@ -2,7 +2,7 @@
 one (thermbench/adapt.py, itself checked against the joint estimate of the random walk in
 tests/test_adapt.py): an exported model of seed001_vmc_x replayed over valid1 with a probe reading
 every 10 min, in double precision (to rounding) and in single precision (the Cortex-M4F build,
-within the issue's 0.01 µm)."""
+within the required 0.01 µm)."""
 
 from __future__ import annotations
 

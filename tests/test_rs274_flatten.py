@@ -187,7 +187,7 @@ def _sources(program: Path) -> dict[str, list[str]]:
 
 
 @pytest.mark.parametrize("program, first_moves", [
-    # the case: Z at a safe height the program never names before the XY traverse
+    # the case to get right: Z at a safe height the program never names before the XY traverse
     ("G21 G90\n#1=100\nG0 X#1 Y20\nG0 Z5\nG1 X10 F100\nM2\n",
      ["G0 X100 Y20", "G0 X100 Y20 Z5", "G1 X10 Y20 Z5 F100"]),
     # LinuxCNC's arcspiral.ngc opens with 'g0z1': Z clears first, X and Y stay where they are

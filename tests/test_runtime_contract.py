@@ -1,4 +1,4 @@
-"""The C runtime and the Python export agree on what is written once on each side (issue 39: the
+"""The C runtime and the Python export agree on what is written once on each side (the
 kind codes, the limits and the activation codes were typed by hand in several places with no
 cross-check): tb_runtime.h and tb_registry.def against thermbench/export (fileformat.Kind,
 encoding.LIMITS, encoding.ACTIVATION_CODES, target.KIND_CODES), read from the sources as text."""

@@ -22,7 +22,7 @@ from .families import HELDOUT, TRAIN
 pytestmark = pytest.mark.target
 
 RUN = "valid1"
-FLOAT_UM = 0.01  # issue 21: single-precision parity for every kind
+FLOAT_UM = 0.01  # single-precision parity for every kind
 KIND_OF = {k.name: int(k) for k in Kind}  # the manifest's kind -> TB_KIND_* of tb_runtime.h (test_runtime_contract)
 
 
@@ -47,7 +47,7 @@ def host(seed001_exports, ds, queries):
 def test_the_target_reproduces_the_host(seed001_exports, ds, queries, host, name, precision):
     """Every reading of the validation run, answered on the emulated M4: in double the same
     numbers as the host (IEEE double on both; a different compiler and instruction set), in
-    float within the issue's 0.01 µm; the bank picks the same condition at every reading."""
+    float within 0.01 µm; the bank picks the same condition at every reading."""
     files, samples, temps, bank = directory.replay_inputs(seed001_exports / name, ds, RUN)
     got, rep = target.replay(files, samples, temps, queries, precision=precision)
     ref = host[name]
@@ -305,7 +305,7 @@ def test_the_lumped_kind_runs_on_the_target(lumped_export, precision):
 def test_a_one_kind_image_fits_64_kb_and_holds_only_its_kind(family_exports):
     """The smallest firmware per family (runtime with the file's kind only, start-up, model in
     flash, no stdio) in float: it boots on QEMU and opens its model (image() checks the exit
-    status), takes <= 64 KB of flash (issue 21's budget), and its symbol table has its own kind's
+    status), takes <= 64 KB of flash (the M4F budget), and its symbol table has its own kind's
     table and no other's (TB_REGISTRY restricts the kind table, --gc-sections drops the rest)."""
     import subprocess
 

@@ -20,7 +20,7 @@ from thermbench.export.budget import TARGETS
 pytestmark = pytest.mark.target
 
 RUN = "valid1"
-FLOAT_UM = 0.01  # issue 21: single-precision parity
+FLOAT_UM = 0.01  # single-precision parity
 PARAMS = ProbeParams(q_bias_um2_per_h=1.5, q_gain_per_h=1e-3, r_um2=0.04, bias0_um=2.0, gain0=0.1)  # tests/test_probe_runtime.py's
 BUDGET = TARGETS["cortex-m4f"]["budget"]
 

@@ -1,4 +1,4 @@
-"""The thermal-lag family (issue 39): exact first-order lags, inputs chosen as groups and the time
+"""The thermal-lag family: exact first-order lags, inputs chosen as groups and the time
 constants and penalty chosen by cross-validation over whole runs, checked against a planted lagged
 truth computed by an ODE solver (a second implementation of the lag)."""
 

@@ -389,7 +389,7 @@ def mlflow_server(tmp_path_factory):
 
 
 def test_train_against_a_real_tracking_server(mlflow_server, workdir):
-    # the wording: only tracking.uri=http://... on top of the default (embedded) tracking group
+    # the usage to support: only tracking.uri=http://... on top of the default (embedded) tracking group
     cfg = compose("train", workdir, f"tracking.uri={mlflow_server.uri}", f"model={MODEL}",
                   "train=state1", FEW, artifacts=False)
     res = experiment.train(cfg)

@@ -1,5 +1,5 @@
 """Every user mistake raised below the command line is one line on stderr, exit 2, naming
-the config key (issue 17): the raise sites that used to throw a plain ``ValueError`` /
+the config key: the raise sites that used to throw a plain ``ValueError`` /
 ``KeyError`` (now a traceback: those are reserved for bugs) throw one of
 :func:`thermbench.errors.user_errors` instead.
 

@@ -1,7 +1,7 @@
 """Warm restarts of the compensator (thermbench/compensator/state.py, CycleLogic.warm_start):
 the state saved by one process, re-stepped by the next. The reference is an uninterrupted run
 of the same model over the same readings; the contrast is a cold start on the warm machine
-(the failure the issue reports: the warm machine taken as the zero)."""
+(the failure guarded against: the warm machine taken as the zero)."""
 
 from __future__ import annotations
 

@@ -96,7 +96,7 @@ def nested_choice(inner: pd.DataFrame, blocked: Iterable[tuple[str, str, str]] =
     without seeing the fold's held-out runs, on the RMSE of each inner held-out run
     (:func:`thermbench.bench.splits.inner_folds`, on the fold's training runs only).
 
-    The rule resists its own noise (issue 54): with a few runs, the lowest of ten noisy inner scores
+    The rule resists its own noise: with a few runs, the lowest of ten noisy inner scores
     is often a flexible family that fitted those runs. So the candidate of lowest mean inner RMSE
     (ties: the smaller worst) sets a bar, its mean plus the standard error of that mean over the inner
     held-out runs; of the candidates at or under the bar, the simplest (:func:`model_complexity`) is

@@ -111,11 +111,14 @@ def benchmark(cfg: DictConfig) -> JobResult:
     summary = held_out_summary(results, nested, baselines)
     answer = answer_table(summary, chosen)  # the first screen: the report's, the terminal's last lines, MLflow's
     level = interval_settings(plain_value(cfg.get("interval")))[0]
-    case_data, case_folds = {}, {}  # case (as the results name it) -> its dataset, each loaded once; its folds
+    case_data, case_folds, case_path = {}, {}, {}  # case (as the results name it) -> its dataset, each loaded once; its folds
     for dcfg, channel in case_cfg.values():
         sp = load_split(dcfg)
         case = case_label(sp.name, channel)
         case_data[case] = sp.dataset
+        src = dict(dcfg.get("source") or {})
+        if src.get("_target_") == "thermbench.data.io.load_dataset":  # a dataset directory: where thermbench export finds it
+            case_path[case] = str(Path(str(src.get("path"))).resolve())
         case_folds[case] = (sp.dataset, outer_folds(sp, _cv(cfg), cfg.get("cv_folds", 5))[2])
     limits = held_out_limits(summary, case_folds, nested)  # the target and, when missed, the evidence why
     flags = flagged(results)
@@ -171,7 +174,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     cased = _with_case(results)
     for (c, d, ch, f, a), g in cased.groupby(["case", "dataset", "channel", "family", "approach"], sort=False):
         cell = headline_metrics(g, list(g.loc[g["kind"] == "validation", "run_id"].unique()))
-        extra[f"{c}__{f}__{a}"] = {"dataset": str(d), **({"channel": str(ch)} if ch != "all" else {}),
+        extra[f"{c}__{f}__{a}"] = {"dataset": str(d), **({"dataset_path": case_path[c]} if c in case_path else {}),
+                                   **({"channel": str(ch)} if ch != "all" else {}),
                                    "metrics": {k: float(v) for k, v in cell.items()}}  # fmt: skip
     logged = {}
     inputs = {c: tracking.dataset_input(ds, c) for c, ds in case_data.items()}  # MLflow's dataset inputs, named by case

@@ -6,7 +6,7 @@ jobs (:mod:`thermbench.experiment`), the benchmark, the export and the replay sh
 * the view a model sees of a format 2 dataset: one error channel, the runs split into derived
   segments, with or without each segment's history (:func:`model_view`, checked against the
   config by :func:`dataset_view`; :func:`thermbench.export.replay.replay_view` replays through it);
-* cross-validation over runs (issue 38). Thermal data are time series: a fold never splits a
+* cross-validation over runs. Thermal data are time series: a fold never splits a
   run, it holds whole runs out (scikit-learn's group splitters with the run as the group):
 
   - ``loro``: each run held out once (:class:`sklearn.model_selection.LeaveOneGroupOut`); the
@@ -318,7 +318,7 @@ def row_folds(run_of_row: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
     over rows whose runs are ``run_of_row``: whole runs held out, as :func:`inner_folds` holds them
     (each run once up to :data:`INNER_LORO_MAX_RUNS` runs, else :data:`INNER_FOLDS` folds of
     runs); a single run: :data:`SINGLE_RUN_BLOCKS` contiguous blocks of it, each held out once.
-    Never rows of a run the fold trains on (issue 39)."""
+    Never rows of a run the fold trains on."""
     groups = np.asarray(run_of_row).astype(str)  # run ids, or any labels of them (indices)
     runs = list(dict.fromkeys(groups.tolist()))
     if len(runs) == 1:  # one run: consecutive parts of it

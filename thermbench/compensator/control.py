@@ -178,7 +178,7 @@ class CycleLogic:
 
             self.guard = EnvelopeGuard(Envelope.from_dict(env), float(env.get("rate_tau_s", 600.0)))
         else:
-            self.guard = None  # an export without an envelope (before issue 41): nothing to flag
+            self.guard = None  # an export without an envelope (from before envelopes were exported): nothing to flag
         faults = (getattr(model, "manifest", None) or {}).get("faults")
         self.monitor, self.bound_um = None, math.inf
         if faults is not None:  # the sensor checks and the bound of the training runs (thermbench/bench/faults.py)

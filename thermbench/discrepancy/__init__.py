@@ -1,4 +1,4 @@
-"""The discrepancy workflow (issue "Discrepancy workflow"): find where the physics model
+"""The discrepancy workflow: find where the physics model
 and the measurements disagree, name the missing effect, add it, show the gap shrink.
 
 * :mod:`.noise`: the noise floor from the data;

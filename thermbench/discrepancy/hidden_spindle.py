@@ -1,5 +1,5 @@
 """Hand-made spindle tests with a known hidden term, for checking the spindle workflow
-(issue "The discrepancy workflow on a measurement": tests and the recovery table).
+(its tests and the recovery table).
 
 A test as fl_thermal is run: five constant-speed blocks, each heating ``on_s`` then stopped
 ``off_s``, then a stepped tail, one run whose segments are the blocks and the tail. The truth is

@@ -1,4 +1,4 @@
-"""Where simulation and measurement disagree (issue "Discrepancy workflow", step 2).
+"""Where simulation and measurement disagree (the discrepancy workflow, step 2).
 
 Input: one row per interferometer reading with the measured thermal error and
 a model's (held-out) prediction. Each reading is placed along the screw (its

@@ -1,4 +1,4 @@
-"""The noise floor of a dataset, estimated from the data alone (issue "Discrepancy workflow", step 2).
+"""The noise floor of a dataset, estimated from the data alone (the discrepancy workflow, step 2).
 
 Two estimators of the interferometer's per-reading scatter sigma:
 

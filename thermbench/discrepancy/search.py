@@ -1,6 +1,6 @@
 """Name the missing effect: the candidates and their scores, and the screw family they are fitted in.
 
-Issue "Discrepancy workflow", steps 1, 3-5. The current model is the seed 000
+Steps 1 and 3-5 of the discrepancy workflow. The current model is the seed 000
 core (:class:`~thermbench.models.physics.PhysicsModel`: fixed-bearing heat, nut
 heat, convection, constant ambient) plus the effects found so far. Each
 canonical effect not yet in it is a candidate: added, re-identified from the

@@ -1,4 +1,4 @@
-"""The test that names the missing effect, and the numbers it reads (issue "Discrepancy workflow").
+"""The test that names the missing effect, and the numbers it reads.
 
 The test (:class:`SignificanceTest`): a candidate is *significant* when the systematic
 error it explains on held-out runs, sqrt(RMSE_before^2 - RMSE_after^2), is at

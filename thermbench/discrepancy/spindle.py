@@ -1,4 +1,4 @@
-"""The discrepancy workflow on a spindle test (issue "The discrepancy workflow on a measurement").
+"""The discrepancy workflow on a spindle test.
 
 What the search confronts with the data is the lumped network of ``physics_spindle``
 (:class:`~thermbench.models.lumped.LumpedThermalNetwork`: heat q = (u/u_ref)^p of the spindle

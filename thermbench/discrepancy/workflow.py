@@ -1,5 +1,5 @@
 """``thermbench diagnose``: find where simulation and measurement disagree, name the
-missing effect, add it, show the gap shrink (issue "Discrepancy workflow").
+missing effect, add it, show the gap shrink.
 
 :func:`run_diagnosis` is the workflow on a loaded dataset (plain function, what
 the tests call); :func:`thermbench.discrepancy.job.diagnose` is the job behind the

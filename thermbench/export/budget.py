@@ -1,6 +1,6 @@
 """The compensators an export is for (:data:`TARGETS`: the C runtime's precision there and the
 budget beyond which an export is refused) and whether an export fits: its footprint against the
-issue's budget (:func:`footprint`), its files and state arenas in the target's build, and its
+target's budget (:func:`footprint`), its files and state arenas in the target's build, and its
 instructions per control cycle measured on the emulated Cortex-M4F."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ TARGETS = {
 SINGLE_FLAGS = ("-DTB_SINGLE",)
 
 
-#: seed 002's compensator, an STM32F407 (1 MB flash, 192 KB RAM, 168 MHz): the issue's budget per model
+#: seed 002's compensator, an STM32F407 (1 MB flash, 192 KB RAM, 168 MHz): the budget per model
 BUDGET = {"file_bytes": 64 * 1024, "ram_bytes": 16 * 1024, "small_file_bytes": 1024}
 SMALL_KINDS = ("MLR_CURVE", "MLR_SEED001", "CLASSIFIER")
 

@@ -463,7 +463,7 @@ def encode_ensemble(model, channels: dict[str, int] | None = None, period_s: flo
     (:class:`thermbench.models.ensemble.StackedEnsemble`; ``embedded/src/tb_kind_ensemble.c``): the
     period (0), no sensors, a zero geometric block, the weights as (hi, lo) pairs, then each member's
     record (kind, layout version, n_dims, dims padded to 8, n_payload) and its payload as in its own
-    file, every member encoded on the same input channels (``channels``; None: the ensemble's sensors
+    file, every member of weight above 0 (one of weight 0 adds nothing to the sum) encoded on the same input channels (``channels``; None: the ensemble's sensors
     then its operating inputs, in order). dims ``[N, K]``, K the set of the members' kinds (bit k for
     kind k: what a firmware image must carry, read from the header). A member the runtime cannot run is refused
     with its reason."""
@@ -477,10 +477,12 @@ def encode_ensemble(model, channels: dict[str, int] | None = None, period_s: flo
     if channels is None:
         channels = {s: i for i, s in enumerate([*ins.sensors, *ins.operating])}
     body, members = [], []
-    for w in model.weights_:  # (hi, lo) pairs
-        hi = float(np.float32(w))
-        body += [hi, float(w) - hi]
-    for name, m in zip(model.member_names_, model.members_):
+    # a member of weight 0 adds nothing to the sum: it is left out of the file (its state would cost RAM)
+    keep = [i for i, w in enumerate(model.weights_) if float(w) != 0.0]
+    for i in keep:  # (hi, lo) pairs
+        hi = float(np.float32(model.weights_[i]))
+        body += [hi, float(model.weights_[i]) - hi]
+    for name, m in [(model.member_names_[i], model.members_[i]) for i in keep]:
         e = encode(m, channels, period_s, f"{where}: member {name}")
         if e.kind == Kind.ENSEMBLE:
             raise ExportError(f"{where}: member {name} is an ensemble itself; the C runtime does not nest them")

@@ -118,7 +118,8 @@ def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
         if not f.exists():
             raise ConfigError(f"{mpath}: {k}: file {f} is missing")
         info = {"file": str(f), "metrics": dict(entry.get("metrics") or {}), "mlflow_run_id": entry.get("mlflow_run_id"),
-                "dataset_name": entry.get("dataset"), "chosen": bool(entry.get("chosen"))}  # fmt: skip
+                "dataset_name": entry.get("dataset"), "dataset_path": entry.get("dataset_path"),
+                "chosen": bool(entry.get("chosen"))}  # fmt: skip
         out.append((k, joblib.load(f), info))
     return out
 
@@ -175,14 +176,20 @@ def _dataset_config(e: dict, info: dict, key: str, model=None) -> tuple[str | No
     """(name, dataset config) of the dataset the model was trained on, or (None, None):
     ``export.dataset`` (a conf/dataset option or a dataset directory; a directory's name is
     None: the loaded split names it), else the MLflow run's logged dataset config, else the
-    benchmark dataset the key names. Checked here, loaded by :func:`_load_split_cached`."""
+    dataset directory the benchmark's manifest names (``dataset_path``), else the benchmark
+    dataset the key names. Checked here, loaded by :func:`_load_split_cached`."""
     from ..config import group_option
     from ..bench.splits import dataset_config_for, dataset_option
 
     given = e.get("dataset")
     logged = info.pop("dataset_config", None)
     name = info.pop("dataset_name", None)
-    if given:
+    path = info.pop("dataset_path", None)
+    if not given and logged is None and path:  # a benchmark on a dataset directory: the manifest says where it was
+        if not (Path(str(path)) / "metadata.yaml").is_file():
+            raise ConfigError(f"{key}: its training dataset {path!r} (from the manifest) is not a dataset directory "
+                              "here; set export.dataset to the dataset's path")  # fmt: skip
+        given = path
         option, cfg = dataset_option(str(given), "export.dataset")
         if option is None:  # a directory: its own channel unless one is given
             cfg["channel"] = e.get("channel")

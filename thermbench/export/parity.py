@@ -13,6 +13,7 @@ from . import runtime
 from .budget import SINGLE_FLAGS, TargetRefused
 from .directory import replay_inputs
 from .encoding import ExportError
+from .lumped_encoding import MAX_GAP_S
 from .samples import process_samples, readings_queries
 
 
@@ -31,6 +32,20 @@ def _float_hint(model) -> str:
                 "float target fit it on fewer samples (max_samples: fewer support vectors) or with a smaller penalty "
                 "(gamma), or choose another family, or run the runtime in double (export.target=host)")  # fmt: skip
     return ": run this model on a double-precision build (export.target=host)"
+
+
+def _sampling_failure(exc: Exception, ds, run: str, s: pd.DataFrame) -> Exception:
+    """A replay the C runtime refused because the run's log is sampled too slowly for it (TB_E_SAMPLING:
+    a gap over TB_MAX_GAP_S, the compensator's contract of a sample at least once a minute) as one line
+    naming the run, its largest gap and what to do; any other failure as it is."""
+    gaps = np.diff(s["t_s"].to_numpy(dtype=float))
+    if "error -12" not in str(exc) or not gaps.size or float(gaps.max()) <= MAX_GAP_S:
+        return exc
+    name = getattr(ds, "path", None) or ds.metadata.machine.name
+    return ExportError(f"{name}: run {run!r} is logged up to {gaps.max():g} s apart; the C runtime takes a sample at "
+                       f"least every {MAX_GAP_S:g} s (the compensator samples its sensors that often), so it cannot "
+                       "replay this log for the parity check: export with export.verify=false (no parity), or "
+                       "verify on a dataset logged at least once a minute")  # fmt: skip
 
 
 def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_um: float, name: str,
@@ -60,7 +75,10 @@ def _verify(tmp: Path, man: dict, models_py: dict, ds, runs: Sequence[str], tol_
             text = runtime.stream_text(s, cols, merged.iloc[order])  # one input, both builds
             total = {}
             for prec, exe in exes.items():
-                total[prec] = runtime.replay_text(exe, files, text, bank=bank)["total_um"].to_numpy()
+                try:
+                    total[prec] = runtime.replay_text(exe, files, text, bank=bank)["total_um"].to_numpy()
+                except runtime.RuntimeFailed as exc:
+                    raise _sampling_failure(exc, ds, run, s) from None
                 at_readings = total[prec][is_reading]
                 worst[prec] = max(worst[prec], float(np.max(np.abs(at_readings - py))))
                 if prec == precision:

@@ -518,7 +518,7 @@ def last_cycles_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
 
 def validation_mask(rd: pd.DataFrame, fraction: float) -> np.ndarray:
     """The readings a family tunes on (early stopping, a swarm's objective), never rows of a run it
-    trains on (issue 39: rows of one time series are autocorrelated, so a hold-out of rows between
+    trains on (rows of one time series are autocorrelated, so a hold-out of rows between
     training rows rewards interpolation): with several training runs, **whole runs**, the last
     ones in training order whose readings come closest to ``fraction`` of all (at least one held
     out, at least one kept); with one run, its last ``fraction`` of measuring cycles

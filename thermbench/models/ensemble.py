@@ -1,8 +1,8 @@
 """A stacked ensemble: a weighted sum of models of other families, the weights fitted on their out-of-run predictions.
 
 With a few training runs, picking the single family of lowest cross-validated error picks noise as
-often as skill, while a combination of several reasonable models averages their errors out (issue 54:
-on a real five-run test, non-negative stacking of four linear-with-history models and their plain mean
+often as skill, while a combination of several reasonable models averages their errors out (on a
+real five-run test, non-negative stacking of four linear-with-history models and their plain mean
 both beat picking the best of them). So::
 
     E(t, x) = Σ_i w_i · E_i(t, x),   w_i ≥ 0,   Σ_i w_i = 1

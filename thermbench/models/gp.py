@@ -145,7 +145,7 @@ class GaussianProcessLag(ThermalErrorModel):
         return f"on the lags of {self.lag_.inputs_} at {[round(t) for t in self.lag_.taus_s_]} s; kernel {self.kernel_}{bounds}"
 
     def export_encoding(self, channels, period_s, where):
-        """Refused, in one line with the reason (issue 39): the C runtime has no kind for a kernel sum
+        """Refused, in one line with the reason: the C runtime has no kind for a kernel sum
         over lag states."""
         self._check_fitted()
         raise ModelError(f"the C runtime has no Gaussian-process kind: its mean is a kernel sum over "

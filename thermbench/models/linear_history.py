@@ -1,6 +1,6 @@
 """Linear with history: ridge regression on every sensor's rise now and some minutes earlier.
 
-What held up best on real thermal tests that thermbench never saw (issue 54) was not a selected
+What held up best on real thermal tests that thermbench never saw was not a selected
 few inputs but all of them, each with its recent history, under shrinkage: the ridge baseline
 (:mod:`thermbench.models.baseline`) on the rises and the rises 30 min earlier. This family makes
 that a deployable candidate::
@@ -17,7 +17,7 @@ that a deployable candidate::
   ``ceil(d_max / h) + 2`` numbers per input, and the C runtime's ``LINEAR_HISTORY`` kind
   (``embedded/src/tb_kind_linear_history.c``) computes the same numbers;
 * no input selection: the ridge penalty keeps the weights of inputs that do not help small, where
-  a selection on few runs keeps whatever fitted them (issue 54: with four training runs a stepwise
+  a selection on few runs keeps whatever fitted them (with four training runs a stepwise
   choice is itself noise);
 * the penalty ``alpha`` (from ``alphas``) and the set of delays (from ``delays_s``) are chosen
   together by cross-validation over **whole runs**, scored as scikit-learn's
@@ -201,7 +201,7 @@ class LinearHistory(ThermalLag):
 
 
 class RidgeHistory(LinearHistory):
-    """``baseline_ridge`` made deployable: the benchmark's reference candidate (issue 54, item 2).
+    """``baseline_ridge`` made deployable: the benchmark's reference candidate.
 
     The same model as :class:`LinearHistory` (its parameters, fit, C kind ``LINEAR_HISTORY``);
     ``conf/model/ridge_history.yaml`` sets it up as the ridge baseline is set up: every sensor's rise

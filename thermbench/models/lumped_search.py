@@ -91,7 +91,7 @@ class _NetworkSearch:
             return np.vstack([base.simulate(ds, r, times[r]) for r in scored])
 
         # each fold's network identified on its own training runs (its time constants and exponent never
-        # see the runs it holds out, issue 39); one run: identified on it, only the gains are cross-validated
+        # see the runs it holds out); one run: identified on it, only the gains are cross-validated
         every = network_on(scored)
         phis = [network_on(list(dict.fromkeys(run_of[tr]))) if len(scored) > 1 else every for tr, _ in folds]
 

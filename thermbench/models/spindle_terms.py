@@ -1,5 +1,5 @@
 """Physical terms a spindle's lumped network may miss: the discrepancy workflow's candidates on a
-spindle test (issue "The discrepancy workflow on a measurement"), each a small class with one job.
+spindle test, each a small class with one job.
 
 The base is :class:`~thermbench.models.lumped.LumpedThermalNetwork`: heat q = (u/u_ref)^p of the
 operating signal (the spindle speed) through a chain of first-order nodes, the displacement a
