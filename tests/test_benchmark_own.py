@@ -151,7 +151,7 @@ def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_data
     import yaml
 
     from thermbench.config import ConfigError
-    from thermbench.export.encoding import ExportError
+    from thermbench.data.io import load_dataset
     from thermbench.export.job import run_export
 
     cfg = _cfg(tmp_path, f"datasets=[{lathe}]", "families=[ridge_history,baseline_ridge]", "bank_families=[]",
@@ -160,6 +160,7 @@ def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_data
     models = tmp_path / "models"
     man = yaml.safe_load((models / "manifest.yaml").read_text())
     key = next(k for k in man if "__ridge_history__" in k)
+    lathe_ds = load_dataset(lathe)
     assert man[key]["dataset_path"] == str(lathe.resolve())
     from thermbench.config import load_config
 
@@ -169,13 +170,15 @@ def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_data
                                       f"tracking.artifact_root={tmp_path}/other_art", *extra])  # fmt: skip
 
     # the lathe logs every 120 s, the C runtime takes a sample at least every 60 s: the parity replay of the
-    # lathe's runs (found from the manifest) is refused in one line that says so and what to do
-    with pytest.raises(ExportError, match=r"lathe_d: run 'Day_\d' is logged up to 120 s apart; the C runtime takes a "
-                                          r"sample at least every 60 s .*export.verify=false"):
-        run_export(export_cfg(tmp_path / "x"))
-    assert not (tmp_path / "x").exists()  # nothing half-written
-    rows, _ = run_export(export_cfg(tmp_path / "x", "export.verify=false"))
+    # lathe's runs (found from the manifest) fills the log in as the compensator samples, both sides alike
+    import json
+
+    rows, _ = run_export(export_cfg(tmp_path / "x"))
     assert list(rows["model"]) == [key] and (tmp_path / "x" / key / "model.tbm").is_file()
+    parity = json.loads((tmp_path / "x" / key / "manifest.json").read_text())["parity"]
+    assert parity["model"]["max_abs_diff_um"] < 1e-9 and parity["model"]["float_max_abs_diff_um"] < 0.01
+    assert parity["log"].startswith("the runs' logs are up to 120 s apart, over the C runtime's 60 s")
+    assert parity["model"]["n_samples"] > 2 * sum(len(lathe_ds.process_run(r)) for r in parity["runs"]) - 10
     man[key]["dataset_path"] = str(tmp_path / "gone")
     (models / "manifest.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
     with pytest.raises(ConfigError, match=r"is not a dataset directory here; set export.dataset"):

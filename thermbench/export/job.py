@@ -190,6 +190,7 @@ def _dataset_config(e: dict, info: dict, key: str, model=None) -> tuple[str | No
             raise ConfigError(f"{key}: its training dataset {path!r} (from the manifest) is not a dataset directory "
                               "here; set export.dataset to the dataset's path")  # fmt: skip
         given = path
+    if given:
         option, cfg = dataset_option(str(given), "export.dataset")
         if option is None:  # a directory: its own channel unless one is given
             cfg["channel"] = e.get("channel")

@@ -13,7 +13,7 @@ from . import runtime
 from .budget import SINGLE_FLAGS, TargetRefused
 from .directory import replay_inputs
 from .encoding import ExportError
-from .lumped_encoding import MAX_GAP_S
+from .samples import MAX_GAP_S
 from .samples import process_samples, readings_queries
 
 
