@@ -1,4 +1,4 @@
-"""Issue 38's targets: ``thermbench benchmark`` with ``cv=loro`` and the default families on a dataset
+"""Targets of ``thermbench benchmark`` with ``cv=loro`` and the default families on a dataset
 of each of the two common lab shapes, at their real sizes, on this machine's cores:
 
 * shape 1: 18 runs (one sheet per day), 6 temperature sensors, ~230 rows a run at 120 s, a

@@ -1,4 +1,4 @@
-"""Discrepancy workflow benchmark (issue "Discrepancy workflow"): recovery of hidden
+"""Discrepancy workflow benchmark: recovery of hidden
 effects across effects x strengths x seeds, false positives on clean data, runtime.
 
     .venv/bin/python benchmarks/bench_diagnose.py                 # recovery + false positives

@@ -1,5 +1,5 @@
 """The first real-data benchmark, measured: every family against the baselines on the measured
-spindle test ``fl_thermal`` (thermbench/realdata/fl_thermal/SOURCE.md), with the issue's targets.
+spindle test ``fl_thermal`` (thermbench/realdata/fl_thermal/SOURCE.md), with its targets.
 
 1. Runs ``thermbench benchmark datasets=[fl_thermal]`` (the shipped model settings, a fresh
    task cache, its own output and tracking directories) ``--repeats`` times after a warm-up

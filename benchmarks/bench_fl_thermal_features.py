@@ -1,4 +1,4 @@
-"""How far a linear model of lagged temperatures can go on fl_thermal's stepped tail (issue 39's
+"""How far a linear model of lagged temperatures can go on fl_thermal's stepped tail (the
 target: 0.8 x the ten-line ridge), outside thermbench's families: scikit-learn ridge pipelines on
 feature sets a user would try, trained on everything before 144 465 s (the five constant-speed
 blocks), scored on the tail, temperature rises from the first row (as the README's table).

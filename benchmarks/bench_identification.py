@@ -1,5 +1,5 @@
 """Identification time of the physics model (target: <= 1 s on one core for the
-three seed 000 loading conditions, issue "The discrepancy workflow on a measurement")
+three seed 000 loading conditions)
 and the PSO-LSSVM's size.
 
     .venv/bin/python benchmarks/bench_identification.py [--repeats 3]

@@ -1,5 +1,5 @@
-"""Intervals and probes on hand-made datasets of the two common shapes of a lab's files (issue 41,
-the shapes of issue 37: tests/test_import_shapes.py writes them by hand with openpyxl).
+"""Intervals and probes on hand-made datasets of the two common shapes of a lab's files
+(tests/test_import_shapes.py writes them by hand with openpyxl).
 
 Shape 1: a lathe's spindle, one sheet per day (3 days, 25-30 readings at a constant step).
 Shape 2: a mill's spindle, one headerless file per experiment (3 experiments, 20-26 readings).

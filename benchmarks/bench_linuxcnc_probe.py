@@ -1,4 +1,4 @@
-"""The LinuxCNC closed loop with a probe (issue 41): the tool's thermal error after compensation,
+"""The LinuxCNC closed loop with a probe: the tool's thermal error after compensation,
 with one probe per simulated hour and without, on a duty cycle the model was not trained on.
 
 The model: seed 002's MLR (mlr_seed002) fitted on one loading state of seed001_vmc_x (``--state``,
@@ -9,7 +9,7 @@ thermal clock) twice: open loop, and with the plant's simulated touch probe ever
 seconds netted to the component's probe-um / probe-valid pins (the bias + gain filter of
 docs/intervals.md, conf/linuxcnc_component.yaml's probe noise). Printed: the thermal error at the tool
 before compensation and after it (RMS and max over every process sample, the plant's simulator), and
-the ratio with / without probes (the issue's target: <= 0.5).
+the ratio with / without probes (target: <= 0.5).
 
 Needs LinuxCNC (linuxcnc-uspace); as root, ``--user`` names the unprivileged user it runs as.
 

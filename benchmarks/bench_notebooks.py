@@ -1,7 +1,7 @@
 """Wall time of each guided notebook (kernel start included), as the test suite runs them.
 
 Each notebook runs once as a warm-up (datasets built, C runtime compiled, caches filled), then
-``--repeat`` times; the median is printed against the issue's budget of 60 s per notebook.
+``--repeat`` times; the median is printed against the budget of 60 s per notebook.
 
     .venv/bin/python benchmarks/bench_notebooks.py              # QUICK=True (the test settings)
     .venv/bin/python benchmarks/bench_notebooks.py --full 01    # full settings, one notebook

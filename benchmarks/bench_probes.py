@@ -1,4 +1,4 @@
-"""Probe readings on the measured spindle test's unseen tail (issue 41): RMSE against probes per hour.
+"""Probe readings on the measured spindle test's unseen tail: RMSE against probes per hour.
 
 For each channel of ``fl_thermal`` and each family given: the family fitted on the five
 constant-speed blocks predicts the stepped tail (never trained on); the probe filter's noise
@@ -8,7 +8,7 @@ then the tail is replayed with a probe every ``every_s`` (the first at the tail'
 probes being the tail's own readings at those times, and **scored on the other readings only**:
 
 * ``open``: no probe;
-* ``naive``: the last probe's residual added to every later prediction (the issue's peer);
+* ``naive``: the last probe's residual added to every later prediction (a peer method);
 * ``adaptive``: the bias + gain Kalman filter;
 * ``trigger``: the filter, probing when its standard deviation exceeds the one it reaches
   just before a scheduled probe on the training blocks (median), no schedule;
@@ -17,7 +17,7 @@ probes being the tail's own readings at those times, and **scored on the other r
 * ``oracle_gain``: the best bias and gain per probe interval, with hindsight (least squares on the
   tail's readings in it): the bound of the filter's own correction, ``(1 + gain)·predicted + bias``;
 * ``gp_refit`` (family ``gp`` only): the GP refitted on its training readings plus the probes so
-  far (:func:`thermbench.bench.adapt.gp_refit`, the issue's second peer).
+  far (:func:`thermbench.bench.adapt.gp_refit`, a second peer method).
 
     python benchmarks/bench_probes.py [--families physics_spindle_hybrid,baseline_ridge] [--every 7200,3600,1800]
 

@@ -1,4 +1,4 @@
-"""Speed of the ball-screw simulator (issue: 8 h of seed 000 X axis at 80 nodes).
+"""Speed of the ball-screw simulator (8 h of the seed 000 X axis at 80 nodes).
 
 Simulates 8 h of machine time for the seed 000 X axis (Table 1 geometry, Table 3
 parameters, dx = 0.01 m -> 80 nodes) under the Table 2 loading repeated (warm 84

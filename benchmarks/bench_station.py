@@ -1,4 +1,4 @@
-"""Load of one compensator process serving several channels (``thermbench station``, issue 23):
+"""Load of one compensator process serving several channels (``thermbench station``):
 three feed axes and five spindle channels at a 100 ms period, and one axis at 10 ms.
 
     .venv/bin/python benchmarks/bench_station.py [--exports exports/benchmark] [--seconds 30] [--runs 3]

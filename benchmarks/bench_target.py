@@ -19,7 +19,7 @@ Printed per model and precision, over all those runs:
   harness) and, for a single model, of the smallest one-kind image without stdio
   (``target.image``: what the 64 KB budget is about).
 
-Budgets (issue 21): float physics update <= 50 000 instructions, worst control cycle <= 100 000,
+Budgets: float physics update <= 50 000 instructions, worst control cycle <= 100 000,
 prediction <= 200 000, arena <= 16 KB, image <= 64 KB flash. Writes benchmarks/results/target.csv.
 
     .venv/bin/python benchmarks/bench_target.py [EXPORTS] [--only SUBSTRING] [--precision both|double|float]
@@ -50,7 +50,7 @@ MHZ, CPI = 168, 1.25  # seed 002's STM32F407; cycles per instruction assumed (no
 
 
 def over_budget(row: dict) -> list[str]:
-    """The float build's figures of ``row`` beyond issue 21's budgets (empty: within)."""
+    """The float build's figures of ``row`` beyond the budgets (empty: within)."""
     if row.get("note"):
         return [row["note"]]
     cyc = PHYS_BUDGET if row["kind"] == "PHYSICS" else CYCLE_BUDGET

@@ -1,4 +1,4 @@
-"""Issue 39's target for the thermal_lag family: on hand-made datasets of the two common lab shapes
+"""The target for the thermal_lag family: on hand-made datasets of the two common lab shapes
 (their sizes) whose error is a known lagged response of named sensors, does it find those sensors
 and their time constant, and reach the noise floor on runs it never saw?
 

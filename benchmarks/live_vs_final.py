@@ -7,8 +7,8 @@ models), over every parity run of its manifest, at every process sample, in the 
   check compares with Python and what the benchmark scores);
 * ``live``: each query answered with the log up to its own time (tb_replay --live; what the
   compensator writes, cycle by cycle, and what ``thermbench replay`` scores);
-* ``hold``: the final value at the last macro-step boundary at or before t (what the compensator
-  wrote before issue 36, asking for the model's last final time).
+* ``hold``: the final value at the last macro-step boundary at or before t (what earlier
+  versions of the compensator wrote, asking for the model's last final time).
 
 Printed: max and RMS of |live - final| and |hold - final| over all samples.
 

@@ -1,10 +1,10 @@
 """How many of LinuxCNC's sample programs ``thermbench precompensate`` compensates, with and
-without flattening by LinuxCNC's interpreter (issues 23 and 42).
+without flattening by LinuxCNC's interpreter.
 
-    # one axis, one model (issue 23)
+    # one axis, one model
     .venv/bin/python benchmarks/precompensate_samples.py --model models/benchmark/seed000_x__physics__global.joblib \
         [--dataset seed000_x] [--programs /usr/share/linuxcnc/ncfiles] [--verify 3]
-    # every axis its own model (issue 42): make demo's three physics models as X, Y and Z
+    # every axis its own model: make demo's three physics models as X, Y and Z
     .venv/bin/python benchmarks/precompensate_samples.py --models-dir models/benchmark [--verify 3]
     .venv/bin/python benchmarks/precompensate_samples.py --models axes.yaml [--verify 3]
 

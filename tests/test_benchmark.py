@@ -177,7 +177,7 @@ def test_benchmark_end_to_end_report_mlflow_models_and_resume(tmp_path, data_env
     assert {(c.data.tags["model"], c.data.tags["approach"]) for c in children} == {
         ("mlr_seed001", "single"), ("mlr_seed001", "global"), ("mlr_seed001", "as_deployed"),
         ("mlr_seed002", "single"), ("mlr_seed002", "global"), ("mlr_seed002", "as_deployed"), ("mlr_seed002", "bank"),
-        ("mlr_seed002", "bank_soft")}
+        ("mlr_seed002", "bank_soft"), ("stack", "global")}  # the stack of the two candidate families
     # the dataset, as an MLflow dataset input of the benchmark run and of each cell: its name,
     # the content hash of its data (loaded here) as the digest, its directory as the source
     for r in [run, *children]:

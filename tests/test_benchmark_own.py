@@ -183,3 +183,10 @@ def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_data
     (models / "manifest.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
     with pytest.raises(ConfigError, match=r"is not a dataset directory here; set export.dataset"):
         run_export(export_cfg(tmp_path / "y"))
+    for v in man.values():  # a directory with no model marked chosen, asked for the chosen one: says so
+        v["chosen"] = False
+    (models / "manifest.yaml").write_text(yaml.safe_dump(man, sort_keys=False))
+    chosen = load_config("export", [f"export.source={models}", "export.select=chosen", f"export.out_dir={tmp_path / 'z'}"])
+    with pytest.raises(ConfigError, match=r"^config key 'export.select': chosen, but .*manifest.yaml marks no model "
+                                          r"chosen \(chosen: true\); name the models instead, e.g. export.select=\["):
+        run_export(chosen)

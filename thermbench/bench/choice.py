@@ -83,7 +83,10 @@ def model_complexity(family: str, approach: str) -> int:
     few nonlinear parameters, 3 a kernel machine or network; 3 when unknown), one more for a bank (a
     model per condition and a classifier)."""
     from ..errors import MissingExtra
+    from .stack import STACK
 
+    if family == STACK:  # it needs every member's flexibility: as flexible as its most flexible, a network
+        return 3
     try:
         base = int(getattr(family_class(family), "complexity", 3))
     except (MissingExtra, ExperimentError, KeyError):

@@ -28,6 +28,23 @@ from .plan import (
 )
 from .run import _iterate
 from .splits import load_split, outer_folds
+from .stack import stack_task
+
+
+def _not_candidates(done_tasks: list[dict]) -> set[tuple[str, str, str]]:
+    """(case, family, approach) of the tasks that are no candidate of the choice: a baseline, one the C
+    runtime cannot run, one worse than no compensation on its own training runs."""
+    from ..export.encoding import export_blocker
+
+    out = set()
+    for o in done_tasks:
+        case = case_label(o["dataset"], o.get("channel", "all"))
+        for a, m in o["models"].items():
+            if reference_only(o["family"]) or export_blocker(m):
+                out.add((case, o["family"], a))
+        if not o["results"].empty:
+            out |= {k[:3] for k in flagged(o["results"])}
+    return out
 
 
 def benchmark(cfg: DictConfig) -> JobResult:
@@ -76,6 +93,8 @@ def benchmark(cfg: DictConfig) -> JobResult:
     # the same configuration writes the same files whatever the workers' timing
     order = {(t["dataset_cfg"]["name"], t["channel"], t["family"]): i for i, t in enumerate(todo)}
     done_tasks.sort(key=lambda o: order[(o["dataset"], o.get("channel", "all"), o["family"])])
+    if cfg.get("stack", True):  # the stack of every candidate family, one more family (bench/stack.py)
+        done_tasks += stack_task(done_tasks, _not_candidates(done_tasks))
     errors = [e for o in done_tasks for e in o["errors"]]
     parts = [o["results"] for o in done_tasks if not o["results"].empty]
     if not parts:

@@ -83,6 +83,10 @@ def run_task(
     failed: list[dict] = []  # one row per cell that could not fit or predict (results.csv, kind "failed")
     cv, folds, outer = outer_folds(split, cv, cv_folds)  # outer: the folds a choice is made for
     inner_rows = []
+    # each fit's predictions per reading, for the stack of every family (bench/stack.py): on the outer folds'
+    # held-out runs, and on each outer fold's inner held-out runs (out of run)
+    stack_outer, stack_inner = [], []
+    candidate = not reference_only_model(model)
 
     def tag(df: pd.DataFrame, approach: str, train: str, fitted=None, fold=None) -> pd.DataFrame:
         df = df.copy()
@@ -137,6 +141,8 @@ def run_task(
         try:
             fitted, res, cur = fit_evaluate(model, ds, split.states, curves=True)
             fold_models["+".join(split.validation)] = fitted
+            if candidate:
+                stack_outer.append(held_out_predictions(fitted, ds, split.validation, "+".join(split.validation)))
             rows.append(tag(res, "global", "all", fitted))
             curves.append(tag(cur[cur["run_id"].isin(split.validation)], "global", "all"))
             models["global"] = fitted
@@ -150,6 +156,8 @@ def run_task(
                 if "rmse_um" in res and not np.isfinite(res["rmse_um"]).all():
                     raise FloatingPointError(f"non-finite predictions on {', '.join(fold.held_out)}")
                 fold_models[fold.name] = fitted
+                if candidate:
+                    stack_outer.append(held_out_predictions(fitted, ds, fold.held_out, fold.name))
                 rows.append(tag(res, "global", "all", fitted, fold=fold.name))
                 curves.append(tag(cur, "global", "all", fold=fold.name))
                 say(f"global without {fold.name}", float(res["fit_s"].iloc[0]))
@@ -247,6 +255,8 @@ def run_task(
                                 rows.append(tag(df, name, "all", fold_models[f.name], fold=f.name))
                     sq = pd.Series((y - pred) ** 2).groupby(groups, sort=False).mean()
                     if not ref_only:  # never a candidate
+                        stack_inner.append(pd.DataFrame({"fold": f.name, "inner_fold": [fold_of[r] for r in groups],
+                                                         "run_id": groups, "row": X["row"].to_numpy(), "y": y, "pred": pred}))  # fmt: skip
                         inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())})
                                           .assign(**tag_inner, approach="global", inner_fold=[fold_of[r] for r in sq.index]))  # fmt: skip
                 except CELL_FAILURES as exc:
@@ -266,6 +276,7 @@ def run_task(
         if same and inner_rows:  # the deployed model's choice: that outer fold's inner scores
             mine = [r[r["fold"] == same[0].name] for r in inner_rows]
             inner_rows += [r.assign(fold=DEPLOY_FOLD) for r in mine if len(r)]
+            stack_inner += [r.assign(fold=DEPLOY_FOLD) for r in stack_inner if len(r) and r["fold"].iloc[0] == same[0].name]
     results = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
     if len(results):
         cov = f"coverage_{round(100 * level)}"
@@ -289,10 +300,25 @@ def run_task(
         "frame": frame_text(ds.metadata),  # what every score of this dataset is of (data.reference)
         "cv": cv,
         "inner": pd.concat(inner_rows, ignore_index=True) if inner_rows else pd.DataFrame(),
+        "stack_inner": pd.concat(stack_inner, ignore_index=True) if stack_inner else pd.DataFrame(),
+        "stack_outer": pd.concat(stack_outer, ignore_index=True) if stack_outer else pd.DataFrame(),
         "seconds": time.perf_counter() - t0,
         "errors": errors,
         "failed": failed,
     }
+
+
+def held_out_predictions(fitted, ds, runs, fold: str) -> pd.DataFrame:
+    """A fit's predictions at every reading of ``runs`` (the rows of :func:`~thermbench.bench.splits.run_rows`):
+    ``fold``, ``run_id``, ``row``, ``y`` (the measured error), ``pred``."""
+    from .splits import run_rows
+
+    X, y, groups = run_rows(ds, list(runs))
+    pred = np.empty(len(X))
+    rows = X["row"].to_numpy()
+    for run, idx in X.groupby("run_id", sort=False).indices.items():
+        pred[idx] = np.asarray(fitted.predict(ds, run), dtype=float)[rows[idx]]
+    return pd.DataFrame({"fold": fold, "run_id": groups, "row": rows, "y": y, "pred": pred})
 
 
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:

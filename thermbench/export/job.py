@@ -104,6 +104,9 @@ def _items(e: dict, cfg: DictConfig) -> list[tuple[str, Any, dict]]:
         keys = list(manifest)
     elif sel == "chosen":
         keys = [k for k, v in manifest.items() if v.get("chosen")]
+        if not keys:
+            raise ConfigError(f"config key 'export.select': chosen, but {mpath} marks no model chosen (chosen: true); "
+                              f"name the models instead, e.g. export.select=[{next(iter(manifest), 'KEY')}]")  # fmt: skip
     elif isinstance(sel, (list, tuple)):
         keys = [str(k) for k in sel]
         unknown = [k for k in keys if k not in manifest]

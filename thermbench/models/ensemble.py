@@ -146,6 +146,30 @@ class StackedEnsemble(ThermalErrorModel):
         self.members_ = [clone(m).fit(ds, runs) for m in p.members]
         self.geometric_ = Polynomial([0.0])
 
+    @classmethod
+    def of_fitted(cls, names: Sequence[str], fitted: Sequence[ThermalErrorModel], weights, how: str,
+                  cv_rmse_um: float = float("nan")) -> "StackedEnsemble":  # fmt: skip
+        """The ensemble of models already fitted on the same runs and weights already fitted (the
+        benchmark's stack of every family, thermbench/bench/stack.py): its parameters are the members'
+        unfitted clones (a refit stacks them anew), its fitted state theirs. ``how``: what set the
+        weights (``stacking_``)."""
+        if not fitted or len(fitted) != len(names) or len(fitted) != len(weights):
+            raise ModelError(f"of_fitted: {len(names)} names, {len(fitted)} models and {len(weights)} weights")
+        runs = [list(m.train_runs_) for m in fitted]
+        if any(sorted(r) != sorted(runs[0]) for r in runs):
+            raise ModelError(f"of_fitted: the members were fitted on different runs: {runs}")
+        self = cls(members=[clone(m) for m in fitted], stacking="nnls")
+        self.member_names_ = list(names)
+        self.members_ = list(fitted)
+        self.weights_ = np.asarray(weights, dtype=float)
+        self.stacking_ = how
+        self.member_cv_rmse_um_ = [float("nan")] * len(fitted)
+        self.cv_rmse_um_ = float(cv_rmse_um)
+        self.geometric_ = Polynomial([0.0])
+        self.train_runs_ = runs[0]
+        self.channel_ = getattr(fitted[0], "channel_", None)
+        return self
+
     def _predict_thermal(self, ds: Dataset, run: str, t_s: np.ndarray, axis_mm: np.ndarray) -> np.ndarray:
         out = np.zeros(np.asarray(t_s).size)
         for w, m in zip(self.weights_, self.members_):
