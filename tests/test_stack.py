@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 from scipy.optimize import nnls
 
+from tests.test_benchmark_own import lathe  # noqa: F401 (a fixture: the three-day lathe imported from a lab's files)
 from thermbench.bench.plan import DEPLOY_FOLD
 from thermbench.bench.stack import MAX_MEMBERS, STACK, fitted_weights, stack_task
 
@@ -120,18 +121,7 @@ def test_one_candidate_family_is_no_stack():
     assert stack_task([_task("A", p, {}, ["r1", "r2"], y), _task("ensemble", p, {}, ["r1", "r2"], y)], never=set()) == []
 
 
-@pytest.fixture(scope="module")
-def lathe(tmp_path_factory):
-    from tests.test_import_shapes import shape1
-    from thermbench.data.importer import import_dataset
-
-    root = tmp_path_factory.mktemp("lathe")
-    mapping, _ = shape1(root / "files")
-    import_dataset(mapping, root / "lathe_d")
-    return root / "lathe_d"
-
-
-def test_the_benchmark_scores_the_stack_and_its_deployed_model_exports_at_parity(lathe, tmp_path):
+def test_the_benchmark_scores_the_stack_and_its_deployed_model_exports_at_parity(lathe, tmp_path):  # noqa: F811
     """Three days held out once each: the stack's rows beside its members', its inner scores in the
     choice, its deployed model an ENSEMBLE of the members of weight above 0 that the C runtime answers
     as Python does (the lathe's 120 s log filled in for the replay)."""

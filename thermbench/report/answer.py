@@ -97,8 +97,8 @@ def _notes(answer: pd.DataFrame, level: float) -> list[str]:
         "that fold's runs.",
         "- **as deployed**: the same median with each fold's model run as the compensator runs it: every sensor "
         "checked at every sample, a faulty one replaced, the correction bounded in value and rate "
-        "(thermbench/bench/faults.py; '-' where a fold's choice has no such score: a bank, or a fit that could "
-        "not be scored so, listed in findings.md).",
+        "(thermbench/bench/faults.py; '-' where a fold's choice has no such score: a bank, the stack (no fit of "
+        "its own to run), or a fit that could not be scored so, listed in findings.md).",
         *[f"- {r['case']} as deployed: a sensor judged faulty on held-out {r['faults']}" for r in answer.to_dict("records")
           if isinstance(r.get("faults"), str) and r["faults"]],
         f"- **baseline**: the best baseline's median ({', '.join(bases) or 'none run'}); **vs baseline**: "
