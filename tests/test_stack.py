@@ -59,7 +59,8 @@ def _task(family, preds_inner, preds_outer, runs, y_of, sensors=("T1",)):
     results = pd.DataFrame(columns=["approach", "kind", "fold", "run_id"]) if not preds_outer else pd.DataFrame([{"dataset": "d", "channel": "all", "family": family, "approach": "global", "kind": "validation",
                              "fold": f, "run_id": r, "train": "all", "own": False, "rmse_um": 9.9,
                              "rms_error_um": float(np.sqrt(np.mean(y_of[r] ** 2))), "max_abs_error_um": 10.0,
-                             "pv_error_um": 12.0, "max_abs_residual_um": 9.9, "compensation_rate": 0.01}
+                             "pv_error_um": 12.0, "max_abs_residual_um": 9.9, "compensation_rate": 0.01,
+                             "sensors": " ".join(sensors), "coverage_80": 0.5}
                             for f, by_r in preds_outer.items() for r in by_r])  # fmt: skip
     return {"dataset": "d", "channel": "all", "family": family, "results": results,
             "models": {"global": _Fitted(sensors, runs)}, "stack_inner": pd.concat(inner, ignore_index=True),
@@ -100,6 +101,7 @@ def test_the_weights_the_held_out_and_the_inner_scores_by_hand(monkeypatch):
     assert row["rmse_um"] == pytest.approx(np.sqrt(np.mean((y["r3"] - held) ** 2)), rel=1e-12)
     assert row["compensation_rate"] == pytest.approx(1 - np.max(np.abs(y["r3"] - held)) / 10.0, rel=1e-12)
     assert row["sensors"] == ("T1 T2" if w.min() > 0 else ("T1" if w[0] > 0 else "T2"))
+    assert np.isnan(row["coverage_80"])  # a member's interval is not the stack's
     # its inner score on r1 of fold r3: weights from r2 alone
     inn = out["inner"].set_index(["fold", "inner_fold"])
     w2 = _w(np.column_stack([a["r2"], b["r2"]]), y["r2"])
@@ -112,6 +114,18 @@ def test_the_weights_the_held_out_and_the_inner_scores_by_hand(monkeypatch):
     assert made["names"] == [n for n, wi in zip("AB", w3) if wi > 0]
     np.testing.assert_allclose(made["weights"], w3[w3 > 0], atol=1e-12)
     assert made["how"].startswith("nnls")
+
+
+def test_a_fold_where_a_member_has_no_held_out_prediction_has_no_stack_score_at_all():
+    """A member whose fold fit failed: the stack is neither scored nor scored inside on that fold (a
+    choice there would drop the fold from the held-out figures)."""
+    rng = np.random.default_rng(3)
+    y = {r: rng.normal(5.0, 2.0, 4) for r in ("r1", "r2", "r3")}
+    inner = {"r3": {"r1": {"r1": y["r1"] + 0.1}, "r2": {"r2": y["r2"] - 0.1}}}
+    tasks = [_task("A", inner, {"r3": {"r3": y["r3"]}}, ["r1", "r2", "r3"], y),
+             _task("B", inner, {}, ["r1", "r2", "r3"], y)]  # B: no held-out prediction on fold r3
+    (out,) = stack_task(tasks, never=set())
+    assert out["results"].empty and out["inner"].empty and out["models"] == {}
 
 
 def test_one_candidate_family_is_no_stack():

@@ -86,10 +86,32 @@ def _run_row(template: pd.DataFrame, y: np.ndarray, p: np.ndarray) -> dict:
                 "compensation_rate": 1.0 - max_res / max_err if max_err > 0 else np.nan,
                 "residual_fraction_of_pv": max_res / pv_err if pv_err > 0 else np.nan, "nonfinite_predictions": 0,
                 "fit_s": 0.0, "family": STACK})  # fmt: skip
-    for c in ("coverage_90", "half_width_um", "faults", "bounded_share"):
-        if c in row:
+    for c in [k for k in row if str(k).startswith("coverage_")] + ["half_width_um", "faults", "bounded_share"]:
+        if c in row:  # a member's interval and as-deployed figures: not the stack's
             row[c] = np.nan
     return row
+
+
+def _held_out_rows(members: list[dict], outer: dict[str, pd.DataFrame], fold: str, w: np.ndarray) -> list[dict] | None:
+    """The stack's rows of results.csv on the held-out runs of ``fold`` (weights ``w``), or None when a
+    member has no prediction there (its fold fit failed) or a held-out run has no member row."""
+    if any(df.empty or not (df["fold"] == fold).any() for df in outer.values()):
+        return None
+    held_rows, Q = _aligned({n: df[df["fold"] == fold] for n, df in outer.items()})
+    p = Q @ w
+    res = members[0]["results"]
+    rows = []
+    for run, idx in held_rows.groupby("run_id", sort=False).indices.items():
+        template = res[(res["approach"] == "global") & (res["kind"] == "validation") & (res["fold"] == fold)
+                       & (res["run_id"] == run)]  # fmt: skip
+        if template.empty:
+            return None
+        mine = [m["results"] for m, wi in zip(members, w) if wi > 0]  # what the weighted members' fold fits read
+        sensors = [s for r in mine for v in r.loc[(r["fold"] == fold) & (r["run_id"] == run) & (r["approach"] == "global")
+                                                   & (r["kind"] == "validation"), "sensors"].astype(str).head(1)
+                   for s in v.split()] if all("sensors" in r for r in mine) else []  # fmt: skip
+        rows.append(_run_row(template, held_rows["y"].to_numpy()[idx], p[idx]) | {"sensors": " ".join(dict.fromkeys(sensors))})
+    return rows
 
 
 def stack_task(tasks: list[dict], never: set[tuple[str, str, str]]) -> list[dict]:
@@ -116,28 +138,19 @@ def stack_task(tasks: list[dict], never: set[tuple[str, str, str]]) -> list[dict
             rows_f, P = _aligned({n: df[df["fold"] == fold] for n, df in inner.items()}, extra=["inner_fold"])
             y = rows_f["y"].to_numpy()
             w, how = fitted_weights(P, y)
-            for g in rows_f["inner_fold"].unique():  # each inner held-out run by weights of the others
-                held = (rows_f["inner_fold"] == g).to_numpy()
-                wg, _ = fitted_weights(P[~held], y[~held])
-                sq = pd.Series((y[held] - P[held] @ wg) ** 2).groupby(rows_f.loc[held, "run_id"].to_numpy(), sort=False).mean()
-                inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())}).assign(
-                    dataset=dataset, channel=channel, family=STACK, fold=fold, approach="global", inner_fold=g))  # fmt: skip
             if fold == DEPLOY_FOLD:
                 deploy = (w, how, float(np.sqrt(np.mean((y - P @ w) ** 2))))
-                continue
-            if any(df.empty or not (df["fold"] == fold).any() for df in outer.values()):
-                continue  # a member without this fold's held-out predictions: no held-out score
-            held_rows, Q = _aligned({n: df[df["fold"] == fold] for n, df in outer.items()})
-            p = Q @ w
-            res = members[0]["results"]
-            sensors = " ".join(dict.fromkeys(s for o, wi in zip(members, w) if wi > 0
-                                             for s in o["models"]["global"].required_inputs().sensors))  # fmt: skip
-            for run, idx in held_rows.groupby("run_id", sort=False).indices.items():
-                template = res[(res["approach"] == "global") & (res["kind"] == "validation") & (res["fold"] == fold)
-                               & (res["run_id"] == run)]  # fmt: skip
-                if template.empty:
+            else:  # a held-out score on every held-out run of the fold, or none (and no inner score: never chosen there)
+                held = _held_out_rows(members, outer, fold, w)
+                if held is None:
                     continue
-                rows.append(_run_row(template, held_rows["y"].to_numpy()[idx], p[idx]) | {"sensors": sensors})
+                rows += held
+            for g in rows_f["inner_fold"].unique():  # each inner held-out run by weights of the others
+                on = (rows_f["inner_fold"] == g).to_numpy()
+                wg, _ = fitted_weights(P[~on], y[~on])
+                sq = pd.Series((y[on] - P[on] @ wg) ** 2).groupby(rows_f.loc[on, "run_id"].to_numpy(), sort=False).mean()
+                inner_rows.append(pd.DataFrame({"run_id": sq.index, "rmse_um": np.sqrt(sq.to_numpy())}).assign(
+                    dataset=dataset, channel=channel, family=STACK, fold=fold, approach="global", inner_fold=g))  # fmt: skip
         models = {}
         if deploy is not None:
             w, how, cv = deploy
