@@ -68,7 +68,37 @@ def _task(family, preds_inner, preds_outer, runs, y_of, sensors=("T1",)):
             "cv": "loro"}  # fmt: skip
 
 
-def test_the_weights_the_held_out_and_the_inner_scores_by_hand(monkeypatch):
+@pytest.fixture
+def any_kind(monkeypatch):
+    """The planted members below are no models the C runtime encodes: taken as stackable."""
+    import thermbench.bench.stack as stack_mod
+
+    monkeypatch.setattr(stack_mod, "stackable", lambda model: True)
+
+
+def test_only_the_kinds_that_answer_from_their_latest_samples_are_stacked(monkeypatch):
+    """A physics, lumped or AR model steps on its own grid or window (its readiness lags the samples):
+    the ENSEMBLE kind would refuse queries it answers alone, so it is not stacked; nor is what does not
+    encode."""
+    from types import SimpleNamespace
+
+    import thermbench.export.encoding as enc
+    from thermbench.bench.stack import stackable
+    from thermbench.export.fileformat import Kind
+
+    for kind, ok in [(Kind.THERMAL_LAG, True), (Kind.LINEAR_HISTORY, True), (Kind.GRU, True), (Kind.MLR_SEED001, True),
+                     (Kind.PHYSICS, False), (Kind.LUMPED, False), (Kind.AR, False), (Kind.ENSEMBLE, False)]:  # fmt: skip
+        monkeypatch.setattr(enc, "encode", lambda model, k=kind: SimpleNamespace(kind=k))
+        assert stackable(object()) is ok, kind
+
+    def refuse(model):
+        raise enc.ExportError("no file encoding")
+
+    monkeypatch.setattr(enc, "encode", refuse)
+    assert stackable(object()) is False
+
+
+def test_the_weights_the_held_out_and_the_inner_scores_by_hand(monkeypatch, any_kind):
     """Three runs, fold r3 holds r3 out (inner folds r1, r2), the deployed fold every run; two families
     with planted predictions: each figure recomputed here with scipy's NNLS."""
     import thermbench.bench.stack as stack_mod
@@ -116,7 +146,7 @@ def test_the_weights_the_held_out_and_the_inner_scores_by_hand(monkeypatch):
     assert made["how"].startswith("nnls")
 
 
-def test_a_fold_where_a_member_has_no_held_out_prediction_has_no_stack_score_at_all():
+def test_a_fold_where_a_member_has_no_held_out_prediction_has_no_stack_score_at_all(any_kind):
     """A member whose fold fit failed: the stack is neither scored nor scored inside on that fold (a
     choice there would drop the fold from the held-out figures)."""
     rng = np.random.default_rng(3)
@@ -128,7 +158,7 @@ def test_a_fold_where_a_member_has_no_held_out_prediction_has_no_stack_score_at_
     assert out["results"].empty and out["inner"].empty and out["models"] == {}
 
 
-def test_one_candidate_family_is_no_stack():
+def test_one_candidate_family_is_no_stack(any_kind):
     rng = np.random.default_rng(2)
     y = {r: rng.normal(size=4) for r in ("r1", "r2")}
     p = {DEPLOY_FOLD: {r: {r: y[r]} for r in y}}

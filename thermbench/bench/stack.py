@@ -8,8 +8,9 @@ Learner*, with the benchmark's folds):
 
 * **members**: the families that are candidates of the choice on that dataset and channel (not a
   baseline, not one the C runtime cannot run, not one worse than no compensation on its own training
-  runs, not the stacked ensemble itself: the runtime does not nest ensembles), the neural ones and
-  the lag bank among them;
+  runs, not the stacked ensemble itself: the runtime does not nest ensembles) whose C kind answers
+  from its latest samples (:data:`STACKABLE_KINDS`: not the physics models, not AR), the neural ones
+  and the lag bank among them;
 * **weights, per outer fold**: non-negative least squares of the measured error on the members'
   inner out-of-run predictions over the fold's training runs, scaled to sum to one
   (:func:`thermbench.models.ensemble.stack_weights`), at most :data:`MAX_MEMBERS` members of weight
@@ -34,10 +35,11 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
+from ..export.fileformat import Kind
 from ..models.ensemble import StackedEnsemble, stack_weights
 from .plan import DEPLOY_FOLD, case_label
 
-__all__ = ["MAX_MEMBERS", "STACK", "fitted_weights", "stack_task"]
+__all__ = ["MAX_MEMBERS", "STACK", "STACKABLE_KINDS", "fitted_weights", "stack_task", "stackable"]
 
 #: the family name of the stack in results.csv, the report and the choice
 STACK = "stack"
@@ -45,6 +47,22 @@ STACK = "stack"
 MAX_MEMBERS = 8
 #: a family never stacked: the stacked ensemble (an ensemble inside an ensemble does not export)
 NOT_STACKED = ("ensemble",)
+#: the C runtime's kinds a stack carries: those that answer from their latest samples, as the ENSEMBLE
+#: kind asks its members at once. A screw or lumped physics model steps on its own grid, an AR model on its
+#: window, a bank's classifier on its windows: their readiness lags the samples, and the ensemble would
+#: refuse queries each member answers alone
+STACKABLE_KINDS = frozenset({Kind.MLR_CURVE, Kind.MLR_SEED001, Kind.LSSVM, Kind.MLP, Kind.GRU, Kind.THERMAL_LAG,
+                             Kind.LINEAR_HISTORY})  # fmt: skip
+
+
+def stackable(model) -> bool:
+    """Whether the fitted ``model`` encodes to one of :data:`STACKABLE_KINDS`."""
+    from ..export.encoding import ExportError, encode
+
+    try:
+        return encode(model).kind in STACKABLE_KINDS
+    except ExportError:
+        return False
 
 _KEYS = ["run_id", "row"]
 
@@ -126,7 +144,8 @@ def stack_task(tasks: list[dict], never: set[tuple[str, str, str]]) -> list[dict
     for (dataset, channel), group in cases.items():
         case = case_label(dataset, channel)
         members = [o for o in group if o["family"] not in NOT_STACKED and "global" in o["models"]
-                   and not o.get("stack_inner", pd.DataFrame()).empty and (case, o["family"], "global") not in never]  # fmt: skip
+                   and not o.get("stack_inner", pd.DataFrame()).empty and (case, o["family"], "global") not in never
+                   and stackable(o["models"]["global"])]  # fmt: skip
         if len(members) < 2:
             continue
         names = [o["family"] for o in members]
