@@ -31,19 +31,19 @@ from .splits import load_split, outer_folds
 from .stack import stack_task
 
 
-def _not_candidates(done_tasks: list[dict]) -> set[tuple[str, str, str]]:
-    """(case, family, approach) of the tasks that are no candidate of the choice: a baseline, one the C
-    runtime cannot run, one worse than no compensation on its own training runs."""
+def _blockers(done_tasks: list[dict], baselines) -> dict[tuple[str, str, str], str]:
+    """(case, family, approach) -> why the C runtime cannot run that fitted model (never chosen), for
+    every task that is not of a family in ``baselines``."""
     from ..export.encoding import export_blocker
 
-    out = set()
+    out = {}
     for o in done_tasks:
-        case = case_label(o["dataset"], o.get("channel", "all"))
+        if o["family"] in baselines:
+            continue
         for a, m in o["models"].items():
-            if reference_only(o["family"]) or export_blocker(m):
-                out.add((case, o["family"], a))
-        if not o["results"].empty:
-            out |= {k[:3] for k in flagged(o["results"])}
+            why = export_blocker(m)
+            if why:
+                out[(case_label(o["dataset"], o.get("channel", "all")), o["family"], a)] = why
     return out
 
 
@@ -93,8 +93,13 @@ def benchmark(cfg: DictConfig) -> JobResult:
     # the same configuration writes the same files whatever the workers' timing
     order = {(t["dataset_cfg"]["name"], t["channel"], t["family"]): i for i, t in enumerate(todo)}
     done_tasks.sort(key=lambda o: order[(o["dataset"], o.get("channel", "all"), o["family"])])
+    baselines = sorted({t["family"] for t in todo if reference_only(t["family"])})
+    blockers = _blockers(done_tasks, baselines)  # never chosen (nor stacked): what the C runtime cannot run
     if cfg.get("stack", True):  # the stack of every candidate family, one more family (bench/stack.py)
-        done_tasks += stack_task(done_tasks, _not_candidates(done_tasks))
+        flags = {k[:3] for o in done_tasks if not o["results"].empty for k in flagged(o["results"])}
+        stacks = stack_task(done_tasks, set(blockers) | flags)
+        blockers |= _blockers(stacks, baselines)
+        done_tasks += stacks
     errors = [e for o in done_tasks for e in o["errors"]]
     parts = [o["results"] for o in done_tasks if not o["results"].empty]
     if not parts:
@@ -103,17 +108,6 @@ def benchmark(cfg: DictConfig) -> JobResult:
     parts = [o["curves"] for o in done_tasks if not o["curves"].empty]
     curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     wall_s = time.perf_counter() - t0
-    baselines = sorted({t["family"] for t in todo if reference_only(t["family"])})
-    from ..export.encoding import export_blocker
-
-    blockers = {}  # (case, family, approach) -> why the C runtime cannot run it: never chosen
-    for o in done_tasks:
-        if o["family"] in baselines:
-            continue
-        for a, m in o["models"].items():
-            why = export_blocker(m)
-            if why:
-                blockers[(case_label(o["dataset"], o.get("channel", "all")), o["family"], a)] = why
     parts = [o["inner"] for o in done_tasks if not o.get("inner", pd.DataFrame()).empty]
     # never a candidate: one the C runtime cannot run, one worse than no compensation on its own training runs
     never = set(blockers) | {k[:3] for k in flagged(results)}

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..models.motion_windows import measuring_intervals
+from .lumped_encoding import MAX_GAP_S  # tb_runtime.h TB_MAX_GAP_S: the compensator samples at least once a minute
 
 
 def process_samples(ds, run: str) -> pd.DataFrame:
@@ -28,9 +29,6 @@ def readings_queries(ds, run: str) -> pd.DataFrame:
     return pd.DataFrame({"t_s": er["t_s"].to_numpy(), "axis_mm": er["target_mm"].to_numpy(), "error_um": er["error_um"].to_numpy()})
 
 
-#: the longest gap the C runtime takes between two samples (tb_runtime.h TB_MAX_GAP_S: the compensator
-#: samples its sensors at least once a minute)
-MAX_GAP_S = 60.0
 #: a replayed log's inserted samples are at most this far apart: below MAX_GAP_S by more than the rounding
 #: of a time of a day's run in single precision (0.008 s at 72 000 s), which the float build compares
 FILL_STEP_S = 0.99 * MAX_GAP_S
