@@ -269,3 +269,36 @@ def test_results_csv_is_in_the_plans_order_whatever_order_the_tasks_finish_in(tm
     bm.benchmark(_cfg(tmp_path))
     assert finished == ["mlr_seed002", "mlr_seed001"]  # the plan's order reversed
     assert (tmp_path / "reports" / "results.csv").read_bytes() == first
+
+
+def test_ctrl_c_keeps_the_finished_cells_and_says_how_to_resume(tmp_path, data_env, monkeypatch, capsys):
+    """Interrupted after its first cell, the job says how many cells are done and where they are kept; the
+    same command then fits only the cell left (the first comes from the cache)."""
+    real = bm.job._iterate
+
+    def interrupted(cfg, todo):
+        it = real(cfg, todo)
+        yield next(it)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bm.job, "_iterate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        bm.benchmark(_cfg(tmp_path))
+    err = capsys.readouterr()
+    line = next(x for x in (err.out + err.err).splitlines() if "cells done" in x)
+    assert line == (f"benchmark: 1 of 2 cells done, kept in {(tmp_path / 'cache').resolve()}: the same command "
+                    "resumes with the 1 cells left")  # fmt: skip
+    monkeypatch.setattr(bm.job, "_iterate", real)
+    import joblib
+
+    calls = []
+
+    real_call = joblib.memory.MemorizedFunc._call
+
+    def counting(self, *a, **k):  # a cell the cache does not hold is computed through _call
+        calls.append(1)
+        return real_call(self, *a, **k)
+
+    monkeypatch.setattr(joblib.memory.MemorizedFunc, "_call", counting)
+    bm.benchmark(_cfg(tmp_path))
+    assert len(calls) == 1

@@ -29,6 +29,21 @@ def test_group_kfold_splits_whole_runs_into_disjoint_folds():
     held = [r for f in fs for r in f.held_out]
     assert sorted(held) == RUNS  # each run held out exactly once
     assert all(not set(f.train) & set(f.held_out) and set(f.train) | set(f.held_out) == set(RUNS) for f in fs)
+    # a fold of several runs is named by its place, not by its runs joined (43 runs: 500 characters)
+    assert [f.name for f in fs] == ["fold 1 of 2", "fold 2 of 2"]
+
+
+def test_the_report_lists_each_folds_runs_once():
+    import pandas as pd
+
+    from thermbench.report.markdown import folds_md
+
+    rows = [("d", "fold 1 of 2", r, "validation") for r in ("a", "c")] * 2 + \
+        [("d", "fold 2 of 2", r, "validation") for r in ("b", "d", "e")] + [("d", "", "a", "state")]
+    md = folds_md(pd.DataFrame(rows, columns=["dataset", "fold", "run_id", "kind"]).assign(channel="all"))
+    assert md[0] == "## Folds" and "- **d**: fold 1 of 2: a, c; fold 2 of 2: b, d, e" in md
+    loro = pd.DataFrame([("d", r, r, "validation") for r in RUNS], columns=["dataset", "fold", "run_id", "kind"])
+    assert folds_md(loro) == []  # each fold is named by its one run: nothing to list
 
 
 def test_declared_is_the_datasets_own_split_and_null_picks_by_the_dataset():

@@ -80,15 +80,24 @@ def benchmark(cfg: DictConfig) -> JobResult:
     h = tracking.config_hash(conf | {"dataset_content": data_hashes})
     t0 = time.perf_counter()
     done_tasks = []
-    bar = tqdm(total=len(todo), desc="benchmark", unit="task", disable=None if cfg.get("progress", True) else True)
-    for k, out in enumerate(_iterate(cfg, todo), 1):
-        done_tasks.append(out)
-        n_models = out["results"][["approach", "train"]].drop_duplicates().shape[0] if not out["results"].empty else 0
-        where = out["dataset"] if out.get("channel", "all") == "all" else f"{out['dataset']} {out['channel']}"
-        bar.write(f"[{k}/{len(todo)}] {where} x {out['family']}: {n_models} models in {out['seconds']:.1f} s"
-                  + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
-        bar.update(1)
-    bar.close()
+    # one bar: the cells done of those to do, and tqdm's estimate of the time left
+    bar = tqdm(total=len(todo), desc="benchmark cells", unit="cell", disable=None if cfg.get("progress", True) else True)
+    try:
+        for k, out in enumerate(_iterate(cfg, todo), 1):
+            done_tasks.append(out)
+            n_models = out["results"][["approach", "train"]].drop_duplicates().shape[0] if not out["results"].empty else 0
+            where = out["dataset"] if out.get("channel", "all") == "all" else f"{out['dataset']} {out['channel']}"
+            bar.write(f"[{k}/{len(todo)}] {where} x {out['family']}: {n_models} models in {out['seconds']:.1f} s"
+                      + (f" ({len(out['errors'])} could not fit)" if out["errors"] else ""))
+            bar.update(1)
+    except KeyboardInterrupt:  # each finished cell is in the cache already (written whole by its worker)
+        cache = cfg.get("cache_dir")
+        bar.write(f"benchmark: {len(done_tasks)} of {len(todo)} cells done" + (
+            f", kept in {Path(str(cache)).resolve()}: the same command resumes with the {len(todo) - len(done_tasks)} "
+            "cells left" if cache else " (cache_dir is null: a re-run starts again)"))  # fmt: skip
+        raise
+    finally:
+        bar.close()
     # the tasks come as they finish; results.csv, the report and the choice take them in the plan's order, so
     # the same configuration writes the same files whatever the workers' timing
     order = {(t["dataset_cfg"]["name"], t["channel"], t["family"]): i for i, t in enumerate(todo)}

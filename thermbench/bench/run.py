@@ -4,6 +4,7 @@ approach, every outer fold and its inner folds; and the tasks run in parallel (:
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -11,13 +12,14 @@ import joblib
 import numpy as np
 import pandas as pd
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from sklearn.base import clone
 
 from .. import __version__
 from ..data.reference import frame_text
 from ..experiment import build_model, fit_evaluate
 from .metrics import evaluate as evaluate_runs
+from ..errors import ExperimentError
 from ..models.base import ModelError
 from ..models.gp import GaussianProcessLag
 from .adapt import ProbePlan
@@ -321,8 +323,38 @@ def held_out_predictions(fitted, ds, runs, fold: str) -> pd.DataFrame:
     return pd.DataFrame({"fold": fold, "run_id": groups, "row": rows, "y": y, "pred": pred})
 
 
+def executor_of(cfg: DictConfig):
+    """The job's executor (``executor``: conf/executor, :mod:`thermbench.bench.parallel`); none set: local."""
+    from .parallel import LocalExecutor
+
+    ex = cfg.get("executor")
+    if ex is None:
+        return LocalExecutor()
+    if not OmegaConf.is_dict(ex) or "_target_" not in ex:
+        raise ExperimentError(f"config key 'executor': expected an option of conf/executor (local, dask, slurm), got {ex!r}")
+    return instantiate(ex, _convert_="all")
+
+
+def absolute_paths(task: Mapping) -> dict:
+    """``task`` with its dataset's paths absolute (a dataset directory, the benchmark datasets' root), as
+    workers elsewhere with another working directory find them (on a filesystem they share)."""
+    from .datasets import default_root
+
+    dcfg = dict(task["dataset_cfg"])
+    src = dict(dcfg.get("source") or {})
+    if src.get("_target_") == "thermbench.data.io.load_dataset" and src.get("path") is not None:
+        src["path"] = os.path.abspath(str(src["path"]))
+    elif src.get("_target_") == "thermbench.bench.datasets.load_benchmark":
+        src["root"] = os.path.abspath(str(src.get("root") or default_root()))
+    return {**task, "dataset_cfg": {**dcfg, "source": src}}
+
+
 def _iterate(cfg: DictConfig, todo: list[dict]) -> Iterable[dict]:
+    """Every task's output as it finishes, on the job's executor (local joblib workers or a Dask cluster)."""
+    executor = executor_of(cfg)
     cache = cfg.get("cache_dir")
-    fn = joblib.Memory(str(cache), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
+    fn = joblib.Memory(os.path.abspath(str(cache)), verbose=0).cache(run_task, ignore=["verbose"]) if cache else run_task
+    calls = [((), absolute_paths(t)) for t in todo]  # one cache key wherever the cell runs
     # each worker on its share of the job's cores (parallel.worker_threads); results as they finish
-    return run_workers(fn, [((), t) for t in todo], int(cfg.get("n_jobs", 1)), ordered=False)
+    with executor.session(int(cfg.get("n_jobs", 1))) as (n_jobs, threads):
+        yield from run_workers(fn, calls, n_jobs, ordered=False, threads=threads)

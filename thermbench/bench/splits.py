@@ -232,8 +232,8 @@ CV_KINDS = ("loro", "group_kfold", "declared")
 
 @dataclass(frozen=True)
 class Fold:
-    """One fold: its name (the held-out run, ``a+b`` for several), the runs it trains on and
-    the runs it holds out."""
+    """One fold: its name (the held-out run; ``fold 3 of 5`` when it holds out several, whose runs
+    the report lists once), the runs it trains on and the runs it holds out."""
 
     name: str
     train: tuple[str, ...]
@@ -270,9 +270,11 @@ def folds(runs: Sequence[str], validation: Sequence[str], cv: str, k: int = 5) -
         splitter = GroupKFold(n_splits=k)
     idx = np.arange(len(runs))
     out = []
-    for train, test in splitter.split(idx, groups=idx):
-        held = tuple(runs[i] for i in sorted(test))
-        out.append(Fold("+".join(held), tuple(runs[i] for i in sorted(train)), held))
+    splits = list(splitter.split(idx, groups=idx))
+    for i, (train, test) in enumerate(splits, 1):
+        held = tuple(runs[j] for j in sorted(test))
+        name = held[0] if len(held) == 1 else f"fold {i} of {len(splits)}"
+        out.append(Fold(name, tuple(runs[j] for j in sorted(train)), held))
     return out
 
 

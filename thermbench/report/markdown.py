@@ -117,6 +117,23 @@ LIMITS_COLUMNS = {"choice_median_um": "choice median µm", "baseline_median_um":
                   "inner_cv_median_um": "choice's inner CV median µm"}  # fmt: skip
 
 
+def folds_md(results: pd.DataFrame) -> list[str]:
+    """The runs of each fold that holds out several (``fold 3 of 5`` in the tables), listed once per dataset
+    and channel; none when every fold holds out one run (named by it)."""
+    if not {"fold", "kind", "run_id"} <= set(results.columns):
+        return []
+    val = results[(results["kind"] == "validation") & results["fold"].fillna("").astype(str).str.startswith("fold ")]
+    if val.empty:
+        return []
+    md = ["## Folds", "", "The runs each fold holds out (it trains on the others).", ""]
+    keys = ["dataset", *(["channel"] if "channel" in val and (val["channel"] != "all").any() else [])]
+    for case, g in val.groupby(keys, sort=False):
+        case = " ".join(map(str, case)) if isinstance(case, tuple) else str(case)
+        md += [f"- **{case}**: " + "; ".join(f"{fold}: {', '.join(dict.fromkeys(h['run_id'].astype(str)))}"
+                                           for fold, h in g.groupby("fold", sort=False))]  # fmt: skip
+    return md + [""]
+
+
 def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, meta: Mapping | None = None,
                  force: bool = False, reference: Sequence[str] = (), n_jobs: int = 1,
                  held_out: pd.DataFrame | None = None, limits: pd.DataFrame | None = None,
@@ -201,6 +218,7 @@ def write_report(results: pd.DataFrame, curves: pd.DataFrame | None, out_dir, me
         md += [f"- **{r['case']}**: {r['verdict']}" for r in limits.to_dict("records")] + [""]
         md += [markdown_table(limits.drop(columns="verdict"), index=False, headers=LIMITS_COLUMNS,
                                  formats={"ratio": lambda v: f"{v:.2f}×"}), ""]
+    md += folds_md(r)
     findings = _lists_md(meta)
     md += ["## The run", "", _meta_md(meta, FINDINGS_NAME if findings else None), ""]
     md += [f"Everything behind these tables is in [{DETAILS_NAME}]({DETAILS_NAME}): how to read it, the terminal summary, "
