@@ -190,3 +190,19 @@ def test_the_models_of_a_benchmark_on_a_directory_export_without_naming_the_data
     with pytest.raises(ConfigError, match=r"^config key 'export.select': chosen, but .*manifest.yaml marks no model "
                                           r"chosen \(chosen: true\); name the models instead, e.g. export.select=\["):
         run_export(chosen)
+
+
+def test_the_single_matrix_is_skipped_above_single_max_runs_and_said(lathe, tmp_path, capsys):
+    """3 runs: with single_max_runs 2 the single approach (3 fits scored on 3 runs each) is not run, in one
+    line; with 3 it is, each run's fit scored on all 3 runs."""
+    base = [f"datasets=[{lathe}]", "families=[baseline_ols]", "bank_families=[]", "cv=loro"]
+    todo = bm.tasks(_cfg(tmp_path, *base, "single_max_runs=2"))
+    assert "single" not in todo[0]["approaches"] and "global" in todo[0]["approaches"]
+    err = capsys.readouterr().err
+    assert err.count(f"skipped single on {lathe}: 3 runs, above single_max_runs (2)") == 1
+    todo = bm.tasks(_cfg(tmp_path, *base, "single_max_runs=3"))
+    assert "single" in todo[0]["approaches"] and "skipped single" not in capsys.readouterr().err
+    res = bm.run_task(**{**todo[0], "approaches": ["single"]})["results"]
+    assert len(res) == 9 and sorted(set(res["train"])) == ["Day_1", "Day_2", "Day_3"]
+    with pytest.raises(ExperimentError, match="config key 'single_max_runs': expected an integer >= 1 or null, got 0"):
+        bm.tasks(_cfg(tmp_path, *base, "single_max_runs=0"))

@@ -133,6 +133,11 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
     stray = sorted(set(bank_families) - set(families))
     if stray and cfg.get("families") is not None:
         raise ExperimentError(f"config key 'bank_families': {stray} are not in 'families' {families}")
+    max_runs = cfg.get("single_max_runs", None)
+    if max_runs is None:
+        max_runs = float("inf")
+    elif isinstance(max_runs, bool) or not isinstance(max_runs, int) or max_runs < 1:
+        raise ExperimentError(f"config key 'single_max_runs': expected an integer >= 1 or null, got {max_runs!r}")
     classifier = OmegaConf.to_container(cfg.classifier, resolve=True) if cfg.get("classifier") else None
     version = tracking.code_version()
     out = []
@@ -147,8 +152,15 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
             ccfg = {**ccfg, "name": split.name}  # a dataset directory: named by its machine
             ds, first = split.dataset, channel == channels_of(raw, dcfg)[0]
             data_hash = ds.content_hash()
-            if first:  # cv and cv_folds checked here, in one line, before any worker starts
-                outer_folds(split, _cv(cfg), cfg.get("cv_folds", 5))
+            cv_kind, cv_folds, _ = outer_folds(split, _cv(cfg), cfg.get("cv_folds", 5))  # checked here, in one line
+            n_runs = len({r for f in cv_folds for r in f.held_out})
+            single = approaches
+            if "single" in approaches and cv_kind != "declared" and n_runs > max_runs:
+                single = [a for a in approaches if a != "single"]  # N fits scored on N runs each: N^2 scores
+                if first:
+                    skip(f"single on {dname}: {n_runs} runs, above single_max_runs ({max_runs}): the train-run x "
+                         f"test-run matrix would be {n_runs} fits scored on {n_runs} runs each; raise single_max_runs "
+                         "to have it")  # fmt: skip
             banked = [a for a in approaches if a in BANKS]
             try:
                 if banked:
@@ -168,7 +180,7 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
                         dataset_cfg=ccfg,
                         family=fam,
                         model_cfg=model_config(fam, dcfg, str(dname) if option else None),
-                        approaches=[a for a in approaches if a not in BANKS or (fam in bank_families and a in banked)],
+                        approaches=[a for a in single if a not in BANKS or (fam in bank_families and a in banked)],
                         classifier_cfg=classifier,
                         seed=int(cfg.seed),
                         dataset_hash=data_hash,

@@ -129,8 +129,8 @@ def run_task(
     states = split.states if cv == "declared" else sorted({r for f in folds for r in f.held_out}, key=ds.run_ids.index)
     if "single" in approaches or banks:
         for state in states:
-            try:
-                fitted, res, _ = fit_evaluate(model, ds, [state])
+            try:  # scored on every run for the train x test matrix; a bank's member only on its own run
+                fitted, res, _ = fit_evaluate(model, ds, [state], None if "single" in approaches else [state])
             except CELL_FAILURES as exc:
                 fail(f"single {state}", exc, "single")
                 continue
