@@ -107,16 +107,22 @@ def test_benchmark_workers_get_the_cores_divided_by_n_jobs(monkeypatch):
     assert budget == cores and set(mine.values()) == {cores}
 
 
-def test_the_benchmark_dispatches_its_tasks_through_run_workers(monkeypatch):
+def test_the_benchmark_dispatches_its_tasks_through_run_workers(monkeypatch, tmp_path):
     from omegaconf import OmegaConf
 
     from thermbench import bench as bm
 
     seen = []
-    monkeypatch.setattr(bm.run, "run_workers", lambda fn, calls, n_jobs, ordered=True: seen.append((fn, calls, n_jobs)))
-    todo = [{"family": "a"}, {"family": "b"}]
-    bm.run._iterate(OmegaConf.create({"n_jobs": 2, "cache_dir": None}), todo)
-    assert seen == [(bm.run_task, [((), t) for t in todo], 2)]
+    monkeypatch.setattr(bm.run, "run_workers", lambda fn, calls, n_jobs, ordered=True, threads=None:
+                        seen.append((fn, calls, n_jobs, threads)) or [])  # fmt: skip
+    src = {"_target_": "thermbench.data.io.load_dataset", "path": "data/lab"}
+    todo = [{"family": "a", "dataset_cfg": {"source": src}}, {"family": "b", "dataset_cfg": {"source": src}}]
+    monkeypatch.chdir(tmp_path)
+    list(bm.run._iterate(OmegaConf.create({"n_jobs": 2, "cache_dir": None}), todo))
+    # the local executor (none configured), each task with its dataset at an absolute path (a worker elsewhere
+    # finds it; the cache key is the same wherever the cell runs)
+    at = {"_target_": "thermbench.data.io.load_dataset", "path": str(tmp_path / "data" / "lab")}
+    assert seen == [(bm.run_task, [((), {"family": f, "dataset_cfg": {"source": at}}) for f in "ab"], 2, None)]
 
 
 def test_worker_share_of_the_cores():
