@@ -121,3 +121,19 @@ def test_executor_errors_are_one_line(tmp_path, seed001_data_root, monkeypatch):
                           "executor.connect_timeout_s=2"))  # fmt: skip
     with pytest.raises(ExperimentError, match="executor.n_workers.*integer >= 1, got 0"):
         bm.benchmark(_cfg(tmp_path, "y", "executor=dask", "executor.n_workers=0"))
+
+
+def test_a_cell_on_a_dask_worker_keeps_its_joblib_calls_to_itself():
+    """joblib inside a Dask task would send nested calls (scikit-learn's cross_val_predict) back to the
+    cluster with their data; a cell runs them in its own worker, one after the other, as a local worker does."""
+    import joblib
+
+    from thermbench.bench.parallel import _call_limited
+
+    def nested_backend():
+        with joblib.parallel_config(backend="dask"):  # what joblib picks inside a Dask task
+            return type(_call_limited(lambda: joblib.parallel.get_active_backend()[0], 1, (), {})).__name__
+
+    with distributed.Client(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as c:
+        assert c.submit(nested_backend).result() == "SequentialBackend"
+        assert nested_backend() == "DaskDistributedBackend"  # outside a worker: untouched

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 from typing import Iterator, Mapping, Sequence
 
 import joblib
@@ -60,9 +61,22 @@ def worker_threads(n_jobs: int, n_tasks: int, cores: int | None = None) -> int:
     return threads_per_worker(cores, min(n_workers(n_jobs), max(1, n_tasks)))
 
 
+def _in_dask_worker() -> bool:
+    if "distributed" not in sys.modules:
+        return False
+    try:
+        sys.modules["distributed"].get_worker()
+        return True
+    except ValueError:
+        return False
+
+
 def _call_limited(fn, threads: int, args: tuple, kwargs: Mapping):
-    """``fn(*args, **kwargs)`` with every fit (and whatever else runs there) on ``threads`` threads."""
-    with thread_budget(threads):
+    """``fn(*args, **kwargs)`` with every fit (and whatever else runs there) on ``threads`` threads. On a Dask
+    worker the joblib calls inside it (scikit-learn's cross-validation) run in it, one after the other, as
+    they do in a local joblib worker: joblib would otherwise send them, with their data, back to the cluster."""
+    with thread_budget(threads), (joblib.parallel_config(backend="sequential") if _in_dask_worker()
+                                  else contextlib.nullcontext()):  # fmt: skip
         return fn(*args, **kwargs)
 
 
