@@ -99,9 +99,6 @@ def run_workers(fn, calls: Sequence[tuple[tuple, Mapping]], n_jobs: int, ordered
 class LocalExecutor:
     """The cells in ``n_jobs`` joblib worker processes on this machine (the default)."""
 
-    def __init__(self) -> None:
-        pass
-
     def __repr__(self) -> str:
         return "LocalExecutor()"
 

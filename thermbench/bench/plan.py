@@ -154,9 +154,9 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
             data_hash = ds.content_hash()
             cv_kind, cv_folds, _ = outer_folds(split, _cv(cfg), cfg.get("cv_folds", 5))  # checked here, in one line
             n_runs = len({r for f in cv_folds for r in f.held_out})
-            single = approaches
+            kept = approaches
             if "single" in approaches and cv_kind != "declared" and n_runs > max_runs:
-                single = [a for a in approaches if a != "single"]  # N fits scored on N runs each: N^2 scores
+                kept = [a for a in approaches if a != "single"]  # N fits scored on N runs each: N^2 scores
                 if first:
                     skip(f"single on {dname}: {n_runs} runs, above single_max_runs ({max_runs}): the train-run x "
                          f"test-run matrix would be {n_runs} fits scored on {n_runs} runs each; raise single_max_runs "
@@ -180,7 +180,7 @@ def tasks(cfg: DictConfig, skipped: list[str] | None = None) -> list[dict]:
                         dataset_cfg=ccfg,
                         family=fam,
                         model_cfg=model_config(fam, dcfg, str(dname) if option else None),
-                        approaches=[a for a in single if a not in BANKS or (fam in bank_families and a in banked)],
+                        approaches=[a for a in kept if a not in BANKS or (fam in bank_families and a in banked)],
                         classifier_cfg=classifier,
                         seed=int(cfg.seed),
                         dataset_hash=data_hash,
